@@ -1,0 +1,1 @@
+"""The command line, fleet runners, reports and plots."""

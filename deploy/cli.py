@@ -1,0 +1,57 @@
+"""The ``semfleet`` command: one parser, one launcher that maps errors to exit codes."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from collections.abc import Sequence
+
+from rich.console import Console
+
+from deploy import demo, scenario_cmd
+from sim.scenario import ScenarioError
+
+EXIT_OK = 0
+EXIT_FAILURE = 1
+EXIT_USAGE = 2
+EXIT_INTERRUPTED = 130
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="semfleet",
+        description="Distributed, consistent, multi-robot semantic SLAM.",
+    )
+    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    scenario_cmd.add_parser(sub)
+    demo.add_parser(sub)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(
+        level=logging.DEBUG if args.verbose else logging.WARNING,
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+    )
+    console = Console()
+    err = Console(stderr=True)
+    try:
+        code: int = args.run(args, console)
+        return code
+    except ScenarioError as exc:
+        err.print(f"semfleet: error: {exc}", markup=False, highlight=False)
+        return EXIT_USAGE
+    except (OSError, ValueError) as exc:
+        err.print(f"semfleet: error: {exc}", markup=False, highlight=False)
+        return EXIT_FAILURE
+    except KeyboardInterrupt:
+        err.print("semfleet: interrupted", markup=False)
+        return EXIT_INTERRUPTED
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,189 @@
+"""Viewpoint-dependent classifier models, Eq. 1: ``z_sem ~ N(h_c(ψ), Σ_c(ψ))``.
+
+Classes are indexed 0..M−1 in code (scenario files and reports say 1..M, as the paper does).
+ψ is the azimuth of the camera seen from the object frame (design doc §1).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from estimator.models import se2
+
+Array = NDArray[np.float64]
+
+_LOG_2PI = math.log(2.0 * math.pi)
+
+
+def viewpoint(robot: ArrayLike, obj: ArrayLike) -> Array:
+    """ψ of the camera at ``robot`` (..., 3) seen from object pose ``obj`` (..., 3) → (...)."""
+    p = se2.transform_to(obj, np.asarray(robot, dtype=float)[..., :2])
+    return np.asarray(np.arctan2(p[..., 1], p[..., 0]))
+
+
+@runtime_checkable
+class ClassifierModel(Protocol):
+    """A classifier model P(z_sem | c, ψ). Implementations must be vectorised over ψ."""
+
+    @property
+    def num_classes(self) -> int:
+        """M, the number of classes."""
+        ...
+
+    @property
+    def dim(self) -> int:
+        """Length of a score vector z_sem."""
+        ...
+
+    def mean(self, c: int, psi: ArrayLike) -> Array:
+        """h_c(ψ): ψ (...) → (..., dim)."""
+        ...
+
+    def cov(self, c: int, psi: ArrayLike) -> Array:
+        """Σ_c(ψ): ψ (...) → (..., dim, dim)."""
+        ...
+
+    def log_likelihood(self, z: ArrayLike, c: int, psi: ArrayLike) -> Array:
+        """log N(z; h_c(ψ), Σ_c(ψ)) with all constants: z (dim,) or (..., dim), ψ (...) → (...)."""
+        ...
+
+
+def gaussian_log_likelihood(z: ArrayLike, mean: Array, cov: Array) -> Array:
+    """log N(z; mean, cov) for stacks: z (..., d), mean (..., d), cov (..., d, d) → (...)."""
+    r = np.asarray(z, dtype=float) - mean
+    chol = np.linalg.cholesky(cov)
+    white = np.linalg.solve(chol, r[..., None])[..., 0]
+    log_det = 2.0 * np.sum(np.log(np.diagonal(chol, axis1=-2, axis2=-1)), axis=-1)
+    d = r.shape[-1]
+    return np.asarray(-0.5 * np.sum(white * white, axis=-1) - 0.5 * log_det - 0.5 * d * _LOG_2PI)
+
+
+@dataclass(frozen=True)
+class AliasedClassifier:
+    """M-class model whose scores blur each class with an alias class away from its best view.
+
+    ``h_c(ψ) = s_c(ψ)·e_c + (1 − s_c(ψ))·½(e_c + e_{alias[c]})`` with
+    ``s_c(ψ) = ½(1 + cos(ψ − best_view[c]))``: at ψ = best_view[c] the mean score is the one-hot
+    e_c; from the opposite side class c looks exactly half like its alias. The covariance is
+    constant, ``Σ = (RᵀR)⁻¹`` with ``R = sqrt_info`` (dim × dim, upper triangular).
+    The paper's crafted model (design doc §1) is the case M = 2, alias = (1, 0), best_view = (π/2, π/2),
+    R = [[1.5, −0.75], [0, 1.5]].
+    """
+
+    alias: tuple[int, ...]
+    best_view: tuple[float, ...]
+    sqrt_info: Array = field(repr=False)
+    _log_norm: float = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        m = len(self.alias)
+        if m < 2:
+            raise ValueError("an aliased classifier needs at least two classes")
+        if len(self.best_view) != m:
+            raise ValueError(f"best_view has {len(self.best_view)} entries, expected {m}")
+        for c, a in enumerate(self.alias):
+            if not 0 <= a < m or a == c:
+                raise ValueError(f"alias[{c}] = {a} must be another class in 0..{m - 1}")
+        if not all(math.isfinite(b) for b in self.best_view):
+            raise ValueError("best_view must be finite")
+        r = np.array(self.sqrt_info, dtype=float)
+        if r.shape != (m, m) or not np.all(np.isfinite(r)):
+            raise ValueError(f"sqrt_info must be a finite ({m}, {m}) matrix")
+        sign, log_abs_det = np.linalg.slogdet(r)
+        if sign == 0 or not np.isfinite(log_abs_det):
+            raise ValueError("sqrt_info must be invertible")
+        r.setflags(write=False)
+        object.__setattr__(self, "sqrt_info", r)
+        # log N = −½‖R(z − h)‖² + log|det R| − (M/2) log 2π
+        object.__setattr__(self, "_log_norm", float(log_abs_det) - 0.5 * m * _LOG_2PI)
+
+    @property
+    def num_classes(self) -> int:
+        return len(self.alias)
+
+    @property
+    def dim(self) -> int:
+        return len(self.alias)
+
+    def _check_class(self, c: int) -> None:
+        if not 0 <= int(c) < self.num_classes:
+            raise ValueError(f"class {c} out of range 0..{self.num_classes - 1}")
+
+    def sharpness(self, c: int, psi: ArrayLike) -> Array:
+        """s_c(ψ) ∈ [0, 1]: ψ (...) → (...)."""
+        self._check_class(c)
+        return 0.5 * (1.0 + np.cos(np.asarray(psi, dtype=float) - self.best_view[c]))
+
+    def mean(self, c: int, psi: ArrayLike) -> Array:
+        s = self.sharpness(c, psi)[..., None]
+        eye = np.eye(self.num_classes)
+        blurred = 0.5 * (eye[c] + eye[self.alias[c]])
+        return np.asarray(s * eye[c] + (1.0 - s) * blurred)
+
+    def cov(self, c: int, psi: ArrayLike) -> Array:
+        self._check_class(c)
+        info = self.sqrt_info.T @ self.sqrt_info
+        shape = np.shape(psi) + (self.dim, self.dim)
+        return np.broadcast_to(np.linalg.inv(info), shape).copy()
+
+    def log_likelihood(self, z: ArrayLike, c: int, psi: ArrayLike) -> Array:
+        r = np.asarray(z, dtype=float) - self.mean(c, psi)
+        white = r @ self.sqrt_info.T
+        return np.asarray(-0.5 * np.sum(white * white, axis=-1) + self._log_norm)
+
+    @classmethod
+    def random(
+        cls, num_classes: int, rng: np.random.Generator, noise_std: float = 0.35
+    ) -> AliasedClassifier:
+        """A random model for generated worlds: a random alias per class, random best views,
+        isotropic score noise ``noise_std``."""
+        if num_classes < 2:
+            raise ValueError("need at least two classes")
+        alias = []
+        for c in range(num_classes):
+            others = [a for a in range(num_classes) if a != c]
+            alias.append(int(others[rng.integers(len(others))]))
+        best = tuple(float(b) for b in rng.uniform(-np.pi, np.pi, num_classes))
+        return cls(tuple(alias), best, np.eye(num_classes) / noise_std)
+
+
+PAPER_SQRT_INFO = np.array([[1.5, -0.75], [0.0, 1.5]])
+
+
+def paper_classifier() -> AliasedClassifier:
+    """The paper's crafted two-class model (design doc §1)."""
+    return AliasedClassifier((1, 0), (math.pi / 2, math.pi / 2), PAPER_SQRT_INFO)
+
+
+@dataclass(frozen=True)
+class FirstComponents:
+    """The marginal of a model over the first M−1 score components.
+
+    Real classifier outputs lie on the probability simplex, so their last component is determined by
+    the others and a full-dimensional Gaussian would be degenerate; the marginal of the first M−1
+    components is exact for a Gaussian model.
+    """
+
+    model: ClassifierModel
+
+    @property
+    def num_classes(self) -> int:
+        return self.model.num_classes
+
+    @property
+    def dim(self) -> int:
+        return self.model.dim - 1
+
+    def mean(self, c: int, psi: ArrayLike) -> Array:
+        return self.model.mean(c, psi)[..., :-1]
+
+    def cov(self, c: int, psi: ArrayLike) -> Array:
+        return self.model.cov(c, psi)[..., :-1, :-1]
+
+    def log_likelihood(self, z: ArrayLike, c: int, psi: ArrayLike) -> Array:
+        return gaussian_log_likelihood(z, self.mean(c, psi), self.cov(c, psi))

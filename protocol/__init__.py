@@ -1,0 +1,1 @@
+"""The wire: slots, stacks, their merge rule and the msgpack codec (sans-I/O)."""

@@ -1,0 +1,1 @@
+"""Scenario files, ground-truth worlds and sensor simulation."""

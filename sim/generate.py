@@ -1,0 +1,174 @@
+"""Random worlds for scaling tests and benchmarks, and writing scenarios back to TOML."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from estimator.models import GaussianNoise, se2
+from estimator.models.noise import PAPER_GEOMETRIC, PAPER_ODOMETRY
+from sim.scenario import (
+    ClassifierSpec,
+    Communication,
+    Object,
+    Robot,
+    Scenario,
+    Sensor,
+)
+
+_SPEED = 0.25
+_MAX_TURN = 0.15
+_STEER_GAIN = 0.5
+_MAX_STEER = 0.3
+
+
+def generate_scenario(
+    robots: int,
+    objects: int,
+    classes: int,
+    seed: int,
+    steps: int = 60,
+    area: float | None = None,
+    comm_range: float = 10.0,
+) -> Scenario:
+    """A random world: ``objects`` objects with uniform classes in a square of side ``area`` metres
+    (default grows with √objects), ``robots`` robots wandering inside it with smooth turns, an
+    aliased classifier with random aliases and best views, the paper's noise, range communication.
+    """
+    if robots < 1 or objects < 1 or classes < 2 or steps < 1:
+        raise ValueError("need robots ≥ 1, objects ≥ 1, classes ≥ 2 and steps ≥ 1")
+    rng = np.random.default_rng(np.random.SeedSequence([seed, 0x5E4F1EE7]))
+    side = float(area) if area is not None else max(12.0, 4.0 * math.sqrt(objects))
+    half = side / 2.0
+    obj_xy = rng.uniform(-half, half, size=(objects, 2))
+    obj_yaw = rng.uniform(-np.pi, np.pi, size=objects)
+    obj_cls = rng.integers(0, classes, size=objects)
+    object_specs = tuple(
+        Object(j + 1, (float(x), float(y), float(t)), int(c))
+        for j, ((x, y), t, c) in enumerate(zip(obj_xy, obj_yaw, obj_cls, strict=True))
+    )
+    robot_specs = tuple(
+        _wandering_robot(f"r{i + 1}", rng, half, steps) for i in range(robots)
+    )
+    alias, best = [], []
+    for c in range(classes):
+        others = [a for a in range(classes) if a != c]
+        alias.append(int(others[rng.integers(len(others))]))
+        best.append(float(rng.uniform(-np.pi, np.pi)))
+    return Scenario(
+        name=f"random-r{robots}-o{objects}-c{classes}-s{seed}",
+        description=f"random world, seed {seed}, {side:.1f} m square",
+        source="<generated>",
+        steps=steps,
+        num_classes=classes,
+        class_prior=tuple([1.0 / classes] * classes),
+        robots=robot_specs,
+        objects=object_specs,
+        odometry_noise=PAPER_ODOMETRY,
+        geometric_noise=PAPER_GEOMETRIC,
+        classifier=ClassifierSpec("aliased", tuple(alias), tuple(best), 0.35),
+        communication=Communication("range", comm_range, ()),
+    )
+
+
+def _wandering_robot(rid: str, rng: np.random.Generator, half: float, steps: int) -> Robot:
+    """A robot that turns at random but steers back towards the centre near the border."""
+    start = np.array([*rng.uniform(-0.8 * half, 0.8 * half, 2), rng.uniform(-np.pi, np.pi)])
+    pose = start.copy()
+    actions = []
+    omega = 0.0
+    for k in range(steps):
+        if k % 5 == 0:
+            omega = float(rng.uniform(-_MAX_TURN, _MAX_TURN))
+        turn = omega
+        if np.max(np.abs(pose[:2])) > 0.8 * half:
+            to_centre = math.atan2(-pose[1], -pose[0])
+            turn = float(np.clip(_STEER_GAIN * se2.wrap_angle(to_centre - pose[2]), -_MAX_STEER, _MAX_STEER))
+        action = (_SPEED, 0.0, round(turn, 6))
+        actions.append(action)
+        pose = se2.compose(pose, np.array(action))
+    return Robot(
+        rid,
+        (float(start[0]), float(start[1]), float(start[2])),
+        tuple(actions),
+        Sensor(math.radians(50.0), 5.0),
+    )
+
+
+def dump_scenario(s: Scenario) -> str:
+    """TOML text (format 1) that :func:`sim.loader.parse_scenario` reads back into ``s``."""
+    out = [
+        "format = 1",
+        f"name = {_q(s.name)}",
+        f"description = {_q(s.description)}",
+        f"steps = {s.steps}",
+        "",
+        "[classes]",
+        f"count = {s.num_classes}",
+        f"prior = {_nums(s.class_prior)}",
+        "",
+        "[classifier]",
+        f"model = {_q(s.classifier.model)}",
+    ]
+    if s.classifier.model == "aliased":
+        out += [
+            f"alias = [{', '.join(str(a + 1) for a in s.classifier.alias)}]",
+            f"best_view_deg = {_nums(math.degrees(b) for b in s.classifier.best_view)}",
+            f"noise_std = {_num(s.classifier.noise_std)}",
+        ]
+    out += ["", "[noise]", f"odometry_var = {_noise(s.odometry_noise)}"]
+    out += [f"geometric_var = {_noise(s.geometric_noise)}", ""]
+    default = s.robots[0].sensor
+    out += ["[sensor]", *_sensor_lines(default), ""]
+    comm = s.communication
+    out += ["[communication]", f"mode = {_q(comm.mode)}"]
+    if comm.range is not None:
+        out.append(f"range = {_num(comm.range)}")
+    if comm.schedule:
+        edges = ", ".join(f"[{e.first}, {e.last}, {_q(e.a)}, {_q(e.b)}]" for e in comm.schedule)
+        out.append(f"schedule = [{edges}]")
+    for r in s.robots:
+        out += ["", "[[robots]]", f"id = {_q(r.id)}", f"start = {_nums(r.start)}"]
+        out += _motion_lines(r)
+        if r.sensor != default:
+            out += ["[robots.sensor]", *_sensor_lines(r.sensor)]
+    for o in s.objects:
+        out += ["", "[[objects]]", f"id = {o.id}", f"pose = {_nums(o.pose)}"]
+        out.append(f"class = {o.class_index + 1}")
+    return "\n".join(out) + "\n"
+
+
+def _motion_lines(r: Robot) -> list[str]:
+    speeds = {(a[0], a[1]) for a in r.actions}
+    if len(speeds) == 1 and next(iter(speeds))[1] == 0.0:
+        runs: list[list[float]] = []
+        for a in r.actions:
+            if runs and runs[-1][1] == a[2]:
+                runs[-1][0] += 1
+            else:
+                runs.append([1, a[2]])
+        turns = ", ".join(f"[{int(n)}, {_num(w)}]" for n, w in runs)
+        return [f"speed = {_num(r.actions[0][0])}", f"turns = [{turns}]"]
+    return [f"actions = [{', '.join(_nums(a) for a in r.actions)}]"]
+
+
+def _sensor_lines(sensor: Sensor) -> list[str]:
+    return [f"half_angle_deg = {_num(math.degrees(sensor.half_angle))}", f"range = {_num(sensor.range)}"]
+
+
+def _noise(noise: GaussianNoise) -> str:
+    return _nums(noise.variances)
+
+
+def _num(x: float) -> str:
+    return repr(float(x))
+
+
+def _nums(xs: object) -> str:
+    return "[" + ", ".join(_num(x) for x in xs) + "]"  # type: ignore[attr-defined]
+
+
+def _q(text: str) -> str:
+    escaped = text.replace("\\", "\\\\").replace('"', '\\"').replace("\n", "\\n")
+    return f'"{escaped}"'

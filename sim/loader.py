@@ -1,0 +1,406 @@
+"""Load and validate scenario TOML files (format 1, see docs/scenarios.md).
+
+Every problem becomes a :class:`ScenarioError` whose message names the file, the field and the
+reason, e.g. ``paper.toml: objects[3].class: 3 is out of range 1..2``.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import re
+import tomllib
+from collections.abc import Iterable, Mapping
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+from estimator.models import GaussianNoise
+from sim.scenario import (
+    FORMAT_VERSION,
+    ClassifierSpec,
+    Communication,
+    Object,
+    Robot,
+    Scenario,
+    ScenarioError,
+    ScheduleEdge,
+    Sensor,
+)
+
+_ID_PATTERN = re.compile(r"^[A-Za-z0-9_-]{1,32}$")
+_COMM_MODES = ("schedule", "range", "both")
+_CLASSIFIER_MODELS = ("paper", "aliased")
+_PRIOR_TOLERANCE = 1e-6
+
+
+def bundled_names() -> list[str]:
+    """Names of the scenarios shipped in ``sim/scenarios``."""
+    folder = resources.files("sim") / "scenarios"
+    return sorted(p.name[:-5] for p in folder.iterdir() if p.name.endswith(".toml"))
+
+
+def read_source(source: str | Path) -> tuple[str, str]:
+    """(label, text) of a scenario given as a file path or a bundled name."""
+    path = Path(source)
+    if path.suffix == ".toml" or path.exists():
+        try:
+            return str(path), path.read_text(encoding="utf-8")
+        except FileNotFoundError:
+            raise ScenarioError(f"{path}: no such scenario file") from None
+        except (OSError, UnicodeDecodeError) as exc:
+            raise ScenarioError(f"{path}: cannot read: {exc}") from None
+    name = str(source)
+    if name not in bundled_names():
+        known = ", ".join(bundled_names())
+        raise ScenarioError(f"{name}: not a file and not a bundled scenario (bundled: {known})")
+    text = (resources.files("sim") / "scenarios" / f"{name}.toml").read_text(encoding="utf-8")
+    return f"{name}.toml", text
+
+
+def load_scenario(
+    source: str | Path,
+    variants: Iterable[str] = (),
+    overrides: Mapping[str, Any] | None = None,
+) -> Scenario:
+    """Load a scenario file or bundled scenario by name.
+
+    ``source`` may carry variants after colons (``paper:sense10``). ``variants`` are applied in
+    order, then ``overrides`` (dotted field paths such as ``{"sensor.range": 10.0}``).
+    """
+    text_source = str(source)
+    names = list(variants)
+    if not Path(text_source).exists() and ":" in text_source:
+        text_source, *inline = text_source.split(":")
+        names = inline + names
+    label, text = read_source(text_source)
+    return parse_scenario(text, label, names, overrides or {})
+
+
+def parse_scenario(
+    text: str,
+    label: str = "<string>",
+    variants: Iterable[str] = (),
+    overrides: Mapping[str, Any] | None = None,
+) -> Scenario:
+    """Validate TOML text into a :class:`Scenario`; ``label`` names the file in errors."""
+    try:
+        raw = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ScenarioError(f"{label}: not valid TOML: {exc}") from None
+    variant_table = _Field(label, raw, "").optional_table("variants") or {}
+    applied = []
+    for name in variants:
+        if name not in variant_table:
+            known = ", ".join(sorted(variant_table)) or "none"
+            raise ScenarioError(f"{label}: variants: no variant {name!r} (defined: {known})")
+        v = _Field(label, variant_table, "variants").table(name)
+        settings = v.table("set")
+        v.check_keys({"description", "set"})
+        for key in settings.keys():
+            _apply_override(raw, label, key, settings.raw[key], f"variants.{name}.set")
+        applied.append(name)
+    for key, value in (overrides or {}).items():
+        _apply_override(raw, label, key, value, "override")
+    return _build(raw, label, tuple(applied))
+
+
+def _apply_override(raw: dict[str, Any], label: str, path: str, value: Any, where: str) -> None:
+    parts = path.split(".")
+    node: Any = raw
+    for i, part in enumerate(parts[:-1]):
+        if not isinstance(node, dict) or part not in node or not isinstance(node[part], dict):
+            prefix = ".".join(parts[: i + 1])
+            raise ScenarioError(f"{label}: {where}: {path!r}: {prefix!r} is not a table")
+        node = node[part]
+    if parts[0] in ("variants", "format"):
+        raise ScenarioError(f"{label}: {where}: {path!r} cannot be overridden")
+    node[parts[-1]] = copy.deepcopy(value)
+
+
+class _Field:
+    """A cursor into the raw TOML data that knows its dotted path, for precise errors."""
+
+    def __init__(self, label: str, raw: Any, path: str) -> None:
+        self.label, self.raw, self.path = label, raw, path
+
+    def _name(self, key: str | int) -> str:
+        if isinstance(key, int):
+            return f"{self.path}[{key}]"
+        return f"{self.path}.{key}" if self.path else key
+
+    def fail(self, key: str | int | None, reason: str) -> ScenarioError:
+        where = self.path if key is None else self._name(key)
+        return ScenarioError(f"{self.label}: {where or '<top>'}: {reason}")
+
+    def keys(self) -> list[str]:
+        return list(self.raw.keys())
+
+    def check_keys(self, allowed: set[str]) -> None:
+        for key in self.raw:
+            if key not in allowed:
+                options = ", ".join(sorted(allowed))
+                raise self.fail(key, f"unknown key (allowed here: {options})")
+
+    def has(self, key: str) -> bool:
+        return key in self.raw
+
+    def _get(self, key: str | int) -> Any:
+        if isinstance(key, int):
+            return self.raw[key]
+        if key not in self.raw:
+            raise self.fail(key, "missing required field")
+        return self.raw[key]
+
+    def table(self, key: str) -> _Field:
+        value = self._get(key)
+        if not isinstance(value, dict):
+            raise self.fail(key, f"expected a table, got {_type_name(value)}")
+        return _Field(self.label, value, self._name(key))
+
+    def optional_table(self, key: str) -> dict[str, Any] | None:
+        return self.table(key).raw if key in self.raw else None
+
+    def array(self, key: str | int) -> _Field:
+        value = self._get(key)
+        if not isinstance(value, list):
+            raise self.fail(key, f"expected an array, got {_type_name(value)}")
+        return _Field(self.label, value, self._name(key))
+
+    def tables(self, key: str) -> list[_Field]:
+        arr = self.array(key)
+        out = []
+        for i, item in enumerate(arr.raw):
+            if not isinstance(item, dict):
+                raise arr.fail(i, f"expected a table, got {_type_name(item)}")
+            out.append(_Field(self.label, item, arr._name(i)))
+        return out
+
+    def string(self, key: str | int) -> str:
+        value = self._get(key)
+        if not isinstance(value, str):
+            raise self.fail(key, f"expected a string, got {_type_name(value)}")
+        return value
+
+    def integer(self, key: str | int, minimum: int | None = None) -> int:
+        value = self._get(key)
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise self.fail(key, f"expected an integer, got {_type_name(value)}")
+        if minimum is not None and value < minimum:
+            raise self.fail(key, f"{value} must be ≥ {minimum}")
+        return value
+
+    def number(self, key: str | int, positive: bool = False) -> float:
+        value = self._get(key)
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise self.fail(key, f"expected a number, got {_type_name(value)}")
+        if not math.isfinite(value):
+            raise self.fail(key, f"{value} is not a finite number")
+        if positive and value <= 0:
+            raise self.fail(key, f"{value} must be > 0")
+        return float(value)
+
+    def vector(self, key: str | int, length: int | None, positive: bool = False) -> list[float]:
+        arr = self.array(key)
+        if length is not None and len(arr.raw) != length:
+            raise self.fail(key, f"expected {length} numbers, got {len(arr.raw)}")
+        return [arr.number(i, positive) for i in range(len(arr.raw))]
+
+
+def _type_name(value: Any) -> str:
+    return {
+        bool: "a boolean",
+        int: "an integer",
+        float: "a number",
+        str: "a string",
+        list: "an array",
+        dict: "a table",
+    }.get(type(value), type(value).__name__)
+
+
+def _build(raw: dict[str, Any], label: str, applied: tuple[str, ...]) -> Scenario:
+    top = _Field(label, raw, "")
+    top.check_keys(
+        {"format", "name", "description", "steps", "classes", "classifier", "noise", "sensor"}
+        | {"communication", "robots", "objects", "variants"}
+    )
+    version = top.integer("format")
+    if version != FORMAT_VERSION:
+        raise top.fail("format", f"unsupported format {version} (this semfleet reads {FORMAT_VERSION})")
+    name = top.string("name")
+    description = top.string("description") if top.has("description") else ""
+    steps = top.integer("steps", minimum=1)
+    num_classes, prior = _classes(top.table("classes"))
+    classifier = _classifier(top.table("classifier"), num_classes)
+    noise = top.table("noise")
+    noise.check_keys({"odometry_var", "geometric_var"})
+    odometry = GaussianNoise(tuple(noise.vector("odometry_var", 3, positive=True)))  # type: ignore[arg-type]
+    geometric = GaussianNoise(tuple(noise.vector("geometric_var", 3, positive=True)))  # type: ignore[arg-type]
+    default_sensor = _sensor(top.table("sensor"))
+    robots = _robots(top, steps, default_sensor)
+    objects = _objects(top, num_classes)
+    robot_ids = [r.id for r in robots]
+    communication = _communication(top.table("communication"), steps, robot_ids)
+    variants = tuple(
+        (n, str(v.get("description", "")) if isinstance(v, dict) else "")
+        for n, v in (top.optional_table("variants") or {}).items()
+    )
+    return Scenario(
+        name=name,
+        description=description,
+        source=label,
+        steps=steps,
+        num_classes=num_classes,
+        class_prior=prior,
+        robots=robots,
+        objects=objects,
+        odometry_noise=odometry,
+        geometric_noise=geometric,
+        classifier=classifier,
+        communication=communication,
+        variants=variants,
+        applied_variants=applied,
+    )
+
+
+def _classes(f: _Field) -> tuple[int, tuple[float, ...]]:
+    f.check_keys({"count", "prior"})
+    m = f.integer("count", minimum=2)
+    if not f.has("prior"):
+        return m, tuple([1.0 / m] * m)
+    prior = f.vector("prior", m, positive=True)
+    if abs(sum(prior) - 1.0) > _PRIOR_TOLERANCE:
+        raise f.fail("prior", f"must sum to 1, sums to {sum(prior):.9g}")
+    return m, tuple(prior)
+
+
+def _classifier(f: _Field, m: int) -> ClassifierSpec:
+    model = f.string("model")
+    if model not in _CLASSIFIER_MODELS:
+        raise f.fail("model", f"unknown model {model!r} (known: {', '.join(_CLASSIFIER_MODELS)})")
+    if model == "paper":
+        f.check_keys({"model"})
+        if m != 2:
+            raise f.fail("model", f"the paper model has 2 classes, the scenario has {m}")
+        return ClassifierSpec("paper")
+    f.check_keys({"model", "alias", "best_view_deg", "noise_std"})
+    alias_arr = f.array("alias")
+    if len(alias_arr.raw) != m:
+        raise f.fail("alias", f"expected {m} class numbers, got {len(alias_arr.raw)}")
+    alias = []
+    for c in range(m):
+        a = alias_arr.integer(c)
+        if not 1 <= a <= m:
+            raise alias_arr.fail(c, f"class {a} is out of range 1..{m}")
+        if a == c + 1:
+            raise alias_arr.fail(c, f"class {a} cannot be its own alias")
+        alias.append(a - 1)
+    best = [math.radians(b) for b in f.vector("best_view_deg", m)]
+    noise_std = f.number("noise_std", positive=True)
+    return ClassifierSpec("aliased", tuple(alias), tuple(best), noise_std)
+
+
+def _sensor(f: _Field) -> Sensor:
+    f.check_keys({"half_angle_deg", "range"})
+    half = f.number("half_angle_deg", positive=True)
+    if half > 180.0:
+        raise f.fail("half_angle_deg", f"{half} must be ≤ 180")
+    return Sensor(math.radians(half), f.number("range", positive=True))
+
+
+def _check_id(f: _Field, key: str | int, value: str) -> None:
+    if not _ID_PATTERN.match(value):
+        raise f.fail(key, f"{value!r} is not a valid robot id (1–32 of A–Z a–z 0–9 _ -)")
+
+
+def _robots(top: _Field, steps: int, default_sensor: Sensor) -> tuple[Robot, ...]:
+    robots: list[Robot] = []
+    seen: set[str] = set()
+    entries = top.tables("robots")
+    if not entries:
+        raise top.fail("robots", "at least one robot is required")
+    for f in entries:
+        f.check_keys({"id", "start", "actions", "turns", "speed", "sensor"})
+        rid = f.string("id")
+        _check_id(f, "id", rid)
+        if rid in seen:
+            raise f.fail("id", f"duplicate robot id {rid!r}")
+        seen.add(rid)
+        start = tuple(f.vector("start", 3))
+        actions = _actions(f, steps)
+        sensor = _sensor(f.table("sensor")) if f.has("sensor") else default_sensor
+        robots.append(Robot(rid, start, actions, sensor))  # type: ignore[arg-type]
+    return tuple(robots)
+
+
+def _actions(f: _Field, steps: int) -> tuple[tuple[float, float, float], ...]:
+    if f.has("actions") == f.has("turns"):
+        raise f.fail(None, "give exactly one of 'actions' or 'turns'")
+    if f.has("actions"):
+        if f.has("speed"):
+            raise f.fail("speed", "only used with 'turns'")
+        arr = f.array("actions")
+        if len(arr.raw) != steps:
+            raise f.fail("actions", f"expected {steps} actions (one per step), got {len(arr.raw)}")
+        return tuple(tuple(arr.vector(i, 3)) for i in range(steps))  # type: ignore[misc]
+    speed = f.number("speed") if f.has("speed") else 0.25
+    runs = f.array("turns")
+    actions: list[tuple[float, float, float]] = []
+    for i in range(len(runs.raw)):
+        run = runs.array(i)
+        if len(run.raw) != 2:
+            raise runs.fail(i, f"expected [count, turn_rad], got {len(run.raw)} values")
+        count = run.integer(0, minimum=1)
+        omega = run.number(1)
+        actions.extend([(speed, 0.0, omega)] * count)
+    if len(actions) != steps:
+        raise f.fail("turns", f"counts add up to {len(actions)} steps, the scenario has {steps}")
+    return tuple(actions)
+
+
+def _objects(top: _Field, m: int) -> tuple[Object, ...]:
+    objects: list[Object] = []
+    seen: set[int] = set()
+    for f in top.tables("objects"):
+        f.check_keys({"id", "pose", "class"})
+        oid = f.integer("id", minimum=0)
+        if oid in seen:
+            raise f.fail("id", f"duplicate object id {oid}")
+        seen.add(oid)
+        pose = tuple(f.vector("pose", 3))
+        cls = f.integer("class")
+        if not 1 <= cls <= m:
+            raise f.fail("class", f"{cls} is out of range 1..{m}")
+        objects.append(Object(oid, pose, cls - 1))  # type: ignore[arg-type]
+    return tuple(objects)
+
+
+def _communication(f: _Field, steps: int, robot_ids: list[str]) -> Communication:
+    f.check_keys({"mode", "range", "schedule"})
+    comm_range = f.number("range", positive=True) if f.has("range") else None
+    schedule: list[ScheduleEdge] = []
+    if f.has("schedule"):
+        arr = f.array("schedule")
+        for i in range(len(arr.raw)):
+            e = arr.array(i)
+            if len(e.raw) != 4:
+                raise arr.fail(i, f"expected [from_step, to_step, robot_a, robot_b], got {e.raw!r}")
+            first, last = e.integer(0, minimum=1), e.integer(1, minimum=1)
+            if not first <= last <= steps:
+                raise arr.fail(i, f"steps must satisfy 1 ≤ {first} ≤ {last} ≤ {steps}")
+            a, b = e.string(2), e.string(3)
+            for j, rid in ((2, a), (3, b)):
+                if rid not in robot_ids:
+                    raise e.fail(j, f"unknown robot {rid!r}")
+            if a == b:
+                raise arr.fail(i, f"an edge needs two different robots, got {a!r} twice")
+            schedule.append(ScheduleEdge(first, last, a, b))
+    default = "schedule" if f.has("schedule") else "range"
+    mode = f.string("mode") if f.has("mode") else default
+    if mode not in _COMM_MODES:
+        raise f.fail("mode", f"unknown mode {mode!r} (known: {', '.join(_COMM_MODES)})")
+    if mode in ("range", "both") and comm_range is None:
+        raise f.fail("range", f"missing required field (mode {mode!r} needs it)")
+    if mode in ("schedule", "both") and not f.has("schedule"):
+        raise f.fail("schedule", f"missing required field (mode {mode!r} needs it)")
+    return Communication(mode, comm_range, tuple(schedule))

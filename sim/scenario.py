@@ -1,0 +1,124 @@
+"""The scenario data model: frozen dataclasses built by :mod:`sim.loader` from TOML files."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from estimator.models import AliasedClassifier, ClassifierModel, GaussianNoise, paper_classifier
+
+Array = NDArray[np.float64]
+
+FORMAT_VERSION = 1
+
+
+class ScenarioError(ValueError):
+    """A scenario file or override is invalid. The message names the file, the field and why."""
+
+
+@dataclass(frozen=True, slots=True)
+class Sensor:
+    """Camera-like sensor: objects within ``range`` metres and ``|bearing| ≤ half_angle`` rad."""
+
+    half_angle: float
+    range: float
+
+
+@dataclass(frozen=True, slots=True)
+class Robot:
+    """A robot: ``start`` pose (3,) and per-step body-frame actions ``actions`` (steps, 3);
+    ``x_k = x_{k−1} ∘ actions[k−1]``."""
+
+    id: str
+    start: tuple[float, float, float]
+    actions: tuple[tuple[float, float, float], ...]
+    sensor: Sensor
+
+
+@dataclass(frozen=True, slots=True)
+class Object:
+    """A static object with pose (x, y, yaw) and its true class index 0..M−1."""
+
+    id: int
+    pose: tuple[float, float, float]
+    class_index: int
+
+
+@dataclass(frozen=True, slots=True)
+class ScheduleEdge:
+    """Robots ``a`` and ``b`` may exchange stacks at every step k with ``first ≤ k ≤ last``."""
+
+    first: int
+    last: int
+    a: str
+    b: str
+
+
+@dataclass(frozen=True, slots=True)
+class Communication:
+    """Who may talk to whom. ``mode``: ``schedule`` (the table), ``range`` (true positions at step k
+    within ``range`` metres) or ``both`` (an edge must satisfy the two)."""
+
+    mode: str
+    range: float | None
+    schedule: tuple[ScheduleEdge, ...]
+
+
+@dataclass(frozen=True, slots=True)
+class ClassifierSpec:
+    """Which classifier model generates (and by default explains) the semantic scores."""
+
+    model: str
+    alias: tuple[int, ...] = ()
+    best_view: tuple[float, ...] = ()
+    noise_std: float = 0.0
+
+    def build(self) -> ClassifierModel:
+        if self.model == "paper":
+            return paper_classifier()
+        m = len(self.alias)
+        return AliasedClassifier(self.alias, self.best_view, np.eye(m) / self.noise_std)
+
+
+@dataclass(frozen=True, slots=True)
+class Scenario:
+    """A validated scenario (see docs/scenarios.md). Steps are k = 1..steps."""
+
+    name: str
+    description: str
+    source: str
+    steps: int
+    num_classes: int
+    class_prior: tuple[float, ...]
+    robots: tuple[Robot, ...]
+    objects: tuple[Object, ...]
+    odometry_noise: GaussianNoise
+    geometric_noise: GaussianNoise
+    classifier: ClassifierSpec
+    communication: Communication
+    variants: tuple[tuple[str, str], ...] = ()
+    applied_variants: tuple[str, ...] = ()
+
+    @property
+    def robot_ids(self) -> tuple[str, ...]:
+        return tuple(r.id for r in self.robots)
+
+    @property
+    def object_ids(self) -> tuple[int, ...]:
+        return tuple(o.id for o in self.objects)
+
+    def robot(self, robot_id: str) -> Robot:
+        for r in self.robots:
+            if r.id == robot_id:
+                return r
+        raise KeyError(robot_id)
+
+    def object_poses(self) -> Array:
+        """(n, 3) object poses in file order."""
+        return np.array([o.pose for o in self.objects], dtype=float).reshape(-1, 3)
+
+    def object_classes(self) -> NDArray[np.int64]:
+        """(n,) true class indices 0..M−1 in file order."""
+        return np.array([o.class_index for o in self.objects], dtype=np.int64)
