@@ -29,11 +29,20 @@ def run(args: argparse.Namespace, console: Console) -> int:
     render_show(scenario, console)
     sim = Simulator(scenario, args.seed)
     table = Table(title=f"simulated sensor frames (seed {args.seed})")
-    for col in ("robot", "frames", "detections", "odometry |Δ| mean [m]", "mean score of true class"):
+    for col in (
+        "robot",
+        "frames",
+        "detections",
+        "odometry |Δ| mean [m]",
+        "mean score of true class",
+    ):
         table.add_column(col)
     for rid, frames in sim.all_frames().items():
-        dets = [(d, scenario.objects[scenario.object_ids.index(d.object_id)].class_index)
-                for f in frames for d in f.detections]
+        dets = [
+            (d, scenario.objects[scenario.object_ids.index(d.object_id)].class_index)
+            for f in frames
+            for d in f.detections
+        ]
         odo = np.mean([np.hypot(*f.odometry[:2]) for f in frames])
         true_score = np.mean([d.z_sem[c] for d, c in dets]) if dets else float("nan")
         table.add_row(rid, str(len(frames)), str(len(dets)), f"{odo:.3f}", f"{true_score:.3f}")

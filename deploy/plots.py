@@ -31,10 +31,24 @@ def plot_ground_truth(ax: Axes, world: World, cone_steps: Sequence[int] = ()) ->
             x, y, t = traj[k]
             half = np.degrees(r.sensor.half_angle)
             ax.add_patch(
-                Wedge((x, y), r.sensor.range, np.degrees(t) - half, np.degrees(t) + half,
-                      color=colour, alpha=0.12)
+                Wedge(
+                    (x, y),
+                    r.sensor.range,
+                    np.degrees(t) - half,
+                    np.degrees(t) + half,
+                    color=colour,
+                    alpha=0.12,
+                )
             )
             ax.plot(x, y, ">", color=colour, ms=5)
+            ax.annotate(
+                f"k={k}",
+                (x, y),
+                textcoords="offset points",
+                xytext=(-8, 6),
+                color=colour,
+                fontsize=7,
+            )
     poses = world.object_poses
     classes = s.object_classes()
     arrow = 0.6
@@ -43,11 +57,27 @@ def plot_ground_truth(ax: Axes, world: World, cone_steps: Sequence[int] = ()) ->
         if not sel.any():
             continue
         colour = _CLASS_COLOURS(c % 9)
-        ax.scatter(poses[sel, 0], poses[sel, 1], s=40, color=colour, marker="s",
-                   label=f"class {c + 1}", zorder=3)
-        ax.quiver(poses[sel, 0], poses[sel, 1], arrow * np.cos(poses[sel, 2]),
-                  arrow * np.sin(poses[sel, 2]), color=colour, angles="xy", scale_units="xy",
-                  scale=1.0, width=0.004, zorder=3)
+        ax.scatter(
+            poses[sel, 0],
+            poses[sel, 1],
+            s=40,
+            color=colour,
+            marker="s",
+            label=f"class {c + 1}",
+            zorder=3,
+        )
+        ax.quiver(
+            poses[sel, 0],
+            poses[sel, 1],
+            arrow * np.cos(poses[sel, 2]),
+            arrow * np.sin(poses[sel, 2]),
+            color=colour,
+            angles="xy",
+            scale_units="xy",
+            scale=1.0,
+            width=0.004,
+            zorder=3,
+        )
     for o, (x, y, _) in zip(s.objects, poses, strict=True):
         ax.annotate(str(o.id), (x, y), textcoords="offset points", xytext=(5, -10), fontsize=8)
     ax.set_aspect("equal")

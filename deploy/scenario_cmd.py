@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import itertools
 import math
 import tomllib
 from pathlib import Path
@@ -20,10 +21,21 @@ from sim.world import World
 def add_scenario_arguments(p: argparse.ArgumentParser) -> None:
     """The arguments every command that reads a scenario shares."""
     p.add_argument("scenario", help="a scenario file (.toml) or a bundled name such as 'paper'")
-    p.add_argument("--variant", action="append", default=[], metavar="NAME",
-                   help="apply a variant defined in the file (repeatable), e.g. sense10, comm10")
-    p.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE", dest="overrides",
-                   help="override a field, e.g. --set sensor.range=10 (repeatable; TOML values)")
+    p.add_argument(
+        "--variant",
+        action="append",
+        default=[],
+        metavar="NAME",
+        help="apply a variant defined in the file (repeatable), e.g. sense10, comm10",
+    )
+    p.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="FIELD=VALUE",
+        dest="overrides",
+        help="override a field, e.g. --set sensor.range=10 (repeatable; TOML values)",
+    )
 
 
 def parse_override(text: str) -> tuple[str, Any]:
@@ -92,7 +104,7 @@ def render_show(scenario: Scenario, console: Console) -> None:
         robots.add_column(col)
     for r in s.robots:
         traj = world.trajectories[r.id]
-        length = float(sum(math.hypot(*(b[:2] - a[:2])) for a, b in zip(traj, traj[1:], strict=False)))
+        length = float(sum(math.hypot(*(b[:2] - a[:2])) for a, b in itertools.pairwise(traj)))
         first = world.first_sighting(r.id)
         seen = world.known_objects(r.id, s.steps)
         robots.add_row(
@@ -115,8 +127,12 @@ def render_show(scenario: Scenario, console: Console) -> None:
             if len(ks):
                 firsts.append(f"{r.id}@{int(ks[0])}")
         objects.add_row(
-            str(o.id), f"{o.pose[0]:g}", f"{o.pose[1]:g}", f"{math.degrees(o.pose[2]):.1f}",
-            str(o.class_index + 1), ", ".join(firsts) or "nobody",
+            str(o.id),
+            f"{o.pose[0]:g}",
+            f"{o.pose[1]:g}",
+            f"{math.degrees(o.pose[2]):.1f}",
+            str(o.class_index + 1),
+            ", ".join(firsts) or "nobody",
         )
     console.print(objects)
 
@@ -162,8 +178,13 @@ def run_plot(args: argparse.Namespace, console: Console) -> int:
 
 def run_generate(args: argparse.Namespace, console: Console) -> int:
     scenario = generate_scenario(
-        robots=args.robots, objects=args.objects, classes=args.classes, seed=args.seed,
-        steps=args.steps, area=args.area, comm_range=args.comm_range,
+        robots=args.robots,
+        objects=args.objects,
+        classes=args.classes,
+        seed=args.seed,
+        steps=args.steps,
+        area=args.area,
+        comm_range=args.comm_range,
     )
     out = Path(args.output)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -181,8 +202,14 @@ def add_parser(sub: Any) -> None:
     plot = ssub.add_parser("plot", help="the ground truth as a PNG (like the paper's Fig. 2a)")
     add_scenario_arguments(plot)
     plot.add_argument("-o", "--output", required=True, help="PNG file to write")
-    plot.add_argument("--cones", type=int, nargs="*", default=[20, 40, 60], metavar="K",
-                      help="steps at which to draw the sensing cones (default: 20 40 60)")
+    plot.add_argument(
+        "--cones",
+        type=int,
+        nargs="*",
+        default=[20, 40, 60],
+        metavar="K",
+        help="steps at which to draw the sensing cones (default: 20 40 60)",
+    )
     plot.set_defaults(run=run_plot)
     gen = ssub.add_parser("generate", help="write a random world as a scenario file")
     gen.add_argument("--robots", type=_positive, required=True)

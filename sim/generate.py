@@ -48,9 +48,7 @@ def generate_scenario(
         Object(j + 1, (float(x), float(y), float(t)), int(c))
         for j, ((x, y), t, c) in enumerate(zip(obj_xy, obj_yaw, obj_cls, strict=True))
     )
-    robot_specs = tuple(
-        _wandering_robot(f"r{i + 1}", rng, half, steps) for i in range(robots)
-    )
+    robot_specs = tuple(_wandering_robot(f"r{i + 1}", rng, half, steps) for i in range(robots))
     alias, best = [], []
     for c in range(classes):
         others = [a for a in range(classes) if a != c]
@@ -84,7 +82,9 @@ def _wandering_robot(rid: str, rng: np.random.Generator, half: float, steps: int
         turn = omega
         if np.max(np.abs(pose[:2])) > 0.8 * half:
             to_centre = math.atan2(-pose[1], -pose[0])
-            turn = float(np.clip(_STEER_GAIN * se2.wrap_angle(to_centre - pose[2]), -_MAX_STEER, _MAX_STEER))
+            turn = float(
+                np.clip(_STEER_GAIN * se2.wrap_angle(to_centre - pose[2]), -_MAX_STEER, _MAX_STEER)
+            )
         action = (_SPEED, 0.0, round(turn, 6))
         actions.append(action)
         pose = se2.compose(pose, np.array(action))
@@ -154,7 +154,10 @@ def _motion_lines(r: Robot) -> list[str]:
 
 
 def _sensor_lines(sensor: Sensor) -> list[str]:
-    return [f"half_angle_deg = {_num(math.degrees(sensor.half_angle))}", f"range = {_num(sensor.range)}"]
+    return [
+        f"half_angle_deg = {_num(math.degrees(sensor.half_angle))}",
+        f"range = {_num(sensor.range)}",
+    ]
 
 
 def _noise(noise: GaussianNoise) -> str:

@@ -97,7 +97,7 @@ def parse_scenario(
         v = _Field(label, variant_table, "variants").table(name)
         settings = v.table("set")
         v.check_keys({"description", "set"})
-        for key in settings.keys():
+        for key in settings.field_names():
             _apply_override(raw, label, key, settings.raw[key], f"variants.{name}.set")
         applied.append(name)
     for key, value in (overrides or {}).items():
@@ -133,7 +133,7 @@ class _Field:
         where = self.path if key is None else self._name(key)
         return ScenarioError(f"{self.label}: {where or '<top>'}: {reason}")
 
-    def keys(self) -> list[str]:
+    def field_names(self) -> list[str]:
         return list(self.raw.keys())
 
     def check_keys(self, allowed: set[str]) -> None:
@@ -226,7 +226,9 @@ def _build(raw: dict[str, Any], label: str, applied: tuple[str, ...]) -> Scenari
     )
     version = top.integer("format")
     if version != FORMAT_VERSION:
-        raise top.fail("format", f"unsupported format {version} (this semfleet reads {FORMAT_VERSION})")
+        raise top.fail(
+            "format", f"unsupported format {version} (this semfleet reads {FORMAT_VERSION})"
+        )
     name = top.string("name")
     description = top.string("description") if top.has("description") else ""
     steps = top.integer("steps", minimum=1)

@@ -38,7 +38,11 @@ def standard_normals(seed: int, stream: int, robot: str, k: int, obj: int, size:
 
 def check_seed(seed: int) -> int:
     """Seeds are integers in [0, 2⁶³): reject anything else with a clear error."""
-    if isinstance(seed, bool) or not isinstance(seed, int | np.integer) or not 0 <= seed <= _MAX_SEED:
+    if (
+        isinstance(seed, bool)
+        or not isinstance(seed, int | np.integer)
+        or not 0 <= seed <= _MAX_SEED
+    ):
         raise ValueError(f"seed must be an integer in [0, 2**63), got {seed!r}")
     return int(seed)
 
@@ -66,7 +70,9 @@ class Simulator:
         x_prev, x_k = traj[k - 1], traj[k]
         odo_noise = standard_normals(self.seed, _ODOMETRY, robot, k, 0, 3)
         odometry = self.scenario.odometry_noise.corrupt(se2.between(x_prev, x_k), odo_noise)
-        detections = tuple(self._detect(robot, k, x_k, oid) for oid in self.world.visible_objects(robot, k))
+        detections = tuple(
+            self._detect(robot, k, x_k, oid) for oid in self.world.visible_objects(robot, k)
+        )
         return SensorFrame(robot, k, odometry, detections, x_k.copy())
 
     def _detect(self, robot: str, k: int, x_k: Array, oid: int) -> Detection:

@@ -94,13 +94,13 @@ class World:
         """
         comm = self.scenario.communication
         order = {rid: i for i, rid in enumerate(self.scenario.robot_ids)}
-        scheduled = {
-            tuple(sorted((e.a, e.b), key=order.__getitem__))
-            for e in comm.schedule
-            if e.first <= k <= e.last
-        }
+        scheduled: set[tuple[str, str]] = set()
+        for e in comm.schedule:
+            if e.first <= k <= e.last:
+                a, b = sorted((e.a, e.b), key=order.__getitem__)
+                scheduled.add((a, b))
         ids = self.scenario.robot_ids
-        in_range = set()
+        in_range: set[tuple[str, str]] = set()
         if comm.range is not None:
             in_range = {
                 (a, b)
@@ -109,7 +109,7 @@ class World:
                 if self.distance(a, b, k) <= comm.range
             }
         if comm.mode == "schedule":
-            return scheduled  # type: ignore[return-value]
+            return scheduled
         if comm.mode == "range":
             return in_range
-        return scheduled & in_range  # type: ignore[operator]
+        return scheduled & in_range

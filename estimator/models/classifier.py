@@ -71,8 +71,8 @@ class AliasedClassifier:
     ``s_c(ψ) = ½(1 + cos(ψ − best_view[c]))``: at ψ = best_view[c] the mean score is the one-hot
     e_c; from the opposite side class c looks exactly half like its alias. The covariance is
     constant, ``Σ = (RᵀR)⁻¹`` with ``R = sqrt_info`` (dim × dim, upper triangular).
-    The paper's crafted model (design doc §1) is the case M = 2, alias = (1, 0), best_view = (π/2, π/2),
-    R = [[1.5, −0.75], [0, 1.5]].
+    The paper's crafted model (design doc §1) is the case M = 2, alias = (1, 0),
+    best_view = (π/2, π/2), R = [[1.5, −0.75], [0, 1.5]].
     """
 
     alias: tuple[int, ...]
@@ -128,7 +128,7 @@ class AliasedClassifier:
     def cov(self, c: int, psi: ArrayLike) -> Array:
         self._check_class(c)
         info = self.sqrt_info.T @ self.sqrt_info
-        shape = np.shape(psi) + (self.dim, self.dim)
+        shape = (*np.shape(psi), self.dim, self.dim)
         return np.broadcast_to(np.linalg.inv(info), shape).copy()
 
     def log_likelihood(self, z: ArrayLike, c: int, psi: ArrayLike) -> Array:

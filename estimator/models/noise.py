@@ -1,4 +1,4 @@
-"""Gaussian noise on SE(2) tangent spaces: motion (odometry) and geometric (relative pose) models."""
+"""Gaussian noise on SE(2) tangent spaces: motion (odometry) and geometric (relative pose)."""
 
 from __future__ import annotations
 
@@ -26,7 +26,9 @@ class GaussianNoise:
     def __post_init__(self) -> None:
         v = np.asarray(self.variances, dtype=float)
         if v.shape != (3,) or not np.all(np.isfinite(v)) or np.any(v <= 0):
-            raise ValueError(f"variances must be three finite positive numbers, got {self.variances}")
+            raise ValueError(
+                f"variances must be three finite positive numbers, got {self.variances}"
+            )
 
     @property
     def sigmas(self) -> Array:
