@@ -97,7 +97,7 @@ def render_show(scenario: Scenario, console: Console) -> None:
     rng = f", range {comm.range:g} m" if comm.range is not None else ""
     console.print(f"communication: mode {comm.mode}{rng}")
     if s.variants:
-        console.print("variants: " + "; ".join(f"{n} — {d}" for n, d in s.variants))
+        console.print("variants: " + "; ".join(f"{v.name} — {v.description}" for v in s.variants))
 
     robots = Table(title="robots")
     for col in ("id", "start (x, y, θ)", "sensor", "path [m]", "first sighting", "objects seen"):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 
@@ -53,7 +54,7 @@ def generate_scenario(
     for c in range(classes):
         others = [a for a in range(classes) if a != c]
         alias.append(int(others[rng.integers(len(others))]))
-        best.append(float(rng.uniform(-np.pi, np.pi)))
+        best.append(float(rng.uniform(-180.0, 180.0)))
     return Scenario(
         name=f"random-r{robots}-o{objects}-c{classes}-s{seed}",
         description=f"random world, seed {seed}, {side:.1f} m square",
@@ -114,7 +115,7 @@ def dump_scenario(s: Scenario) -> str:
     if s.classifier.model == "aliased":
         out += [
             f"alias = [{', '.join(str(a + 1) for a in s.classifier.alias)}]",
-            f"best_view_deg = {_nums(math.degrees(b) for b in s.classifier.best_view)}",
+            f"best_view_deg = {_nums(s.classifier.best_view_deg)}",
             f"noise_std = {_num(s.classifier.noise_std)}",
         ]
     out += ["", "[noise]", f"odometry_var = {_noise(s.odometry_noise)}"]
@@ -136,7 +137,28 @@ def dump_scenario(s: Scenario) -> str:
     for o in s.objects:
         out += ["", "[[objects]]", f"id = {o.id}", f"pose = {_nums(o.pose)}"]
         out.append(f"class = {o.class_index + 1}")
+    for v in s.variants:
+        settings = ", ".join(f"{_q(key)} = {_value(value)}" for key, value in v.settings)
+        out += ["", f"[variants.{_q(v.name)}]", f"description = {_q(v.description)}"]
+        out.append(f"set = {{ {settings} }}")
     return "\n".join(out) + "\n"
+
+
+def _value(value: Any) -> str:
+    """A TOML literal for the values a variant may set."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int):
+        return str(value)
+    if isinstance(value, float):
+        return _num(value)
+    if isinstance(value, str):
+        return _q(value)
+    if isinstance(value, list):
+        return "[" + ", ".join(_value(v) for v in value) + "]"
+    if isinstance(value, dict):
+        return "{ " + ", ".join(f"{_q(k)} = {_value(v)}" for k, v in value.items()) + " }"
+    raise TypeError(f"cannot write {type(value).__name__} as TOML")
 
 
 def _motion_lines(r: Robot) -> list[str]:

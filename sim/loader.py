@@ -7,6 +7,7 @@ reason, e.g. ``paper.toml: objects[3].class: 3 is out of range 1..2``.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import math
 import re
 import tomllib
@@ -26,12 +27,17 @@ from sim.scenario import (
     ScenarioError,
     ScheduleEdge,
     Sensor,
+    Variant,
 )
 
 _ID_PATTERN = re.compile(r"^[A-Za-z0-9_-]{1,32}$")
 _COMM_MODES = ("schedule", "range", "both")
 _CLASSIFIER_MODELS = ("paper", "aliased")
 _PRIOR_TOLERANCE = 1e-6
+_MAX_INT = 2**32 - 1  # ids, steps and counts; ids travel as unsigned 32-bit integers on the wire
+_MAX_FLOAT_INT = 2**53
+_MAX_CLASSES = 64
+_MAX_STEPS = 1_000_000
 
 
 def bundled_names() -> list[str]:
@@ -83,38 +89,100 @@ def parse_scenario(
     variants: Iterable[str] = (),
     overrides: Mapping[str, Any] | None = None,
 ) -> Scenario:
-    """Validate TOML text into a :class:`Scenario`; ``label`` names the file in errors."""
+    """Validate TOML text into a :class:`Scenario`; ``label`` names the file in errors.
+
+    Every variant defined in the file is validated, whether applied or not.
+    """
     try:
         raw = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ScenarioError(f"{label}: not valid TOML: {exc}") from None
-    variant_table = _Field(label, raw, "").optional_table("variants") or {}
+    top = _Field(label, raw, "")
+    _check_format(top)
+    defined = _variants(top)
+    by_name = {v.name: v for v in defined}
+    origins: dict[str, str] = {}
     applied = []
     for name in variants:
-        if name not in variant_table:
-            known = ", ".join(sorted(variant_table)) or "none"
+        if name not in by_name:
+            known = ", ".join(sorted(by_name)) or "none"
             raise ScenarioError(f"{label}: variants: no variant {name!r} (defined: {known})")
-        v = _Field(label, variant_table, "variants").table(name)
-        settings = v.table("set")
-        v.check_keys({"description", "set"})
-        for key in settings.field_names():
-            _apply_override(raw, label, key, settings.raw[key], f"variants.{name}.set")
+        for key, value in by_name[name].settings:
+            _apply_override(raw, label, key, value, f"variant {name}")
+            origins[key] = f"variant {name}"
         applied.append(name)
     for key, value in (overrides or {}).items():
         _apply_override(raw, label, key, value, "override")
-    return _build(raw, label, tuple(applied))
+        origins[key] = "override"
+    scenario = _build_attributed(raw, label, origins)
+    for v in defined:
+        if v.name in applied:
+            continue
+        trial = copy.deepcopy(raw)
+        for key, value in v.settings:
+            _apply_override(trial, label, key, value, f"variant {v.name}")
+        _build_attributed(trial, label, {key: f"variant {v.name}" for key, _ in v.settings})
+    return _replace_variants(scenario, defined, tuple(applied))
+
+
+def _replace_variants(
+    s: Scenario, defined: tuple[Variant, ...], applied: tuple[str, ...]
+) -> Scenario:
+    return dataclasses.replace(s, variants=defined, applied_variants=applied)
+
+
+def _build_attributed(raw: dict[str, Any], label: str, origins: Mapping[str, str]) -> Scenario:
+    """Build, and blame a variant or override for an invalid value it set."""
+    try:
+        return _build(raw, label)
+    except ScenarioError as exc:
+        field = exc.field or ""
+        for key, origin in origins.items():
+            if field == key or field.startswith((f"{key}.", f"{key}[")):
+                raise ScenarioError(
+                    f"{label}: {origin} {field}: {exc.reason}", field, exc.reason
+                ) from None
+        raise
+
+
+def _check_format(top: _Field) -> None:
+    """Checked first, so a file of a newer format is reported as such and not as unknown keys."""
+    version = top.integer("format")
+    if version != FORMAT_VERSION:
+        raise top.fail(
+            "format", f"unsupported format {version} (this semfleet reads {FORMAT_VERSION})"
+        )
+
+
+def _variants(top: _Field) -> tuple[Variant, ...]:
+    if not top.has("variants"):
+        return ()
+    table = top.table("variants")
+    out = []
+    for name in table.field_names():
+        v = table.table(name)
+        v.check_keys({"description", "set"})
+        description = v.string("description") if v.has("description") else ""
+        settings = v.table("set")
+        for key in settings.field_names():
+            if not key or any(not part for part in key.split(".")):
+                raise settings.fail(key, f"{key!r} is not a field path")
+        out.append(Variant(name, description, tuple(settings.raw.items())))
+    return tuple(out)
 
 
 def _apply_override(raw: dict[str, Any], label: str, path: str, value: Any, where: str) -> None:
     parts = path.split(".")
+    if not path or any(not part for part in parts):
+        raise ScenarioError(f"{label}: {where}: {path!r} is not a field path", where)
+    if parts[0] in ("variants", "format"):
+        raise ScenarioError(f"{label}: {where}: {path!r} cannot be overridden", where)
     node: Any = raw
     for i, part in enumerate(parts[:-1]):
         if not isinstance(node, dict) or part not in node or not isinstance(node[part], dict):
             prefix = ".".join(parts[: i + 1])
-            raise ScenarioError(f"{label}: {where}: {path!r}: {prefix!r} is not a table")
+            raise ScenarioError(f"{label}: {where}: {path!r}: {prefix!r} is not a table", where)
         node = node[part]
-    if parts[0] in ("variants", "format"):
-        raise ScenarioError(f"{label}: {where}: {path!r} cannot be overridden")
     node[parts[-1]] = copy.deepcopy(value)
 
 
@@ -131,7 +199,7 @@ class _Field:
 
     def fail(self, key: str | int | None, reason: str) -> ScenarioError:
         where = self.path if key is None else self._name(key)
-        return ScenarioError(f"{self.label}: {where or '<top>'}: {reason}")
+        return ScenarioError(f"{self.label}: {where or '<top>'}: {reason}", where, reason)
 
     def field_names(self) -> list[str]:
         return list(self.raw.keys())
@@ -182,18 +250,22 @@ class _Field:
             raise self.fail(key, f"expected a string, got {_type_name(value)}")
         return value
 
-    def integer(self, key: str | int, minimum: int | None = None) -> int:
+    def integer(self, key: str | int, minimum: int | None = None, maximum: int = _MAX_INT) -> int:
         value = self._get(key)
         if isinstance(value, bool) or not isinstance(value, int):
             raise self.fail(key, f"expected an integer, got {_type_name(value)}")
         if minimum is not None and value < minimum:
             raise self.fail(key, f"{value} must be ≥ {minimum}")
+        if value > maximum:
+            raise self.fail(key, f"{value} must be ≤ {maximum}")
         return value
 
     def number(self, key: str | int, positive: bool = False) -> float:
         value = self._get(key)
         if isinstance(value, bool) or not isinstance(value, int | float):
             raise self.fail(key, f"expected a number, got {_type_name(value)}")
+        if isinstance(value, int) and abs(value) > _MAX_FLOAT_INT:
+            raise self.fail(key, f"an integer of {len(str(abs(value)))} digits is too large")
         if not math.isfinite(value):
             raise self.fail(key, f"{value} is not a finite number")
         if positive and value <= 0:
@@ -218,20 +290,16 @@ def _type_name(value: Any) -> str:
     }.get(type(value), type(value).__name__)
 
 
-def _build(raw: dict[str, Any], label: str, applied: tuple[str, ...]) -> Scenario:
+def _build(raw: dict[str, Any], label: str) -> Scenario:
     top = _Field(label, raw, "")
+    _check_format(top)
     top.check_keys(
         {"format", "name", "description", "steps", "classes", "classifier", "noise", "sensor"}
         | {"communication", "robots", "objects", "variants"}
     )
-    version = top.integer("format")
-    if version != FORMAT_VERSION:
-        raise top.fail(
-            "format", f"unsupported format {version} (this semfleet reads {FORMAT_VERSION})"
-        )
     name = top.string("name")
     description = top.string("description") if top.has("description") else ""
-    steps = top.integer("steps", minimum=1)
+    steps = top.integer("steps", minimum=1, maximum=_MAX_STEPS)
     num_classes, prior = _classes(top.table("classes"))
     classifier = _classifier(top.table("classifier"), num_classes)
     noise = top.table("noise")
@@ -243,10 +311,6 @@ def _build(raw: dict[str, Any], label: str, applied: tuple[str, ...]) -> Scenari
     objects = _objects(top, num_classes)
     robot_ids = [r.id for r in robots]
     communication = _communication(top.table("communication"), steps, robot_ids)
-    variants = tuple(
-        (n, str(v.get("description", "")) if isinstance(v, dict) else "")
-        for n, v in (top.optional_table("variants") or {}).items()
-    )
     return Scenario(
         name=name,
         description=description,
@@ -260,14 +324,12 @@ def _build(raw: dict[str, Any], label: str, applied: tuple[str, ...]) -> Scenari
         geometric_noise=geometric,
         classifier=classifier,
         communication=communication,
-        variants=variants,
-        applied_variants=applied,
     )
 
 
 def _classes(f: _Field) -> tuple[int, tuple[float, ...]]:
     f.check_keys({"count", "prior"})
-    m = f.integer("count", minimum=2)
+    m = f.integer("count", minimum=2, maximum=_MAX_CLASSES)
     if not f.has("prior"):
         return m, tuple([1.0 / m] * m)
     prior = f.vector("prior", m, positive=True)
@@ -297,7 +359,7 @@ def _classifier(f: _Field, m: int) -> ClassifierSpec:
         if a == c + 1:
             raise alias_arr.fail(c, f"class {a} cannot be its own alias")
         alias.append(a - 1)
-    best = [math.radians(b) for b in f.vector("best_view_deg", m)]
+    best = f.vector("best_view_deg", m)
     noise_std = f.number("noise_std", positive=True)
     return ClassifierSpec("aliased", tuple(alias), tuple(best), noise_std)
 
@@ -347,17 +409,16 @@ def _actions(f: _Field, steps: int) -> tuple[tuple[float, float, float], ...]:
         return tuple(tuple(arr.vector(i, 3)) for i in range(steps))  # type: ignore[misc]
     speed = f.number("speed") if f.has("speed") else 0.25
     runs = f.array("turns")
-    actions: list[tuple[float, float, float]] = []
+    parsed: list[tuple[int, float]] = []
     for i in range(len(runs.raw)):
         run = runs.array(i)
         if len(run.raw) != 2:
             raise runs.fail(i, f"expected [count, turn_rad], got {len(run.raw)} values")
-        count = run.integer(0, minimum=1)
-        omega = run.number(1)
-        actions.extend([(speed, 0.0, omega)] * count)
-    if len(actions) != steps:
-        raise f.fail("turns", f"counts add up to {len(actions)} steps, the scenario has {steps}")
-    return tuple(actions)
+        parsed.append((run.integer(0, minimum=1), run.number(1)))
+    total = sum(count for count, _ in parsed)
+    if total != steps:
+        raise f.fail("turns", f"counts add up to {total} steps, the scenario has {steps}")
+    return tuple((speed, 0.0, omega) for count, omega in parsed for _ in range(count))
 
 
 def _objects(top: _Field, m: int) -> tuple[Object, ...]:

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -15,7 +17,22 @@ FORMAT_VERSION = 1
 
 
 class ScenarioError(ValueError):
-    """A scenario file or override is invalid. The message names the file, the field and why."""
+    """A scenario file or override is invalid. The message names the file, the field and why;
+    ``field`` (dotted path, or None) and ``reason`` are kept for callers that rephrase it."""
+
+    def __init__(self, message: str, field: str | None = None, reason: str = "") -> None:
+        super().__init__(message)
+        self.field = field
+        self.reason = reason or message
+
+
+@dataclass(frozen=True, slots=True)
+class Variant:
+    """A named set of field overrides defined in the file, e.g. ``sense10``."""
+
+    name: str
+    description: str
+    settings: tuple[tuple[str, Any], ...]
 
 
 @dataclass(frozen=True, slots=True)
@@ -72,14 +89,15 @@ class ClassifierSpec:
 
     model: str
     alias: tuple[int, ...] = ()
-    best_view: tuple[float, ...] = ()
+    best_view_deg: tuple[float, ...] = ()
     noise_std: float = 0.0
 
     def build(self) -> ClassifierModel:
         if self.model == "paper":
             return paper_classifier()
         m = len(self.alias)
-        return AliasedClassifier(self.alias, self.best_view, np.eye(m) / self.noise_std)
+        best = tuple(math.radians(b) for b in self.best_view_deg)
+        return AliasedClassifier(self.alias, best, np.eye(m) / self.noise_std)
 
 
 @dataclass(frozen=True, slots=True)
@@ -98,7 +116,7 @@ class Scenario:
     geometric_noise: GaussianNoise
     classifier: ClassifierSpec
     communication: Communication
-    variants: tuple[tuple[str, str], ...] = ()
+    variants: tuple[Variant, ...] = ()
     applied_variants: tuple[str, ...] = ()
 
     @property

@@ -44,6 +44,10 @@ class ClassifierModel(Protocol):
         """h_c(ψ): ψ (...) → (..., dim)."""
         ...
 
+    def mean_dpsi(self, c: int, psi: ArrayLike) -> Array:
+        """dh_c/dψ: ψ (...) → (..., dim). Needed by the semantic factor's Jacobians."""
+        ...
+
     def cov(self, c: int, psi: ArrayLike) -> Array:
         """Σ_c(ψ): ψ (...) → (..., dim, dim)."""
         ...
@@ -63,7 +67,7 @@ def gaussian_log_likelihood(z: ArrayLike, mean: Array, cov: Array) -> Array:
     return np.asarray(-0.5 * np.sum(white * white, axis=-1) - 0.5 * log_det - 0.5 * d * _LOG_2PI)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class AliasedClassifier:
     """M-class model whose scores blur each class with an alias class away from its best view.
 
@@ -125,6 +129,12 @@ class AliasedClassifier:
         blurred = 0.5 * (eye[c] + eye[self.alias[c]])
         return np.asarray(s * eye[c] + (1.0 - s) * blurred)
 
+    def mean_dpsi(self, c: int, psi: ArrayLike) -> Array:
+        self._check_class(c)
+        ds = -0.5 * np.sin(np.asarray(psi, dtype=float) - self.best_view[c])
+        eye = np.eye(self.num_classes)
+        return np.asarray(ds[..., None] * 0.5 * (eye[c] - eye[self.alias[c]]))
+
     def cov(self, c: int, psi: ArrayLike) -> Array:
         self._check_class(c)
         info = self.sqrt_info.T @ self.sqrt_info
@@ -181,6 +191,9 @@ class FirstComponents:
 
     def mean(self, c: int, psi: ArrayLike) -> Array:
         return self.model.mean(c, psi)[..., :-1]
+
+    def mean_dpsi(self, c: int, psi: ArrayLike) -> Array:
+        return self.model.mean_dpsi(c, psi)[..., :-1]
 
     def cov(self, c: int, psi: ArrayLike) -> Array:
         return self.model.cov(c, psi)[..., :-1, :-1]

@@ -18,9 +18,12 @@ _SMALL_ANGLE = 1e-6
 
 
 def wrap_angle(theta: ArrayLike) -> Array:
-    """Wrap angles to [-π, π). Shape preserved."""
+    """Wrap angles to [-π, π). Shape preserved; angles already in range are returned unchanged."""
     t = np.asarray(theta, dtype=float)
-    return np.asarray((t + np.pi) % (2.0 * np.pi) - np.pi)
+    inside = (t >= -np.pi) & (t < np.pi)
+    wrapped = np.where(inside, t, (t + np.pi) % (2.0 * np.pi) - np.pi)
+    # (t + π) mod 2π can round up to 2π, which would give +π.
+    return np.asarray(np.where(wrapped >= np.pi, wrapped - 2.0 * np.pi, wrapped))
 
 
 def _split(p: ArrayLike) -> tuple[Array, Array, Array]:
@@ -82,7 +85,8 @@ def expmap(v: ArrayLike) -> Array:
     small = np.abs(w) < _SMALL_ANGLE
     w_safe = np.where(small, 1.0, w)
     sin_w = np.where(small, 1.0 - w * w / 6.0, np.sin(w_safe) / w_safe)
-    cos_w = np.where(small, w / 2.0 - w**3 / 24.0, (1.0 - np.cos(w_safe)) / w_safe)
+    # (1 − cos ω)/ω written as 2 sin²(ω/2)/ω, which does not cancel for small ω.
+    cos_w = np.where(small, w / 2.0 - w**3 / 24.0, 2.0 * np.sin(w_safe / 2.0) ** 2 / w_safe)
     return _stack(sin_w * vx - cos_w * vy, cos_w * vx + sin_w * vy, wrap_angle(w))
 
 
