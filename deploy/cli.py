@@ -9,7 +9,8 @@ from collections.abc import Sequence
 
 from rich.console import Console
 
-from deploy import demo, scenario_cmd
+from deploy import demo, scenario_cmd, study_cmd
+from deploy.study_cmd import StudyError
 from sim.scenario import ScenarioError
 
 EXIT_OK = 0
@@ -26,6 +27,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     scenario_cmd.add_parser(sub)
+    study_cmd.add_parser(sub)
     demo.add_parser(sub)
     return parser
 
@@ -45,7 +47,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ScenarioError as exc:
         err.print(f"semfleet: error: {exc}", markup=False, highlight=False)
         return EXIT_USAGE
-    except (OSError, ValueError) as exc:
+    except (OSError, ValueError, StudyError) as exc:
         err.print(f"semfleet: error: {exc}", markup=False, highlight=False)
         return EXIT_FAILURE
     except KeyboardInterrupt:

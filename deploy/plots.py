@@ -86,3 +86,101 @@ def plot_ground_truth(ax: Axes, world: World, cone_steps: Sequence[int] = ()) ->
     ax.set_title(f"{s.name}: ground truth")
     ax.grid(True, alpha=0.3)
     ax.legend(loc="best", fontsize=8)
+
+
+_METHOD_STYLE = {
+    "local": {"color": "tab:blue", "ls": "-"},
+    "distributed": {"color": "tab:green", "ls": "-"},
+    "double_count": {"color": "tab:red", "ls": "--"},
+    "centralized": {"color": "black", "ls": ":"},
+}
+
+
+def plot_curves(
+    ax: Axes,
+    curves: dict[str, list[float | None]],
+    ylabel: str,
+    title: str,
+    band: tuple[float, float] | None = None,
+) -> None:
+    """One line per method against the step k = 1..steps; ``band`` shades a reference interval."""
+    for method, curve in curves.items():
+        k = np.arange(1, len(curve) + 1)
+        y = np.array([np.nan if v is None else v for v in curve], dtype=float)
+        ax.plot(k, y, label=method, lw=1.6, **_METHOD_STYLE.get(method, {}))
+    if band is not None:
+        ax.axhspan(*band, color="grey", alpha=0.15, label="χ² 95 % band")
+    ax.set_xlabel("step k")
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
+    ax.grid(True, alpha=0.3)
+    ax.legend(fontsize=8)
+
+
+def covariance_ellipse(
+    ax: Axes, mean: np.ndarray, cov: np.ndarray, nsigma: float = 2.0, **kw: object
+) -> None:
+    """Draw the ``nsigma`` ellipse of a 2×2 covariance at ``mean``."""
+    vals, vecs = np.linalg.eigh(cov)
+    t = np.linspace(0, 2 * np.pi, 60)
+    circle = np.stack([np.cos(t), np.sin(t)])
+    pts = mean[:, None] + nsigma * vecs @ (np.sqrt(np.maximum(vals, 0))[:, None] * circle)
+    ax.plot(pts[0], pts[1], **kw)  # type: ignore[arg-type]
+
+
+def plot_hypotheses(
+    ax_map: Axes,
+    ax_class: Axes,
+    snap: object,
+    world: World,
+    robot: str,
+    k: int,
+    max_hypotheses: int = 5,
+) -> None:
+    """Fig. 3b/3c: the heaviest hypotheses' robot and object estimates with 2σ ellipses over the
+    truth, and P(c = 1) per known object against its true class."""
+    from estimator.metrics import class_marginals, world_position_cov
+
+    s = world.scenario
+    w = snap.weights  # type: ignore[attr-defined]
+    order = np.argsort(-w)[:max_hypotheses]
+    traj = world.trajectories[robot]
+    ax_map.plot(traj[: k + 1, 0], traj[: k + 1, 1], "k-", lw=1, label=f"{robot} true path")
+    truth = {o.id: o for o in s.objects}
+    ids = snap.object_ids  # type: ignore[attr-defined]
+    for j in ids:
+        ax_map.plot(*truth[j].pose[:2], "ks", ms=5, mfc="none")
+        ax_map.annotate(
+            str(j), truth[j].pose[:2], textcoords="offset points", xytext=(4, 4), fontsize=7
+        )
+    cmap = plt.get_cmap("viridis")
+    # Lightest first, so the heaviest hypothesis is drawn on top.
+    for rank, h in reversed(list(enumerate(order))):
+        colour = cmap(rank / max(1, len(order) - 1))
+        label = f"h{rank + 1}: w = {w[h]:.2f}"
+        rp = snap.robot_pose[h]  # type: ignore[attr-defined]
+        ax_map.plot(*rp[:2], "o", color=colour, ms=4, label=label)
+        covariance_ellipse(
+            ax_map, rp[:2], world_position_cov(rp, snap.robot_cov[h]), color=colour, lw=0.8
+        )  # type: ignore[attr-defined]
+        for n in range(len(ids)):
+            op = snap.object_pose[h, n]  # type: ignore[attr-defined]
+            oc = world_position_cov(op, snap.object_cov[h, n])  # type: ignore[attr-defined]
+            covariance_ellipse(ax_map, op[:2], oc, color=colour, lw=0.8)
+            ax_map.plot(*op[:2], ".", color=colour, ms=4)
+    ax_map.set_aspect("equal")
+    ax_map.set_title(f"{robot} at k = {k}: top {len(order)} of {len(w)} hypotheses (2σ)")
+    ax_map.legend(fontsize=7)
+    ax_map.grid(True, alpha=0.3)
+    prob = class_marginals(w, snap.classes, s.num_classes)  # type: ignore[attr-defined]
+    x = np.arange(len(ids))
+    true_c1 = np.array([1.0 if truth[j].class_index == 0 else 0.0 for j in ids])
+    ax_class.bar(x, prob[:, 0], color="tab:blue", label="P(c = 1)")
+    ax_class.scatter(
+        x, true_c1, marker="_", s=300, color="red", linewidths=2, label="truth", zorder=3
+    )
+    ax_class.set_xticks(x, [str(j) for j in ids])
+    ax_class.set_ylim(0, 1.05)
+    ax_class.set_xlabel("object")
+    ax_class.set_title("class 1 probability per object")
+    ax_class.legend(fontsize=7)

@@ -83,6 +83,8 @@ class AliasedClassifier:
     best_view: tuple[float, ...]
     sqrt_info: Array = field(repr=False)
     _log_norm: float = field(init=False, repr=False)
+    _blur: Array = field(init=False, repr=False)
+    _sharp: Array = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         m = len(self.alias)
@@ -105,6 +107,10 @@ class AliasedClassifier:
         object.__setattr__(self, "sqrt_info", r)
         # log N = −½‖R(z − h)‖² + log|det R| − (M/2) log 2π
         object.__setattr__(self, "_log_norm", float(log_abs_det) - 0.5 * m * _LOG_2PI)
+        eye = np.eye(m)
+        alias = eye[list(self.alias)]
+        object.__setattr__(self, "_blur", 0.5 * (eye + alias))
+        object.__setattr__(self, "_sharp", 0.5 * (eye - alias))
 
     @property
     def num_classes(self) -> int:
@@ -124,16 +130,19 @@ class AliasedClassifier:
         return 0.5 * (1.0 + np.cos(np.asarray(psi, dtype=float) - self.best_view[c]))
 
     def mean(self, c: int, psi: ArrayLike) -> Array:
-        s = self.sharpness(c, psi)[..., None]
-        eye = np.eye(self.num_classes)
-        blurred = 0.5 * (eye[c] + eye[self.alias[c]])
-        return np.asarray(s * eye[c] + (1.0 - s) * blurred)
+        # h_c = ½(e_c + e_alias) + s_c(ψ)·½(e_c − e_alias)
+        self._check_class(c)
+        if isinstance(psi, float | int):  # the scalar path taken inside GTSAM factor callbacks
+            s = 0.5 * (1.0 + math.cos(psi - self.best_view[c]))
+            return np.asarray(self._blur[c] + s * self._sharp[c])
+        return np.asarray(self._blur[c] + self.sharpness(c, psi)[..., None] * self._sharp[c])
 
     def mean_dpsi(self, c: int, psi: ArrayLike) -> Array:
         self._check_class(c)
+        if isinstance(psi, float | int):
+            return np.asarray(-0.5 * math.sin(psi - self.best_view[c]) * self._sharp[c])
         ds = -0.5 * np.sin(np.asarray(psi, dtype=float) - self.best_view[c])
-        eye = np.eye(self.num_classes)
-        return np.asarray(ds[..., None] * 0.5 * (eye[c] - eye[self.alias[c]]))
+        return np.asarray(ds[..., None] * self._sharp[c])
 
     def cov(self, c: int, psi: ArrayLike) -> Array:
         self._check_class(c)

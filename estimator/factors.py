@@ -1,0 +1,102 @@
+"""GTSAM factors and keys of the hybrid belief.
+
+Keys: robot poses ``pose_key(slot, k)`` (one slot per robot in a belief, so a centralized belief can
+hold several trajectories) and objects ``object_key(j)`` with the global object id j.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+import gtsam
+import numpy as np
+from numpy.typing import NDArray
+
+from estimator.models import ClassifierModel, GaussianNoise
+
+Array = NDArray[np.float64]
+
+_MAX_STEPS = 10_000_000
+
+
+def pose_key(slot: int, k: int) -> int:
+    """Key of robot ``slot``'s pose at step ``k`` (k < 10⁷)."""
+    return int(gtsam.symbol("x", slot * _MAX_STEPS + k))
+
+
+def object_key(object_id: int) -> int:
+    """Key of object ``object_id``'s pose."""
+    return int(gtsam.symbol("o", object_id))
+
+
+def diagonal_noise(noise: GaussianNoise) -> gtsam.noiseModel.Diagonal:
+    """The GTSAM noise model of a :class:`GaussianNoise`."""
+    return gtsam.noiseModel.Diagonal.Variances(np.asarray(noise.variances, dtype=float))
+
+
+def viewpoint_with_jacobians(x: Array, o: Array) -> tuple[float, Array, Array]:
+    """ψ of camera pose ``x`` (3,) seen from object pose ``o`` (3,), with dψ/dδx and dψ/dδo (3,)
+    for the retractions ``x ∘ Exp(δx)`` and ``o ∘ Exp(δo)``.
+
+    Scalar maths on purpose: this runs inside a GTSAM callback, once per linearisation.
+    """
+    co, so = math.cos(o[2]), math.sin(o[2])
+    dx, dy = x[0] - o[0], x[1] - o[1]
+    px, py = co * dx + so * dy, -so * dx + co * dy  # p = R_oᵀ (t_x − t_o)
+    r2 = px * px + py * py
+    gx, gy = -py / r2, px / r2  # dψ/dp
+    d = x[2] - o[2]
+    c, s = math.cos(d), math.sin(d)
+    # dp/dδx = [R(θx − θo) | 0]; dp/dδo = [−I | (p_y, −p_x)ᵀ]
+    dpsi_dx = np.array([gx * c + gy * s, -gx * s + gy * c, 0.0])
+    dpsi_do = np.array([-gx, -gy, gx * py - gy * px])
+    return math.atan2(py, px), dpsi_dx, dpsi_do
+
+
+def semantic_error(
+    model: ClassifierModel, c: int, z_sem: Array, x: Array, o: Array
+) -> tuple[Array, Array, Array]:
+    """Unwhitened error ``h_c(ψ) − z_sem`` (dim,) and its Jacobians (dim, 3) w.r.t. x and o."""
+    psi, dpsi_dx, dpsi_do = viewpoint_with_jacobians(x, o)
+    err = model.mean(c, psi) - z_sem
+    dh = model.mean_dpsi(c, psi)[:, None]
+    return err, dh * dpsi_dx, dh * dpsi_do
+
+
+def _pose_array(p: gtsam.Pose2) -> Array:
+    return np.array([p.x(), p.y(), p.theta()])
+
+
+def semantic_factor(
+    model: ClassifierModel, c: int, z_sem: Array, x_key: int, o_key: int, psi0: float
+) -> gtsam.CustomFactor:
+    """Eq. 1 as a factor on (X_k, O_j): error ``h_c(ψ) − z_sem`` with Σ_c evaluated at ``psi0``.
+
+    For models with constant Σ_c (the paper's and the aliased model) this is exact; a model whose
+    Σ_c varies with ψ is linearised at the viewpoint of the first estimate.
+    """
+    z = np.asarray(z_sem, dtype=float).copy()
+    cov = model.cov(c, psi0)
+    noise = gtsam.noiseModel.Gaussian.Covariance(cov)
+
+    def error(
+        this: gtsam.CustomFactor, values: gtsam.Values, jacobians: list[Array] | None
+    ) -> Array:
+        x = _pose_array(values.atPose2(this.keys()[0]))
+        o = _pose_array(values.atPose2(this.keys()[1]))
+        err, jx, jo = semantic_error(model, c, z, x, o)
+        if jacobians is not None:
+            jacobians[0] = jx
+            jacobians[1] = jo
+        return err
+
+    callback: Callable[..., Array] = error
+    return gtsam.CustomFactor(noise, gtsam.KeyVector([x_key, o_key]), callback)
+
+
+def semantic_log_normaliser(model: ClassifierModel, c: int, psi0: float) -> float:
+    """−½ log det(2πΣ_c(ψ0)): ``log N(z) = −factor.error − ½ log det(2πΣ)``."""
+    cov = model.cov(c, psi0)
+    _, logdet = np.linalg.slogdet(2.0 * np.pi * cov)
+    return float(-0.5 * logdet)

@@ -1,0 +1,419 @@
+"""The hybrid belief of Eq. 4–6: weighted class realisations, each with its own iSAM2 belief.
+
+A :class:`HybridBelief` holds one or more robot trajectories (one for a robot's local belief,
+several for the centralized reference) and the objects they have seen. Each step propagates every
+hypothesis with the odometry, branches it over the classes of newly seen objects, weighs every
+child with the weight integral (``estimator.weights``), prunes, and only then materialises the
+surviving children by copying iSAM2 and adding the geometric and semantic factors.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+
+import gtsam
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from estimator.factors import (
+    diagonal_noise,
+    object_key,
+    pose_key,
+    semantic_factor,
+)
+from estimator.models import ClassifierModel, Detection, GaussianNoise, SensorFrame, viewpoint
+from estimator.weights import (
+    WEIGHT_ESTIMATORS,
+    InvolvedGaussian,
+    SemanticTerms,
+    geo_conditioned,
+    paper_mc,
+)
+
+Array = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, slots=True)
+class BeliefConfig:
+    """How a hybrid belief computes and prunes (design doc §2–3).
+
+    ``prune_ratio``: drop hypotheses whose weight is below ``w_max / prune_ratio``;
+    ``max_hypotheses``: hard cap, keeping the heaviest; ``weight_estimator``:
+    ``geo_conditioned`` (default) or ``paper_mc``; ``num_samples`` for the Monte Carlo part;
+    ``object_prior_sigmas``: the weak prior on a newly seen object, centred on its first
+    measurement; ``start_prior_sigmas``: the prior on a robot's known start; iSAM2's
+    ``relinearize_threshold`` and the number of ``extra_updates`` after each measurement update.
+    """
+
+    weight_estimator: str = "geo_conditioned"
+    num_samples: int = 500
+    prune_ratio: float = 150.0
+    max_hypotheses: int = 300
+    object_prior_sigmas: tuple[float, float, float] = (100.0, 100.0, math.pi)
+    start_prior_sigmas: tuple[float, float, float] = (1e-3, 1e-3, 1e-3)
+    relinearize_threshold: float = 1e-3
+    extra_updates: int = 1
+
+    def __post_init__(self) -> None:
+        if self.weight_estimator not in WEIGHT_ESTIMATORS:
+            known = ", ".join(WEIGHT_ESTIMATORS)
+            raise ValueError(f"weight_estimator {self.weight_estimator!r} (known: {known})")
+        if self.num_samples < 1 or self.max_hypotheses < 1 or self.extra_updates < 0:
+            raise ValueError("num_samples and max_hypotheses must be ≥ 1, extra_updates ≥ 0")
+        if not self.prune_ratio > 1.0:
+            raise ValueError(f"prune_ratio must be > 1, got {self.prune_ratio}")
+        sigmas = (*self.object_prior_sigmas, *self.start_prior_sigmas)
+        if not all(math.isfinite(s) and s > 0 for s in sigmas):
+            raise ValueError("prior sigmas must be finite and positive")
+
+
+@dataclass(frozen=True, slots=True)
+class BeliefModel:
+    """What the belief assumes about the world: classes, their prior, the classifier, the noise."""
+
+    num_classes: int
+    class_prior: tuple[float, ...]
+    classifier: ClassifierModel
+    odometry_noise: GaussianNoise
+    geometric_noise: GaussianNoise
+
+    def __post_init__(self) -> None:
+        if (
+            len(self.class_prior) != self.num_classes
+            or self.classifier.num_classes != self.num_classes
+        ):
+            raise ValueError("class prior, classifier and num_classes disagree")
+
+
+@dataclass(slots=True)
+class Hypothesis:
+    """One class realisation ``classes`` (aligned with the belief's ``object_ids``), its
+    continuous belief and its normalised log-weight."""
+
+    classes: tuple[int, ...]
+    isam: gtsam.ISAM2
+    log_weight: float
+    estimate: gtsam.Values = field(repr=False)
+
+    def pose(self, key: int) -> Array:
+        p = self.estimate.atPose2(key)
+        return np.array([p.x(), p.y(), p.theta()])
+
+
+@dataclass(frozen=True, slots=True)
+class StepStats:
+    """What one step did: hypotheses before, children weighed, hypotheses kept."""
+
+    parents: int
+    children: int
+    kept: int
+
+
+@dataclass(frozen=True, slots=True)
+class BeliefSnapshot:
+    """A belief as plain arrays, for metrics and plots.
+
+    ``object_ids`` (n,); ``weights`` (H,) normalised; ``classes`` (H, n); ``robot_pose`` (H, 3) and
+    ``robot_cov`` (H, 3, 3) of the robot's latest pose (body-frame tangent covariance);
+    ``object_pose`` (H, n, 3) and ``object_cov`` (H, n, 3, 3).
+    """
+
+    object_ids: tuple[int, ...]
+    weights: Array
+    classes: IntArray
+    robot_pose: Array
+    robot_cov: Array
+    object_pose: Array
+    object_cov: Array
+
+
+class HybridBelief:
+    """A hybrid belief over robot trajectories, object poses and object classes (Eq. 4)."""
+
+    def __init__(
+        self,
+        model: BeliefModel,
+        starts: Mapping[str, ArrayLike],
+        config: BeliefConfig | None = None,
+    ) -> None:
+        self.model = model
+        self.config = config or BeliefConfig()
+        self.robots = list(starts)
+        self._slot = {r: i for i, r in enumerate(self.robots)}
+        self.step_of = dict.fromkeys(self.robots, 0)
+        self.object_ids: list[int] = []
+        self._object_index: dict[int, int] = {}
+        self._odometry_noise = diagonal_noise(model.odometry_noise)
+        self._geometric_noise = diagonal_noise(model.geometric_noise)
+        self._object_prior = gtsam.noiseModel.Diagonal.Sigmas(
+            np.array(self.config.object_prior_sigmas)
+        )
+        self._log_prior = np.log(np.asarray(model.class_prior, dtype=float))
+        geo_cov = model.geometric_noise.cov
+        self._geo_cov = geo_cov
+        self._geo_log_norm = -0.5 * float(np.linalg.slogdet(2.0 * np.pi * geo_cov)[1])
+        graph = gtsam.NonlinearFactorGraph()
+        values = gtsam.Values()
+        start_noise = gtsam.noiseModel.Diagonal.Sigmas(np.array(self.config.start_prior_sigmas))
+        for r, start in starts.items():
+            pose = gtsam.Pose2(*np.asarray(start, dtype=float))
+            graph.add(gtsam.PriorFactorPose2(self.pose_key(r), pose, start_noise))
+            values.insert(self.pose_key(r), pose)
+        isam = gtsam.ISAM2(self._isam_params())
+        isam.update(graph, values)
+        self.hypotheses = [Hypothesis((), isam, 0.0, isam.calculateEstimate())]
+
+    # -- keys and queries -------------------------------------------------------------------
+
+    def pose_key(self, robot: str, k: int | None = None) -> int:
+        """Key of ``robot``'s pose at step ``k`` (default: its latest step)."""
+        return pose_key(self._slot[robot], self.step_of[robot] if k is None else k)
+
+    def weights(self) -> Array:
+        """Normalised weights (H,)."""
+        lw = np.array([h.log_weight for h in self.hypotheses])
+        w = np.exp(lw - lw.max())
+        return np.asarray(w / w.sum())
+
+    def class_marginals(self) -> Array:
+        """P(c_j = i) (n, M) for the known objects in ``object_ids`` order."""
+        w = self.weights()
+        out = np.zeros((len(self.object_ids), self.model.num_classes))
+        if not self.object_ids:
+            return out
+        classes = np.array([h.classes for h in self.hypotheses])
+        for i in range(self.model.num_classes):
+            out[:, i] = w @ (classes == i)
+        return out
+
+    def map_hypothesis(self) -> Hypothesis:
+        return max(self.hypotheses, key=lambda h: h.log_weight)
+
+    def snapshot(self, robot: str) -> BeliefSnapshot:
+        """The belief as arrays (see :class:`BeliefSnapshot`) with ``robot``'s latest pose."""
+        xk = self.pose_key(robot)
+        keys = [object_key(j) for j in self.object_ids]
+        hyps = self.hypotheses
+        n = len(keys)
+        robot_pose = np.array([h.pose(xk) for h in hyps])
+        robot_cov = np.array([h.isam.marginalCovariance(xk) for h in hyps])
+        object_pose = np.array([[h.pose(key) for key in keys] for h in hyps]).reshape(
+            len(hyps), n, 3
+        )
+        object_cov = np.array(
+            [[h.isam.marginalCovariance(key) for key in keys] for h in hyps]
+        ).reshape(len(hyps), n, 3, 3)
+        classes = np.array([h.classes for h in hyps], dtype=np.int64).reshape(len(hyps), n)
+        return BeliefSnapshot(
+            tuple(self.object_ids),
+            self.weights(),
+            classes,
+            robot_pose,
+            robot_cov,
+            object_pose,
+            object_cov,
+        )
+
+    # -- the step ---------------------------------------------------------------------------
+
+    def step(self, frames: Sequence[SensorFrame], rng: np.random.Generator) -> StepStats:
+        """Eq. 5–6 for one step: every frame advances its robot by one step."""
+        self._check_frames(frames)
+        detections = [(f, d) for f in frames for d in f.detections]
+        new_ids: list[int] = []
+        first: dict[int, tuple[SensorFrame, Detection]] = {}
+        for f, d in detections:
+            if d.object_id not in self._object_index and d.object_id not in first:
+                new_ids.append(d.object_id)
+                first[d.object_id] = (f, d)
+        parents = self.hypotheses
+        for h in parents:
+            self._propagate(h, frames, first)
+        for f in frames:
+            self.step_of[f.robot] = f.k
+        if not detections:
+            return StepStats(len(parents), len(parents), len(parents))
+
+        m = self.model.num_classes
+        combos = list(itertools.product(range(m), repeat=len(new_ids)))
+        assignments = np.array(combos, dtype=np.int64).reshape(len(combos), len(new_ids))
+        log_prior_new = self._log_prior[assignments].sum(axis=1)
+        new_col = {j: i for i, j in enumerate(new_ids)}
+        candidates: list[tuple[int, int, float]] = []
+        for p, h in enumerate(parents):
+            det_classes = np.empty((len(assignments), len(detections)), dtype=np.int64)
+            for col, (_, det) in enumerate(detections):
+                j = det.object_id
+                if j in new_col:
+                    det_classes[:, col] = assignments[:, new_col[j]]
+                else:
+                    det_classes[:, col] = h.classes[self._object_index[j]]
+            delta = self._log_evidence(h, detections, det_classes, rng)
+            for a, lw in enumerate(h.log_weight + log_prior_new + delta):
+                if np.isfinite(lw):
+                    candidates.append((p, a, float(lw)))
+        if not candidates:
+            raise FloatingPointError(
+                "every hypothesis has zero likelihood for this step's measurements"
+            )
+        kept = self._select(candidates)
+        for j in new_ids:
+            self._object_index[j] = len(self.object_ids)
+            self.object_ids.append(j)
+        self.hypotheses = self._materialise(parents, kept, assignments, detections)
+        self._normalise()
+        return StepStats(len(parents), len(candidates), len(self.hypotheses))
+
+    def _check_frames(self, frames: Sequence[SensorFrame]) -> None:
+        seen = set()
+        for f in frames:
+            if f.robot not in self._slot:
+                raise ValueError(f"frame of unknown robot {f.robot!r}")
+            if f.robot in seen:
+                raise ValueError(f"two frames of robot {f.robot!r} in one step")
+            if f.k != self.step_of[f.robot] + 1:
+                raise ValueError(
+                    f"robot {f.robot!r} is at step {self.step_of[f.robot]}, got frame {f.k}"
+                )
+            seen.add(f.robot)
+
+    def _isam_params(self) -> gtsam.ISAM2Params:
+        params = gtsam.ISAM2Params()
+        params.setRelinearizeThreshold(self.config.relinearize_threshold)
+        params.relinearizeSkip = 1
+        return params
+
+    def _propagate(
+        self,
+        h: Hypothesis,
+        frames: Sequence[SensorFrame],
+        first: Mapping[int, tuple[SensorFrame, Detection]],
+    ) -> None:
+        """Motion factors and the priors of newly seen objects (class-independent)."""
+        graph = gtsam.NonlinearFactorGraph()
+        values = gtsam.Values()
+        new_pose: dict[str, gtsam.Pose2] = {}
+        for f in frames:
+            prev, cur = self.pose_key(f.robot, f.k - 1), self.pose_key(f.robot, f.k)
+            u = gtsam.Pose2(*f.odometry)
+            graph.add(gtsam.BetweenFactorPose2(prev, cur, u, self._odometry_noise))
+            new_pose[f.robot] = h.estimate.atPose2(prev).compose(u)
+            values.insert(cur, new_pose[f.robot])
+        for j, (f, d) in first.items():
+            o = new_pose[f.robot].compose(gtsam.Pose2(*d.z_geo))
+            graph.add(gtsam.PriorFactorPose2(object_key(j), o, self._object_prior))
+            values.insert(object_key(j), o)
+        h.isam.update(graph, values)
+        h.estimate = h.isam.calculateEstimate()
+
+    def _log_evidence(
+        self,
+        h: Hypothesis,
+        detections: Sequence[tuple[SensorFrame, Detection]],
+        det_classes: IntArray,
+        rng: np.random.Generator,
+    ) -> Array:
+        """Δ log w for each class assignment of the detections (A, D) → (A,)."""
+        keys: list[int] = []
+        index: dict[int, int] = {}
+
+        def var(key: int) -> int:
+            if key not in index:
+                index[key] = len(keys)
+                keys.append(key)
+            return index[key]
+
+        robot_var, object_var, rows, rhs = [], [], [], []
+        for f, d in detections:
+            xk, oj = self.pose_key(f.robot, f.k), object_key(d.object_id)
+            robot_var.append(var(xk))
+            object_var.append(var(oj))
+        n = 3 * len(keys)
+        for (_, d), rv, ov in zip(detections, robot_var, object_var, strict=True):
+            xk, oj = keys[rv], keys[ov]
+            factor = gtsam.BetweenFactorPose2(xk, oj, gtsam.Pose2(*d.z_geo), self._geometric_noise)
+            a, b = factor.linearize(h.estimate).jacobian()
+            row = np.zeros((3, n))
+            row[:, 3 * rv : 3 * rv + 3] = a[:, :3]
+            row[:, 3 * ov : 3 * ov + 3] = a[:, 3:6]
+            rows.append(row)
+            rhs.append(b)
+        joint = h.isam.jointMarginalInformation(gtsam.KeyVector(keys))
+        info = np.block([[joint.at(ki, kj) for kj in keys] for ki in keys])
+        lin = np.array([h.pose(key) for key in keys])
+        g = InvolvedGaussian(
+            lin, info, np.vstack(rows), np.concatenate(rhs), len(detections) * self._geo_log_norm
+        )
+        terms = SemanticTerms(
+            np.array(robot_var), np.array(object_var), np.array([d.z_sem for _, d in detections])
+        )
+        cfg = self.config
+        if cfg.weight_estimator == "geo_conditioned":
+            return geo_conditioned(
+                g, terms, det_classes, self.model.classifier, cfg.num_samples, rng
+            )
+        z_geo = np.array([d.z_geo for _, d in detections])
+        geo_terms = (terms.robot_var, terms.object_var, z_geo, self._geo_cov)
+        return paper_mc(
+            g, terms, geo_terms, det_classes, self.model.classifier, cfg.num_samples, rng
+        )
+
+    def _select(self, candidates: list[tuple[int, int, float]]) -> list[tuple[int, int, float]]:
+        """Prune by weight ratio, then cap; the heaviest candidate always survives."""
+        best = max(lw for _, _, lw in candidates)
+        floor = best - math.log(self.config.prune_ratio)
+        kept = [c for c in candidates if c[2] >= floor]
+        if len(kept) > self.config.max_hypotheses:
+            kept.sort(key=lambda c: -c[2])
+            kept = kept[: self.config.max_hypotheses]
+        return kept
+
+    def _materialise(
+        self,
+        parents: Sequence[Hypothesis],
+        kept: Sequence[tuple[int, int, float]],
+        assignments: IntArray,
+        detections: Sequence[tuple[SensorFrame, Detection]],
+    ) -> list[Hypothesis]:
+        by_parent: dict[int, list[tuple[int, float]]] = {}
+        for p, a, lw in kept:
+            by_parent.setdefault(p, []).append((a, lw))
+        children = []
+        for p, group in by_parent.items():
+            parent = parents[p]
+            for i, (a, lw) in enumerate(group):
+                isam = parent.isam if i == len(group) - 1 else gtsam.ISAM2(parent.isam)
+                classes = parent.classes + tuple(int(c) for c in assignments[a])
+                child = Hypothesis(classes, isam, lw, parent.estimate)
+                self._measure(child, detections)
+                children.append(child)
+        return children
+
+    def _measure(self, h: Hypothesis, detections: Sequence[tuple[SensorFrame, Detection]]) -> None:
+        """Add the geometric and semantic factors of this step's detections (Eq. 5)."""
+        graph = gtsam.NonlinearFactorGraph()
+        for f, d in detections:
+            xk, oj = self.pose_key(f.robot, f.k), object_key(d.object_id)
+            graph.add(
+                gtsam.BetweenFactorPose2(xk, oj, gtsam.Pose2(*d.z_geo), self._geometric_noise)
+            )
+            c = h.classes[self._object_index[d.object_id]]
+            psi0 = float(viewpoint(h.pose(xk), h.pose(oj)))
+            graph.add(semantic_factor(self.model.classifier, c, d.z_sem, xk, oj, psi0))
+        h.isam.update(graph, gtsam.Values())
+        for _ in range(self.config.extra_updates):
+            h.isam.update()
+        h.estimate = h.isam.calculateEstimate()
+
+    def _normalise(self) -> None:
+        lw = np.array([h.log_weight for h in self.hypotheses])
+        total = float(np.logaddexp.reduce(lw))
+        for h in self.hypotheses:
+            h.log_weight -= total

@@ -1,0 +1,139 @@
+"""Evaluation of a belief against ground truth (design doc §8). Pure functions of arrays."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import numpy as np
+from numpy.typing import NDArray
+
+from estimator.hybrid import BeliefSnapshot
+from estimator.models import se2
+
+Array = NDArray[np.float64]
+
+# The per-step metrics every study reports (docs/results.md).
+METRICS = (
+    "msde",
+    "robot_error",
+    "object_error",
+    "robot_sqrt_det",
+    "object_sqrt_det",
+    "robot_nees",
+    "object_nees",
+    "robot_nees_mixture",
+    "object_nees_mixture",
+    "class_log_loss",
+    "hypotheses",
+)
+
+# A probability below this is clipped before the log-loss, so a pruned true class costs a large
+# but finite amount.
+_MIN_PROBABILITY = 1e-12
+
+
+def class_marginals(weights: Array, classes: NDArray[np.int64], num_classes: int) -> Array:
+    """P(c_j = i) (n, M) from normalised weights (H,) and realisations (H, n)."""
+    onehot = classes[:, :, None] == np.arange(num_classes)[None, None, :]
+    return np.asarray(np.einsum("h,hni->ni", weights, onehot))
+
+
+def msde(prob: Array, true_classes: NDArray[np.int64]) -> float:
+    """Eq. 24: (1/|O|) Σ_j (1/M) Σ_i (1[c_j = i] − P(c_j = i))²; NaN when no object is known."""
+    if len(true_classes) == 0:
+        return float("nan")
+    m = prob.shape[1]
+    onehot = true_classes[:, None] == np.arange(m)[None, :]
+    return float(np.mean(np.sum((onehot - prob) ** 2, axis=1) / m))
+
+
+def class_log_loss(prob: Array, true_classes: NDArray[np.int64]) -> float:
+    """Mean −log P(c_j = true class) over known objects; NaN when none is known."""
+    if len(true_classes) == 0:
+        return float("nan")
+    p = prob[np.arange(len(true_classes)), true_classes]
+    return float(np.mean(-np.log(np.maximum(p, _MIN_PROBABILITY))))
+
+
+def world_position_cov(pose: Array, cov: Array) -> Array:
+    """World-frame 2×2 position covariance R Σ_xy Rᵀ of poses (..., 3) with body-frame tangent
+    covariances (..., 3, 3)."""
+    c, s = np.cos(pose[..., 2]), np.sin(pose[..., 2])
+    rot = np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
+    return np.asarray(rot @ cov[..., :2, :2] @ np.swapaxes(rot, -1, -2))
+
+
+def pose_nees(estimate: Array, cov: Array, truth: Array) -> Array:
+    """eᵀΣ⁻¹e with e = Logmap(x̂⁻¹ x_gt) (3 dof): estimate (..., 3), cov (..., 3, 3) → (...)."""
+    e = se2.local(estimate, truth)
+    return np.asarray(np.einsum("...i,...i->...", e, np.linalg.solve(cov, e[..., None])[..., 0]))
+
+
+def mixture_position_nees(weights: Array, pose: Array, cov: Array, truth_xy: Array) -> Array:
+    """NEES of the world position under the Gaussian-mixture moment match (2 dof).
+
+    weights (H,), pose (H, ..., 3), cov (H, ..., 3, 3), truth_xy (..., 2) → (...).
+    """
+    w = weights.reshape((-1,) + (1,) * (pose.ndim - 1))
+    xy = pose[..., :2]
+    mean = np.sum(w * xy, axis=0)
+    spread = xy - mean
+    within = world_position_cov(pose, cov)
+    total = np.sum(w[..., None] * (within + spread[..., :, None] * spread[..., None, :]), axis=0)
+    e = truth_xy - mean
+    return np.asarray(np.einsum("...i,...i->...", e, np.linalg.solve(total, e[..., None])[..., 0]))
+
+
+def evaluate(
+    snap: BeliefSnapshot,
+    num_classes: int,
+    true_pose: Array,
+    true_objects: Mapping[int, tuple[Array, int]],
+) -> dict[str, float]:
+    """Every metric of :data:`METRICS` for one robot of one belief at one step.
+
+    ``true_pose`` (3,) is the robot's true pose; ``true_objects`` maps object id → (pose (3,),
+    class index). Object metrics are NaN while the belief knows no object.
+    """
+    w = snap.weights
+    top = int(np.argmax(w))
+    out: dict[str, float] = {"hypotheses": float(len(w))}
+    robot_xy_err = np.hypot(*(snap.robot_pose[:, :2] - true_pose[:2]).T)
+    out["robot_error"] = float(w @ robot_xy_err)
+    robot_pos_cov = world_position_cov(snap.robot_pose, snap.robot_cov)
+    out["robot_sqrt_det"] = float(w @ np.sqrt(np.linalg.det(robot_pos_cov)))
+    out["robot_nees"] = float(pose_nees(snap.robot_pose[top], snap.robot_cov[top], true_pose))
+    out["robot_nees_mixture"] = float(
+        mixture_position_nees(w, snap.robot_pose, snap.robot_cov, true_pose[:2])
+    )
+    n = len(snap.object_ids)
+    if n == 0:
+        for key in ("msde", "class_log_loss", "object_error", "object_sqrt_det"):
+            out[key] = float("nan")
+        out["object_nees"] = out["object_nees_mixture"] = float("nan")
+        return out
+    truth = np.array([true_objects[j][0] for j in snap.object_ids])
+    true_classes = np.array([true_objects[j][1] for j in snap.object_ids], dtype=np.int64)
+    prob = class_marginals(w, snap.classes, num_classes)
+    out["msde"] = msde(prob, true_classes)
+    out["class_log_loss"] = class_log_loss(prob, true_classes)
+    err = np.hypot(*(snap.object_pose[..., :2] - truth[None, :, :2]).transpose(2, 0, 1))  # (H, n)
+    out["object_error"] = float(np.mean(w @ err))
+    obj_pos_cov = world_position_cov(snap.object_pose, snap.object_cov)
+    out["object_sqrt_det"] = float(np.mean(w @ np.sqrt(np.linalg.det(obj_pos_cov))))
+    top_e = snap.object_pose[top, :, :2] - truth[:, :2]
+    top_cov = obj_pos_cov[top]
+    nees = np.einsum("ni,ni->n", top_e, np.linalg.solve(top_cov, top_e[..., None])[..., 0])
+    out["object_nees"] = float(np.mean(nees))
+    out["object_nees_mixture"] = float(
+        np.mean(mixture_position_nees(w, snap.object_pose, snap.object_cov, truth[:, :2]))
+    )
+    return out
+
+
+def chi2_bounds(dof: int, runs: int, probability: float = 0.95) -> tuple[float, float]:
+    """Two-sided bounds of the average NEES over ``runs`` runs of a ``dof``-dimensional error."""
+    from scipy.stats import chi2
+
+    tail = (1.0 - probability) / 2.0
+    return float(chi2.ppf(tail, dof * runs) / runs), float(chi2.ppf(1.0 - tail, dof * runs) / runs)

@@ -1,0 +1,152 @@
+"""The weight integral of Eq. 6 (locally) and Eq. 14–15 (distributed), design doc §3.
+
+Both estimators see the same linear-Gaussian picture of the propagated belief over the involved
+variables ``inv = [X_k …] + [O_j for detected j]``: tangent perturbations δ (n,) at the
+linearisation point, δ ~ N(0, Λ⁻¹), and the whitened, linearised geometric factors ``J δ − b``.
+Only the semantic term needs samples; it is evaluated jointly for every class assignment of a
+parent's children so that one set of samples serves them all.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.linalg import solve_triangular
+from scipy.special import logsumexp
+
+from estimator.models import ClassifierModel, se2, viewpoint
+
+Array = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+WEIGHT_ESTIMATORS = ("geo_conditioned", "paper_mc")
+
+
+@dataclass(frozen=True, slots=True)
+class InvolvedGaussian:
+    """The propagated belief over the involved variables and the new geometric factors.
+
+    ``lin`` (v, 3) linearisation poses of the v involved variables (n = 3v); ``info`` (n, n) their
+    joint marginal information; ``jac`` (m, n), ``rhs`` (m,) the whitened linearised geometric
+    factors; ``geo_log_norm`` the sum of −½ log det(2πΣ_geo) over the m/3 geometric factors.
+    """
+
+    lin: Array
+    info: Array
+    jac: Array
+    rhs: Array
+    geo_log_norm: float
+
+
+@dataclass(frozen=True, slots=True)
+class SemanticTerms:
+    """The semantic measurements of one step: detection d seen by the robot variable
+    ``robot_var[d]`` of the object variable ``object_var[d]`` (indices into ``lin``) with scores
+    ``z[d]`` (D, dim)."""
+
+    robot_var: IntArray
+    object_var: IntArray
+    z: Array
+
+
+def _cholesky_lower(a: Array) -> Array:
+    return np.asarray(np.linalg.cholesky(0.5 * (a + a.T)), dtype=float)
+
+
+def _log_det_chol(chol: Array) -> float:
+    return float(2.0 * np.sum(np.log(np.diagonal(chol))))
+
+
+def _retract_samples(lin: Array, delta: Array) -> Array:
+    """Poses (S, v, 3) from tangent samples δ (S, 3v) at ``lin`` (v, 3)."""
+    s = delta.shape[0]
+    return se2.retract(lin[None, :, :], delta.reshape(s, -1, 3))
+
+
+def semantic_log_likelihoods(model: ClassifierModel, poses: Array, terms: SemanticTerms) -> Array:
+    """log P(z_d | poses, c) for every sample, detection and class: poses (S, v, 3) → (S, D, M)."""
+    psi = viewpoint(poses[:, terms.robot_var, :], poses[:, terms.object_var, :])  # (S, D)
+    m = model.num_classes
+    out = np.empty((*psi.shape, m))
+    for d in range(psi.shape[1]):
+        for c in range(m):
+            out[:, d, c] = model.log_likelihood(terms.z[d], c, psi[:, d])
+    return out
+
+
+def assignment_log_means(log_lik: Array, assignments: IntArray) -> Array:
+    """log (1/S) Σ_s Π_d P(z_d | c = assignments[a, d]) per assignment: (S, D, M), (A, D) → (A,)."""
+    s, d_count, _ = log_lik.shape
+    if d_count == 0:
+        return np.zeros(len(assignments))
+    picked = log_lik[:, np.arange(d_count)[None, :], assignments]  # (S, A, D)
+    total = picked.sum(axis=2)
+    return np.asarray(logsumexp(total, axis=0) - np.log(s))
+
+
+def geo_conditioned(
+    g: InvolvedGaussian,
+    terms: SemanticTerms,
+    assignments: IntArray,
+    model: ClassifierModel,
+    num_samples: int,
+    rng: np.random.Generator,
+) -> Array:
+    """Default estimator: closed-form geometric evidence × Monte Carlo of the semantic term over
+    the geometry-conditioned Gaussian (an exact rewrite of the integral). Returns Δlog w (A,)."""
+    post_info = g.info + g.jac.T @ g.jac
+    chol_post = _cholesky_lower(post_info)
+    chol_prior = _cholesky_lower(g.info)
+    jtb = g.jac.T @ g.rhs
+    mean = solve_triangular(chol_post.T, solve_triangular(chol_post, jtb, lower=True), lower=False)
+    # log N(b; 0, S) with S = J Λ⁻¹ Jᵀ + I, by Woodbury and the determinant lemma.
+    quad = float(g.rhs @ g.rhs - jtb @ mean)
+    log_det_s = _log_det_chol(chol_post) - _log_det_chol(chol_prior)
+    log_geo = -0.5 * quad - 0.5 * log_det_s + g.geo_log_norm
+    if len(terms.z) == 0:
+        return np.full(len(assignments), log_geo)
+    eps = rng.standard_normal((num_samples, len(mean)))
+    delta = mean + solve_triangular(chol_post.T, eps.T, lower=False).T
+    log_lik = semantic_log_likelihoods(model, _retract_samples(g.lin, delta), terms)
+    return log_geo + assignment_log_means(log_lik, assignments)
+
+
+def geometric_log_likelihoods(
+    poses: Array, robot_var: IntArray, object_var: IntArray, z_geo: Array, cov: Array
+) -> Array:
+    """Σ_d log N(Logmap(z_d⁻¹ · x⁻¹o); 0, Σ_geo) per sample: poses (S, v, 3) → (S,)."""
+    rel = se2.between(poses[:, robot_var, :], poses[:, object_var, :])  # (S, D, 3)
+    r = se2.local(z_geo[None, :, :], rel)
+    info = np.linalg.inv(cov)
+    _, log_det = np.linalg.slogdet(2.0 * np.pi * cov)
+    quad = np.einsum("sdi,ij,sdj->sd", r, info, r)
+    return np.asarray(np.sum(-0.5 * quad - 0.5 * log_det, axis=1))
+
+
+def paper_mc(
+    g: InvolvedGaussian,
+    terms: SemanticTerms,
+    geo_terms: tuple[IntArray, IntArray, Array, Array],
+    assignments: IntArray,
+    model: ClassifierModel,
+    num_samples: int,
+    rng: np.random.Generator,
+) -> Array:
+    """The paper's literal estimator: sample the involved variables from the propagated belief and
+    average L_geo · L_sem. Unbiased but noisy for newly seen objects. Returns Δlog w (A,)."""
+    chol = _cholesky_lower(g.info)
+    eps = rng.standard_normal((num_samples, g.info.shape[0]))
+    delta = solve_triangular(chol.T, eps.T, lower=False).T
+    poses = _retract_samples(g.lin, delta)
+    robot_var, object_var, z_geo, geo_cov = geo_terms
+    log_geo = geometric_log_likelihoods(poses, robot_var, object_var, z_geo, geo_cov)  # (S,)
+    if len(terms.z) == 0:
+        total = log_geo[:, None] + np.zeros((1, len(assignments)))
+    else:
+        log_lik = semantic_log_likelihoods(model, poses, terms)
+        d_count = log_lik.shape[1]
+        picked = log_lik[:, np.arange(d_count)[None, :], assignments].sum(axis=2)  # (S, A)
+        total = log_geo[:, None] + picked
+    return np.asarray(logsumexp(total, axis=0) - np.log(num_samples))
