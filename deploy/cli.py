@@ -40,19 +40,23 @@ def main(argv: Sequence[str] | None = None) -> int:
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
     )
     console = Console()
-    err = Console(stderr=True)
     try:
         code: int = args.run(args, console)
         return code
     except ScenarioError as exc:
-        err.print(f"semfleet: error: {exc}", markup=False, highlight=False)
+        _error(str(exc))
         return EXIT_USAGE
     except (OSError, ValueError, StudyError) as exc:
-        err.print(f"semfleet: error: {exc}", markup=False, highlight=False)
+        _error(str(exc))
         return EXIT_FAILURE
     except KeyboardInterrupt:
-        err.print("semfleet: interrupted", markup=False)
+        _error("interrupted")
         return EXIT_INTERRUPTED
+
+
+def _error(message: str) -> None:
+    """One plain line on stderr: never wrapped, whatever the terminal width."""
+    print(f"semfleet: error: {' '.join(message.split())}", file=sys.stderr)
 
 
 if __name__ == "__main__":

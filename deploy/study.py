@@ -48,9 +48,14 @@ def belief_model(scenario: Scenario) -> BeliefModel:
     )
 
 
-def method_rng(seed: int, method: str, robot: str = "") -> np.random.Generator:
-    """The estimator's own randomness for (seed, method, robot), independent of the sensor noise."""
-    tags = [zlib.crc32(method.encode()), zlib.crc32(robot.encode())]
+def belief_rng(seed: int, robots: Sequence[str]) -> np.random.Generator:
+    """The weight estimator's randomness for a belief over ``robots`` in run ``seed``.
+
+    It depends on the robots, not the method: beliefs over the same robots draw the same Monte
+    Carlo samples in every method (common random numbers for the estimator too), so a one-robot
+    centralized belief is exactly that robot's local belief. Independent of the sensor noise.
+    """
+    tags = [zlib.crc32(r.encode()) for r in robots]
     return np.random.default_rng(np.random.SeedSequence([seed, 0xBE11EF, *tags]))
 
 
@@ -80,7 +85,7 @@ def run_single(
         if method == "local":
             for i, robot in enumerate(robots):
                 belief = HybridBelief(model, {robot: scenario.robot(robot).start}, config)
-                rng = method_rng(seed, method, robot)
+                rng = belief_rng(seed, [robot])
                 for f in frames[robot]:
                     t = time.perf_counter()
                     belief.step([f], rng)
@@ -88,7 +93,7 @@ def run_single(
                     rec.record(belief, i, robot, f.k)
         else:
             belief = HybridBelief(model, {r: scenario.robot(r).start for r in robots}, config)
-            rng = method_rng(seed, method)
+            rng = belief_rng(seed, robots)
             for k in range(1, scenario.steps + 1):
                 t = time.perf_counter()
                 belief.step([frames[r][k - 1] for r in robots], rng)

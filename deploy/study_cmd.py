@@ -105,7 +105,8 @@ def _methods(text: str) -> list[str]:
 def render_summary(doc: dict[str, Any], console: Console, at_steps: list[int]) -> None:
     steps = doc["steps"]
     at = [k for k in at_steps if 1 <= k <= steps] or [steps]
-    table = Table(title=f"{doc['scenario']}: {doc['runs']} runs, mean over runs and robots")
+    runs = f"{doc['runs']} run" + ("s" if doc["runs"] != 1 else "")
+    table = Table(title=f"{doc['scenario']}: {runs}, mean over runs and robots")
     table.add_column("method")
     table.add_column("metric")
     for k in at:
@@ -195,7 +196,7 @@ def run(args: argparse.Namespace, console: Console) -> int:
     robot = args.snapshot_robot or scenario.robot_ids[0]
     if robot not in scenario.robot_ids:
         raise ScenarioError(f"--snapshot-robot: no robot {robot!r} in {scenario.name}")
-    step = args.snapshot_step or scenario.steps
+    step = scenario.steps if args.snapshot_step is None else args.snapshot_step
     if not 1 <= step <= scenario.steps:
         raise ScenarioError(f"--snapshot-step: {step} is outside 1..{scenario.steps}")
     config = BeliefConfig(
