@@ -5,9 +5,9 @@ from __future__ import annotations
 import sys
 import time
 
-from bench import Result, bench_models
+from bench import Result, bench_belief, bench_models
 
-MODULES = (bench_models,)
+MODULES = (bench_models, bench_belief)
 
 _HEADER = ("benchmark", "N", "ms", "baseline ms", "speed-up", "throughput /s", "note")
 
@@ -40,6 +40,9 @@ def main() -> int:
     start = time.perf_counter()
     results = [r for module in MODULES for r in module.run()]
     print(format_table(results))
+    for module in MODULES:
+        for line in getattr(module, "notes", list)():
+            print(f"- {line}")
     print(f"\n{len(results)} benchmarks in {time.perf_counter() - start:.1f} s")
     return 0
 
