@@ -26,6 +26,7 @@ from estimator.factors import (
     semantic_factor,
 )
 from estimator.models import ClassifierModel, Detection, GaussianNoise, SensorFrame, viewpoint
+from estimator.summary import Realisation
 from estimator.weights import (
     WEIGHT_ESTIMATORS,
     InvolvedGaussian,
@@ -92,15 +93,41 @@ class BeliefModel:
             raise ValueError("class prior, classifier and num_classes disagree")
 
 
+@dataclass(frozen=True, slots=True)
+class UsedSlot:
+    """What a distributed hypothesis took from another robot's slot: the version's stamp, the
+    owner's object ids and the realisation it joined, and the iSAM2 indices of the factors that
+    carry that robot's information (removed on the next version when downdating by removal)."""
+
+    stamp: int
+    object_ids: tuple[int, ...]
+    realisation: Realisation
+    factor_indices: tuple[int, ...]
+
+
 @dataclass(slots=True)
 class Hypothesis:
     """One class realisation ``classes`` (aligned with the belief's ``object_ids``), its
-    continuous belief and its normalised log-weight."""
+    continuous belief and its normalised log-weight.
+
+    ``object_priors`` holds the mean (3,) of every object's weak prior (needed to divide it out of
+    a slot exactly); ``used`` the slots a distributed belief has integrated, by owner.
+    """
 
     classes: tuple[int, ...]
     isam: gtsam.ISAM2
     log_weight: float
     estimate: gtsam.Values = field(repr=False)
+    object_priors: dict[int, Array] = field(default_factory=dict, repr=False)
+    used: dict[str, UsedSlot] = field(default_factory=dict, repr=False)
+
+    def branch(self, classes: tuple[int, ...], log_weight: float, copy_isam: bool) -> Hypothesis:
+        """A child with ``classes``; it shares nothing mutable with this hypothesis unless
+        ``copy_isam`` is False, in which case it takes over this hypothesis' iSAM2."""
+        isam = gtsam.ISAM2(self.isam) if copy_isam else self.isam
+        return Hypothesis(
+            classes, isam, log_weight, self.estimate, dict(self.object_priors), dict(self.used)
+        )
 
     def pose(self, key: int) -> Array:
         p = self.estimate.atPose2(key)
@@ -310,6 +337,7 @@ class HybridBelief:
             o = new_pose[f.robot].compose(gtsam.Pose2(*d.z_geo))
             graph.add(gtsam.PriorFactorPose2(object_key(j), o, self._object_prior))
             values.insert(object_key(j), o)
+            h.object_priors[j] = np.array([o.x(), o.y(), o.theta()])
         h.isam.update(graph, values)
         h.estimate = h.isam.calculateEstimate()
 
@@ -389,9 +417,8 @@ class HybridBelief:
         for p, group in by_parent.items():
             parent = parents[p]
             for i, (a, lw) in enumerate(group):
-                isam = parent.isam if i == len(group) - 1 else gtsam.ISAM2(parent.isam)
                 classes = parent.classes + tuple(int(c) for c in assignments[a])
-                child = Hypothesis(classes, isam, lw, parent.estimate)
+                child = parent.branch(classes, lw, copy_isam=i < len(group) - 1)
                 self._measure(child, detections)
                 children.append(child)
         return children

@@ -1,0 +1,71 @@
+"""What a robot shares: its local belief summarised per class realisation (Eq. 18, design doc §4).
+
+For every hypothesis of the LOCAL belief: ξ, the joint Gaussian over all the owner's object poses
+with the object priors divided out exactly (information form Λ, η about the linearisation poses
+``lin``), and log φ = log w − Σ_j log P(c_j). The joint marginal comes from the hypothesis' iSAM2
+Bayes tree; its mean is iSAM2's current Δ at the linearisation point.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import gtsam
+import numpy as np
+from numpy.typing import NDArray
+
+from estimator.factors import object_key
+from estimator.hybrid import HybridBelief, Hypothesis
+from estimator.summary import LocalSummary, Realisation
+
+Array = NDArray[np.float64]
+
+# Eigenvalues of Λ below this fraction of the largest are raised to it: ξ must stay a proper
+# Gaussian after the prior division even when an object is barely constrained.
+EIGEN_FLOOR = 1e-9
+
+
+def summarise(belief: HybridBelief) -> LocalSummary | None:
+    """ξ and log φ for every hypothesis of ``belief``; None while it knows no object."""
+    if not belief.object_ids:
+        return None
+    ids = tuple(belief.object_ids)
+    log_prior = np.log(np.asarray(belief.model.class_prior, dtype=float))
+    prior_noise = gtsam.noiseModel.Diagonal.Sigmas(np.array(belief.config.object_prior_sigmas))
+    out = []
+    for h in belief.hypotheses:
+        lin, info, eta = _prior_divided_marginal(h, ids, prior_noise)
+        log_phi = h.log_weight - float(sum(log_prior[c] for c in h.classes))
+        out.append(Realisation(h.classes, log_phi, lin, info, eta))
+    return LocalSummary(ids, tuple(out))
+
+
+def _prior_divided_marginal(
+    h: Hypothesis, ids: Sequence[int], prior_noise: gtsam.noiseModel.Base
+) -> tuple[Array, Array, Array]:
+    keys = [object_key(j) for j in ids]
+    joint = h.isam.jointMarginalInformation(gtsam.KeyVector(keys))
+    info = np.block([[joint.at(ki, kj) for kj in keys] for ki in keys])
+    delta = h.isam.getDelta()
+    mean = np.concatenate([delta.at(k) for k in keys])
+    eta = info @ mean
+    lin_values = h.isam.getLinearizationPoint()
+    lin = np.empty((len(keys), 3))
+    for i, (j, key) in enumerate(zip(ids, keys, strict=True)):
+        p = lin_values.atPose2(key)
+        lin[i] = (p.x(), p.y(), p.theta())
+        prior = gtsam.PriorFactorPose2(key, gtsam.Pose2(*h.object_priors[j]), prior_noise)
+        a, b = prior.linearize(lin_values).jacobian()
+        block = slice(3 * i, 3 * i + 3)
+        info[block, block] -= a.T @ a
+        eta[block] -= a.T @ b
+    return lin, _floor_eigenvalues(info), eta
+
+
+def _floor_eigenvalues(info: Array) -> Array:
+    sym = 0.5 * (info + info.T)
+    vals, vecs = np.linalg.eigh(sym)
+    floor = EIGEN_FLOOR * max(float(vals[-1]), 1e-300)
+    if vals[0] >= floor:
+        return sym
+    return np.asarray((vecs * np.maximum(vals, floor)) @ vecs.T)

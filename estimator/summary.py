@@ -1,0 +1,34 @@
+"""The numeric content of a slot: a local belief summarised per class realisation (ξ, φ)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+Array = NDArray[np.float64]
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class Realisation:
+    """One class realisation of the owner's objects and its summary.
+
+    ``classes`` (n,) class indices aligned with the slot's object ids; ``log_phi`` = log w − log
+    P(C); ``lin`` (n, 3) linearisation poses; ``info`` (3n, 3n) Λ, symmetric positive definite;
+    ``eta`` (3n,) η, so that ξ ∝ exp(−½ δᵀΛδ + ηᵀδ) over tangent perturbations δ at ``lin``.
+    """
+
+    classes: tuple[int, ...]
+    log_phi: float
+    lin: Array
+    info: Array
+    eta: Array
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class LocalSummary:
+    """Every unpruned realisation of a local belief over the owner's objects ``object_ids``."""
+
+    object_ids: tuple[int, ...]
+    realisations: tuple[Realisation, ...]
