@@ -123,7 +123,7 @@ class DistributedBelief(HybridBelief):
         if len(set(owners)) != len(owners):
             raise SlotError(f"two versions of one robot's slot in one batch: {owners}")
         for s in batch:
-            self._check(s)
+            self.check(s)
         if not batch:
             return FusionStats((), (), 0, len(self.hypotheses))
         joins, order, skipped = self._join(batch)
@@ -154,7 +154,8 @@ class DistributedBelief(HybridBelief):
             tuple(s.owner for s in used_batch), tuple(sorted(skipped)), len(joins), len(children)
         )
 
-    def _check(self, s: IncomingSlot) -> None:
+    def check(self, s: IncomingSlot) -> None:
+        """Raise :class:`SlotError` if a slot contradicts this belief's model."""
         m = self.model.num_classes
         n = len(s.summary.object_ids)
         if len(set(s.summary.object_ids)) != n:
@@ -255,6 +256,5 @@ class DistributedBelief(HybridBelief):
             )
             own = (*carried, *anti, new_indices[start])
             h.used[s.owner] = UsedSlot(s.stamp, s.summary.object_ids, real, own)
-        for _ in range(self.config.extra_updates):
-            h.isam.update()
+        # No extra update here: the local step that follows updates iSAM2 again.
         h.estimate = h.isam.calculateEstimate()

@@ -1,0 +1,160 @@
+"""RobotNode: the sans-I/O core of one robot (design doc §6, ARCHITECTURE data flow).
+
+It owns the robot's LOCAL belief L, its DISTRIBUTED belief D and its stack. Bytes come in through
+``on_stack``, frames through ``on_frame``, and ``outgoing`` gives the bytes to send. It never
+touches a socket, a clock or a thread; the shells (in-process runner, asyncio agent) drive it.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from estimator.distributed import DistributedBelief, FusionStats, IncomingSlot, SlotError
+from estimator.hybrid import BeliefConfig, BeliefModel, HybridBelief
+from estimator.models import SensorFrame
+from estimator.slots import summarise
+from protocol.codec import Limits, StackMessage, decode, encode
+from protocol.errors import RemoteProtocolError
+from protocol.stack import Slot, Stack
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(slots=True)
+class NodeCounters:
+    """What a node has seen. ``invalid`` counts messages rejected by the protocol layer,
+    ``rejected_slots`` slots that decoded but contradict the belief's model."""
+
+    stacks_received: int = 0
+    stacks_merged: int = 0
+    stacks_unchanged: int = 0
+    invalid: int = 0
+    rejected_slots: int = 0
+    bytes_received: int = 0
+    stacks_sent: int = 0
+    bytes_sent: int = 0
+    last_error: str = ""
+    errors_by_type: dict[str, int] = field(default_factory=dict)
+
+
+@dataclass(frozen=True, slots=True)
+class StepReport:
+    """One ``on_frame``: the fusion done on D before the local steps."""
+
+    k: int
+    fusion: FusionStats
+
+
+class RobotNode:
+    """One robot. ``rng_local`` and ``rng_distributed`` must be two generators built from the same
+    seed: then, with nothing received, D repeats L exactly."""
+
+    def __init__(
+        self,
+        robot: str,
+        start: ArrayLike,
+        model: BeliefModel,
+        rng_local: np.random.Generator,
+        rng_distributed: np.random.Generator,
+        config: BeliefConfig | None = None,
+        fusion: str = "consistent",
+        downdate: str = "remove",
+        limits: Limits | None = None,
+    ) -> None:
+        self.robot = robot
+        self.local = HybridBelief(model, {robot: start}, config)
+        self.distributed = DistributedBelief(model, robot, start, config, fusion, downdate)
+        self.limits = limits or Limits(num_classes=model.num_classes)
+        self.stack = Stack()
+        self.counters = NodeCounters()
+        self.position: tuple[float, float] | None = None
+        self.k = 0
+        self._rng_local = rng_local
+        self._rng_distributed = rng_distributed
+        self._encoded: bytes | None = None
+        self._own_slot_stale = False
+
+    # -- input -------------------------------------------------------------------------------
+
+    def on_stack(self, data: bytes) -> bool:
+        """Decode and merge a received stack; True if it brought a newer slot. Invalid input is
+        counted and dropped: nothing already accepted is lost."""
+        self.counters.stacks_received += 1
+        self.counters.bytes_received += len(data)
+        try:
+            message = decode(data, self.limits)
+        except RemoteProtocolError as exc:
+            self._count_error(exc)
+            return False
+        merged = self.stack.merge(message.stack, own=self.robot)
+        if merged.stamps() == self.stack.stamps():
+            self.counters.stacks_unchanged += 1
+            return False
+        self.stack = merged
+        self._encoded = None
+        self.counters.stacks_merged += 1
+        return True
+
+    def on_frame(self, frame: SensorFrame) -> StepReport:
+        """One robot step: integrate changed slots into D, local step on L and on D, rebuild the
+        own slot from L (never from D)."""
+        if frame.robot != self.robot:
+            raise ValueError(f"node {self.robot} got a frame of {frame.robot}")
+        fusion = self._integrate()
+        self.local.step([frame], self._rng_local)
+        self.distributed.step([frame], self._rng_distributed)
+        self.k = frame.k
+        self.position = (float(frame.true_pose[0]), float(frame.true_pose[1]))
+        # The own slot is rebuilt from L lazily, when a stack is next needed.
+        self._own_slot_stale = True
+        self._encoded = None
+        return StepReport(frame.k, fusion)
+
+    def _integrate(self) -> FusionStats:
+        incoming = []
+        for s in self.stack.newer_than(self.distributed.stamps, own=self.robot):
+            slot = IncomingSlot(s.owner, s.stamp, s.summary)
+            try:
+                self.distributed.check(slot)
+            except SlotError as exc:
+                self.counters.rejected_slots += 1
+                self.counters.last_error = str(exc)
+                log.warning("%s: rejected slot: %s", self.robot, exc)
+                continue
+            incoming.append(slot)
+        return self.distributed.integrate(incoming)
+
+    def _count_error(self, exc: RemoteProtocolError) -> None:
+        name = type(exc).__name__
+        self.counters.invalid += 1
+        self.counters.errors_by_type[name] = self.counters.errors_by_type.get(name, 0) + 1
+        self.counters.last_error = str(exc)
+
+    # -- output ------------------------------------------------------------------------------
+
+    def current_stack(self) -> Stack:
+        """The stack with the own slot rebuilt from L (never from D) at the latest step."""
+        if self._own_slot_stale:
+            summary = summarise(self.local)
+            if summary is not None:
+                self.stack = self.stack.with_slot(Slot(self.robot, self.k, summary))
+            self._own_slot_stale = False
+        return self.stack
+
+    def outgoing(self) -> bytes | None:
+        """The encoded stack to gossip, or None while the node has nothing to share."""
+        stack = self.current_stack()
+        if len(stack) == 0:
+            return None
+        if self._encoded is None:
+            self._encoded = encode(StackMessage(self.robot, self.position, stack))
+        return self._encoded
+
+    def mark_sent(self, size: int) -> None:
+        """Tell the node a stack of ``size`` bytes went out (for its counters)."""
+        self.counters.stacks_sent += 1
+        self.counters.bytes_sent += size

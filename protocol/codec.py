@@ -1,0 +1,279 @@
+"""The one module that owns ``encode``/``decode`` of the wire format (docs/wire.md).
+
+A message is a msgpack map ``{"v": 1, "type": "stack", "sender": str, "pos": [x, y] | nil,
+"slots": [...]}``; every float array travels as little-endian float64 bytes, Λ as its upper
+triangle. ``decode`` turns every malformed input into a :class:`RemoteProtocolError` subclass that
+names the field; nothing else escapes it.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass
+from typing import Any
+
+import msgpack
+import numpy as np
+from numpy.typing import NDArray
+
+from estimator.summary import LocalSummary, Realisation
+from protocol.errors import (
+    InvalidValue,
+    LimitExceeded,
+    LocalProtocolError,
+    MalformedMessage,
+    ProtocolError,
+    UnsupportedVersion,
+)
+from protocol.stack import Slot, Stack
+
+Array = NDArray[np.float64]
+
+VERSION = 1
+STACK = "stack"
+ID_PATTERN = re.compile(r"^[A-Za-z0-9_-]{1,32}$")
+_F64 = np.dtype("<f8")
+_MAX_STAMP = 2**63 - 1
+_MAX_OBJECT_ID = 2**32 - 1
+_TOP_KEYS = frozenset({"v", "type", "sender", "pos", "slots"})
+_SLOT_KEYS = frozenset({"owner", "stamp", "objects", "real"})
+_REAL_KEYS = frozenset({"c", "phi", "lin", "info", "eta"})
+
+
+@dataclass(frozen=True, slots=True)
+class Limits:
+    """What a receiver accepts. ``num_classes`` bounds class indices; ``symmetry_tol`` and
+    ``psd_tol`` are relative to the largest |eigenvalue| of Λ."""
+
+    num_classes: int = 64
+    max_message_bytes: int = 32 * 1024 * 1024
+    max_slots: int = 64
+    max_objects: int = 512
+    max_realisations: int = 1024
+    psd_tol: float = 1e-9
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class StackMessage:
+    """A stack as sent by ``sender`` from ``position`` (x, y), for proximity filtering."""
+
+    sender: str
+    position: tuple[float, float] | None
+    stack: Stack
+
+
+def _tri(n: int) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+    return np.triu_indices(3 * n)
+
+
+def encode(message: StackMessage) -> bytes:
+    """Bytes of a stack message. Raises :class:`LocalProtocolError` for what may not be sent."""
+    if not ID_PATTERN.match(message.sender):
+        raise LocalProtocolError(f"invalid robot id {message.sender!r}", "sender")
+    pos = None
+    if message.position is not None:
+        pos = [float(v) for v in message.position]
+        if len(pos) != 2 or not all(math.isfinite(v) for v in pos):
+            raise LocalProtocolError("must be two finite numbers", "pos")
+    slots = [_encode_slot(s) for s in message.stack]
+    doc = {"v": VERSION, "type": STACK, "sender": message.sender, "pos": pos, "slots": slots}
+    return bytes(msgpack.packb(doc, use_bin_type=True))
+
+
+def _encode_slot(slot: Slot) -> dict[str, Any]:
+    where = f"slots[{slot.owner}]"
+    if not ID_PATTERN.match(slot.owner):
+        raise LocalProtocolError(f"invalid robot id {slot.owner!r}", f"{where}.owner")
+    ids = [int(j) for j in slot.summary.object_ids]
+    n = len(ids)
+    iu = _tri(n)
+    reals = []
+    for i, r in enumerate(slot.summary.realisations):
+        arrays = (r.lin, r.info, r.eta)
+        if not all(np.all(np.isfinite(a)) for a in arrays) or not math.isfinite(r.log_phi):
+            raise LocalProtocolError("non-finite numbers", f"{where}.real[{i}]")
+        if r.lin.shape != (n, 3) or r.info.shape != (3 * n, 3 * n) or r.eta.shape != (3 * n,):
+            raise LocalProtocolError("shapes do not match the object count", f"{where}.real[{i}]")
+        if not np.allclose(
+            r.info, r.info.T, rtol=1e-12, atol=1e-12 * max(1.0, np.abs(r.info).max(initial=0.0))
+        ):
+            raise LocalProtocolError("Λ is not symmetric", f"{where}.real[{i}].info")
+        if len(r.classes) != n or any(not 0 <= c < 256 for c in r.classes):
+            raise LocalProtocolError("classes must be n indices in 0..255", f"{where}.real[{i}].c")
+        reals.append(
+            {
+                "c": bytes(bytearray(r.classes)),
+                "phi": float(r.log_phi),
+                "lin": np.ascontiguousarray(r.lin, dtype=_F64).tobytes(),
+                "info": np.ascontiguousarray(r.info[iu], dtype=_F64).tobytes(),
+                "eta": np.ascontiguousarray(r.eta, dtype=_F64).tobytes(),
+            }
+        )
+    return {"owner": slot.owner, "stamp": int(slot.stamp), "objects": ids, "real": reals}
+
+
+def decode(data: bytes, limits: Limits | None = None) -> StackMessage:
+    """Parse and validate a stack message. Raises only :class:`RemoteProtocolError` subclasses."""
+    lim = limits or Limits()
+    if not isinstance(data, bytes | bytearray | memoryview):
+        raise MalformedMessage(f"expected bytes, got {type(data).__name__}", "message")
+    if len(data) > lim.max_message_bytes:
+        raise LimitExceeded(f"{len(data)} bytes > {lim.max_message_bytes}", "message")
+    try:
+        doc = msgpack.unpackb(
+            bytes(data),
+            raw=False,
+            strict_map_key=True,
+            use_list=True,
+        )
+    except Exception as exc:  # msgpack raises a dozen types for bad input; all mean "malformed"
+        raise MalformedMessage(
+            f"not a msgpack document ({type(exc).__name__}: {exc})", "message"
+        ) from None
+    try:
+        return _decode_doc(doc, lim)
+    except ProtocolError:
+        raise
+    except (
+        ValueError,
+        TypeError,
+        OverflowError,
+        IndexError,
+        KeyError,
+        np.linalg.LinAlgError,
+    ) as exc:
+        # Defence in depth: a validation gap must still surface as a remote error, never a crash.
+        raise MalformedMessage(f"{type(exc).__name__}: {exc}", "message") from None
+
+
+def _need(
+    cond: bool, field: str, message: str, error: type[ProtocolError] = MalformedMessage
+) -> None:
+    if not cond:
+        raise error(message, field)
+
+
+def _map(value: Any, field: str, keys: frozenset[str]) -> dict[str, Any]:
+    _need(isinstance(value, dict), field, f"expected a map, got {type(value).__name__}")
+    missing, extra = keys - value.keys(), value.keys() - keys
+    _need(not missing, field, f"missing keys {sorted(missing)}")
+    _need(not extra, field, f"unknown keys {sorted(map(str, extra))}")
+    return dict(value)
+
+
+def _int(value: Any, field: str, lo: int, hi: int) -> int:
+    _need(isinstance(value, int) and not isinstance(value, bool), field, "expected an integer")
+    _need(lo <= value <= hi, field, f"{value} outside {lo}..{hi}", InvalidValue)
+    return int(value)
+
+
+def _robot_id(value: Any, field: str) -> str:
+    _need(isinstance(value, str), field, "expected a string")
+    _need(ID_PATTERN.match(value) is not None, field, f"invalid robot id {value!r}", InvalidValue)
+    return str(value)
+
+
+def _floats(value: Any, field: str, count: int) -> Array:
+    _need(isinstance(value, bytes), field, "expected binary float64 data")
+    _need(len(value) == 8 * count, field, f"expected {8 * count} bytes, got {len(value)}")
+    arr = np.frombuffer(value, dtype=_F64).astype(float)
+    _need(bool(np.all(np.isfinite(arr))), field, "non-finite number", InvalidValue)
+    return arr
+
+
+def _decode_doc(doc: Any, lim: Limits) -> StackMessage:
+    _need(isinstance(doc, dict), "message", f"expected a map, got {type(doc).__name__}")
+    if "v" in doc and doc["v"] != VERSION:
+        raise UnsupportedVersion(f"schema version {doc['v']!r} (this side speaks {VERSION})", "v")
+    top = _map(doc, "message", _TOP_KEYS)
+    if top["type"] != STACK:
+        raise UnsupportedVersion(f"message type {top['type']!r}", "type")
+    sender = _robot_id(top["sender"], "sender")
+    position = None
+    if top["pos"] is not None:
+        pos = top["pos"]
+        _need(isinstance(pos, list) and len(pos) == 2, "pos", "expected [x, y] or nil")
+        _need(
+            all(isinstance(v, float | int) and not isinstance(v, bool) for v in pos),
+            "pos",
+            "expected numbers",
+        )
+        _need(all(math.isfinite(v) for v in pos), "pos", "non-finite number", InvalidValue)
+        position = (float(pos[0]), float(pos[1]))
+    raw_slots = top["slots"]
+    _need(isinstance(raw_slots, list), "slots", "expected an array")
+    _need(
+        len(raw_slots) <= lim.max_slots,
+        "slots",
+        f"{len(raw_slots)} > {lim.max_slots}",
+        LimitExceeded,
+    )
+    slots = [_decode_slot(raw, f"slots[{i}]", lim) for i, raw in enumerate(raw_slots)]
+    owners = [s.owner for s in slots]
+    _need(len(set(owners)) == len(owners), "slots", f"duplicate owners {owners}", InvalidValue)
+    return StackMessage(sender, position, Stack(tuple(slots)))
+
+
+def _decode_slot(raw: Any, where: str, lim: Limits) -> Slot:
+    s = _map(raw, where, _SLOT_KEYS)
+    owner = _robot_id(s["owner"], f"{where}.owner")
+    stamp = _int(s["stamp"], f"{where}.stamp", 0, _MAX_STAMP)
+    objects = s["objects"]
+    _need(isinstance(objects, list), f"{where}.objects", "expected an array")
+    n = len(objects)
+    _need(n <= lim.max_objects, f"{where}.objects", f"{n} > {lim.max_objects}", LimitExceeded)
+    ids = tuple(_int(j, f"{where}.objects[{i}]", 0, _MAX_OBJECT_ID) for i, j in enumerate(objects))
+    _need(len(set(ids)) == n, f"{where}.objects", "duplicate object ids", InvalidValue)
+    reals = s["real"]
+    _need(isinstance(reals, list), f"{where}.real", "expected an array")
+    _need(len(reals) >= 1, f"{where}.real", "a slot has at least one realisation", InvalidValue)
+    _need(
+        len(reals) <= lim.max_realisations,
+        f"{where}.real",
+        f"{len(reals)} > {lim.max_realisations}",
+        LimitExceeded,
+    )
+    iu = _tri(n)
+    out = tuple(
+        _decode_realisation(r, f"{where}.real[{i}]", n, iu, lim) for i, r in enumerate(reals)
+    )
+    return Slot(owner, stamp, LocalSummary(ids, out))
+
+
+def _decode_realisation(
+    raw: Any, where: str, n: int, iu: tuple[NDArray[np.intp], NDArray[np.intp]], lim: Limits
+) -> Realisation:
+    r = _map(raw, where, _REAL_KEYS)
+    c = r["c"]
+    _need(isinstance(c, bytes) and len(c) == n, f"{where}.c", f"expected {n} class bytes")
+    classes = tuple(c)
+    _need(
+        all(v < lim.num_classes for v in classes),
+        f"{where}.c",
+        f"class ≥ {lim.num_classes}",
+        InvalidValue,
+    )
+    phi = r["phi"]
+    _need(
+        isinstance(phi, float | int) and not isinstance(phi, bool),
+        f"{where}.phi",
+        "expected a number",
+    )
+    _need(math.isfinite(phi), f"{where}.phi", "non-finite number", InvalidValue)
+    lin = _floats(r["lin"], f"{where}.lin", 3 * n).reshape(n, 3)
+    upper = _floats(r["info"], f"{where}.info", len(iu[0]))
+    info = np.zeros((3 * n, 3 * n))
+    info[iu] = upper
+    info.T[iu] = upper
+    if n:
+        eig = np.linalg.eigvalsh(info)
+        scale = max(float(np.max(np.abs(eig))), 1e-300)
+        _need(
+            eig[0] >= -lim.psd_tol * scale,
+            f"{where}.info",
+            f"Λ is indefinite (λ_min {eig[0]:.3g})",
+            InvalidValue,
+        )
+    eta = _floats(r["eta"], f"{where}.eta", 3 * n)
+    return Realisation(classes, float(phi), lin, info, eta)

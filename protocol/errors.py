@@ -1,0 +1,35 @@
+"""Protocol errors, split by fault (as in h11): we did something illegal, or the peer did."""
+
+from __future__ import annotations
+
+
+class ProtocolError(Exception):
+    """Base of every error the wire layer raises. ``field`` names the offending field."""
+
+    def __init__(self, message: str, field: str = "") -> None:
+        super().__init__(f"{field}: {message}" if field else message)
+        self.field = field
+
+
+class LocalProtocolError(ProtocolError):
+    """We tried to send something the protocol does not allow (a bug on our side)."""
+
+
+class RemoteProtocolError(ProtocolError):
+    """A peer sent something malformed; it is counted and dropped, the agent lives on."""
+
+
+class MalformedMessage(RemoteProtocolError):
+    """Not msgpack, wrong structure, wrong types or shapes, truncated."""
+
+
+class UnsupportedVersion(RemoteProtocolError):
+    """A schema version or message type this implementation does not know."""
+
+
+class LimitExceeded(RemoteProtocolError):
+    """Sizes or counts over the configured limits."""
+
+
+class InvalidValue(RemoteProtocolError):
+    """Well-formed but meaningless: non-finite numbers, asymmetric or indefinite Λ, bad ids."""
