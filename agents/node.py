@@ -104,7 +104,7 @@ class RobotNode:
         own slot from L (never from D)."""
         if frame.robot != self.robot:
             raise ValueError(f"node {self.robot} got a frame of {frame.robot}")
-        fusion = self._integrate()
+        fusion = self.integrate_pending()
         self.local.step([frame], self._rng_local)
         self.distributed.step([frame], self._rng_distributed)
         self.k = frame.k
@@ -114,7 +114,9 @@ class RobotNode:
         self._encoded = None
         return StepReport(frame.k, fusion)
 
-    def _integrate(self) -> FusionStats:
+    def integrate_pending(self) -> FusionStats:
+        """Integrate into D every slot of the stack newer than the version D used (also done by
+        ``on_frame``; shells call it first to time the fusion on its own)."""
         incoming = []
         for s in self.stack.newer_than(self.distributed.stamps, own=self.robot):
             slot = IncomingSlot(s.owner, s.stamp, s.summary)

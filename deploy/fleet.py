@@ -11,15 +11,17 @@ import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 
+import numpy as np
+
 from agents.links import AllOf, LinkModel, Proximity, RandomDrop, Schedule
-from agents.node import RobotNode, StepReport
+from agents.node import RobotNode
 from estimator.hybrid import BeliefConfig, BeliefModel
 from estimator.models import SensorFrame
 from sim.scenario import Scenario
 
 COMM_MODES = ("schedule", "range", "both")
 
-StepCallback = Callable[[str, int, RobotNode, StepReport, float], None]
+StepCallback = Callable[[str, int, RobotNode, float, float], None]
 
 
 def link_model_for(
@@ -33,9 +35,13 @@ def link_model_for(
         raise ValueError(f"communication mode {mode!r} (known: {', '.join(COMM_MODES)})")
     schedule = Schedule(tuple((e.first, e.last, e.a, e.b) for e in c.schedule))
     proximity = Proximity(c.range if c.range is not None else 10.0)
-    model: LinkModel = {"schedule": schedule, "range": proximity}.get(mode) or AllOf(
-        (schedule, proximity)
-    )
+    model: LinkModel
+    if mode == "schedule":
+        model = schedule
+    elif mode == "range":
+        model = proximity
+    else:
+        model = AllOf((schedule, proximity))
     if drop > 0.0:
         model = AllOf((model, RandomDrop(drop, seed)))
     return model
@@ -56,8 +62,9 @@ def run_fleet(
     steps: int,
     on_step: StepCallback | None = None,
 ) -> FleetStats:
-    """Drive ``nodes`` through ``steps`` lock-step rounds; ``on_step(robot, k, node, report,
-    ms)`` is called after every robot step with the wall time of ``on_frame`` in ms."""
+    """Drive ``nodes`` through ``steps`` lock-step rounds; ``on_step(robot, k, node, fusion_ms,
+    step_ms)`` is called after every robot step with the wall times of the fusion into D and of
+    the whole step (fusion included) in ms."""
     robots = list(nodes)
     stats = FleetStats()
     for k in range(1, steps + 1):
@@ -80,10 +87,13 @@ def run_fleet(
             stats.delivered_bytes.append(len(data))
             stats.deliveries += 1
         for r in robots:
-            t = time.perf_counter()
-            report = nodes[r].on_frame(frames[r][k - 1])
+            t0 = time.perf_counter()
+            nodes[r].integrate_pending()
+            t1 = time.perf_counter()
+            nodes[r].on_frame(frames[r][k - 1])
+            t2 = time.perf_counter()
             if on_step is not None:
-                on_step(r, k, nodes[r], report, 1e3 * (time.perf_counter() - t))
+                on_step(r, k, nodes[r], 1e3 * (t1 - t0), 1e3 * (t2 - t0))
     return stats
 
 
@@ -91,7 +101,7 @@ def make_nodes(
     scenario: Scenario,
     model: BeliefModel,
     config: BeliefConfig,
-    rng_for: Callable[[str], object],
+    rng_for: Callable[[str], np.random.Generator],
     fusion: str = "consistent",
     downdate: str = "remove",
 ) -> dict[str, RobotNode]:
@@ -106,7 +116,7 @@ def make_nodes(
             rng_for(r.id),
             config,
             fusion,
-            downdate,  # type: ignore[arg-type]
+            downdate,
         )
         for r in scenario.robots
     }

@@ -53,11 +53,19 @@ def summarise(
     for method in methods:
         stacked = stack_runs(results, method)
         all_ms = np.concatenate([r.step_ms[method] for r in results])
-        doc["methods"][method] = {
+        entry: dict[str, Any] = {
             "mean": {m: mean_curve(stacked[m]) for m in METRICS},
             "wall_s": float(sum(r.wall_s[method] for r in results)),
             "step_ms_median": float(np.median(all_ms)),
         }
+        if any(method in r.fusion_ms for r in results):
+            fusion = np.concatenate([r.fusion_ms[method] for r in results])
+            sizes = np.concatenate([r.stack_bytes[method] for r in results]).astype(float)
+            entry["fusion_ms_median"] = float(np.median(fusion))
+            entry["stack_bytes_mean"] = float(sizes.mean()) if len(sizes) else 0.0
+            entry["stack_bytes_max"] = int(sizes.max()) if len(sizes) else 0
+            entry["stacks_delivered"] = len(sizes)
+        doc["methods"][method] = entry
     if extra:
         doc.update(extra)
     return doc
@@ -76,6 +84,8 @@ def write_results(
         for metric, values in stack_runs(results, method).items():
             arrays[f"{method}/{metric}"] = values
         arrays[f"{method}/step_ms"] = np.array([r.step_ms[method] for r in results])
+        if method in results[0].fusion_ms:
+            arrays[f"{method}/fusion_ms"] = np.array([r.fusion_ms[method] for r in results])
     arrays["seeds"] = np.array([r.seed for r in results], dtype=np.int64)
     np.savez_compressed(out / "results.npz", **arrays)  # type: ignore[arg-type]
 

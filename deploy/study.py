@@ -14,6 +14,9 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
+from agents.links import LinkModel
+from agents.node import RobotNode
+from deploy.fleet import link_model_for, make_nodes, run_fleet
 from estimator.hybrid import BeliefConfig, BeliefModel, BeliefSnapshot, HybridBelief
 from estimator.metrics import METRICS, evaluate
 from estimator.models import SensorFrame
@@ -22,7 +25,8 @@ from sim.sensors import Simulator
 
 Array = NDArray[np.float64]
 
-METHODS = ("local", "centralized")
+METHODS = ("local", "distributed", "double_count", "centralized")
+FLEET_METHODS = {"distributed": "consistent", "double_count": "double_count"}
 
 
 @dataclass(frozen=True, slots=True)
@@ -35,6 +39,8 @@ class RunResult:
     step_ms: dict[str, list[float]]
     wall_s: dict[str, float]
     snapshots: dict[str, dict[str, BeliefSnapshot]] = field(default_factory=dict)
+    fusion_ms: dict[str, list[float]] = field(default_factory=dict)
+    stack_bytes: dict[str, list[int]] = field(default_factory=dict)
 
 
 def belief_model(scenario: Scenario) -> BeliefModel:
@@ -65,8 +71,10 @@ def run_single(
     seed: int,
     config: BeliefConfig,
     snapshot_step: int | None = None,
+    comm: str | None = None,
 ) -> RunResult:
-    """Run every method on one seeded realisation of ``scenario``."""
+    """Run every method on one seeded realisation of ``scenario``; ``comm`` overrides the
+    scenario's communication mode for the distributed methods."""
     unknown = [m for m in methods if m not in METHODS]
     if unknown:
         raise ValueError(f"unknown methods {unknown} (known: {', '.join(METHODS)})")
@@ -79,6 +87,9 @@ def run_single(
     step_ms: dict[str, list[float]] = {}
     wall: dict[str, float] = {}
     snapshots: dict[str, dict[str, BeliefSnapshot]] = {}
+    fusion_ms: dict[str, list[float]] = {}
+    stack_bytes: dict[str, list[int]] = {}
+    links = link_model_for(scenario, comm)
     for method in methods:
         rec = _Recorder(scenario, frames, truth_objects, snapshot_step)
         t0 = time.perf_counter()
@@ -91,6 +102,10 @@ def run_single(
                     belief.step([f], rng)
                     rec.step_ms.append(1e3 * (time.perf_counter() - t))
                     rec.record(belief, i, robot, f.k)
+        elif method in FLEET_METHODS:
+            fusion_ms[method], stack_bytes[method] = _run_fleet_method(
+                method, scenario, model, config, seed, links, frames, rec
+            )
         else:
             belief = HybridBelief(model, {r: scenario.robot(r).start for r in robots}, config)
             rng = belief_rng(seed, robots)
@@ -105,7 +120,34 @@ def run_single(
         step_ms[method] = rec.step_ms
         if rec.snapshots:
             snapshots[method] = rec.snapshots
-    return RunResult(seed, metrics, step_ms, wall, snapshots)
+    return RunResult(seed, metrics, step_ms, wall, snapshots, fusion_ms, stack_bytes)
+
+
+def _run_fleet_method(
+    method: str,
+    scenario: Scenario,
+    model: BeliefModel,
+    config: BeliefConfig,
+    seed: int,
+    links: LinkModel,
+    frames: dict[str, list[SensorFrame]],
+    rec: _Recorder,
+) -> tuple[list[float], list[int]]:
+    """The in-process fleet for ``distributed`` or ``double_count``; metrics come from every
+    robot's D. Returns the fusion times (ms) and the sizes of the delivered stacks (bytes)."""
+    nodes = make_nodes(
+        scenario, model, config, lambda r: belief_rng(seed, [r]), FLEET_METHODS[method]
+    )
+    index = {r: i for i, r in enumerate(scenario.robot_ids)}
+    fusion: list[float] = []
+
+    def on_step(robot: str, k: int, node: RobotNode, fused_ms: float, ms: float) -> None:
+        rec.step_ms.append(ms)
+        fusion.append(fused_ms)
+        rec.record(node.distributed, index[robot], robot, k)
+
+    stats = run_fleet(nodes, frames, links, scenario.steps, on_step)
+    return fusion, stats.delivered_bytes
 
 
 class _Recorder:

@@ -15,6 +15,7 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
+from deploy.fleet import COMM_MODES
 from deploy.results import summarise, write_results
 from deploy.scenario_cmd import scenario_from_args
 from deploy.study import METHODS, RunResult, run_single
@@ -47,6 +48,7 @@ def run_study(
     jobs: int,
     snapshot_step: int | None,
     progress: Progress | None = None,
+    comm: str | None = None,
 ) -> list[RunResult]:
     """Run every seed in its own spawned process; results come back in seed order."""
     task = progress.add_task("runs", total=len(seeds)) if progress else None
@@ -55,7 +57,7 @@ def run_study(
     with single_threaded_children(), ProcessPoolExecutor(max_workers=jobs, mp_context=ctx) as pool:
         futures = {
             pool.submit(
-                run_single, scenario, methods, seed, config, snapshot_step if i == 0 else None
+                run_single, scenario, methods, seed, config, snapshot_step if i == 0 else None, comm
             ): seed
             for i, seed in enumerate(seeds)
         }
@@ -120,10 +122,19 @@ def render_summary(doc: dict[str, Any], console: Console, at_steps: list[int]) -
             )
     console.print(table)
     timing = Table(title="cost")
-    for col in ("method", "wall s (all runs)", "median ms per belief step"):
+    columns = ("method", "wall s (all runs)", "median ms per belief step", "median fusion ms")
+    for col in (*columns, "stack bytes mean / max"):
         timing.add_column(col, justify="right")
     for method, entry in doc["methods"].items():
-        timing.add_row(method, f"{entry['wall_s']:.1f}", f"{entry['step_ms_median']:.2f}")
+        fusion = f"{entry['fusion_ms_median']:.2f}" if "fusion_ms_median" in entry else "—"
+        size = (
+            f"{entry['stack_bytes_mean']:,.0f} / {entry['stack_bytes_max']:,}"
+            if "stack_bytes_mean" in entry
+            else "—"
+        )
+        timing.add_row(
+            method, f"{entry['wall_s']:.1f}", f"{entry['step_ms_median']:.2f}", fusion, size
+        )
     console.print(timing)
     lo, hi = chi2_bounds(3, doc["runs"])
     console.print(
@@ -203,9 +214,11 @@ def run(args: argparse.Namespace, console: Console) -> int:
         weight_estimator=args.weights, num_samples=args.samples, max_hypotheses=args.max_hypotheses
     )
     seeds = [args.seed + i for i in range(args.runs)]
+    comm = args.comm or scenario.communication.mode
     console.print(
         f"study: {scenario.name}, methods {', '.join(args.methods)}, {args.runs} runs "
-        f"(seeds {seeds[0]}..{seeds[-1]}), {args.jobs} jobs, weights {args.weights}"
+        f"(seeds {seeds[0]}..{seeds[-1]}), {args.jobs} jobs, weights {args.weights}, "
+        f"communication {comm}"
     )
     columns = (
         TextColumn("{task.description}"),
@@ -214,8 +227,11 @@ def run(args: argparse.Namespace, console: Console) -> int:
         TimeElapsedColumn(),
     )
     with Progress(*columns, console=console, transient=False) as progress:
-        results = run_study(scenario, args.methods, seeds, config, args.jobs, step, progress)
-    doc = summarise(scenario.name, results, args.methods, {"weight_estimator": args.weights})
+        results = run_study(
+            scenario, args.methods, seeds, config, args.jobs, step, progress, args.comm
+        )
+    extra = {"weight_estimator": args.weights, "communication": comm}
+    doc = summarise(scenario.name, results, args.methods, extra)
     out = Path(args.out)
     write_results(out, doc, results, args.methods)
     render_summary(doc, console, [15, 30, 45, scenario.steps])
@@ -234,7 +250,7 @@ def add_parser(sub: Any) -> None:
     p.add_argument(
         "--methods",
         type=_methods,
-        default=["local", "centralized"],
+        default=list(METHODS),
         help=f"comma-separated, from: {', '.join(METHODS)}",
     )
     p.add_argument("--runs", type=_positive, default=10)
@@ -242,6 +258,13 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--seed", type=_non_negative, default=0, help="runs use seeds S, S+1, …")
     p.add_argument("--out", default="out/study", help="output folder")
     p.add_argument("--weights", choices=WEIGHT_ESTIMATORS, default="geo_conditioned")
+    p.add_argument(
+        "--comm",
+        choices=COMM_MODES,
+        default=None,
+        help="communication for distributed methods: the schedule table, the range rule "
+        "(scenario's range, 10 m in paper) or both (default: the scenario's mode)",
+    )
     p.add_argument("--samples", type=_positive, default=BeliefConfig().num_samples)
     p.add_argument("--max-hypotheses", type=_positive, default=BeliefConfig().max_hypotheses)
     p.add_argument(
