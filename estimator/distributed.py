@@ -256,5 +256,6 @@ class DistributedBelief(HybridBelief):
             )
             own = (*carried, *anti, new_indices[start])
             h.used[s.owner] = UsedSlot(s.stamp, s.summary.object_ids, real, own)
-        # No extra update here: the local step that follows updates iSAM2 again.
+        for _ in range(self.config.extra_updates):
+            h.isam.update()
         h.estimate = h.isam.calculateEstimate()
