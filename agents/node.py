@@ -17,6 +17,7 @@ from estimator.distributed import DistributedBelief, FusionStats, IncomingSlot, 
 from estimator.hybrid import BeliefConfig, BeliefModel, HybridBelief
 from estimator.models import SensorFrame
 from estimator.slots import summarise
+from estimator.summary import LocalSummary
 from protocol.codec import Limits, StackMessage, decode, encode
 from protocol.errors import RemoteProtocolError
 from protocol.stack import Slot, Stack
@@ -49,9 +50,42 @@ class StepReport:
     fusion: FusionStats
 
 
+class LocalTrack:
+    """A robot's LOCAL belief L and its generator: stepped once per frame, summarised at most once
+    per step. L depends on the robot's own data only, so nodes of one robot that differ only in
+    how they fuse (a study's consistent and double-counting fleets) may share one track."""
+
+    def __init__(self, belief: HybridBelief, rng: np.random.Generator) -> None:
+        if len(belief.robots) != 1:
+            raise ValueError("a local belief holds exactly one robot")
+        self.belief = belief
+        self.robot = belief.robots[0]
+        self._rng = rng
+        self._summary: LocalSummary | None = None
+        self._summary_k = -1
+
+    @property
+    def k(self) -> int:
+        return self.belief.step_of[self.robot]
+
+    def advance(self, frame: SensorFrame) -> None:
+        """Step L with ``frame``; a frame it already has is ignored (another sharer stepped it)."""
+        if frame.k == self.k:
+            return
+        self.belief.step([frame], self._rng)
+
+    def summary(self) -> LocalSummary | None:
+        """The own slot's content at the current step (None before any object is seen)."""
+        if self._summary_k != self.k:
+            self._summary = summarise(self.belief)
+            self._summary_k = self.k
+        return self._summary
+
+
 class RobotNode:
     """One robot. ``rng_local`` and ``rng_distributed`` must be two generators built from the same
-    seed: then, with nothing received, D repeats L exactly."""
+    seed: then, with nothing received, D repeats L exactly. ``local`` may hand in a shared
+    :class:`LocalTrack` instead (``rng_local`` is then unused)."""
 
     def __init__(
         self,
@@ -64,19 +98,28 @@ class RobotNode:
         fusion: str = "consistent",
         downdate: str = "remove",
         limits: Limits | None = None,
+        local: LocalTrack | None = None,
     ) -> None:
         self.robot = robot
-        self.local = HybridBelief(model, {robot: start}, config)
+        if local is None:
+            local = LocalTrack(HybridBelief(model, {robot: start}, config), rng_local)
+        if local.robot != robot:
+            raise ValueError(f"node {robot} got the local track of {local.robot}")
+        self.track = local
         self.distributed = DistributedBelief(model, robot, start, config, fusion, downdate)
         self.limits = limits or Limits(num_classes=model.num_classes)
         self.stack = Stack()
         self.counters = NodeCounters()
         self.position: tuple[float, float] | None = None
         self.k = 0
-        self._rng_local = rng_local
         self._rng_distributed = rng_distributed
         self._encoded: bytes | None = None
         self._own_slot_stale = False
+
+    @property
+    def local(self) -> HybridBelief:
+        """L, the robot's belief from its own data only."""
+        return self.track.belief
 
     # -- input -------------------------------------------------------------------------------
 
@@ -105,7 +148,7 @@ class RobotNode:
         if frame.robot != self.robot:
             raise ValueError(f"node {self.robot} got a frame of {frame.robot}")
         fusion = self.integrate_pending()
-        self.local.step([frame], self._rng_local)
+        self.track.advance(frame)
         self.distributed.step([frame], self._rng_distributed)
         self.k = frame.k
         self.position = (float(frame.true_pose[0]), float(frame.true_pose[1]))
@@ -141,7 +184,7 @@ class RobotNode:
     def current_stack(self) -> Stack:
         """The stack with the own slot rebuilt from L (never from D) at the latest step."""
         if self._own_slot_stale:
-            summary = summarise(self.local)
+            summary = self.track.summary()
             if summary is not None:
                 self.stack = self.stack.with_slot(Slot(self.robot, self.k, summary))
             self._own_slot_stale = False

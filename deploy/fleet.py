@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from agents.links import AllOf, LinkModel, Proximity, RandomDrop, Schedule
-from agents.node import RobotNode
+from agents.node import LocalTrack, RobotNode
 from estimator.hybrid import BeliefConfig, BeliefModel
 from estimator.models import SensorFrame
 from sim.scenario import Scenario
@@ -65,36 +65,75 @@ def run_fleet(
     """Drive ``nodes`` through ``steps`` lock-step rounds; ``on_step(robot, k, node, fusion_ms,
     step_ms)`` is called after every robot step with the wall times of the fusion into D and of
     the whole step (fusion included) in ms."""
-    robots = list(nodes)
-    stats = FleetStats()
+    callbacks = None if on_step is None else [on_step]
+    return run_fleets([nodes], frames, links, steps, callbacks)[0]
+
+
+def run_fleets(
+    fleets: Sequence[Mapping[str, RobotNode]],
+    frames: Mapping[str, Sequence[SensorFrame]],
+    links: LinkModel,
+    steps: int,
+    on_step: Sequence[StepCallback] | None = None,
+    before_step: Callable[[int], None] | None = None,
+) -> list[FleetStats]:
+    """Several fleets over the same frames and links in one lock-step loop, so that fleets whose
+    nodes share a :class:`LocalTrack` per robot step each L once. ``before_step(k)`` runs after
+    the deliveries of step k and before any robot steps (e.g. to step shared tracks itself)."""
+    stats = [FleetStats() for _ in fleets]
     for k in range(1, steps + 1):
-        positions = {r: frames[r][k - 1].true_pose for r in robots}
-        deliveries = [
-            (sender, receiver)
-            for receiver in robots
-            for sender in robots
-            if sender != receiver
-            and links.allowed(sender, receiver, k, positions[sender], positions[receiver])
-        ]
-        # Every stack is taken before any is delivered: what peers had at the end of step k − 1.
-        outgoing = {s: nodes[s].outgoing() for s in sorted({s for s, _ in deliveries})}
-        for sender, receiver in deliveries:
-            data = outgoing[sender]
-            if data is None:
-                continue
-            nodes[receiver].on_stack(data)
-            nodes[sender].mark_sent(len(data))
-            stats.delivered_bytes.append(len(data))
-            stats.deliveries += 1
-        for r in robots:
-            t0 = time.perf_counter()
-            nodes[r].integrate_pending()
-            t1 = time.perf_counter()
-            nodes[r].on_frame(frames[r][k - 1])
-            t2 = time.perf_counter()
-            if on_step is not None:
-                on_step(r, k, nodes[r], 1e3 * (t1 - t0), 1e3 * (t2 - t0))
+        # Every fleet delivers before any robot steps: a shared L must not run ahead of a stack.
+        for i, nodes in enumerate(fleets):
+            _deliver(nodes, frames, links, k, stats[i])
+        if before_step is not None:
+            before_step(k)
+        for i, nodes in enumerate(fleets):
+            _advance(nodes, frames, k, None if on_step is None else on_step[i])
     return stats
+
+
+def _deliver(
+    nodes: Mapping[str, RobotNode],
+    frames: Mapping[str, Sequence[SensorFrame]],
+    links: LinkModel,
+    k: int,
+    stats: FleetStats,
+) -> None:
+    robots = list(nodes)
+    positions = {r: frames[r][k - 1].true_pose for r in robots}
+    deliveries = [
+        (sender, receiver)
+        for receiver in robots
+        for sender in robots
+        if sender != receiver
+        and links.allowed(sender, receiver, k, positions[sender], positions[receiver])
+    ]
+    # Every stack is taken before any is delivered: what peers had at the end of step k − 1.
+    outgoing = {s: nodes[s].outgoing() for s in sorted({s for s, _ in deliveries})}
+    for sender, receiver in deliveries:
+        data = outgoing[sender]
+        if data is None:
+            continue
+        nodes[receiver].on_stack(data)
+        nodes[sender].mark_sent(len(data))
+        stats.delivered_bytes.append(len(data))
+        stats.deliveries += 1
+
+
+def _advance(
+    nodes: Mapping[str, RobotNode],
+    frames: Mapping[str, Sequence[SensorFrame]],
+    k: int,
+    on_step: StepCallback | None,
+) -> None:
+    for r in nodes:
+        t0 = time.perf_counter()
+        nodes[r].integrate_pending()
+        t1 = time.perf_counter()
+        nodes[r].on_frame(frames[r][k - 1])
+        t2 = time.perf_counter()
+        if on_step is not None:
+            on_step(r, k, nodes[r], 1e3 * (t1 - t0), 1e3 * (t2 - t0))
 
 
 def make_nodes(
@@ -104,9 +143,10 @@ def make_nodes(
     rng_for: Callable[[str], np.random.Generator],
     fusion: str = "consistent",
     downdate: str = "remove",
+    tracks: Mapping[str, LocalTrack] | None = None,
 ) -> dict[str, RobotNode]:
     """One node per robot of the scenario; ``rng_for(robot)`` builds a fresh generator, called
-    twice per robot so that L and D draw identical streams."""
+    twice per robot so that L and D draw identical streams. ``tracks`` shares local beliefs."""
     return {
         r.id: RobotNode(
             r.id,
@@ -117,6 +157,7 @@ def make_nodes(
             config,
             fusion,
             downdate,
+            local=None if tracks is None else tracks[r.id],
         )
         for r in scenario.robots
     }

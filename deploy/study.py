@@ -14,9 +14,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from agents.links import LinkModel
-from agents.node import RobotNode
-from deploy.fleet import link_model_for, make_nodes, run_fleet
+from agents.node import LocalTrack, RobotNode
+from deploy.fleet import StepCallback, link_model_for, make_nodes, run_fleets
 from estimator.hybrid import BeliefConfig, BeliefModel, BeliefSnapshot, HybridBelief
 from estimator.metrics import METRICS, evaluate
 from estimator.models import SensorFrame
@@ -89,65 +88,90 @@ def run_single(
     snapshots: dict[str, dict[str, BeliefSnapshot]] = {}
     fusion_ms: dict[str, list[float]] = {}
     stack_bytes: dict[str, list[int]] = {}
-    links = link_model_for(scenario, comm)
-    for method in methods:
-        rec = _Recorder(scenario, frames, truth_objects, snapshot_step)
-        t0 = time.perf_counter()
-        if method == "local":
+    recorders = {m: _Recorder(scenario, frames, truth_objects, snapshot_step) for m in methods}
+    fleet_methods = [m for m in methods if m in FLEET_METHODS]
+    if "local" in methods or fleet_methods:
+        _run_shared_local(scenario, model, config, seed, comm, frames, recorders, fleet_methods)
+        for m in fleet_methods:
+            fusion_ms[m] = recorders[m].fusion_ms
+            stack_bytes[m] = recorders[m].stack_bytes
+    if "centralized" in methods:
+        rec = recorders["centralized"]
+        belief = HybridBelief(model, {r: scenario.robot(r).start for r in robots}, config)
+        rng = belief_rng(seed, robots)
+        for k in range(1, scenario.steps + 1):
+            t = time.perf_counter()
+            belief.step([frames[r][k - 1] for r in robots], rng)
+            ms = 1e3 * (time.perf_counter() - t)
+            rec.step_ms.append(ms)
             for i, robot in enumerate(robots):
-                belief = HybridBelief(model, {robot: scenario.robot(robot).start}, config)
-                rng = belief_rng(seed, [robot])
-                for f in frames[robot]:
-                    t = time.perf_counter()
-                    belief.step([f], rng)
-                    rec.step_ms.append(1e3 * (time.perf_counter() - t))
-                    rec.record(belief, i, robot, f.k)
-        elif method in FLEET_METHODS:
-            fusion_ms[method], stack_bytes[method] = _run_fleet_method(
-                method, scenario, model, config, seed, links, frames, rec
-            )
-        else:
-            belief = HybridBelief(model, {r: scenario.robot(r).start for r in robots}, config)
-            rng = belief_rng(seed, robots)
-            for k in range(1, scenario.steps + 1):
-                t = time.perf_counter()
-                belief.step([frames[r][k - 1] for r in robots], rng)
-                rec.step_ms.append(1e3 * (time.perf_counter() - t))
-                for i, robot in enumerate(robots):
-                    rec.record(belief, i, robot, k)
-        wall[method] = time.perf_counter() - t0
+                rec.record(belief, i, robot, k, ms if i == 0 else 0.0)
+    for method in methods:
+        rec = recorders[method]
         metrics[method] = rec.arrays
         step_ms[method] = rec.step_ms
+        wall[method] = rec.wall_s
         if rec.snapshots:
             snapshots[method] = rec.snapshots
     return RunResult(seed, metrics, step_ms, wall, snapshots, fusion_ms, stack_bytes)
 
 
-def _run_fleet_method(
-    method: str,
+def _run_shared_local(
     scenario: Scenario,
     model: BeliefModel,
     config: BeliefConfig,
     seed: int,
-    links: LinkModel,
+    comm: str | None,
     frames: dict[str, list[SensorFrame]],
-    rec: _Recorder,
-) -> tuple[list[float], list[int]]:
-    """The in-process fleet for ``distributed`` or ``double_count``; metrics come from every
-    robot's D. Returns the fusion times (ms) and the sizes of the delivered stacks (bytes)."""
-    nodes = make_nodes(
-        scenario, model, config, lambda r: belief_rng(seed, [r]), FLEET_METHODS[method]
-    )
-    index = {r: i for i, r in enumerate(scenario.robot_ids)}
-    fusion: list[float] = []
+    recorders: dict[str, _Recorder],
+    fleet_methods: Sequence[str],
+) -> None:
+    """``local`` and the fleets (``distributed``, ``double_count``) in one lock-step loop over one
+    local belief per robot: L depends on the robot's own data only, so every method sees the very
+    same L, stepped once. Metrics of ``local`` come from L, those of the fleets from each D."""
+    robots = scenario.robot_ids
+    index = {r: i for i, r in enumerate(robots)}
+    tracks = {
+        r: LocalTrack(
+            HybridBelief(model, {r: scenario.robot(r).start}, config), belief_rng(seed, [r])
+        )
+        for r in robots
+    }
+    fleets = [
+        make_nodes(
+            scenario,
+            model,
+            config,
+            lambda r: belief_rng(seed, [r]),
+            FLEET_METHODS[m],
+            tracks=tracks,
+        )
+        for m in fleet_methods
+    ]
+    local = recorders.get("local")
 
-    def on_step(robot: str, k: int, node: RobotNode, fused_ms: float, ms: float) -> None:
-        rec.step_ms.append(ms)
-        fusion.append(fused_ms)
-        rec.record(node.distributed, index[robot], robot, k)
+    def step_locals(k: int) -> None:
+        for r in robots:
+            t = time.perf_counter()
+            tracks[r].advance(frames[r][k - 1])
+            ms = 1e3 * (time.perf_counter() - t)
+            if local is not None:
+                local.step_ms.append(ms)
+                local.record(tracks[r].belief, index[r], r, k, ms)
 
-    stats = run_fleet(nodes, frames, links, scenario.steps, on_step)
-    return fusion, stats.delivered_bytes
+    def on_step_for(rec: _Recorder) -> StepCallback:
+        def on_step(robot: str, k: int, node: RobotNode, fused_ms: float, ms: float) -> None:
+            rec.step_ms.append(ms)
+            rec.fusion_ms.append(fused_ms)
+            rec.record(node.distributed, index[robot], robot, k, ms)
+
+        return on_step
+
+    callbacks = [on_step_for(recorders[m]) for m in fleet_methods]
+    links = link_model_for(scenario, comm)
+    stats = run_fleets(fleets, frames, links, scenario.steps, callbacks, before_step=step_locals)
+    for m, st in zip(fleet_methods, stats, strict=True):
+        recorders[m].stack_bytes = st.delivered_bytes
 
 
 class _Recorder:
@@ -165,12 +189,21 @@ class _Recorder:
         shape = (len(scenario.robots), scenario.steps)
         self.arrays = {m: np.full(shape, np.nan) for m in METRICS}
         self.step_ms: list[float] = []
+        self.fusion_ms: list[float] = []
+        self.stack_bytes: list[int] = []
         self.snapshots: dict[str, BeliefSnapshot] = {}
+        self.wall_s = 0.0
 
-    def record(self, belief: HybridBelief, i: int, robot: str, k: int) -> None:
+    def record(
+        self, belief: HybridBelief, i: int, robot: str, k: int, step_ms: float = 0.0
+    ) -> None:
+        """Evaluate ``belief`` for ``robot`` at step k; ``step_ms`` and the evaluation itself are
+        added to this method's wall time."""
+        t = time.perf_counter()
         snap = belief.snapshot(robot)
         true_pose = self.frames[robot][k - 1].true_pose
         for name, value in evaluate(snap, self.scenario.num_classes, true_pose, self.truth).items():
             self.arrays[name][i, k - 1] = value
         if k == self.snapshot_step:
             self.snapshots[robot] = snap
+        self.wall_s += step_ms / 1e3 + time.perf_counter() - t

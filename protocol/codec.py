@@ -67,13 +67,22 @@ def _tri(n: int) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
     return np.triu_indices(3 * n)
 
 
+def valid_id(value: object) -> bool:
+    """Robot ids: 1–32 of A–Z a–z 0–9 _ - (they become Zenoh key segments)."""
+    return isinstance(value, str) and ID_PATTERN.fullmatch(value) is not None
+
+
 def encode(message: StackMessage) -> bytes:
-    """Bytes of a stack message. Raises :class:`LocalProtocolError` for what may not be sent."""
-    if not ID_PATTERN.match(message.sender):
+    """Bytes of a stack message. Raises :class:`LocalProtocolError` for anything ``decode`` would
+    reject: sending it would only make every receiver count an error."""
+    if not valid_id(message.sender):
         raise LocalProtocolError(f"invalid robot id {message.sender!r}", "sender")
     pos = None
     if message.position is not None:
-        pos = [float(v) for v in message.position]
+        try:
+            pos = [float(v) for v in message.position]
+        except (TypeError, ValueError):
+            raise LocalProtocolError("must be two numbers", "pos") from None
         if len(pos) != 2 or not all(math.isfinite(v) for v in pos):
             raise LocalProtocolError("must be two finite numbers", "pos")
     slots = [_encode_slot(s) for s in message.stack]
@@ -81,26 +90,40 @@ def encode(message: StackMessage) -> bytes:
     return bytes(msgpack.packb(doc, use_bin_type=True))
 
 
+def _local(cond: bool, field: str, message: str) -> None:
+    if not cond:
+        raise LocalProtocolError(message, field)
+
+
 def _encode_slot(slot: Slot) -> dict[str, Any]:
     where = f"slots[{slot.owner}]"
-    if not ID_PATTERN.match(slot.owner):
-        raise LocalProtocolError(f"invalid robot id {slot.owner!r}", f"{where}.owner")
+    _local(valid_id(slot.owner), f"{where}.owner", f"invalid robot id {slot.owner!r}")
+    stamp_ok = isinstance(slot.stamp, int | np.integer) and 0 <= slot.stamp <= _MAX_STAMP
+    _local(stamp_ok, f"{where}.stamp", f"{slot.stamp!r} outside 0..{_MAX_STAMP}")
     ids = [int(j) for j in slot.summary.object_ids]
+    _local(all(0 <= j <= _MAX_OBJECT_ID for j in ids), f"{where}.objects", "ids outside 0..2³²−1")
+    _local(len(set(ids)) == len(ids), f"{where}.objects", "duplicate object ids")
+    _local(len(slot.summary.realisations) >= 1, f"{where}.real", "no realisation")
     n = len(ids)
     iu = _tri(n)
     reals = []
     for i, r in enumerate(slot.summary.realisations):
+        field = f"{where}.real[{i}]"
         arrays = (r.lin, r.info, r.eta)
-        if not all(np.all(np.isfinite(a)) for a in arrays) or not math.isfinite(r.log_phi):
-            raise LocalProtocolError("non-finite numbers", f"{where}.real[{i}]")
-        if r.lin.shape != (n, 3) or r.info.shape != (3 * n, 3 * n) or r.eta.shape != (3 * n,):
-            raise LocalProtocolError("shapes do not match the object count", f"{where}.real[{i}]")
-        if not np.allclose(
-            r.info, r.info.T, rtol=1e-12, atol=1e-12 * max(1.0, np.abs(r.info).max(initial=0.0))
-        ):
-            raise LocalProtocolError("Λ is not symmetric", f"{where}.real[{i}].info")
-        if len(r.classes) != n or any(not 0 <= c < 256 for c in r.classes):
-            raise LocalProtocolError("classes must be n indices in 0..255", f"{where}.real[{i}].c")
+        finite = all(np.all(np.isfinite(a)) for a in arrays) and math.isfinite(r.log_phi)
+        _local(finite, field, "non-finite numbers")
+        shapes = (
+            r.lin.shape == (n, 3) and r.info.shape == (3 * n, 3 * n) and r.eta.shape == (3 * n,)
+        )
+        _local(shapes, field, "shapes do not match the object count")
+        classes_ok = len(r.classes) == n and all(0 <= c < 256 for c in r.classes)
+        _local(classes_ok, f"{field}.c", "classes must be n indices in 0..255")
+        if n:
+            scale = float(np.abs(r.info).max())
+            asymmetry = float(np.abs(r.info - r.info.T).max())
+            _local(asymmetry <= 1e-12 * scale, f"{field}.info", "Λ is not symmetric")
+            eig_min = float(np.linalg.eigvalsh(r.info)[0])
+            _local(eig_min >= -Limits().psd_tol * scale, f"{field}.info", "Λ is indefinite")
         reals.append(
             {
                 "c": bytes(bytearray(r.classes)),
@@ -170,7 +193,7 @@ def _int(value: Any, field: str, lo: int, hi: int) -> int:
 
 def _robot_id(value: Any, field: str) -> str:
     _need(isinstance(value, str), field, "expected a string")
-    _need(ID_PATTERN.match(value) is not None, field, f"invalid robot id {value!r}", InvalidValue)
+    _need(valid_id(value), field, f"invalid robot id {value!r}", InvalidValue)
     return str(value)
 
 
@@ -184,7 +207,8 @@ def _floats(value: Any, field: str, count: int) -> Array:
 
 def _decode_doc(doc: Any, lim: Limits) -> StackMessage:
     _need(isinstance(doc, dict), "message", f"expected a map, got {type(doc).__name__}")
-    if "v" in doc and doc["v"] != VERSION:
+    version = doc.get("v")
+    if "v" in doc and (type(version) is not int or version != VERSION):
         raise UnsupportedVersion(f"schema version {doc['v']!r} (this side speaks {VERSION})", "v")
     top = _map(doc, "message", _TOP_KEYS)
     if top["type"] != STACK:

@@ -225,7 +225,7 @@ def test_study_json_means_are_npz_means(
 def test_study_reruns_are_identical(
     world: Path, tmp_path: Path, two_runs: tuple[subprocess.CompletedProcess[str], Path]
 ) -> None:
-    args = ("--runs", "1", "--jobs", "1", "--seed", "6")
+    args = ("--methods", "local,centralized", "--runs", "1", "--jobs", "1", "--seed", "6")
     study(world, tmp_path / "a", *args)
     study(world, tmp_path / "b", *args)
     a, b = metric_arrays(read_npz(tmp_path / "a")), metric_arrays(read_npz(tmp_path / "b"))
@@ -242,7 +242,19 @@ def test_study_jobs_do_not_change_metrics(
 ) -> None:
     out = tmp_path / "serial"
     extra = ("--snapshot-robot", "r2", "--snapshot-step", "4")
-    study(world, out, "--runs", "2", "--jobs", "1", "--seed", "5", *extra)
+    study(
+        world,
+        out,
+        "--methods",
+        "local,centralized",
+        "--runs",
+        "2",
+        "--jobs",
+        "1",
+        "--seed",
+        "5",
+        *extra,
+    )
     serial, parallel = metric_arrays(read_npz(out)), metric_arrays(read_npz(two_runs[1]))
     assert set(serial) == set(parallel)
     for key in serial:

@@ -1,0 +1,410 @@
+"""RobotNode, the sans-I/O core of one robot, and the in-process fleet that drives several.
+
+The world: three robots 10 m apart driving along +x, each seeing only its own objects (r1 sees 1
+and 2 from k = 1, r2 sees 3 from k = 7, r3 sees 4 from k = 1), so whatever a robot's D knows of
+another robot's objects came over the wire.
+"""
+
+from __future__ import annotations
+
+import msgpack
+import numpy as np
+import pytest
+
+from agents.links import Schedule
+from agents.node import RobotNode
+from deploy.fleet import FleetStats, make_nodes, run_fleet
+from deploy.study import belief_model, belief_rng
+from estimator.factors import object_key
+from estimator.hybrid import BeliefConfig, HybridBelief
+from estimator.models import SensorFrame
+from protocol.codec import StackMessage, decode, encode
+from protocol.stack import Slot, Stack
+from sim.loader import parse_scenario
+from sim.sensors import Simulator
+from sim.world import World
+
+STEPS = 12
+SEED = 3
+_OBJECTS = [(3.0, 0.5, 0.5, 1), (4.0, -0.8, -1.0, 2), (5.5, 10.3, 2.0, 2), (3.0, 20.5, 1.0, 1)]
+_TEXT = f"""
+format = 1
+name = "chain"
+description = "three robots 10 m apart, each with objects of its own"
+steps = {STEPS}
+[classes]
+count = 2
+prior = [0.5, 0.5]
+[classifier]
+model = "paper"
+[noise]
+odometry_var = [0.003, 0.003, 0.001]
+geometric_var = [0.1, 0.1, 0.01]
+[sensor]
+half_angle_deg = 60.0
+range = 4.0
+[communication]
+mode = "schedule"
+schedule = [[1, {STEPS}, "r1", "r2"], [1, {STEPS}, "r2", "r3"]]
+"""
+for _rid, _y in (("r1", 0.0), ("r2", 10.0), ("r3", 20.0)):
+    _TEXT += f'\n[[robots]]\nid = "{_rid}"\nstart = [0.0, {_y}, 0.0]\n'
+    _TEXT += f"speed = 0.25\nturns = [[{STEPS}, 0.0]]\n"
+for _oid, (_x, _y, _yaw, _c) in enumerate(_OBJECTS, start=1):
+    _TEXT += f"\n[[objects]]\nid = {_oid}\npose = [{_x}, {_y}, {_yaw}]\nclass = {_c}\n"
+SCENARIO = parse_scenario(_TEXT, "chain.toml")
+WORLD = World(SCENARIO)
+R2_FIRST_SIGHTING = 7
+# r1–r2 and r2–r3 talk at every step, r1–r3 never: r1's news reaches r3 only through r2.
+CHAIN = Schedule(((1, STEPS, "r1", "r2"), (1, STEPS, "r2", "r3")))
+
+
+@pytest.fixture(scope="module")
+def frames() -> dict[str, list[SensorFrame]]:
+    return Simulator(SCENARIO, SEED).all_frames()
+
+
+def _nodes(seed: int = SEED) -> dict[str, RobotNode]:
+    return make_nodes(
+        SCENARIO, belief_model(SCENARIO), BeliefConfig(), lambda r: belief_rng(seed, [r])
+    )
+
+
+def _node(robot: str) -> RobotNode:
+    return _nodes()[robot]
+
+
+def _advance(node: RobotNode, frames: dict[str, list[SensorFrame]], to_step: int) -> None:
+    for f in frames[node.robot][node.k : to_step]:
+        node.on_frame(f)
+
+
+def _poses(belief: HybridBelief, robot: str) -> np.ndarray:
+    """(H, 1 + n, 3): every hypothesis' latest pose of ``robot`` and its object poses."""
+    keys = [belief.pose_key(robot)] + [object_key(j) for j in belief.object_ids]
+    return np.array([[h.pose(key) for key in keys] for h in belief.hypotheses])
+
+
+def _assert_same_belief(a: HybridBelief, b: HybridBelief, robot: str) -> None:
+    """Bit-identical: same objects, hypotheses, classes, log weights and pose estimates."""
+    assert a.object_ids == b.object_ids
+    assert len(a.hypotheses) == len(b.hypotheses)
+    assert [h.classes for h in a.hypotheses] == [h.classes for h in b.hypotheses]
+    assert [h.log_weight for h in a.hypotheses] == [h.log_weight for h in b.hypotheses]
+    assert np.array_equal(_poses(a, robot), _poses(b, robot))
+    map_a, map_b = a.map_hypothesis(), b.map_hypothesis()
+    assert map_a.classes == map_b.classes
+    assert np.array_equal(map_a.pose(a.pose_key(robot)), map_b.pose(b.pose_key(robot)))
+
+
+def _own_slot(node: RobotNode) -> Slot:
+    return decode(node.outgoing(), node.limits).stack.by_owner()[node.robot]
+
+
+# -- no communication ----------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("robot", ["r1", "r2"])
+def test_node_without_communication_keeps_d_equal_to_l(
+    robot: str, frames: dict[str, list[SensorFrame]]
+) -> None:
+    node = _node(robot)
+    for f in frames[robot]:
+        report = node.on_frame(f)
+        assert report.k == f.k and report.fusion.integrated == ()
+        _assert_same_belief(node.distributed, node.local, robot)
+    assert node.local.object_ids  # the robot saw something: the equality is not vacuous
+    assert node.distributed.stamps == {}
+
+
+def test_node_rejects_a_frame_of_another_robot(frames: dict[str, list[SensorFrame]]) -> None:
+    with pytest.raises(ValueError, match="r2"):
+        _node("r1").on_frame(frames["r2"][0])
+
+
+# -- outgoing ------------------------------------------------------------------------------------
+
+
+def test_node_outgoing_is_none_until_the_robot_sees_an_object(
+    frames: dict[str, list[SensorFrame]],
+) -> None:
+    node = _node("r2")
+    assert node.outgoing() is None
+    for f in frames["r2"][: R2_FIRST_SIGHTING - 1]:
+        node.on_frame(f)
+        assert node.outgoing() is None, f.k
+    node.on_frame(frames["r2"][R2_FIRST_SIGHTING - 1])
+    data = node.outgoing()
+    assert isinstance(data, bytes)
+    message = decode(data, node.limits)
+    assert message.sender == "r2"
+    assert message.position == node.position
+    assert [s.owner for s in message.stack] == ["r2"]
+    slot = message.stack.by_owner()["r2"]
+    assert slot.stamp == R2_FIRST_SIGHTING == node.k
+    assert len(slot.summary.realisations) == len(node.local.hypotheses)
+
+
+def test_node_own_slot_is_built_from_local_not_distributed(
+    frames: dict[str, list[SensorFrame]],
+) -> None:
+    peer, node = _node("r1"), _node("r2")
+    _advance(peer, frames, 3)
+    assert node.on_stack(peer.outgoing())
+    _advance(node, frames, R2_FIRST_SIGHTING + 2)
+    assert set(node.distributed.object_ids) > set(node.local.object_ids)  # D differs from L
+    message = decode(node.outgoing(), node.limits)
+    assert sorted(message.stack.stamps()) == ["r1", "r2"]
+    slot = message.stack.by_owner()["r2"]
+    assert slot.stamp == node.k == R2_FIRST_SIGHTING + 2
+    assert slot.summary.object_ids == tuple(node.local.object_ids)
+    assert len(slot.summary.realisations) == len(node.local.hypotheses)
+    assert [r.classes for r in slot.summary.realisations] == [
+        h.classes for h in node.local.hypotheses
+    ]
+    assert node.outgoing() is node.outgoing()  # encoded once until something changes
+
+
+# -- invalid input -------------------------------------------------------------------------------
+
+
+def _mutated(data: bytes, field: str, value: object) -> bytes:
+    """``data`` with its first slot's first realisation's ``field`` replaced."""
+    doc = msgpack.unpackb(data, raw=False)
+    doc["slots"][0]["real"][0][field] = value
+    return bytes(msgpack.packb(doc, use_bin_type=True))
+
+
+def _with_nan(data: bytes) -> bytes:
+    lin = np.frombuffer(msgpack.unpackb(data, raw=False)["slots"][0]["real"][0]["lin"], "<f8")
+    lin = lin.copy()
+    lin[1] = np.nan
+    return _mutated(data, "lin", lin.tobytes())
+
+
+def _with_unknown_class(data: bytes) -> bytes:
+    # A two-class world: class index 5 is well-formed msgpack but meaningless.
+    classes = msgpack.unpackb(data, raw=False)["slots"][0]["real"][0]["c"]
+    return _mutated(data, "c", bytes([5]) + classes[1:])
+
+
+@pytest.mark.parametrize(
+    ("corrupt", "error"),
+    [
+        (lambda data: b"\xc1 this is not msgpack" + data[:7], "MalformedMessage"),
+        (lambda data: data[: len(data) // 2], "MalformedMessage"),
+        (_with_nan, "InvalidValue"),
+        (_with_unknown_class, "InvalidValue"),
+    ],
+    ids=["garbage", "truncated", "nan", "unknown-class"],
+)
+def test_node_on_stack_drops_invalid_input_and_keeps_what_it_had(
+    corrupt, error: str, frames: dict[str, list[SensorFrame]]
+) -> None:
+    peer, node = _node("r1"), _node("r2")
+    _advance(peer, frames, 3)
+    _advance(node, frames, 2)
+    data = peer.outgoing()
+    assert node.on_stack(data)
+    held = node.stack.by_owner()["r1"]
+    stamps = node.stack.stamps()
+    bad = corrupt(data)
+    assert bad != data
+    assert not node.on_stack(bad)
+    c = node.counters
+    assert (c.invalid, c.errors_by_type, c.stacks_received, c.stacks_merged) == (
+        1,
+        {error: 1},
+        2,
+        1,
+    )
+    assert c.bytes_received == len(data) + len(bad)
+    assert c.last_error
+    assert node.stack.stamps() == stamps
+    assert node.stack.by_owner()["r1"] is held
+    # The node lives on and still fuses what it accepted before the bad message.
+    node.on_frame(frames["r2"][2])
+    assert node.distributed.stamps == {"r1": 3}
+
+
+def test_node_nan_error_names_the_field(frames: dict[str, list[SensorFrame]]) -> None:
+    peer, node = _node("r1"), _node("r2")
+    _advance(peer, frames, 2)
+    assert not node.on_stack(_with_nan(peer.outgoing()))
+    assert "lin" in node.counters.last_error
+    assert len(node.stack) == 0
+
+
+# -- versions ------------------------------------------------------------------------------------
+
+
+def test_node_on_stack_is_idempotent(frames: dict[str, list[SensorFrame]]) -> None:
+    peer, twice, once = _node("r1"), _node("r2"), _node("r2")
+    _advance(peer, frames, R2_FIRST_SIGHTING)
+    _advance(twice, frames, R2_FIRST_SIGHTING)
+    _advance(once, frames, R2_FIRST_SIGHTING)
+    data = peer.outgoing()
+    assert twice.on_stack(data)
+    assert not twice.on_stack(data)
+    assert once.on_stack(data)
+    c = twice.counters
+    assert (c.stacks_received, c.stacks_merged, c.stacks_unchanged, c.invalid) == (2, 1, 1, 0)
+    nxt = frames["r2"][R2_FIRST_SIGHTING]
+    twice.on_frame(nxt)
+    once.on_frame(nxt)
+    assert twice.distributed.stamps == once.distributed.stamps == {"r1": R2_FIRST_SIGHTING}
+    _assert_same_belief(twice.distributed, once.distributed, "r2")
+    assert twice.outgoing() == once.outgoing()
+
+
+def test_node_never_takes_its_own_slot_from_a_relayed_stack(
+    frames: dict[str, list[SensorFrame]],
+) -> None:
+    node, relay = _node("r1"), _node("r2")
+    _advance(node, frames, 3)
+    assert relay.on_stack(node.outgoing())  # relay now holds r1's slot at stamp 3
+    _advance(node, frames, 6)
+    relayed = relay.outgoing()
+    assert decode(relayed).stack.stamps() == {"r1": 3}
+    assert not node.on_stack(relayed)
+    assert node.counters.stacks_unchanged == 1
+    own = _own_slot(node)
+    assert own.stamp == node.k == 6
+    assert len(own.summary.realisations) == len(node.local.hypotheses)
+    # Its own information did not come back into D either: D still repeats L exactly.
+    node.on_frame(frames["r1"][6])
+    assert "r1" not in node.distributed.stamps
+    _assert_same_belief(node.distributed, node.local, "r1")
+
+
+def test_node_ignores_a_forged_newer_version_of_its_own_slot(
+    frames: dict[str, list[SensorFrame]],
+) -> None:
+    node = _node("r1")
+    _advance(node, frames, 4)
+    summary = node.current_stack().by_owner()["r1"].summary
+    forged = encode(StackMessage("r2", None, Stack((Slot("r1", 100, summary),))))
+    assert not node.on_stack(forged)
+    assert node.stack.stamps() == {"r1": 4}
+    node.on_frame(frames["r1"][4])
+    assert _own_slot(node).stamp == 5
+    assert node.distributed.stamps == {}
+
+
+def test_node_ignores_an_older_version_of_a_slot_it_holds(
+    frames: dict[str, list[SensorFrame]],
+) -> None:
+    peer, node = _node("r1"), _node("r2")
+    _advance(peer, frames, 3)
+    old = peer.outgoing()
+    _advance(peer, frames, 6)
+    new = peer.outgoing()
+    assert node.on_stack(new)
+    node.on_frame(frames["r2"][0])
+    assert node.distributed.stamps == {"r1": 6}
+    assert not node.on_stack(old)
+    assert node.counters.stacks_unchanged == 1
+    assert node.stack.stamps() == {"r1": 6}
+    node.on_frame(frames["r2"][1])
+    assert node.distributed.stamps == {"r1": 6}
+    assert {h.used["r1"].stamp for h in node.distributed.hypotheses} == {6}
+
+
+def test_node_takes_the_newer_version_after_an_older_one(
+    frames: dict[str, list[SensorFrame]],
+) -> None:
+    peer, node = _node("r1"), _node("r2")
+    _advance(peer, frames, 3)
+    old = peer.outgoing()
+    _advance(peer, frames, 6)
+    assert node.on_stack(old)
+    node.on_frame(frames["r2"][0])
+    assert node.on_stack(peer.outgoing())
+    node.on_frame(frames["r2"][1])
+    assert node.distributed.stamps == {"r1": 6}
+    assert node.counters.stacks_merged == 2
+
+
+# -- the in-process fleet ------------------------------------------------------------------------
+
+
+def _run_chain(
+    frames: dict[str, list[SensorFrame]],
+) -> tuple[dict[str, RobotNode], FleetStats]:
+    nodes = _nodes()
+    return nodes, run_fleet(nodes, frames, CHAIN, STEPS)
+
+
+@pytest.fixture(scope="module")
+def chain_run(
+    frames: dict[str, list[SensorFrame]],
+) -> tuple[dict[str, RobotNode], FleetStats]:
+    return _run_chain(frames)
+
+
+def test_run_fleet_is_deterministic(chain_run, frames: dict[str, list[SensorFrame]]) -> None:
+    nodes, stats = chain_run
+    again, stats_again = _run_chain(frames)
+    for r in SCENARIO.robot_ids:
+        _assert_same_belief(again[r].distributed, nodes[r].distributed, r)
+        assert again[r].stack.stamps() == nodes[r].stack.stamps()
+    assert stats_again.delivered_bytes == stats.delivered_bytes
+
+
+def test_run_fleet_relays_over_two_hops(chain_run) -> None:
+    nodes, _ = chain_run
+    only_r1 = set(WORLD.known_objects("r1", STEPS))
+    for other in ("r2", "r3"):
+        only_r1 -= set(WORLD.known_objects(other, STEPS))
+    assert only_r1 == {1, 2}
+    r3 = nodes["r3"]
+    assert only_r1 <= set(r3.distributed.object_ids)
+    assert not only_r1 & set(r3.local.object_ids)
+    # One hop per step: r1's end-of-step-10 slot reaches r2 at step 11 and r3 at step 12.
+    assert r3.stack.stamps()["r1"] == STEPS - 2
+    assert r3.distributed.stamps["r1"] == STEPS - 2
+    assert set(nodes["r1"].distributed.object_ids) == {1, 2, 3, 4}
+
+
+def _expected_deliveries() -> int:
+    """Deliveries of the chain run: a sender delivers once it has a non-empty stack, i.e. once it
+    has seen an object or received a non-empty stack before the step."""
+    has = dict.fromkeys(SCENARIO.robot_ids, False)
+    count = 0
+    for k in range(1, STEPS + 1):
+        pairs = [
+            (a, b) for a in has for b in has if a != b and CHAIN.allowed(a, b, k, (0, 0), (0, 0))
+        ]
+        sending = {a for a, _ in pairs if has[a]}
+        count += sum(1 for a, _ in pairs if a in sending)
+        for a, b in pairs:
+            has[b] = has[b] or a in sending
+        for r in has:
+            has[r] = has[r] or bool(WORLD.visible_objects(r, k))
+    return count
+
+
+def test_run_fleet_counts_deliveries_consistently_with_nodes(chain_run) -> None:
+    nodes, stats = chain_run
+    counters = [n.counters for n in nodes.values()]
+    assert stats.deliveries == len(stats.delivered_bytes) == _expected_deliveries()
+    assert sum(c.stacks_received for c in counters) == stats.deliveries
+    assert sum(c.stacks_sent for c in counters) == stats.deliveries
+    assert sum(c.bytes_received for c in counters) == sum(stats.delivered_bytes)
+    assert sum(c.bytes_sent for c in counters) == sum(stats.delivered_bytes)
+    assert all(c.invalid == 0 and c.rejected_slots == 0 for c in counters)
+    assert min(stats.delivered_bytes) > 0
+
+
+def test_run_fleet_calls_on_step_for_every_robot_and_step(
+    frames: dict[str, list[SensorFrame]],
+) -> None:
+    calls = []
+
+    def on_step(robot: str, k: int, node: RobotNode, fusion_ms: float, step_ms: float) -> None:
+        assert node.robot == robot and node.k == k
+        assert 0.0 <= fusion_ms <= step_ms
+        calls.append((robot, k))
+
+    run_fleet(_nodes(), frames, Schedule(()), 4, on_step)
+    assert calls == [(r, k) for k in range(1, 5) for r in SCENARIO.robot_ids]

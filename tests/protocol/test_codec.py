@@ -1,0 +1,893 @@
+"""The wire codec (docs/wire.md): bit-exact round trips, one error class per fault with a message
+that names the field, and fuzzing that proves nothing but a RemoteProtocolError escapes ``decode``.
+
+Malformed documents are made by unpacking a valid message with msgpack, mutating one field and
+repacking it, so each case exercises exactly one rule of the validator.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import math
+import struct
+from collections.abc import Iterator
+from typing import Any
+
+import msgpack
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from estimator.summary import LocalSummary, Realisation
+from protocol.codec import Limits, StackMessage, decode, encode
+from protocol.errors import (
+    InvalidValue,
+    LimitExceeded,
+    LocalProtocolError,
+    MalformedMessage,
+    RemoteProtocolError,
+    UnsupportedVersion,
+)
+from protocol.stack import Slot, Stack
+
+Path = tuple[str | int, ...]
+
+# Reproducible in CI: the same examples on every run, no example database, no timing flakiness.
+FUZZ = settings(derandomize=True, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+
+SPECIAL_FLOATS = (
+    *(0.0, -0.0, 5e-324, -5e-324, 2.2250738585072014e-308),
+    *(1.7976931348623157e308, -1.7976931348623157e308, 1.0, -1.0, 1e-300, 1e300),
+)
+ROBOT_IDS = st.text(
+    "ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789_-", min_size=1, max_size=32
+)
+BAD_ROBOT_IDS = ("", "x" * 33, "r 1", " r1", "r1 ", "r/1", "r.1", "rö", "r1\x00", "r1\n1")
+
+
+# --------------------------------------------------------------------------- valid messages
+
+
+def _finite(rng: np.random.Generator, shape: tuple[int, ...]) -> np.ndarray:
+    """Finite float64s of ``shape``: ordinary magnitudes, or arbitrary bit patterns (subnormals,
+    ±0, extremes), with special values sprinkled in."""
+    if rng.random() < 0.5:
+        values = rng.standard_normal(shape) * 10.0 ** int(rng.integers(-3, 4))
+    else:
+        bits = rng.integers(0, 2**64, size=shape, dtype=np.uint64)
+        values = bits.view(np.float64)
+        values = np.where(np.isfinite(values), values, -0.0)
+    special = rng.random(shape) < 0.2
+    values[special] = rng.choice(SPECIAL_FLOATS, size=int(special.sum()))
+    return values
+
+
+def make_realisation(rng: np.random.Generator, n: int, num_classes: int) -> Realisation:
+    """A valid realisation over n objects: classes in 0..num_classes−1, Λ = s·(A Aᵀ + I) exactly
+    symmetric positive definite with s a power of two in 2^−500..2^500."""
+    a = rng.standard_normal((3 * n, 3 * n))
+    b = a @ a.T + np.eye(3 * n)
+    info = (b + b.T) / 2.0 * 2.0 ** int(rng.integers(-500, 501))
+    classes = tuple(int(c) for c in rng.integers(0, num_classes, n))
+    log_phi = float(_finite(rng, (1,))[0])
+    return Realisation(classes, log_phi, _finite(rng, (n, 3)), info, _finite(rng, (3 * n,)))
+
+
+def make_summary(
+    rng: np.random.Generator,
+    n: int | None = None,
+    realisations: int | None = None,
+    num_classes: int | None = None,
+) -> LocalSummary:
+    """A valid summary: n ∈ 0..6 distinct object ids, 1..4 realisations, M ∈ {2, 3} classes."""
+    n = int(rng.integers(0, 7)) if n is None else n
+    k = int(rng.integers(1, 5)) if realisations is None else realisations
+    m = int(rng.choice([2, 3])) if num_classes is None else num_classes
+    ids: list[int] = []
+    while len(ids) < n:
+        j = int(rng.choice([0, 2**32 - 1])) if rng.random() < 0.1 else int(rng.integers(0, 2**32))
+        if j not in ids:
+            ids.append(j)
+    return LocalSummary(tuple(ids), tuple(make_realisation(rng, n, m) for _ in range(k)))
+
+
+def make_message(
+    rng: np.random.Generator,
+    owners: tuple[str, ...] = ("r1", "r2", "r3"),
+    stamps: tuple[int, ...] | None = None,
+    sender: str = "r0",
+    position: tuple[float, float] | None = (1.5, -2.25),
+) -> StackMessage:
+    """A valid stack message with one random slot per owner."""
+    if stamps is None:
+        stamps = tuple(int(s) for s in rng.integers(0, 1000, len(owners)))
+    slots = tuple(Slot(o, s, make_summary(rng)) for o, s in zip(owners, stamps, strict=True))
+    return StackMessage(sender, position, Stack(slots))
+
+
+def _bits(values: Any) -> bytes:
+    return np.asarray(values, dtype=np.float64).tobytes()
+
+
+def assert_same_message(got: StackMessage, want: StackMessage) -> None:
+    """Equal to the bit, -0.0 and subnormals included."""
+    assert got.sender == want.sender
+    if want.position is None:
+        assert got.position is None
+    else:
+        assert got.position is not None
+        assert _bits(got.position) == _bits(want.position)
+    assert [(s.owner, s.stamp) for s in got.stack] == [(s.owner, s.stamp) for s in want.stack]
+    for g, w in zip(got.stack, want.stack, strict=True):
+        assert g.summary.object_ids == tuple(w.summary.object_ids)
+        assert len(g.summary.realisations) == len(w.summary.realisations)
+        for i, (gr, wr) in enumerate(
+            zip(g.summary.realisations, w.summary.realisations, strict=True)
+        ):
+            where = f"{w.owner}.real[{i}]"
+            assert gr.classes == tuple(wr.classes), where
+            assert gr.log_phi == wr.log_phi, where
+            assert _bits(gr.log_phi) == _bits(wr.log_phi), where
+            for name in ("lin", "info", "eta"):
+                ga, wa = getattr(gr, name), getattr(wr, name)
+                assert ga.dtype == np.float64 and ga.shape == wa.shape, f"{where}.{name}"
+                assert np.array_equal(ga, wa), f"{where}.{name}"
+                assert _bits(ga) == _bits(wa), f"{where}.{name}"
+
+
+def _check_valid(msg: StackMessage, lim: Limits) -> None:
+    """What a successful decode promises, and that it survives another round trip."""
+    assert msg.position is None or all(math.isfinite(v) for v in msg.position)
+    assert len(msg.stack) <= lim.max_slots
+    for slot in msg.stack:
+        ids = slot.summary.object_ids
+        n = len(ids)
+        assert n <= lim.max_objects and len(set(ids)) == n
+        assert 1 <= len(slot.summary.realisations) <= lim.max_realisations
+        for r in slot.summary.realisations:
+            assert len(r.classes) == n and all(0 <= c < lim.num_classes for c in r.classes)
+            assert math.isfinite(r.log_phi)
+            assert r.lin.shape == (n, 3) and r.info.shape == (3 * n, 3 * n)
+            assert r.eta.shape == (3 * n,)
+            assert np.array_equal(r.info, r.info.T)
+            for a in (r.lin, r.info, r.eta):
+                assert np.all(np.isfinite(a))
+    again = decode(encode(msg), lim)
+    assert_same_message(again, msg)
+
+
+def _decode_or_reject(blob: bytes, limits: Limits | None = None) -> StackMessage | None:
+    """Decode, or return None on a RemoteProtocolError naming a field; anything else fails."""
+    try:
+        msg = decode(blob, limits)
+    except RemoteProtocolError as exc:
+        assert exc.field, f"error without a field: {exc!r}"
+        return None
+    _check_valid(msg, limits or Limits())
+    return msg
+
+
+# --------------------------------------------------------------------------- documents
+
+# Wire order is owner order: slots[0] is r1 (3 objects, 2 realisations, M = 2), slots[1] is r2
+# (no objects, 1 realisation), slots[2] is r3 (2 objects, 3 realisations, M = 3).
+REF = StackMessage(
+    "r0",
+    (1.5, -2.25),
+    Stack(
+        (
+            Slot("r3", 12, make_summary(np.random.default_rng(3), 2, 3, 3)),
+            Slot("r1", 7, make_summary(np.random.default_rng(1), 3, 2, 2)),
+            Slot("r2", 0, make_summary(np.random.default_rng(2), 0, 1, 2)),
+        )
+    ),
+)
+REF_BLOB = encode(REF)
+REF_DOC: dict[Any, Any] = msgpack.unpackb(REF_BLOB, raw=False)
+BASE_MESSAGES = (
+    REF,
+    StackMessage("solo", None, Stack()),
+    StackMessage(
+        "big", None, Stack((Slot("b", 2**63 - 1, make_summary(np.random.default_rng(9), 6, 4)),))
+    ),
+    *(make_message(np.random.default_rng(seed)) for seed in (11, 12, 13)),
+)
+BASE_BLOBS = tuple(encode(m) for m in BASE_MESSAGES)
+BASE_DOCS = tuple(msgpack.unpackb(b, raw=False) for b in BASE_BLOBS)
+
+
+def _field(path: Path) -> str:
+    out = ""
+    for p in path:
+        out += f"[{p}]" if isinstance(p, int) else (f".{p}" if out else p)
+    return out
+
+
+def _get(doc: Any, path: Path) -> Any:
+    for p in path:
+        doc = doc[p]
+    return doc
+
+
+def _set(doc: Any, path: Path, value: Any) -> Any:
+    if not path:
+        return value
+    _get(doc, path[:-1])[path[-1]] = value
+    return doc
+
+
+def _paths(node: Any, prefix: Path = ()) -> Iterator[Path]:
+    yield prefix
+    if isinstance(node, dict):
+        for k, v in node.items():
+            yield from _paths(v, (*prefix, k))
+    elif isinstance(node, list):
+        for i, v in enumerate(node):
+            yield from _paths(v, (*prefix, i))
+
+
+def _pack(doc: Any) -> bytes:
+    return bytes(msgpack.packb(doc, use_bin_type=True))
+
+
+def _with(path: Path, value: Any) -> bytes:
+    """The reference message with the field at ``path`` replaced."""
+    return _pack(_set(copy.deepcopy(REF_DOC), path, value))
+
+
+def _without(path: Path) -> bytes:
+    doc = copy.deepcopy(REF_DOC)
+    del _get(doc, path[:-1])[path[-1]]
+    return _pack(doc)
+
+
+def _poke(path: Path, index: int, value: float) -> bytes:
+    """The reference message with float64 number ``index`` of the blob at ``path`` replaced."""
+    blob = _get(REF_DOC, path)
+    return _with(path, blob[: 8 * index] + struct.pack("<d", value) + blob[8 * index + 8 :])
+
+
+def _upper(info: np.ndarray) -> bytes:
+    return info[np.triu_indices(info.shape[0])].astype("<f8").tobytes()
+
+
+def _assert_rejected(
+    blob: bytes, error: type[RemoteProtocolError], field: str, limits: Limits | None = None
+) -> None:
+    with pytest.raises(error) as caught:
+        decode(blob, limits)
+    assert caught.value.field == field
+    assert str(caught.value).startswith(f"{field}: ")
+
+
+# --------------------------------------------------------------------------- round trips
+
+
+@pytest.mark.parametrize("index", range(len(BASE_MESSAGES)))
+def test_codec_round_trip_is_bit_exact(index: int) -> None:
+    blob = BASE_BLOBS[index]
+    got = decode(blob)
+    assert_same_message(got, BASE_MESSAGES[index])
+    assert encode(got) == blob
+
+
+@pytest.mark.parametrize("position", [None, (0.0, -0.0), (5e-324, -1.7976931348623157e308)])
+def test_codec_round_trip_keeps_position(position: tuple[float, float] | None) -> None:
+    msg = dataclasses.replace(REF, position=position)
+    assert_same_message(decode(encode(msg)), msg)
+
+
+def test_codec_decode_accepts_bytearray_and_memoryview() -> None:
+    assert_same_message(decode(bytearray(REF_BLOB)), REF)  # type: ignore[arg-type]
+    assert_same_message(decode(memoryview(REF_BLOB)), REF)  # type: ignore[arg-type]
+
+
+def test_codec_wire_layout_matches_docs() -> None:
+    assert set(REF_DOC) == {"v", "type", "sender", "pos", "slots"}
+    assert REF_DOC["v"] == 1 and REF_DOC["type"] == "stack" and REF_DOC["sender"] == "r0"
+    assert REF_DOC["pos"] == [1.5, -2.25]
+    assert [s["owner"] for s in REF_DOC["slots"]] == ["r1", "r2", "r3"]
+    for raw, slot in zip(REF_DOC["slots"], REF.stack, strict=True):
+        assert set(raw) == {"owner", "stamp", "objects", "real"}
+        assert raw["stamp"] == slot.stamp and raw["objects"] == list(slot.summary.object_ids)
+        for r_raw, r in zip(raw["real"], slot.summary.realisations, strict=True):
+            assert set(r_raw) == {"c", "phi", "lin", "info", "eta"}
+            assert r_raw["c"] == bytes(r.classes)
+            assert r_raw["phi"] == r.log_phi
+            assert r_raw["lin"] == r.lin.astype("<f8").tobytes()
+            assert r_raw["info"] == _upper(r.info)
+            assert r_raw["eta"] == r.eta.astype("<f8").tobytes()
+
+
+def _header(length: int) -> int:
+    return 2 if length < 2**8 else 3 if length < 2**16 else 5
+
+
+def documented_realisation_bytes(n: int) -> int:
+    """docs/wire.md: payload n + 8 + 24n + 8·3n(3n+1)/2 + 24n = 36n² + 61n + 8, plus 21 bytes of
+    map and keys, 1 float marker and the headers of the four binaries."""
+    payload = n + 8 + 24 * n + 8 * (3 * n * (3 * n + 1) // 2) + 24 * n
+    assert payload == 36 * n * n + 61 * n + 8
+    info = 36 * n * n + 12 * n
+    return payload + 21 + _header(n) + 2 * _header(24 * n) + _header(info)
+
+
+@pytest.mark.parametrize("n", [0, 1, 2, 5, 6, 15, 60])
+def test_codec_realisation_size_matches_docs(n: int) -> None:
+    summary = make_summary(np.random.default_rng(n), n=n, realisations=2)
+    one = LocalSummary(summary.object_ids, summary.realisations[:1])
+    sizes = [
+        len(encode(StackMessage("r0", None, Stack((Slot("r1", 1, s),))))) for s in (one, summary)
+    ]
+    assert sizes[1] - sizes[0] == documented_realisation_bytes(n)
+
+
+def test_codec_realisation_size_at_fifteen_objects() -> None:
+    assert documented_realisation_bytes(15) == 9055
+
+
+@settings(FUZZ, max_examples=2000)
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    sender=ROBOT_IDS,
+    position=st.none()
+    | st.tuples(
+        st.floats(allow_nan=False, allow_infinity=False),
+        st.floats(allow_nan=False, allow_infinity=False),
+    ),
+    versions=st.dictionaries(
+        ROBOT_IDS,
+        st.integers(0, 2**63 - 1),
+        max_size=4,
+    ),
+)
+def test_codec_round_trip_is_bit_exact_fuzz(
+    seed: int, sender: str, position: tuple[float, float] | None, versions: dict[str, int]
+) -> None:
+    msg = make_message(
+        np.random.default_rng(seed), tuple(versions), tuple(versions.values()), sender, position
+    )
+    blob = encode(msg)
+    got = decode(blob)
+    assert_same_message(got, msg)
+    assert encode(got) == blob
+
+
+# --------------------------------------------------------------------------- truncation, noise
+
+
+@pytest.mark.parametrize("index", range(len(BASE_BLOBS)))
+def test_codec_every_truncated_prefix_is_malformed(index: int) -> None:
+    blob = BASE_BLOBS[index]
+    escaped = []
+    for length in range(len(blob)):
+        try:
+            decode(blob[:length])
+        except MalformedMessage as exc:
+            assert exc.field == "message"
+        except Exception as exc:  # the point of the test: report what escaped, for every length
+            escaped.append((length, repr(exc)))
+        else:
+            escaped.append((length, "decoded"))
+    assert not escaped, escaped[:5]
+
+
+def test_codec_trailing_bytes_are_malformed() -> None:
+    _assert_rejected(REF_BLOB + b"\x00", MalformedMessage, "message")
+    _assert_rejected(REF_BLOB + REF_BLOB, MalformedMessage, "message")
+
+
+@pytest.mark.parametrize(
+    "blob", [b"", b"\xc1", b"\x93\x01\x02\x03", b"\x05", b"\xa5stack", b"\xc0", b"\x80"]
+)
+def test_codec_non_map_documents_are_malformed(blob: bytes) -> None:
+    _assert_rejected(blob, MalformedMessage, "message")
+
+
+def test_codec_decode_rejects_non_bytes_input() -> None:
+    _assert_rejected("not bytes", MalformedMessage, "message")  # type: ignore[arg-type]
+
+
+def test_codec_non_string_map_keys_are_malformed() -> None:
+    doc = copy.deepcopy(REF_DOC)
+    doc[1] = 2
+    _assert_rejected(_pack(doc), MalformedMessage, "message")
+    doc = copy.deepcopy(REF_DOC)
+    doc[b"v"] = 1
+    _assert_rejected(_pack(doc), MalformedMessage, "message")
+
+
+@settings(FUZZ, max_examples=4000)
+@given(blob=st.binary(max_size=1024))
+def test_codec_random_bytes_raise_only_remote_errors(blob: bytes) -> None:
+    _decode_or_reject(blob)
+
+
+@settings(FUZZ, max_examples=1000)
+@given(
+    index=st.integers(0, len(BASE_BLOBS) - 1),
+    edits=st.lists(st.tuples(st.integers(0, 2**20), st.integers(0, 255)), min_size=1, max_size=4),
+)
+def test_codec_corrupted_bytes_raise_only_remote_errors(
+    index: int, edits: list[tuple[int, int]]
+) -> None:
+    blob = bytearray(BASE_BLOBS[index])
+    for at, byte in edits:
+        blob[at % len(blob)] = byte
+    _decode_or_reject(bytes(blob))
+
+
+# --------------------------------------------------------------------------- one rule at a time
+
+REAL = ("slots", 0, "real", 1)  # r1's second realisation: 3 objects
+
+
+@pytest.mark.parametrize("value", [math.nan, math.inf, -math.inf])
+@pytest.mark.parametrize(
+    ("path", "index"),
+    [
+        ((*REAL, "lin"), 0),
+        ((*REAL, "lin"), 8),
+        ((*REAL, "info"), 0),
+        ((*REAL, "info"), 44),
+        ((*REAL, "eta"), 0),
+        ((*REAL, "eta"), 8),
+        (("slots", 2, "real", 2, "info"), 3),
+    ],
+)
+def test_codec_non_finite_blob_is_invalid(path: Path, index: int, value: float) -> None:
+    _assert_rejected(_poke(path, index, value), InvalidValue, _field(path))
+
+
+@pytest.mark.parametrize("value", [math.nan, math.inf, -math.inf])
+def test_codec_non_finite_phi_and_position_are_invalid(value: float) -> None:
+    _assert_rejected(_with((*REAL, "phi"), value), InvalidValue, "slots[0].real[1].phi")
+    _assert_rejected(_with(("pos",), [0.0, value]), InvalidValue, "pos")
+    _assert_rejected(_with(("pos",), [value, 0.0]), InvalidValue, "pos")
+
+
+def _symmetric(n: int, smallest: float) -> np.ndarray:
+    """A symmetric (3n, 3n) matrix with eigenvalues 1..2 except one equal to ``smallest``."""
+    rng = np.random.default_rng(5)
+    q, _ = np.linalg.qr(rng.standard_normal((3 * n, 3 * n)))
+    eig = np.linspace(1.0, 2.0, 3 * n)
+    eig[0] = smallest
+    m = q @ np.diag(eig) @ q.T
+    return (m + m.T) / 2.0
+
+
+@pytest.mark.parametrize("smallest", [-1.0, -1e-3, -1e-6])
+def test_codec_indefinite_info_is_invalid(smallest: float) -> None:
+    _assert_rejected(
+        _with((*REAL, "info"), _upper(_symmetric(3, smallest))),
+        InvalidValue,
+        "slots[0].real[1].info",
+    )
+
+
+def test_codec_negated_info_is_invalid() -> None:
+    info = REF.stack.slots[0].summary.realisations[1].info
+    _assert_rejected(_with((*REAL, "info"), _upper(-info)), InvalidValue, "slots[0].real[1].info")
+
+
+def test_codec_negative_eigenvalue_within_psd_tol_is_accepted() -> None:
+    decode(_with((*REAL, "info"), _upper(_symmetric(3, -1e-13))))
+    with pytest.raises(InvalidValue):
+        decode(_with((*REAL, "info"), _upper(_symmetric(3, -1e-13))), Limits(psd_tol=1e-15))
+
+
+@pytest.mark.parametrize("name", ["lin", "info", "eta"])
+@pytest.mark.parametrize("change", [-8, 8, -1, 1, None])
+def test_codec_wrong_blob_length_is_malformed(name: str, change: int | None) -> None:
+    """``change`` bytes added or cut; None empties the blob."""
+    path = (*REAL, name)
+    blob = _get(REF_DOC, path)
+    new = b"" if change is None else blob[:change] if change < 0 else blob + bytes(change)
+    _assert_rejected(_with(path, new), MalformedMessage, _field(path))
+
+
+@pytest.mark.parametrize("classes", [b"", b"\x00\x01", b"\x00\x01\x00\x01"])
+def test_codec_wrong_class_count_is_malformed(classes: bytes) -> None:
+    _assert_rejected(_with((*REAL, "c"), classes), MalformedMessage, "slots[0].real[1].c")
+
+
+def test_codec_object_count_disagreeing_with_arrays_is_malformed() -> None:
+    # Drop one object id: the first realisation's class bytes no longer match.
+    objects = _get(REF_DOC, ("slots", 0, "objects"))
+    _assert_rejected(
+        _with(("slots", 0, "objects"), objects[:-1]), MalformedMessage, "slots[0].real[0].c"
+    )
+    # Empty slot r2 given an object: its realisation has no class byte for it.
+    _assert_rejected(_with(("slots", 1, "objects"), [4]), MalformedMessage, "slots[1].real[0].c")
+
+
+WRONG_TYPES = [
+    (("sender",), 5, MalformedMessage),
+    (("sender",), None, MalformedMessage),
+    (("sender",), b"r0", MalformedMessage),
+    (("sender",), ["r0"], MalformedMessage),
+    (("pos",), "xy", MalformedMessage),
+    (("pos",), 1.5, MalformedMessage),
+    (("pos",), {"x": 1.0, "y": 2.0}, MalformedMessage),
+    (("pos",), [1.0], MalformedMessage),
+    (("pos",), [1.0, 2.0, 3.0], MalformedMessage),
+    (("pos",), ["1", 2.0], MalformedMessage),
+    (("pos",), [True, 2.0], MalformedMessage),
+    (("pos",), [None, 2.0], MalformedMessage),
+    (("slots",), None, MalformedMessage),
+    (("slots",), {}, MalformedMessage),
+    (("slots",), b"", MalformedMessage),
+    (("slots", 0), [], MalformedMessage),
+    (("slots", 0), "r1", MalformedMessage),
+    (("slots", 0, "owner"), 1, MalformedMessage),
+    (("slots", 0, "owner"), b"r1", MalformedMessage),
+    (("slots", 0, "stamp"), 7.0, MalformedMessage),
+    (("slots", 0, "stamp"), "7", MalformedMessage),
+    (("slots", 0, "stamp"), True, MalformedMessage),
+    (("slots", 0, "stamp"), None, MalformedMessage),
+    (("slots", 0, "objects"), b"\x01\x02\x03", MalformedMessage),
+    (("slots", 0, "objects"), {}, MalformedMessage),
+    (("slots", 0, "objects"), None, MalformedMessage),
+    (("slots", 0, "objects", 1), 1.0, MalformedMessage),
+    (("slots", 0, "objects", 1), "1", MalformedMessage),
+    (("slots", 0, "objects", 1), False, MalformedMessage),
+    (("slots", 0, "real"), {}, MalformedMessage),
+    (("slots", 0, "real"), None, MalformedMessage),
+    (("slots", 0, "real", 1), [], MalformedMessage),
+    (("slots", 0, "real", 1), b"", MalformedMessage),
+    ((*REAL, "c"), [0, 1, 0], MalformedMessage),
+    ((*REAL, "c"), "\x00\x01\x00", MalformedMessage),
+    ((*REAL, "c"), None, MalformedMessage),
+    ((*REAL, "phi"), "0.5", MalformedMessage),
+    ((*REAL, "phi"), b"\x00" * 8, MalformedMessage),
+    ((*REAL, "phi"), True, MalformedMessage),
+    ((*REAL, "phi"), None, MalformedMessage),
+    ((*REAL, "phi"), [0.5], MalformedMessage),
+    ((*REAL, "lin"), [0.0] * 9, MalformedMessage),
+    ((*REAL, "lin"), "x" * 72, MalformedMessage),
+    ((*REAL, "info"), None, MalformedMessage),
+    ((*REAL, "info"), 1.0, MalformedMessage),
+    ((*REAL, "eta"), [[0.0] * 9], MalformedMessage),
+    ((*REAL, "eta"), 0, MalformedMessage),
+    # The version and type are compared by value: anything but 1 / "stack" is unknown.
+    (("v",), "1", UnsupportedVersion),
+    (("v",), None, UnsupportedVersion),
+    (("v",), [1], UnsupportedVersion),
+    (("type",), 1, UnsupportedVersion),
+    (("type",), b"stack", UnsupportedVersion),
+    (("type",), None, UnsupportedVersion),
+]
+
+
+@pytest.mark.parametrize(
+    ("path", "value", "error"),
+    [pytest.param(p, v, e, id=f"{_field(p)}={v!r}") for p, v, e in WRONG_TYPES],
+)
+def test_codec_wrong_type_is_rejected(
+    path: Path, value: Any, error: type[RemoteProtocolError]
+) -> None:
+    _assert_rejected(_with(path, value), error, _field(path))
+
+
+@pytest.mark.parametrize("value", [True, 1.0])
+def test_codec_version_of_wrong_type_is_rejected(value: Any) -> None:
+    with pytest.raises(RemoteProtocolError):
+        decode(_with(("v",), value))
+
+
+@pytest.mark.parametrize("version", [0, 2, -1, 255])
+def test_codec_unknown_version_is_unsupported(version: int) -> None:
+    _assert_rejected(_with(("v",), version), UnsupportedVersion, "v")
+
+
+def test_codec_unknown_version_is_unsupported_whatever_its_layout() -> None:
+    _assert_rejected(_pack({"v": 2, "frames": []}), UnsupportedVersion, "v")
+
+
+@pytest.mark.parametrize("kind", ["alive", "Stack", "", "stack "])
+def test_codec_unknown_message_type_is_unsupported(kind: str) -> None:
+    _assert_rejected(_with(("type",), kind), UnsupportedVersion, "type")
+
+
+@pytest.mark.parametrize(
+    ("limits", "field"),
+    [
+        (Limits(max_slots=2), "slots"),
+        (Limits(max_objects=2), "slots[0].objects"),
+        (Limits(max_realisations=2), "slots[2].real"),
+        (Limits(max_message_bytes=len(REF_BLOB) - 1), "message"),
+    ],
+)
+def test_codec_over_limits_is_rejected(limits: Limits, field: str) -> None:
+    _assert_rejected(REF_BLOB, LimitExceeded, field, limits)
+
+
+def test_codec_exactly_at_limits_is_accepted() -> None:
+    lim = Limits(
+        num_classes=3,
+        max_message_bytes=len(REF_BLOB),
+        max_slots=3,
+        max_objects=3,
+        max_realisations=3,
+    )
+    assert_same_message(decode(REF_BLOB, lim), REF)
+
+
+def test_codec_class_index_at_num_classes_is_invalid() -> None:
+    blob = _with((*REAL, "c"), bytes([0, 1, 2]))
+    _assert_rejected(blob, InvalidValue, "slots[0].real[1].c", Limits(num_classes=2))
+    assert decode(blob, Limits(num_classes=3)).stack.slots[0].summary.realisations[1].classes == (
+        0,
+        1,
+        2,
+    )
+    _assert_rejected(_with((*REAL, "c"), bytes([0, 255, 0])), InvalidValue, "slots[0].real[1].c")
+
+
+def test_codec_duplicate_owners_are_invalid() -> None:
+    _assert_rejected(_with(("slots", 1, "owner"), "r1"), InvalidValue, "slots")
+
+
+def test_codec_duplicate_object_ids_are_invalid() -> None:
+    _assert_rejected(_with(("slots", 0, "objects"), [5, 6, 5]), InvalidValue, "slots[0].objects")
+
+
+@pytest.mark.parametrize(
+    ("path", "value"),
+    [
+        (("slots", 0, "stamp"), -1),
+        (("slots", 0, "stamp"), 2**63),
+        (("slots", 0, "stamp"), 2**64 - 1),
+        (("slots", 0, "objects", 2), -1),
+        (("slots", 0, "objects", 2), 2**32),
+    ],
+)
+def test_codec_integer_out_of_range_is_invalid(path: Path, value: int) -> None:
+    _assert_rejected(_with(path, value), InvalidValue, _field(path))
+
+
+def test_codec_slot_without_realisations_is_invalid() -> None:
+    _assert_rejected(_with(("slots", 1, "real"), []), InvalidValue, "slots[1].real")
+
+
+def test_codec_integer_phi_and_position_are_accepted_as_floats() -> None:
+    doc = copy.deepcopy(REF_DOC)
+    doc["pos"] = [1, -2]
+    _set(doc, (*REAL, "phi"), 3)
+    msg = decode(_pack(doc))
+    assert msg.position == (1.0, -2.0)
+    assert msg.stack.slots[0].summary.realisations[1].log_phi == 3.0
+
+
+@pytest.mark.parametrize(
+    "robot_id",
+    [
+        *BAD_ROBOT_IDS,
+        "r1\n",
+    ],
+)
+@pytest.mark.parametrize("path", [("sender",), ("slots", 1, "owner")])
+def test_codec_invalid_robot_id_is_invalid(path: Path, robot_id: str) -> None:
+    _assert_rejected(_with(path, robot_id), InvalidValue, _field(path))
+
+
+@pytest.mark.parametrize("robot_id", ["x" * 32, "A", "Robot_7-b"])
+def test_codec_valid_robot_ids_are_accepted(robot_id: str) -> None:
+    assert decode(_with(("sender",), robot_id)).sender == robot_id
+
+
+MAPS = [((), "message"), (("slots", 1), "slots[1]"), (("slots", 2, "real", 2), "slots[2].real[2]")]
+
+
+@pytest.mark.parametrize(
+    ("path", "key", "field"),
+    [((*p, k), k, f) for p, f in MAPS for k in _get(REF_DOC, p)],
+)
+def test_codec_missing_key_is_malformed(path: Path, key: str, field: str) -> None:
+    _assert_rejected(_without(path), MalformedMessage, field)
+
+
+@pytest.mark.parametrize("key", ["x", "V", "type2", ""])
+@pytest.mark.parametrize(("path", "field"), MAPS)
+def test_codec_extra_key_is_malformed(path: Path, field: str, key: str) -> None:
+    doc = copy.deepcopy(REF_DOC)
+    _get(doc, path)[key] = 0
+    _assert_rejected(_pack(doc), MalformedMessage, field)
+
+
+# --------------------------------------------------------------------------- structured fuzz
+
+KNOWN_KEYS = (
+    *("v", "type", "sender", "pos", "slots", "owner", "stamp", "objects", "real"),
+    *("c", "phi", "lin", "info", "eta"),
+)
+EDGE_INTS = (-1, 0, 1, 2, 3, 255, 256, 2**32 - 1, 2**32, 2**63 - 1, 2**63, 2**64 - 1, -(2**63))
+FLOAT_BLOBS = st.lists(st.floats(), max_size=24).map(lambda xs: struct.pack(f"<{len(xs)}d", *xs))
+SCALARS = (
+    st.none()
+    | st.booleans()
+    | st.integers(-(2**63), 2**64 - 1)
+    | st.sampled_from(EDGE_INTS)
+    | st.floats()
+    | st.text(max_size=40)
+    | st.sampled_from(("stack", "r1", "r1\n", ""))
+    | st.binary(max_size=64)
+    | FLOAT_BLOBS
+    | st.builds(msgpack.ExtType, st.integers(0, 127), st.binary(max_size=12))
+    | st.builds(msgpack.Timestamp, st.integers(0, 2**34 - 1), st.integers(0, 999_999_999))
+)
+# Keys of generated maps; ADD_KEYS adds the non-string keys msgpack carries but decode must refuse.
+KEYS = st.sampled_from(KNOWN_KEYS) | st.text(max_size=8)
+ADD_KEYS = KEYS | st.integers(-3, 3) | st.binary(max_size=3)
+VALUES = st.recursive(
+    SCALARS,
+    lambda children: st.lists(children, max_size=4) | st.dictionaries(KEYS, children, max_size=4),
+    max_leaves=8,
+)
+OPS = ("replace", "copy", "delete", "add", "poke", "resize")
+SMALL_LIMITS = Limits(
+    num_classes=2, max_message_bytes=12_000, max_slots=3, max_objects=3, max_realisations=2
+)
+
+
+def _mutate(doc: Any, data: st.DataObject) -> Any:
+    """One random edit at a random field path of ``doc``."""
+    paths = list(_paths(doc))[::-1]  # hypothesis favours the first choices: make them leaves
+    path = data.draw(st.sampled_from(paths))
+    node = _get(doc, path)
+    op = data.draw(st.sampled_from(OPS))
+    if op == "copy":
+        source = _get(doc, data.draw(st.sampled_from(paths)))
+        return _set(doc, path, copy.deepcopy(source))
+    if op == "delete" and path:
+        del _get(doc, path[:-1])[path[-1]]
+        return doc
+    if op == "add" and isinstance(node, dict):
+        node[data.draw(ADD_KEYS)] = data.draw(VALUES)
+        return doc
+    if op == "add" and isinstance(node, list):
+        node.insert(data.draw(st.integers(0, len(node))), data.draw(VALUES))
+        return doc
+    if op == "poke" and isinstance(node, bytes) and len(node) >= 8:
+        i = 8 * data.draw(st.integers(0, len(node) // 8 - 1))
+        return _set(doc, path, node[:i] + struct.pack("<d", data.draw(st.floats())) + node[i + 8 :])
+    if op == "resize" and isinstance(node, bytes | str | list):
+        cut = data.draw(st.integers(0, len(node)))
+        pad: Any = {bytes: b"\x00", str: "a", list: [0]}[type(node)]
+        return _set(doc, path, node[:cut] + pad * data.draw(st.integers(0, 9)))
+    return _set(doc, path, data.draw(VALUES))
+
+
+@settings(FUZZ, max_examples=4000)
+@given(
+    index=st.integers(0, len(BASE_DOCS) - 1),
+    edits=st.integers(1, 3),
+    limits=st.sampled_from([None, None, None, SMALL_LIMITS]),
+    data=st.data(),
+)
+def test_codec_mutated_documents_raise_only_remote_errors(
+    index: int, edits: int, limits: Limits | None, data: st.DataObject
+) -> None:
+    doc = copy.deepcopy(BASE_DOCS[index])
+    for _ in range(edits):
+        doc = _mutate(doc, data)
+    _decode_or_reject(_pack(doc), limits)
+
+
+# --------------------------------------------------------------------------- encode
+
+
+def _message(**changes: Any) -> StackMessage:
+    """REF with top-level fields changed, wrong types allowed."""
+    return dataclasses.replace(REF, **changes)
+
+
+def _replace_real(index: int, **changes: Any) -> StackMessage:
+    """REF with r1's realisation ``index`` changed."""
+    slot = REF.stack.slots[0]
+    reals = list(slot.summary.realisations)
+    reals[index] = dataclasses.replace(reals[index], **changes)
+    summary = LocalSummary(slot.summary.object_ids, tuple(reals))
+    return dataclasses.replace(REF, stack=REF.stack.with_slot(Slot("r1", slot.stamp, summary)))
+
+
+def _replace_slot(**changes: Any) -> StackMessage:
+    """REF with r1's slot changed; a changed owner replaces r1 by a new owner."""
+    slot = dataclasses.replace(REF.stack.slots[0], **changes)
+    others = tuple(s for s in REF.stack if s.owner != "r1")
+    return dataclasses.replace(REF, stack=Stack((*others, slot)))
+
+
+R1_REALS = REF.stack.slots[0].summary.realisations
+R1 = R1_REALS[0]
+UNIT_INFO = _symmetric(3, 0.5)  # eigenvalues 0.5..2
+ASYMMETRIC = UNIT_INFO.copy()
+ASYMMETRIC[0, 1] += 1e-3
+
+
+def _with_nan(a: np.ndarray) -> np.ndarray:
+    out = a.copy()
+    out.flat[-1] = math.nan
+    return out
+
+
+@pytest.mark.parametrize(
+    ("msg", "field_end"),
+    [
+        pytest.param(_replace_real(0, info=ASYMMETRIC), "real[0].info", id="asymmetric-info"),
+        pytest.param(_replace_real(0, lin=_with_nan(R1.lin)), "real[0]", id="nan-lin"),
+        pytest.param(_replace_real(0, info=_with_nan(R1.info)), "real[0]", id="nan-info"),
+        pytest.param(_replace_real(0, eta=_with_nan(R1.eta)), "real[0]", id="nan-eta"),
+        pytest.param(_replace_real(0, log_phi=math.nan), "real[0]", id="nan-phi"),
+        pytest.param(_replace_real(0, log_phi=-math.inf), "real[0]", id="inf-phi"),
+        pytest.param(_replace_real(0, lin=R1.lin[:, :2]), "real[0]", id="lin-n-by-2"),
+        pytest.param(_replace_real(0, lin=R1.lin[:2]), "real[0]", id="lin-too-few"),
+        pytest.param(_replace_real(0, info=R1.info[:, :-1]), "real[0]", id="info-not-square"),
+        pytest.param(_replace_real(0, info=R1.info[:6, :6]), "real[0]", id="info-too-small"),
+        pytest.param(_replace_real(0, eta=np.append(R1.eta, 0.0)), "real[0]", id="eta-too-long"),
+        pytest.param(_replace_real(0, classes=(0, 1)), "real[0].c", id="classes-too-few"),
+        pytest.param(_replace_real(0, classes=(0, 1, 256)), "real[0].c", id="class-256"),
+        pytest.param(_replace_real(0, classes=(0, -1, 0)), "real[0].c", id="class-negative"),
+        pytest.param(dataclasses.replace(REF, position=(math.nan, 0.0)), "pos", id="nan-pos"),
+        pytest.param(dataclasses.replace(REF, position=(0.0, math.inf)), "pos", id="inf-pos"),
+        pytest.param(_message(position=(0.0, 1.0, 2.0)), "pos", id="pos-3"),
+        *(
+            pytest.param(dataclasses.replace(REF, sender=s), "sender", id=f"sender-{s!r}")
+            for s in ("", "a b", "x" * 33, "r/1")
+        ),
+        pytest.param(_replace_slot(owner="a b"), "owner", id="owner-space"),
+    ],
+)
+def test_codec_encode_rejects_what_may_not_be_sent(msg: StackMessage, field_end: str) -> None:
+    with pytest.raises(LocalProtocolError) as caught:
+        encode(msg)
+    assert caught.value.field.endswith(field_end)
+
+
+# Each of these either escapes encode as a non-protocol exception, or is sent although the protocol
+# forbids it: default receivers reject it (all but the trailing newline, which their own ID_PATTERN
+# lets through), so the sender's bug only shows up in its peers' error counters.
+ENCODE_REJECTS = [
+    ("sender-trailing-newline", dataclasses.replace(REF, sender="r1\n"), "ID_PATTERN `$`"),
+    ("sender-int", _message(sender=5), "TypeError from re.match"),
+    ("pos-str", _message(position=("a", 1.0)), "ValueError from float()"),
+    ("stamp-negative", _replace_slot(stamp=-1), "decode: InvalidValue slots[0].stamp"),
+    ("stamp-2**64", _replace_slot(stamp=2**64), "OverflowError from msgpack"),
+    (
+        "duplicate-object-ids",
+        _replace_slot(summary=LocalSummary((5, 5, 6), R1_REALS)),
+        "decode: InvalidValue slots[0].objects",
+    ),
+    (
+        "negative-object-id",
+        _replace_slot(summary=LocalSummary((-1, 5, 6), R1_REALS)),
+        "decode: InvalidValue slots[0].objects[0]",
+    ),
+    (
+        "no-realisations",
+        _replace_slot(summary=LocalSummary(REF.stack.slots[0].summary.object_ids, ())),
+        "decode: InvalidValue slots[0].real",
+    ),
+    (
+        "indefinite-info",
+        _replace_real(0, info=-R1.info),
+        "decode: InvalidValue slots[0].real[0].info",
+    ),
+]
+
+
+@pytest.mark.parametrize(
+    "msg",
+    [pytest.param(m, id=name) for name, m, _ in ENCODE_REJECTS],
+)
+def test_codec_encode_rejects_what_decode_rejects(msg: StackMessage) -> None:
+    with pytest.raises(LocalProtocolError):
+        encode(msg)
+
+
+@pytest.mark.parametrize("scale", [1e-20, 1e-13])
+def test_codec_encode_rejects_asymmetric_info_at_any_scale(scale: float) -> None:
+    with pytest.raises(LocalProtocolError):
+        encode(_replace_real(0, info=ASYMMETRIC * scale))
