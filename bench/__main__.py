@@ -5,9 +5,9 @@ from __future__ import annotations
 import sys
 import time
 
-from bench import Result, bench_belief, bench_models
+from bench import Result, bench_belief, bench_models, bench_study
 
-MODULES = (bench_models, bench_belief)
+MODULES = (bench_models, bench_belief, bench_study)
 
 _HEADER = ("benchmark", "N", "ms", "baseline ms", "speed-up", "throughput /s", "note")
 

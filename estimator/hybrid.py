@@ -60,6 +60,7 @@ class BeliefConfig:
     object_prior_sigmas: tuple[float, float, float] = (100.0, 100.0, math.pi)
     start_prior_sigmas: tuple[float, float, float] = (1e-3, 1e-3, 1e-3)
     relinearize_threshold: float = 1e-3
+    relinearize_skip: int = 1
     extra_updates: int = 1
 
     def __post_init__(self) -> None:
@@ -314,7 +315,7 @@ class HybridBelief:
     def _isam_params(self) -> gtsam.ISAM2Params:
         params = gtsam.ISAM2Params()
         params.setRelinearizeThreshold(self.config.relinearize_threshold)
-        params.relinearizeSkip = 1
+        params.relinearizeSkip = self.config.relinearize_skip
         return params
 
     def _propagate(

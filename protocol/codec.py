@@ -105,35 +105,70 @@ def _encode_slot(slot: Slot) -> dict[str, Any]:
     _local(len(set(ids)) == len(ids), f"{where}.objects", "duplicate object ids")
     _local(len(slot.summary.realisations) >= 1, f"{where}.real", "no realisation")
     n = len(ids)
-    iu = _tri(n)
-    reals = []
-    for i, r in enumerate(slot.summary.realisations):
+    rs = slot.summary.realisations
+    for i, r in enumerate(rs):
         field = f"{where}.real[{i}]"
-        arrays = (r.lin, r.info, r.eta)
-        finite = all(np.all(np.isfinite(a)) for a in arrays) and math.isfinite(r.log_phi)
-        _local(finite, field, "non-finite numbers")
         shapes = (
             r.lin.shape == (n, 3) and r.info.shape == (3 * n, 3 * n) and r.eta.shape == (3 * n,)
         )
         _local(shapes, field, "shapes do not match the object count")
         classes_ok = len(r.classes) == n and all(0 <= c < 256 for c in r.classes)
         _local(classes_ok, f"{field}.c", "classes must be n indices in 0..255")
-        if n:
-            scale = float(np.abs(r.info).max())
-            asymmetry = float(np.abs(r.info - r.info.T).max())
-            _local(asymmetry <= 1e-12 * scale, f"{field}.info", "Λ is not symmetric")
-            eig_min = float(np.linalg.eigvalsh(r.info)[0])
-            _local(eig_min >= -Limits().psd_tol * scale, f"{field}.info", "Λ is indefinite")
-        reals.append(
-            {
-                "c": bytes(bytearray(r.classes)),
-                "phi": float(r.log_phi),
-                "lin": np.ascontiguousarray(r.lin, dtype=_F64).tobytes(),
-                "info": np.ascontiguousarray(r.info[iu], dtype=_F64).tobytes(),
-                "eta": np.ascontiguousarray(r.eta, dtype=_F64).tobytes(),
-            }
+        _local(math.isfinite(r.log_phi), f"{field}.phi", "non-finite number")
+    # One array per field for the whole slot: the checks and conversions run once, not per
+    # realisation.
+    lin = np.ascontiguousarray(np.stack([r.lin for r in rs]), dtype=_F64)
+    info = np.ascontiguousarray(np.stack([r.info for r in rs]), dtype=_F64)
+    eta = np.ascontiguousarray(np.stack([r.eta for r in rs]), dtype=_F64)
+    for name, arr in (("lin", lin), ("info", info), ("eta", eta)):
+        bad_rows = ~np.isfinite(arr.reshape(len(rs), -1)).all(axis=1)
+        _local(not bad_rows.any(), f"{where}.real[{int(np.argmax(bad_rows))}].{name}", "non-finite")
+    if n:
+        scale = np.abs(info).max(axis=(1, 2))
+        asymmetry = np.abs(info - info.transpose(0, 2, 1)).max(axis=(1, 2))
+        bad_rows = asymmetry > 1e-12 * scale
+        _local(
+            not bad_rows.any(), f"{where}.real[{int(np.argmax(bad_rows))}].info", "Λ not symmetric"
         )
+    bad = first_indefinite(list(info), Limits().psd_tol)
+    _local(bad is None, f"{where}.real[{bad}].info", "Λ is indefinite")
+    iu = _tri(n)
+    upper = info[:, iu[0], iu[1]]
+    reals = [
+        {
+            "c": bytes(bytearray(r.classes)),
+            "phi": float(r.log_phi),
+            "lin": lin[i].tobytes(),
+            "info": upper[i].tobytes(),
+            "eta": eta[i].tobytes(),
+        }
+        for i, r in enumerate(rs)
+    ]
     return {"owner": slot.owner, "stamp": int(slot.stamp), "objects": ids, "real": reals}
+
+
+def first_indefinite(infos: list[Array], tol: float) -> int | None:
+    """Index of the first Λ with an eigenvalue below −tol·max|Λ|, or None.
+
+    Λ + tol·max|Λ|·I is positive definite exactly when no eigenvalue is below that bound; one
+    batched Cholesky checks every realisation of a slot at once (an eigendecomposition each was
+    the codec's bottleneck).
+    """
+    if not infos or infos[0].size == 0:
+        return None
+    stack = np.stack(infos)
+    scale = np.maximum(np.abs(stack).max(axis=(1, 2)), 1e-300)
+    shifted = stack + (tol * scale)[:, None, None] * np.eye(stack.shape[1])
+    try:
+        np.linalg.cholesky(shifted)
+        return None
+    except np.linalg.LinAlgError:
+        for i, m in enumerate(shifted):
+            try:
+                np.linalg.cholesky(m)
+            except np.linalg.LinAlgError:
+                return i
+    return None
 
 
 def decode(data: bytes, limits: Limits | None = None) -> StackMessage:
@@ -197,11 +232,17 @@ def _robot_id(value: Any, field: str) -> str:
     return str(value)
 
 
-def _floats(value: Any, field: str, count: int) -> Array:
-    _need(isinstance(value, bytes), field, "expected binary float64 data")
-    _need(len(value) == 8 * count, field, f"expected {8 * count} bytes, got {len(value)}")
-    arr = np.frombuffer(value, dtype=_F64).astype(float)
-    _need(bool(np.all(np.isfinite(arr))), field, "non-finite number", InvalidValue)
+def _floats(blobs: list[Any], where: str, name: str, count: int) -> Array:
+    """The float64 blobs ``name`` of every realisation of a slot as one (R, count) array."""
+    for i, value in enumerate(blobs):
+        field = f"{where}[{i}].{name}"
+        _need(isinstance(value, bytes), field, "expected binary float64 data")
+        _need(len(value) == 8 * count, field, f"expected {8 * count} bytes, got {len(value)}")
+    arr = np.frombuffer(b"".join(blobs), dtype=_F64).astype(float).reshape(len(blobs), count)
+    bad = ~np.isfinite(arr).all(axis=1)
+    _need(
+        not bad.any(), f"{where}[{int(np.argmax(bad))}].{name}", "non-finite number", InvalidValue
+    )
     return arr
 
 
@@ -259,15 +300,29 @@ def _decode_slot(raw: Any, where: str, lim: Limits) -> Slot:
         LimitExceeded,
     )
     iu = _tri(n)
+    heads = [_decode_head(r, f"{where}.real[{i}]", n, lim) for i, r in enumerate(reals)]
+    sizes = {"lin": 3 * n, "info": len(iu[0]), "eta": 3 * n}
+    arrays = {
+        name: _floats([h[2][name] for h in heads], f"{where}.real", name, count)
+        for name, count in sizes.items()
+    }
+    info = np.zeros((len(heads), 3 * n, 3 * n))
+    info[:, iu[0], iu[1]] = arrays["info"]
+    info[:, iu[1], iu[0]] = arrays["info"]
+    bad = first_indefinite(list(info), lim.psd_tol)
+    _need(bad is None, f"{where}.real[{bad}].info", "Λ is indefinite", InvalidValue)
+    lin = arrays["lin"].reshape(len(heads), n, 3)
     out = tuple(
-        _decode_realisation(r, f"{where}.real[{i}]", n, iu, lim) for i, r in enumerate(reals)
+        Realisation(classes, phi, lin[i], info[i], arrays["eta"][i])
+        for i, (classes, phi, _) in enumerate(heads)
     )
     return Slot(owner, stamp, LocalSummary(ids, out))
 
 
-def _decode_realisation(
-    raw: Any, where: str, n: int, iu: tuple[NDArray[np.intp], NDArray[np.intp]], lim: Limits
-) -> Realisation:
+def _decode_head(
+    raw: Any, where: str, n: int, lim: Limits
+) -> tuple[tuple[int, ...], float, dict[str, Any]]:
+    """Classes, log φ and the raw float blobs of one realisation."""
     r = _map(raw, where, _REAL_KEYS)
     c = r["c"]
     _need(isinstance(c, bytes) and len(c) == n, f"{where}.c", f"expected {n} class bytes")
@@ -285,19 +340,4 @@ def _decode_realisation(
         "expected a number",
     )
     _need(math.isfinite(phi), f"{where}.phi", "non-finite number", InvalidValue)
-    lin = _floats(r["lin"], f"{where}.lin", 3 * n).reshape(n, 3)
-    upper = _floats(r["info"], f"{where}.info", len(iu[0]))
-    info = np.zeros((3 * n, 3 * n))
-    info[iu] = upper
-    info.T[iu] = upper
-    if n:
-        eig = np.linalg.eigvalsh(info)
-        scale = max(float(np.max(np.abs(eig))), 1e-300)
-        _need(
-            eig[0] >= -lim.psd_tol * scale,
-            f"{where}.info",
-            f"Λ is indefinite (λ_min {eig[0]:.3g})",
-            InvalidValue,
-        )
-    eta = _floats(r["eta"], f"{where}.eta", 3 * n)
-    return Realisation(classes, float(phi), lin, info, eta)
+    return classes, float(phi), r

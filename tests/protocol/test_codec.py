@@ -817,11 +817,11 @@ def _with_nan(a: np.ndarray) -> np.ndarray:
     ("msg", "field_end"),
     [
         pytest.param(_replace_real(0, info=ASYMMETRIC), "real[0].info", id="asymmetric-info"),
-        pytest.param(_replace_real(0, lin=_with_nan(R1.lin)), "real[0]", id="nan-lin"),
-        pytest.param(_replace_real(0, info=_with_nan(R1.info)), "real[0]", id="nan-info"),
-        pytest.param(_replace_real(0, eta=_with_nan(R1.eta)), "real[0]", id="nan-eta"),
-        pytest.param(_replace_real(0, log_phi=math.nan), "real[0]", id="nan-phi"),
-        pytest.param(_replace_real(0, log_phi=-math.inf), "real[0]", id="inf-phi"),
+        pytest.param(_replace_real(0, lin=_with_nan(R1.lin)), "real[0].lin", id="nan-lin"),
+        pytest.param(_replace_real(0, info=_with_nan(R1.info)), "real[0].info", id="nan-info"),
+        pytest.param(_replace_real(0, eta=_with_nan(R1.eta)), "real[0].eta", id="nan-eta"),
+        pytest.param(_replace_real(0, log_phi=math.nan), "real[0].phi", id="nan-phi"),
+        pytest.param(_replace_real(0, log_phi=-math.inf), "real[0].phi", id="inf-phi"),
         pytest.param(_replace_real(0, lin=R1.lin[:, :2]), "real[0]", id="lin-n-by-2"),
         pytest.param(_replace_real(0, lin=R1.lin[:2]), "real[0]", id="lin-too-few"),
         pytest.param(_replace_real(0, info=R1.info[:, :-1]), "real[0]", id="info-not-square"),
@@ -846,9 +846,8 @@ def test_codec_encode_rejects_what_may_not_be_sent(msg: StackMessage, field_end:
     assert caught.value.field.endswith(field_end)
 
 
-# Each of these either escapes encode as a non-protocol exception, or is sent although the protocol
-# forbids it: default receivers reject it (all but the trailing newline, which their own ID_PATTERN
-# lets through), so the sender's bug only shows up in its peers' error counters.
+# Messages every receiver would reject: encode must refuse them with LocalProtocolError (not send
+# them, nor fail with another exception), so a sender's bug shows up at the sender.
 ENCODE_REJECTS = [
     ("sender-trailing-newline", dataclasses.replace(REF, sender="r1\n"), "ID_PATTERN `$`"),
     ("sender-int", _message(sender=5), "TypeError from re.match"),
