@@ -171,7 +171,8 @@ class RobotNode:
                 log.warning("%s: rejected slot: %s", self.robot, exc)
                 continue
             incoming.append(slot)
-        return self.distributed.integrate(incoming)
+        # D is stepped right after (on_frame), which updates iSAM2 again: no settling here.
+        return self.distributed.integrate(incoming, settle=False)
 
     def _count_error(self, exc: RemoteProtocolError) -> None:
         name = type(exc).__name__

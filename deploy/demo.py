@@ -1,55 +1,49 @@
 """`semfleet demo`: the most complete thing semfleet can show so far.
 
-Until the agents exist (issue 5) the demo loads the paper's scenario, prints its summary, simulates
-one seeded run of every robot's sensor frames and draws the ground truth.
+Until the Zenoh agents exist (issue 5) the demo runs the paper's scenario once, in one process:
+every method of the study (local, distributed, double counting, centralized) on the same seeded
+sensor data, then prints the comparison and writes the plots.
 """
 
 from __future__ import annotations
 
 import argparse
+import time
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 from rich.console import Console
-from rich.table import Table
 
+from deploy.results import summarise, write_results
 from deploy.scenario_cmd import render_show, save_ground_truth_plot
+from deploy.study import METHODS, run_single
+from deploy.study_cmd import render_summary, write_plots
+from estimator.hybrid import BeliefConfig
 from sim.loader import load_scenario
-from sim.sensors import Simulator
 
 
 def run(args: argparse.Namespace, console: Console) -> int:
     console.rule("semfleet demo")
     console.print(
-        "The estimators and agents are not built yet; this demo shows the paper's scenario and "
-        "one seeded run of simulated sensor data."
+        "The Zenoh agents are not built yet: this demo runs the paper's 3-robot fleet in one "
+        "process (in-memory transport, the paper's communication schedule), every method on the "
+        f"same sensor data of seed {args.seed}."
     )
     scenario = load_scenario("paper")
     render_show(scenario, console)
-    sim = Simulator(scenario, args.seed)
-    table = Table(title=f"simulated sensor frames (seed {args.seed})")
-    for col in (
-        "robot",
-        "frames",
-        "detections",
-        "odometry |Δ| mean [m]",
-        "mean score of true class",
-    ):
-        table.add_column(col)
-    for rid, frames in sim.all_frames().items():
-        dets = [
-            (d, scenario.objects[scenario.object_ids.index(d.object_id)].class_index)
-            for f in frames
-            for d in f.detections
-        ]
-        odo = np.mean([np.hypot(*f.odometry[:2]) for f in frames])
-        true_score = np.mean([d.z_sem[c] for d, c in dets]) if dets else float("nan")
-        table.add_row(rid, str(len(frames)), str(len(dets)), f"{odo:.3f}", f"{true_score:.3f}")
-    console.print(table)
     out = Path(args.out)
     png = save_ground_truth_plot(scenario, out / "paper-ground-truth.png", [20, 40, 60])
-    console.print(f"wrote {png}")
+    start = time.perf_counter()
+    with console.status("running local, distributed, double_count and centralized …"):
+        result = run_single(scenario, list(METHODS), args.seed, BeliefConfig(), scenario.steps)
+    doc = summarise(scenario.name, [result], list(METHODS), {"demo": True})
+    write_results(out, doc, [result], list(METHODS))
+    render_summary(doc, console, [15, 30, 45, scenario.steps])
+    plots = write_plots(out, doc, scenario, [result], scenario.steps, scenario.robot_ids[0])
+    console.print(
+        f"ran in {time.perf_counter() - start:.1f} s; wrote {png}, {out / 'results.json'} and "
+        f"{len(plots)} plots in {out}"
+    )
     return 0
 
 

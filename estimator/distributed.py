@@ -116,8 +116,12 @@ class DistributedBelief(HybridBelief):
         """Whether a slot version is new to this belief (never its own slot)."""
         return owner != self.owner and stamp > self.stamps.get(owner, -1)
 
-    def integrate(self, slots: Sequence[IncomingSlot]) -> FusionStats:
-        """Integrate every slot that is newer than the version used before (Eq. 12, 17)."""
+    def integrate(self, slots: Sequence[IncomingSlot], settle: bool = True) -> FusionStats:
+        """Integrate every slot that is newer than the version used before (Eq. 12, 17).
+
+        ``settle`` runs the configured extra iSAM2 updates after the fusion; a caller that steps
+        D right away (the RobotNode) passes False, since that step updates iSAM2 again.
+        """
         batch = [s for s in slots if self.wants(s.owner, s.stamp)]
         owners = [s.owner for s in batch]
         if len(set(owners)) != len(owners):
@@ -144,7 +148,7 @@ class DistributedBelief(HybridBelief):
             child = parents[join.parent].branch(
                 join.classes, join.log_weight, copy_isam=last_child[join.parent] != n
             )
-            self._fuse(child, join, batch, order)
+            self._fuse(child, join, batch, order, settle)
             children.append(child)
         self.hypotheses = children
         self._normalise()
@@ -195,8 +199,14 @@ class DistributedBelief(HybridBelief):
                         _Join(join.parent, (*join.picks, (b, r)), join.classes + new_classes, lw)
                     )
             if not extended:
-                log.warning(
-                    "slot of %s (stamp %d) joins with no hypothesis: skipped", s.owner, s.stamp
+                # Expected under double counting (D becomes overconfident and prunes what the
+                # owner keeps); a sign of trouble under consistent fusion.
+                level = logging.WARNING if self.fusion == "consistent" else logging.DEBUG
+                log.log(
+                    level,
+                    "slot of %s (stamp %d) joins with no hypothesis: skipped",
+                    s.owner,
+                    s.stamp,
                 )
                 skipped.add(s.owner)
                 continue
@@ -211,7 +221,12 @@ class DistributedBelief(HybridBelief):
         return joins, order, skipped
 
     def _fuse(
-        self, h: Hypothesis, join: _Join, batch: Sequence[IncomingSlot], order: Sequence[int]
+        self,
+        h: Hypothesis,
+        join: _Join,
+        batch: Sequence[IncomingSlot],
+        order: Sequence[int],
+        settle: bool,
     ) -> None:
         """Add the picked realisations' ξ factors and the priors of objects new to D, and divide
         out the versions used before (Eq. 12)."""
@@ -256,6 +271,6 @@ class DistributedBelief(HybridBelief):
             )
             own = (*carried, *anti, new_indices[start])
             h.used[s.owner] = UsedSlot(s.stamp, s.summary.object_ids, real, own)
-        for _ in range(self.config.extra_updates):
+        for _ in range(self.config.extra_updates if settle else 0):
             h.isam.update()
         h.estimate = h.isam.calculateEstimate()

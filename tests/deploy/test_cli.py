@@ -146,6 +146,10 @@ def test_scenario_generate_rejects_bad_arguments(tmp_path: Path) -> None:
 def test_demo_prints_summary_and_writes_plot(tmp_path: Path) -> None:
     r = semfleet("demo", "--out", str(tmp_path / "demo"))
     assert r.returncode == 0, r.stderr
-    assert "simulated sensor frames" in r.stdout
     assert "not built yet" in r.stdout
-    assert (tmp_path / "demo" / "paper-ground-truth.png").read_bytes()[:8] == PNG_MAGIC
+    for method in ("local", "distributed", "double_count", "centralized"):
+        assert method in r.stdout
+    demo = tmp_path / "demo"
+    for png in ("paper-ground-truth.png", "msde.png", "hypotheses_distributed_r1_k60.png"):
+        assert (demo / png).read_bytes()[:8] == PNG_MAGIC, png
+    assert (demo / "results.json").exists()
