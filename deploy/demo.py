@@ -14,6 +14,7 @@ from typing import Any
 
 from rich.console import Console
 
+from deploy.args import seed
 from deploy.results import summarise, write_results
 from deploy.scenario_cmd import render_show, save_ground_truth_plot
 from deploy.study import METHODS, run_single
@@ -49,6 +50,6 @@ def run(args: argparse.Namespace, console: Console) -> int:
 
 def add_parser(sub: Any) -> None:
     p = sub.add_parser("demo", help="show what semfleet can do (the README's first command)")
-    p.add_argument("--seed", type=int, default=1, help="seed of the simulated run (default 1)")
+    p.add_argument("--seed", type=seed, default=0, help="seed of the simulated run (default 0)")
     p.add_argument("--out", default="out/demo", help="folder for outputs (default out/demo)")
     p.set_defaults(run=run)

@@ -12,6 +12,7 @@ from typing import Any
 from rich.console import Console
 from rich.table import Table
 
+from deploy.args import class_count, positive_int, seed
 from sim.generate import dump_scenario, generate_scenario
 from sim.loader import load_scenario
 from sim.scenario import Scenario, ScenarioError
@@ -212,33 +213,12 @@ def add_parser(sub: Any) -> None:
     )
     plot.set_defaults(run=run_plot)
     gen = ssub.add_parser("generate", help="write a random world as a scenario file")
-    gen.add_argument("--robots", type=_positive, required=True)
-    gen.add_argument("--objects", type=_positive, required=True)
-    gen.add_argument("--classes", type=_at_least_two, required=True)
-    gen.add_argument("--seed", type=_seed, required=True)
-    gen.add_argument("--steps", type=_positive, default=60)
+    gen.add_argument("--robots", type=positive_int, required=True)
+    gen.add_argument("--objects", type=positive_int, required=True)
+    gen.add_argument("--classes", type=class_count, required=True)
+    gen.add_argument("--seed", type=seed, required=True)
+    gen.add_argument("--steps", type=positive_int, default=60)
     gen.add_argument("--area", type=float, default=None, help="side of the square world [m]")
     gen.add_argument("--comm-range", type=float, default=10.0, help="communication range [m]")
     gen.add_argument("-o", "--output", required=True, help="TOML file to write")
     gen.set_defaults(run=run_generate)
-
-
-def _positive(text: str) -> int:
-    value = int(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"{text} must be a positive integer")
-    return value
-
-
-def _at_least_two(text: str) -> int:
-    value = int(text)
-    if value < 2:
-        raise argparse.ArgumentTypeError(f"{text}: need at least 2 classes")
-    return value
-
-
-def _seed(text: str) -> int:
-    value = int(text)
-    if not 0 <= value < 2**63:
-        raise argparse.ArgumentTypeError(f"{text}: seeds are integers in [0, 2**63)")
-    return value

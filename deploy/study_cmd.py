@@ -15,6 +15,7 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
+from deploy.args import MAX_SEED, positive_int, seed
 from deploy.fleet import COMM_MODES
 from deploy.results import summarise, write_results
 from deploy.scenario_cmd import scenario_from_args
@@ -213,6 +214,8 @@ def run(args: argparse.Namespace, console: Console) -> int:
     config = BeliefConfig(
         weight_estimator=args.weights, num_samples=args.samples, max_hypotheses=args.max_hypotheses
     )
+    if args.seed + args.runs - 1 > MAX_SEED:
+        raise ValueError(f"--seed {args.seed} with --runs {args.runs} runs past the largest seed")
     seeds = [args.seed + i for i in range(args.runs)]
     comm = args.comm or scenario.communication.mode
     console.print(
@@ -253,9 +256,9 @@ def add_parser(sub: Any) -> None:
         default=list(METHODS),
         help=f"comma-separated, from: {', '.join(METHODS)}",
     )
-    p.add_argument("--runs", type=_positive, default=10)
-    p.add_argument("--jobs", type=_positive, default=2, help="parallel processes")
-    p.add_argument("--seed", type=_non_negative, default=0, help="runs use seeds S, S+1, …")
+    p.add_argument("--runs", type=positive_int, default=10)
+    p.add_argument("--jobs", type=positive_int, default=2, help="parallel processes")
+    p.add_argument("--seed", type=seed, default=0, help="runs use seeds S, S+1, …")
     p.add_argument("--out", default="out/study", help="output folder")
     p.add_argument("--weights", choices=WEIGHT_ESTIMATORS, default="geo_conditioned")
     p.add_argument(
@@ -265,8 +268,8 @@ def add_parser(sub: Any) -> None:
         help="communication for distributed methods: the schedule table, the range rule "
         "(scenario's range, 10 m in paper) or both (default: the scenario's mode)",
     )
-    p.add_argument("--samples", type=_positive, default=BeliefConfig().num_samples)
-    p.add_argument("--max-hypotheses", type=_positive, default=BeliefConfig().max_hypotheses)
+    p.add_argument("--samples", type=positive_int, default=BeliefConfig().num_samples)
+    p.add_argument("--max-hypotheses", type=positive_int, default=BeliefConfig().max_hypotheses)
     p.add_argument(
         "--snapshot-step",
         type=int,
@@ -277,17 +280,3 @@ def add_parser(sub: Any) -> None:
         "--snapshot-robot", default=None, help="robot of the hypothesis plot (default: first)"
     )
     p.set_defaults(run=run)
-
-
-def _positive(text: str) -> int:
-    value = int(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"{text} must be a positive integer")
-    return value
-
-
-def _non_negative(text: str) -> int:
-    value = int(text)
-    if not 0 <= value < 2**63 - 10**6:
-        raise argparse.ArgumentTypeError(f"{text}: seeds are non-negative integers")
-    return value

@@ -17,7 +17,7 @@ def semfleet(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess
         [str(SEMFLEET), *args],
         capture_output=True,
         text=True,
-        timeout=120,
+        timeout=600,  # a guard against hangs, not a speed check
         cwd=cwd,
         env={"COLUMNS": "200", "PATH": "/usr/bin:/bin", "MPLBACKEND": "Agg"},
     )
