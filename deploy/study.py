@@ -104,8 +104,9 @@ def run_single(
             belief.step([frames[r][k - 1] for r in robots], rng)
             ms = 1e3 * (time.perf_counter() - t)
             rec.step_ms.append(ms)
+            snaps = belief.snapshots(robots)
             for i, robot in enumerate(robots):
-                rec.record(belief, i, robot, k, ms if i == 0 else 0.0)
+                rec.record(belief, i, robot, k, ms if i == 0 else 0.0, snaps[robot])
     for method in methods:
         rec = recorders[method]
         metrics[method] = rec.arrays
@@ -195,12 +196,19 @@ class _Recorder:
         self.wall_s = 0.0
 
     def record(
-        self, belief: HybridBelief, i: int, robot: str, k: int, step_ms: float = 0.0
+        self,
+        belief: HybridBelief,
+        i: int,
+        robot: str,
+        k: int,
+        step_ms: float = 0.0,
+        snap: BeliefSnapshot | None = None,
     ) -> None:
-        """Evaluate ``belief`` for ``robot`` at step k; ``step_ms`` and the evaluation itself are
-        added to this method's wall time."""
+        """Evaluate ``belief`` (or its ``snap``, when taken already) for ``robot`` at step k;
+        ``step_ms`` and the evaluation itself are added to this method's wall time."""
         t = time.perf_counter()
-        snap = belief.snapshot(robot)
+        if snap is None:
+            snap = belief.snapshot(robot)
         true_pose = self.frames[robot][k - 1].true_pose
         for name, value in evaluate(snap, self.scenario.num_classes, true_pose, self.truth).items():
             self.arrays[name][i, k - 1] = value

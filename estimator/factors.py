@@ -13,7 +13,7 @@ import gtsam
 import numpy as np
 from numpy.typing import NDArray
 
-from estimator.models import ClassifierModel, GaussianNoise
+from estimator.models import AliasedClassifier, ClassifierModel, GaussianNoise
 
 Array = NDArray[np.float64]
 
@@ -97,7 +97,41 @@ def semantic_factor(
         return np.asarray(model.mean(c, psi) - z)
 
     callback: Callable[..., Array] = error
+    if isinstance(model, AliasedClassifier):
+        callback = _aliased_error(model, c, z, x_key, o_key)
     return gtsam.CustomFactor(noise, gtsam.KeyVector([x_key, o_key]), callback)
+
+
+def _aliased_error(
+    model: AliasedClassifier, c: int, z: Array, x_key: int, o_key: int
+) -> Callable[..., Array]:
+    """The semantic error of :func:`semantic_factor` specialised to the aliased model (the paper's):
+    h_c(ψ) = blur + s(ψ)·sharp with s = ½(1 + cos(ψ − b)), so dh/dψ = −½ sin(ψ − b)·sharp. The
+    constants are bound once per factor; the callback then runs on plain floats."""
+    blur, sharp, best = model.components(c)
+    blur_minus_z = blur - z
+    sharp_col = sharp[:, None]
+
+    def error(
+        this: gtsam.CustomFactor, values: gtsam.Values, jacobians: list[Array] | None
+    ) -> Array:
+        x, o = values.atPose2(x_key), values.atPose2(o_key)
+        ot = o.theta()
+        co, so = math.cos(ot), math.sin(ot)
+        dx, dy = x.x() - o.x(), x.y() - o.y()
+        px, py = co * dx + so * dy, -so * dx + co * dy
+        psi = math.atan2(py, px)
+        if jacobians is not None:
+            r2 = px * px + py * py
+            ds = -0.5 * math.sin(psi - best)
+            gx, gy = ds * -py / r2, ds * px / r2
+            d = x.theta() - ot
+            cd, sd = math.cos(d), math.sin(d)
+            jacobians[0] = sharp_col * np.array((gx * cd + gy * sd, -gx * sd + gy * cd, 0.0))
+            jacobians[1] = sharp_col * np.array((-gx, -gy, gx * py - gy * px))
+        return blur_minus_z + (0.5 * (1.0 + math.cos(psi - best))) * sharp
+
+    return error
 
 
 def semantic_log_normaliser(model: ClassifierModel, c: int, psi0: float) -> float:

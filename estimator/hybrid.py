@@ -60,7 +60,7 @@ class BeliefConfig:
     object_prior_sigmas: tuple[float, float, float] = (100.0, 100.0, math.pi)
     start_prior_sigmas: tuple[float, float, float] = (1e-3, 1e-3, 1e-3)
     relinearize_threshold: float = 1e-3
-    relinearize_skip: int = 1
+    relinearize_skip: int = 10
     extra_updates: int = 1
 
     def __post_init__(self) -> None:
@@ -226,12 +226,14 @@ class HybridBelief:
 
     def snapshot(self, robot: str) -> BeliefSnapshot:
         """The belief as arrays (see :class:`BeliefSnapshot`) with ``robot``'s latest pose."""
-        xk = self.pose_key(robot)
+        return self.snapshots([robot])[robot]
+
+    def snapshots(self, robots: Sequence[str]) -> dict[str, BeliefSnapshot]:
+        """:meth:`snapshot` for several robots of this belief; the object marginals, shared by
+        every robot, are computed once."""
         keys = [object_key(j) for j in self.object_ids]
         hyps = self.hypotheses
         n = len(keys)
-        robot_pose = np.array([h.pose(xk) for h in hyps])
-        robot_cov = np.array([h.isam.marginalCovariance(xk) for h in hyps])
         object_pose = np.array([[h.pose(key) for key in keys] for h in hyps]).reshape(
             len(hyps), n, 3
         )
@@ -239,15 +241,20 @@ class HybridBelief:
             [[h.isam.marginalCovariance(key) for key in keys] for h in hyps]
         ).reshape(len(hyps), n, 3, 3)
         classes = np.array([h.classes for h in hyps], dtype=np.int64).reshape(len(hyps), n)
-        return BeliefSnapshot(
-            tuple(self.object_ids),
-            self.weights(),
-            classes,
-            robot_pose,
-            robot_cov,
-            object_pose,
-            object_cov,
-        )
+        weights = self.weights()
+        out = {}
+        for robot in robots:
+            xk = self.pose_key(robot)
+            out[robot] = BeliefSnapshot(
+                tuple(self.object_ids),
+                weights,
+                classes,
+                np.array([h.pose(xk) for h in hyps]),
+                np.array([h.isam.marginalCovariance(xk) for h in hyps]),
+                object_pose,
+                object_cov,
+            )
+        return out
 
     # -- the step ---------------------------------------------------------------------------
 

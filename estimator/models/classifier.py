@@ -124,6 +124,11 @@ class AliasedClassifier:
         if not 0 <= int(c) < self.num_classes:
             raise ValueError(f"class {c} out of range 0..{self.num_classes - 1}")
 
+    def components(self, c: int) -> tuple[Array, Array, float]:
+        """(blur, sharp, best view) of class ``c``: h_c(ψ) = blur + ½(1 + cos(ψ − best))·sharp."""
+        self._check_class(c)
+        return self._blur[c].copy(), self._sharp[c].copy(), float(self.best_view[c])
+
     def sharpness(self, c: int, psi: ArrayLike) -> Array:
         """s_c(ψ) ∈ [0, 1]: ψ (...) → (...)."""
         self._check_class(c)

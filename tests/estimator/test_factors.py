@@ -65,20 +65,23 @@ def test_viewpoint_with_jacobians_matches_vectorised_viewpoint() -> None:
         assert_close(psi, viewpoint(x, o), atol=1e-12)
 
 
-def test_semantic_factor_linearisation_is_the_whitened_analytic_jacobian() -> None:
-    model = paper_classifier()
-    x, o, z = _random_cases(1)[0]
+@pytest.mark.parametrize("model", MODELS, ids=["paper", "aliased4"])
+def test_semantic_factor_linearisation_is_the_whitened_analytic_jacobian(
+    model: ClassifierModel,
+) -> None:
+    """The factor's (specialised) callback against the generic model maths, for every class."""
     xk, oj = pose_key(0, 3), object_key(7)
-    factor = semantic_factor(model, 1, z[:2], xk, oj, float(viewpoint(x, o)))
-    values = gtsam.Values()
-    values.insert(xk, gtsam.Pose2(*x))
-    values.insert(oj, gtsam.Pose2(*o))
-    a, b = factor.linearize(values).jacobian()
-    err, jx, jo = semantic_error(model, 1, z[:2], x, o)
-    r = np.array([[1.5, -0.75], [0.0, 1.5]])
-    # GTSAM whitens with an upper-triangular square root of the information; compare Gram forms.
-    assert_close(a.T @ a, np.hstack([jx, jo]).T @ (r.T @ r) @ np.hstack([jx, jo]), atol=1e-9)
-    assert_close(b @ b, err @ (r.T @ r) @ err, atol=1e-9)
+    r = gtsam.noiseModel.Gaussian.Covariance(model.cov(0, 0.0)).R()  # Rᵀ R = Σ⁻¹
+    for x, o, z in _random_cases(5):
+        values = gtsam.Values()
+        values.insert(xk, gtsam.Pose2(*x))
+        values.insert(oj, gtsam.Pose2(*o))
+        for c in range(model.num_classes):
+            factor = semantic_factor(model, c, z[: model.dim], xk, oj, float(viewpoint(x, o)))
+            a, b = factor.linearize(values).jacobian()
+            err, jx, jo = semantic_error(model, c, z[: model.dim], x, o)
+            assert_close(a, r @ np.hstack([jx, jo]), atol=1e-9)
+            assert_close(b, -(r @ err), atol=1e-9)
 
 
 @pytest.mark.parametrize("model", MODELS, ids=["paper", "aliased4"])
