@@ -197,7 +197,7 @@ class RobotNode:
         if len(stack) == 0:
             return None
         if self._encoded is None:
-            self._encoded = encode(StackMessage(self.robot, self.position, stack))
+            self._encoded = encode(StackMessage(self.robot, self.position, stack, self.k))
         return self._encoded
 
     def mark_sent(self, size: int) -> None:

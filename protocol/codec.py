@@ -1,6 +1,6 @@
 """The one module that owns ``encode``/``decode`` of the wire format (docs/wire.md).
 
-A message is a msgpack map ``{"v": 1, "type": "stack", "sender": str, "pos": [x, y] | nil,
+A message is a msgpack map ``{"v": 1, "type": "stack", "sender": str, "k": int, "pos": [x, y] | nil,
 "slots": [...]}``; every float array travels as little-endian float64 bytes, Λ as its upper
 triangle. ``decode`` turns every malformed input into a :class:`RemoteProtocolError` subclass that
 names the field; nothing else escapes it.
@@ -36,7 +36,7 @@ ID_PATTERN = re.compile(r"^[A-Za-z0-9_-]{1,32}$")
 _F64 = np.dtype("<f8")
 _MAX_STAMP = 2**63 - 1
 _MAX_OBJECT_ID = 2**32 - 1
-_TOP_KEYS = frozenset({"v", "type", "sender", "pos", "slots"})
+_TOP_KEYS = frozenset({"v", "type", "sender", "k", "pos", "slots"})
 _SLOT_KEYS = frozenset({"owner", "stamp", "objects", "real"})
 _REAL_KEYS = frozenset({"c", "phi", "lin", "info", "eta"})
 
@@ -56,11 +56,13 @@ class Limits:
 
 @dataclass(frozen=True, slots=True, eq=False)
 class StackMessage:
-    """A stack as sent by ``sender`` from ``position`` (x, y), for proximity filtering."""
+    """A stack as sent by ``sender`` from ``position`` (x, y), for proximity filtering, after the
+    sender's step ``step`` (lets a lock-step receiver pick the version of the right round)."""
 
     sender: str
     position: tuple[float, float] | None
     stack: Stack
+    step: int = 0
 
 
 def _tri(n: int) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
@@ -85,8 +87,21 @@ def encode(message: StackMessage) -> bytes:
             raise LocalProtocolError("must be two numbers", "pos") from None
         if len(pos) != 2 or not all(math.isfinite(v) for v in pos):
             raise LocalProtocolError("must be two finite numbers", "pos")
+    step = message.step
+    _local(
+        isinstance(step, int) and not isinstance(step, bool) and 0 <= step <= _MAX_STAMP,
+        "k",
+        f"step must be an integer in 0..{_MAX_STAMP}, got {step!r}",
+    )
     slots = [_encode_slot(s) for s in message.stack]
-    doc = {"v": VERSION, "type": STACK, "sender": message.sender, "pos": pos, "slots": slots}
+    doc = {
+        "v": VERSION,
+        "type": STACK,
+        "sender": message.sender,
+        "k": step,
+        "pos": pos,
+        "slots": slots,
+    }
     return bytes(msgpack.packb(doc, use_bin_type=True))
 
 
@@ -255,6 +270,7 @@ def _decode_doc(doc: Any, lim: Limits) -> StackMessage:
     if top["type"] != STACK:
         raise UnsupportedVersion(f"message type {top['type']!r}", "type")
     sender = _robot_id(top["sender"], "sender")
+    step = _int(top["k"], "k", 0, _MAX_STAMP)
     position = None
     if top["pos"] is not None:
         pos = top["pos"]
@@ -277,7 +293,7 @@ def _decode_doc(doc: Any, lim: Limits) -> StackMessage:
     slots = [_decode_slot(raw, f"slots[{i}]", lim) for i, raw in enumerate(raw_slots)]
     owners = [s.owner for s in slots]
     _need(len(set(owners)) == len(owners), "slots", f"duplicate owners {owners}", InvalidValue)
-    return StackMessage(sender, position, Stack(tuple(slots)))
+    return StackMessage(sender, position, Stack(tuple(slots)), step)
 
 
 def _decode_slot(raw: Any, where: str, lim: Limits) -> Slot:

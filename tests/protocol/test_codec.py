@@ -113,7 +113,7 @@ def _bits(values: Any) -> bytes:
 
 def assert_same_message(got: StackMessage, want: StackMessage) -> None:
     """Equal to the bit, -0.0 and subnormals included."""
-    assert got.sender == want.sender
+    assert got.sender == want.sender and got.step == want.step
     if want.position is None:
         assert got.position is None
     else:
@@ -183,6 +183,7 @@ REF = StackMessage(
             Slot("r2", 0, make_summary(np.random.default_rng(2), 0, 1, 2)),
         )
     ),
+    13,
 )
 REF_BLOB = encode(REF)
 REF_DOC: dict[Any, Any] = msgpack.unpackb(REF_BLOB, raw=False)
@@ -190,7 +191,10 @@ BASE_MESSAGES = (
     REF,
     StackMessage("solo", None, Stack()),
     StackMessage(
-        "big", None, Stack((Slot("b", 2**63 - 1, make_summary(np.random.default_rng(9), 6, 4)),))
+        "big",
+        None,
+        Stack((Slot("b", 2**63 - 1, make_summary(np.random.default_rng(9), 6, 4)),)),
+        2**63 - 1,
     ),
     *(make_message(np.random.default_rng(seed)) for seed in (11, 12, 13)),
 )
@@ -285,7 +289,8 @@ def test_codec_decode_accepts_bytearray_and_memoryview() -> None:
 
 
 def test_codec_wire_layout_matches_docs() -> None:
-    assert set(REF_DOC) == {"v", "type", "sender", "pos", "slots"}
+    assert set(REF_DOC) == {"v", "type", "sender", "k", "pos", "slots"}
+    assert REF_DOC["k"] == REF.step
     assert REF_DOC["v"] == 1 and REF_DOC["type"] == "stack" and REF_DOC["sender"] == "r0"
     assert REF_DOC["pos"] == [1.5, -2.25]
     assert [s["owner"] for s in REF_DOC["slots"]] == ["r1", "r2", "r3"]
@@ -508,6 +513,12 @@ WRONG_TYPES = [
     (("sender",), None, MalformedMessage),
     (("sender",), b"r0", MalformedMessage),
     (("sender",), ["r0"], MalformedMessage),
+    (("k",), 7.0, MalformedMessage),
+    (("k",), "7", MalformedMessage),
+    (("k",), True, MalformedMessage),
+    (("k",), None, MalformedMessage),
+    (("k",), -1, InvalidValue),
+    (("k",), 2**63, InvalidValue),
     (("pos",), "xy", MalformedMessage),
     (("pos",), 1.5, MalformedMessage),
     (("pos",), {"x": 1.0, "y": 2.0}, MalformedMessage),
@@ -700,7 +711,7 @@ def test_codec_extra_key_is_malformed(path: Path, field: str, key: str) -> None:
 # --------------------------------------------------------------------------- structured fuzz
 
 KNOWN_KEYS = (
-    *("v", "type", "sender", "pos", "slots", "owner", "stamp", "objects", "real"),
+    *("v", "type", "sender", "k", "pos", "slots", "owner", "stamp", "objects", "real"),
     *("c", "phi", "lin", "info", "eta"),
 )
 EDGE_INTS = (-1, 0, 1, 2, 3, 255, 256, 2**32 - 1, 2**32, 2**63 - 1, 2**63, 2**64 - 1, -(2**63))
@@ -838,6 +849,9 @@ def _with_nan(a: np.ndarray) -> np.ndarray:
             for s in ("", "a b", "x" * 33, "r/1")
         ),
         pytest.param(_replace_slot(owner="a b"), "owner", id="owner-space"),
+        pytest.param(dataclasses.replace(REF, step=-1), "k", id="step-negative"),
+        pytest.param(dataclasses.replace(REF, step=2**63), "k", id="step-2**63"),
+        pytest.param(dataclasses.replace(REF, step=True), "k", id="step-bool"),
     ],
 )
 def test_codec_encode_rejects_what_may_not_be_sent(msg: StackMessage, field_end: str) -> None:
