@@ -16,7 +16,7 @@ from collections.abc import Sequence  # noqa: E402
 
 from rich.console import Console  # noqa: E402
 
-from deploy import demo, scenario_cmd, study_cmd  # noqa: E402
+from deploy import demo, scenario_cmd, study_cmd, ufastslam_cmd  # noqa: E402
 from deploy.study_cmd import StudyError  # noqa: E402
 from sim.scenario import ScenarioError  # noqa: E402
 
@@ -36,6 +36,7 @@ def build_parser() -> argparse.ArgumentParser:
     scenario_cmd.add_parser(sub)
     study_cmd.add_parser(sub)
     demo.add_parser(sub)
+    ufastslam_cmd.add_parser(sub)
     return parser
 
 
