@@ -24,6 +24,7 @@ from rich.table import Table
 from deploy.args import MAX_SEED, positive_int, seed
 from deploy.study_cmd import StudyError, single_threaded_children
 from estimator.ufastslam import (
+    AcceptedRelation,
     Observation,
     RelationConfig,
     UFastSLAM,
@@ -119,6 +120,14 @@ def dead_reckoning(world: UWorld, run: Run) -> MethodRun:
     return MethodRun(pose_rmse, lm_rmse, final, step_ms, 0, 0, path, tuple(ids), xy, ())
 
 
+def relation_is_true(world: UWorld, relation: AcceptedRelation) -> bool:
+    """Whether an applied relation holds on the true landmarks (to the worlds' tolerance)."""
+    index = {lid: j for j, lid in enumerate(world.landmark_ids)}
+    m = world.landmarks[index[relation.landmark]]
+    refs = world.landmarks[[index[r] for r in relation.refs]]
+    return abs(float(relation_residual(relation.kind, m, refs))) <= GROUP_TOLERANCE
+
+
 def run_filter(world: UWorld, run: Run, config: UFastSLAMConfig) -> MethodRun:
     """One filter over one run; ``labels`` relations receive the world's ground-truth groups."""
     slam = UFastSLAM(config, world.start)
@@ -126,7 +135,6 @@ def run_filter(world: UWorld, run: Run, config: UFastSLAMConfig) -> MethodRun:
     oracle = config.relations.source == "labels"
     path = np.empty((world.steps + 1, 3))
     path[0] = world.start
-    index = {lid: j for j, lid in enumerate(world.landmark_ids)}
     true_rel = false_rel = 0
     elapsed = 0.0
     for frame in run.frames:
@@ -139,9 +147,7 @@ def run_filter(world: UWorld, run: Run, config: UFastSLAMConfig) -> MethodRun:
         path[frame.k] = slam.pose_estimate()
         elapsed += time.perf_counter() - start
         for rel in report.relations:
-            m = world.landmarks[index[rel.landmark]]
-            refs = world.landmarks[[index[r] for r in rel.refs]]
-            if abs(float(relation_residual(rel.kind, m, refs))) <= GROUP_TOLERANCE:
+            if relation_is_true(world, rel):
                 true_rel += 1
             else:
                 false_rel += 1

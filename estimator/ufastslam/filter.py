@@ -274,6 +274,10 @@ class UFastSLAM:
     # 2. data association: known ids, or nearest neighbour on the weighted χ² distance
     def _associate(self, observations: Sequence[Observation]) -> list[_Pending]:
         if self.config.association == "known":
+            ids = [o.landmark for o in observations]
+            twice = sorted({i for i in ids if ids.count(i) > 1})
+            if twice:
+                raise ValueError(f"landmark {twice[0]} observed twice in one step")
             return [self._pending_known(o) for o in observations]
         return self._pending_nearest(observations)
 
@@ -323,8 +327,6 @@ class UFastSLAM:
 
     def _reserve(self, landmark_id: int) -> int:
         """A landmark index for a new landmark; mapped once ``_add_new`` fills it."""
-        if landmark_id in self._index:
-            raise ValueError(f"landmark {landmark_id} observed twice as new in one step")
         index = len(self.landmark_ids)
         if index >= self.mu.shape[1]:
             grow = self.mu.shape[1]

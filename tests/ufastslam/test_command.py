@@ -1,0 +1,297 @@
+"""`semfleet ufastslam`: the table, results.json / results.npz, plots and user errors."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from deploy.cli import main
+from deploy.ufastslam_cmd import METHODS, relation_is_true, run_all, run_seed
+from estimator.ufastslam import AcceptedRelation
+from sim.ufastslam import UWorld, parse_world
+from tests.tolerance import assert_close
+
+SEMFLEET = Path(sys.executable).with_name("semfleet")
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+SCHEMA_METHODS = {"odometry", "ufastslam", "semantic_ufastslam"}
+SCHEMA_METRICS = {"pose_rmse", "landmark_rmse", "final_error", "step_ms"}
+
+# A short corridor: 8 m north past wall landmarks sharing x, a turn, 3 m east.
+WORLD = """\
+format = 1
+kind = "ufastslam"
+name = "corridor"
+dt = 0.5
+landmarks = [
+  [1, -1.5, 2.0], [2, -1.5, 4.0], [3, -1.5, 6.0], [4, -1.5, 8.0], [5, -1.5, 10.0],
+  [6, 1.5, 3.0], [7, 1.5, 5.0], [8, 1.5, 7.0], [9, 1.5, 9.0], [10, 3.0, 10.5], [11, 5.0, 10.5],
+]
+
+[path]
+start = [0.0, 0.0, 1.5707963267948966]
+speed = 0.4
+turn_rate_deg = 30.0
+legs = [{ forward = 8.0 }, { turn_deg = -90.0 }, { forward = 3.0 }]
+
+[odometry]
+speed_std = 0.02
+yaw_rate_std_deg = 0.5
+scale_error = 0.03
+yaw_rate_bias_deg = 0.3
+
+[sensor]
+half_angle_deg = 35.0
+range = 6.0
+range_std = 0.15
+bearing_std_deg = 2.0
+
+[filter]
+speed_std = 0.04
+yaw_rate_std_deg = 1.5
+
+[[groups]]
+kind = "x"
+name = "west"
+members = [1, 2, 3, 4, 5]
+
+[[groups]]
+kind = "x"
+name = "east"
+members = [6, 7, 8, 9]
+
+[[groups]]
+kind = "y"
+name = "north"
+members = [10, 11]
+"""
+
+
+def semfleet(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [str(SEMFLEET), *args],
+        capture_output=True,
+        text=True,
+        timeout=300,  # a guard against hangs, not a speed check
+        env={"COLUMNS": "200", "PATH": "/usr/bin:/bin", "MPLBACKEND": "Agg"},
+    )
+
+
+def read_json(out: Path) -> dict[str, Any]:
+    def reject(token: str) -> float:
+        raise ValueError(f"non-standard JSON constant {token}")
+
+    doc: dict[str, Any] = json.loads(
+        (out / "results.json").read_text(encoding="utf-8"), parse_constant=reject
+    )
+    return doc
+
+
+def read_npz(out: Path) -> dict[str, np.ndarray]:
+    with np.load(out / "results.npz") as npz:
+        return {k: npz[k] for k in npz.files}
+
+
+@pytest.fixture(scope="module")
+def world_file(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    path = tmp_path_factory.mktemp("world") / "corridor.toml"
+    path.write_text(WORLD, encoding="utf-8")
+    return path
+
+
+@pytest.fixture(scope="module")
+def two_runs(
+    world_file: Path, tmp_path_factory: pytest.TempPathFactory
+) -> tuple[subprocess.CompletedProcess[str], Path]:
+    """Seeds 3 and 4 in two spawned processes, as a real process."""
+    out = tmp_path_factory.mktemp("uf") / "out"
+    args = ("--particles", "12", "--runs", "2", "--jobs", "2", "--seed", "3")
+    r = semfleet("ufastslam", "--scenario", str(world_file), *args, "--out", str(out))
+    assert r.returncode == 0, (r.stdout, r.stderr)
+    return r, out
+
+
+def test_command_prints_the_table(two_runs: tuple[subprocess.CompletedProcess[str], Path]) -> None:
+    out = two_runs[0].stdout
+    for text in (
+        "corridor: 2 runs, 12 particles",
+        "dead reckoning",
+        "UFastSLAM",
+        "Semantic UFastSLAM (threshold)",
+        "Semantic UFastSLAM (oracle)",
+        "pose RMSE m",
+        "landmark RMSE m",
+        "final error m",
+        "relations true / false",
+        "ms per step",
+        "has a lower pose RMSE than UFastSLAM on",
+    ):
+        assert text in out, text
+
+
+def test_results_json_schema(two_runs: tuple[subprocess.CompletedProcess[str], Path]) -> None:
+    doc = read_json(two_runs[1])
+    assert doc["format"] == 1
+    assert doc["scenario"] == "corridor"
+    assert doc["runs"] == 2 and doc["seeds"] == [3, 4]
+    assert set(doc["methods"]) == SCHEMA_METHODS
+    for entry in doc["methods"].values():
+        assert set(entry) >= SCHEMA_METRICS
+        assert all(isinstance(entry[m], float) and entry[m] >= 0 for m in SCHEMA_METRICS)
+    semantic = doc["methods"]["semantic_ufastslam"]
+    assert semantic["relations"] == "oracle"  # the default source
+    assert semantic["relations_false"] == 0.0 and semantic["relations_true"] > 0
+    assert set(doc["table"]) == set(METHODS)
+
+
+def test_results_npz_holds_the_per_run_values(
+    two_runs: tuple[subprocess.CompletedProcess[str], Path],
+) -> None:
+    doc, arrays = read_json(two_runs[1]), read_npz(two_runs[1])
+    steps = parse_world(WORLD).steps
+    np.testing.assert_array_equal(arrays["seeds"], [3, 4])
+    assert arrays["truth"].shape == (steps + 1, 3)
+    for method in SCHEMA_METHODS:
+        for metric in SCHEMA_METRICS:
+            values = arrays[f"{method}/{metric}"]
+            assert values.shape == (2,)
+            assert_close(values.mean(), doc["methods"][method][metric], rtol=1e-12)
+        assert arrays[f"{method}/path"].shape == (2, steps + 1, 3)
+        assert arrays[f"{method}/position_error"].shape == (2, steps + 1)
+    np.testing.assert_array_equal(
+        arrays["semantic_ufastslam/pose_rmse"], arrays["semantic_oracle/pose_rmse"]
+    )
+
+
+def test_plots_are_written(two_runs: tuple[subprocess.CompletedProcess[str], Path]) -> None:
+    out = two_runs[1]
+    for name in ("paths_seed3.png", "position_error.png", "pose_rmse_per_run.png"):
+        assert (out / name).read_bytes()[:8] == PNG_MAGIC, name
+
+
+def test_jobs_do_not_change_results(
+    world_file: Path, tmp_path: Path, two_runs: tuple[subprocess.CompletedProcess[str], Path]
+) -> None:
+    out = tmp_path / "serial"
+    args = ("--particles", "12", "--runs", "2", "--jobs", "1", "--seed", "3", "--out", str(out))
+    r = semfleet("ufastslam", "--scenario", str(world_file), *args)
+    assert r.returncode == 0, r.stderr
+    serial, parallel = read_npz(out), read_npz(two_runs[1])
+    assert set(serial) == set(parallel)
+    for key in serial:
+        if not key.endswith("step_ms"):
+            np.testing.assert_array_equal(serial[key], parallel[key], err_msg=key)
+
+
+def test_a_run_depends_on_its_seed_only() -> None:
+    world = parse_world(WORLD)
+    both = run_all(world, [3, 4], 10, jobs=1)
+    alone = run_seed(world, 4, 10)
+    for method in METHODS:
+        np.testing.assert_array_equal(both[1].methods[method].path, alone.methods[method].path)
+    assert not np.array_equal(both[0].methods["ufastslam"].path, alone.methods["ufastslam"].path)
+
+
+def test_relations_off_is_plain_ufastslam(world_file: Path, tmp_path: Path) -> None:
+    out = tmp_path / "off"
+    args = ["--particles", "8", "--runs", "1", "--relations", "off", "--out", str(out)]
+    assert main(["ufastslam", "--scenario", str(world_file), *args]) == 0
+    doc = read_json(out)
+    semantic, plain = doc["methods"]["semantic_ufastslam"], doc["methods"]["ufastslam"]
+    assert semantic["relations"] == "off"
+    for metric in SCHEMA_METRICS:
+        assert semantic[metric] == plain[metric]
+
+
+def test_semantic_with_relations_off_runs_the_same_filter() -> None:
+    """The summary's shortcut for --relations off is what running the filter would give."""
+    from deploy.ufastslam_cmd import filter_config, run_filter
+    from sim.ufastslam import simulate
+
+    world = parse_world(WORLD)
+    run = simulate(world, 5)
+    plain = run_seed(world, 5, 8).methods["ufastslam"]
+    again = run_filter(world, run, filter_config(world, 8, "off"))
+    np.testing.assert_array_equal(plain.path, again.path)
+
+
+def once_relations(world: UWorld) -> int:
+    """What ONCE mode must apply with true labels: at a landmark's first sighting, one relation
+    per group of it that has a member seen at an earlier step."""
+    first: dict[int, int] = {}
+    for k in range(1, world.steps + 1):
+        for j in world.visible(k)[0]:
+            first.setdefault(world.landmark_ids[j], k)
+    count = 0
+    for lid, k in first.items():
+        for g in world.groups:
+            if lid in g.members and any(first.get(m, k) < k for m in g.members):
+                count += 1
+    return count
+
+
+def test_relations_are_judged_against_the_truth() -> None:
+    world = parse_world(WORLD)
+    result = run_seed(world, 0, 20)
+    oracle = result.methods["semantic_oracle"]
+    assert oracle.relations_false == 0
+    assert oracle.relations_true == once_relations(world) == 5
+    threshold = result.methods["semantic_threshold"]
+    assert threshold.relations_true + threshold.relations_false > 0
+
+
+def test_relation_truth_judge() -> None:
+    world = parse_world(WORLD)
+    assert relation_is_true(world, AcceptedRelation("x", "x:west", 3, (2,)))
+    assert relation_is_true(world, AcceptedRelation("y", "y:north", 11, (10,)))
+    assert not relation_is_true(world, AcceptedRelation("x", "x#0", 6, (2,)))  # 3 m apart
+    assert not relation_is_true(world, AcceptedRelation("col", "col#1", 10, (2, 7)))
+    assert relation_is_true(world, AcceptedRelation("col", "col#2", 4, (2, 3)))
+
+
+@pytest.mark.parametrize(
+    ("args", "fragment"),
+    [
+        (["--scenario", "nonesuch"], "nonesuch: not a file and not a bundled world"),
+        (["--scenario", "missing.toml"], "missing.toml: no such world file"),
+        (
+            ["--scenario", "rectangle", "--particles", "0"],
+            "--particles: 0 must be a positive integer",
+        ),
+        (["--scenario", "rectangle", "--runs", "many"], "--runs: 'many' is not an integer"),
+        (["--scenario", "rectangle", "--jobs", "-2"], "--jobs: -2 must be a positive integer"),
+        (["--scenario", "rectangle", "--seed", "-1"], "seeds are non-negative integers"),
+        (
+            ["--scenario", "rectangle", "--relations", "magic"],
+            "--relations: invalid choice: 'magic'",
+        ),
+    ],
+)
+def test_user_errors_are_one_clear_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], args: list[str], fragment: str
+) -> None:
+    out = tmp_path / "out"
+    try:
+        code = main(["ufastslam", "--runs", "1", "--out", str(out), *args])
+    except SystemExit as exc:  # argparse's own errors
+        code = int(exc.code or 0)
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert "Traceback" not in err
+    errors = [line for line in err.splitlines() if "error:" in line]
+    assert len(errors) == 1 and errors[0] == err.splitlines()[-1], err
+    assert fragment in errors[0]
+    assert not out.exists()
+
+
+def test_bad_world_field_is_one_line_from_a_real_process(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.toml"
+    bad.write_text(WORLD.replace("members = [10, 11]", "members = [10, 12]"), encoding="utf-8")
+    r = semfleet("ufastslam", "--scenario", str(bad), "--out", str(tmp_path / "out"))
+    assert r.returncode == 2
+    assert r.stderr.strip() == f"semfleet: error: {bad}: groups[2].members[1]: unknown landmark 12"
