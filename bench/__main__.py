@@ -5,9 +5,9 @@ from __future__ import annotations
 import sys
 import time
 
-from bench import Result, bench_belief, bench_models, bench_study
+from bench import Result, bench_belief, bench_models, bench_study, bench_ufastslam
 
-MODULES = (bench_models, bench_belief, bench_study)
+MODULES = (bench_models, bench_belief, bench_ufastslam, bench_study)
 
 _HEADER = ("benchmark", "N", "ms", "baseline ms", "speed-up", "throughput /s", "note")
 
