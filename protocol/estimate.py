@@ -1,0 +1,271 @@
+"""The wire codec of published estimates, key ``semfleet/<fleet>/estimate/<robot>`` (docs/wire.md).
+
+An estimate is a msgpack map ``{"v": 1, "type": "estimate", "robot": str, "k": int, "beliefs":
+{name: snapshot}, "counters": {name: int}}``; a snapshot is a :class:`BeliefSnapshot` with its
+object ids as a msgpack int array and every other array as one raw little-endian binary: float64
+for weights, poses and covariances, int64 for classes. Classes travel as int64 rather than one byte
+each (as in a stack) or a msgpack int list: int64 is ``BeliefSnapshot.classes``' own dtype, so the
+round trip is exact without conversion, one ``frombuffer`` decodes and checks H·n classes at once
+(a Python list of 10⁵ ints would not), and at 8 bytes per object per hypothesis they stay small next
+to the 72-byte object covariances. As in ``protocol.codec``, ``decode_estimate`` raises only
+:class:`RemoteProtocolError` subclasses naming the field, and ``encode_estimate`` raises
+:class:`LocalProtocolError` for exactly what the decoder would reject under the same limits (the
+value checks are one function shared by both).
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import msgpack
+import numpy as np
+
+from estimator.hybrid import BeliefSnapshot
+from protocol.codec import _int, _map, _need, _robot_id, valid_id
+from protocol.errors import (
+    InvalidValue,
+    LimitExceeded,
+    LocalProtocolError,
+    MalformedMessage,
+    ProtocolError,
+    UnsupportedVersion,
+)
+
+VERSION = 1
+ESTIMATE = "estimate"
+MAX_STEP = 2**63 - 1
+MAX_COUNT = 2**63 - 1
+MAX_OBJECT_ID = 2**32 - 1
+MAX_BELIEFS = 8
+MAX_COUNTERS = 64
+BELIEF_NAME = re.compile(r"^[a-z_]{1,32}$")
+COUNTER_NAME = re.compile(r"^[a-z_]{1,48}$")
+_TOP_KEYS = frozenset({"v", "type", "robot", "k", "beliefs", "counters"})
+# Wire dtype and per-hypothesis shape of every array of a snapshot but the object ids (n objects).
+_LAYOUT: dict[str, tuple[str, tuple[str | int, ...]]] = {
+    "weights": ("<f8", ()),
+    "classes": ("<i8", ("n",)),
+    "robot_pose": ("<f8", (3,)),
+    "robot_cov": ("<f8", (3, 3)),
+    "object_pose": ("<f8", ("n", 3)),
+    "object_cov": ("<f8", ("n", 3, 3)),
+}
+_SNAPSHOT_KEYS = frozenset({"objects", *_LAYOUT})
+
+
+@dataclass(frozen=True, slots=True)
+class EstimateLimits:
+    """What a receiver accepts. Symmetry is relative to the largest |entry| of each covariance."""
+
+    num_classes: int = 64
+    max_hypotheses: int = 5000
+    max_objects: int = 1024
+    max_message_bytes: int = 32 * 1024 * 1024
+    weight_tol: float = 1e-6
+    symmetry_tol: float = 1e-9
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class EstimateMessage:
+    """Robot ``robot``'s beliefs after its step ``k`` (0 before the first frame), by name
+    (``"local"``, ``"distributed"``), and optionally its counters (name → count ≥ 0)."""
+
+    robot: str
+    k: int
+    beliefs: dict[str, BeliefSnapshot]
+    counters: dict[str, int] = field(default_factory=dict)
+
+
+def _shape(h: int, n: int, per: tuple[str | int, ...]) -> tuple[int, ...]:
+    return (h, *(n if d == "n" else int(d) for d in per))
+
+
+def _check_values(
+    arrays: Mapping[str, np.ndarray], where: str, lim: EstimateLimits, error: type[ProtocolError]
+) -> None:
+    """The value rules of a snapshot whose shapes are right; ``error`` says whose fault it is."""
+
+    def need(cond: bool, name: str, message: str) -> None:
+        if not cond:
+            raise error(message, f"{where}.{name}")
+
+    with np.errstate(over="ignore", invalid="ignore"):  # huge finite numbers: inf fails the test
+        _check_arrays(arrays, lim, need)
+
+
+def _check_arrays(
+    arrays: Mapping[str, np.ndarray], lim: EstimateLimits, need: Callable[[bool, str, str], None]
+) -> None:
+    for name, (dtype, _) in _LAYOUT.items():
+        if dtype == "<f8":
+            need(bool(np.isfinite(arrays[name]).all()), name, "non-finite number")
+    w = arrays["weights"]
+    need(bool((w >= 0).all()), "weights", "negative weight")
+    total = float(np.sum(w))
+    need(abs(total - 1.0) <= lim.weight_tol, "weights", f"sum to {total!r}, not 1")
+    c = arrays["classes"]
+    need(bool(((c >= 0) & (c < lim.num_classes)).all()), "classes", "class outside 0..M−1")
+    for name in ("robot_cov", "object_cov"):
+        cov = arrays[name].reshape(-1, 3, 3)
+        asymmetry = np.abs(cov - cov.transpose(0, 2, 1)).max(axis=(1, 2), initial=0.0)
+        scale = np.abs(cov).max(axis=(1, 2), initial=0.0)
+        need(bool((asymmetry <= lim.symmetry_tol * scale).all()), name, "not symmetric")
+
+
+# --------------------------------------------------------------------------- encode
+
+
+def _local(cond: bool, field: str, message: str) -> None:
+    if not cond:
+        raise LocalProtocolError(message, field)
+
+
+def _is_int(value: Any) -> bool:
+    return isinstance(value, int | np.integer) and not isinstance(value, bool | np.bool_)
+
+
+def _names(value: Any, where: str, pattern: re.Pattern[str], most: int) -> None:
+    _local(isinstance(value, Mapping), where, "expected a mapping")
+    _local(len(value) <= most, where, f"{len(value)} entries > {most}")
+    bad = [k for k in value if not (isinstance(k, str) and pattern.fullmatch(k))]
+    _local(not bad, where, f"invalid names {bad!r}")
+
+
+def encode_estimate(msg: EstimateMessage, limits: EstimateLimits | None = None) -> bytes:
+    """Bytes of an estimate; beliefs and counters are written sorted by name."""
+    lim = limits or EstimateLimits()
+    _local(valid_id(msg.robot), "robot", f"invalid robot id {msg.robot!r}")
+    _local(_is_int(msg.k) and 0 <= msg.k <= MAX_STEP, "k", f"{msg.k!r} outside 0..{MAX_STEP}")
+    _names(msg.beliefs, "beliefs", BELIEF_NAME, MAX_BELIEFS)
+    _local(len(msg.beliefs) >= 1, "beliefs", "no belief")
+    _names(msg.counters, "counters", COUNTER_NAME, MAX_COUNTERS)
+    for name, count in msg.counters.items():
+        ok = _is_int(count) and 0 <= count <= MAX_COUNT
+        _local(ok, f"counters.{name}", f"{count!r} outside 0..{MAX_COUNT}")
+    doc = {
+        "v": VERSION,
+        "type": ESTIMATE,
+        "robot": msg.robot,
+        "k": int(msg.k),
+        "beliefs": {
+            name: _encode_snapshot(msg.beliefs[name], f"beliefs.{name}", lim)
+            for name in sorted(msg.beliefs)
+        },
+        "counters": {name: int(msg.counters[name]) for name in sorted(msg.counters)},
+    }
+    blob = bytes(msgpack.packb(doc, use_bin_type=True))
+    size_ok = len(blob) <= lim.max_message_bytes
+    _local(size_ok, "message", f"{len(blob)} bytes > {lim.max_message_bytes}")
+    return blob
+
+
+def _encode_snapshot(snap: BeliefSnapshot, where: str, lim: EstimateLimits) -> dict[str, Any]:
+    ids = snap.object_ids
+    n = len(ids)
+    _local(n <= lim.max_objects, f"{where}.objects", f"{n} > {lim.max_objects}")
+    ids_ok = all(_is_int(j) and 0 <= j <= MAX_OBJECT_ID for j in ids)
+    _local(ids_ok, f"{where}.objects", "ids must be integers in 0..2³²−1")
+    _local(len(set(ids)) == n, f"{where}.objects", "duplicate object ids")
+    arrays = {}
+    for name in _LAYOUT:
+        try:
+            arrays[name] = np.asarray(getattr(snap, name))
+        except (TypeError, ValueError):
+            raise LocalProtocolError("expected an array", f"{where}.{name}") from None
+    h = arrays["weights"].shape[0] if arrays["weights"].ndim == 1 else -1
+    _local(h >= 1, f"{where}.weights", "expected shape (H,) with H ≥ 1")
+    _local(h <= lim.max_hypotheses, f"{where}.weights", f"{h} > {lim.max_hypotheses}")
+    for name, (dtype, per) in _LAYOUT.items():
+        a = arrays[name]
+        shape = _shape(h, n, per)
+        _local(a.shape == shape, f"{where}.{name}", f"expected shape {shape}, got {a.shape}")
+        kinds = "iu" if dtype == "<i8" else "fiu"
+        _local(a.dtype.kind in kinds, f"{where}.{name}", f"wrong dtype {a.dtype}")
+    _check_values(arrays, where, lim, LocalProtocolError)
+    out: dict[str, Any] = {"objects": [int(j) for j in ids]}
+    for name, (dtype, _) in _LAYOUT.items():
+        out[name] = np.ascontiguousarray(arrays[name], dtype=dtype).tobytes()
+    return out
+
+
+# --------------------------------------------------------------------------- decode
+
+
+def decode_estimate(data: bytes, limits: EstimateLimits | None = None) -> EstimateMessage:
+    """Parse and validate an estimate. Raises only :class:`RemoteProtocolError` subclasses."""
+    lim = limits or EstimateLimits()
+    if not isinstance(data, bytes | bytearray | memoryview):
+        raise MalformedMessage(f"expected bytes, got {type(data).__name__}", "message")
+    if len(data) > lim.max_message_bytes:
+        raise LimitExceeded(f"{len(data)} bytes > {lim.max_message_bytes}", "message")
+    try:
+        doc = msgpack.unpackb(bytes(data), raw=False, strict_map_key=True, use_list=True)
+    except Exception as exc:  # msgpack raises a dozen types for bad input; all mean "malformed"
+        raise MalformedMessage(
+            f"not a msgpack document ({type(exc).__name__}: {exc})", "message"
+        ) from None
+    try:
+        return _decode_doc(doc, lim)
+    except ProtocolError:
+        raise
+    except (ValueError, TypeError, OverflowError, IndexError, KeyError) as exc:
+        # Defence in depth: a validation gap must still surface as a remote error, never a crash.
+        raise MalformedMessage(f"{type(exc).__name__}: {exc}", "message") from None
+
+
+def _named(value: Any, where: str, pattern: re.Pattern[str], most: int) -> dict[str, Any]:
+    """A map from names matching ``pattern`` to anything, with at most ``most`` entries."""
+    _need(isinstance(value, dict), where, f"expected a map, got {type(value).__name__}")
+    _need(len(value) <= most, where, f"{len(value)} entries > {most}", LimitExceeded)
+    _need(all(isinstance(k, str) for k in value), where, "expected string names")
+    bad = [k for k in value if not pattern.fullmatch(k)]
+    _need(not bad, where, f"invalid names {bad!r}", InvalidValue)
+    return dict(value)
+
+
+def _decode_doc(doc: Any, lim: EstimateLimits) -> EstimateMessage:
+    _need(isinstance(doc, dict), "message", f"expected a map, got {type(doc).__name__}")
+    if "v" in doc and (type(doc["v"]) is not int or doc["v"] != VERSION):
+        raise UnsupportedVersion(f"schema version {doc['v']!r} (this side speaks {VERSION})", "v")
+    top = _map(doc, "message", _TOP_KEYS)
+    if top["type"] != ESTIMATE:
+        raise UnsupportedVersion(f"message type {top['type']!r}", "type")
+    robot = _robot_id(top["robot"], "robot")
+    k = _int(top["k"], "k", 0, MAX_STEP)
+    raw = _named(top["beliefs"], "beliefs", BELIEF_NAME, MAX_BELIEFS)
+    _need(len(raw) >= 1, "beliefs", "no belief", InvalidValue)
+    beliefs = {name: _decode_snapshot(v, f"beliefs.{name}", lim) for name, v in raw.items()}
+    counters = _named(top["counters"], "counters", COUNTER_NAME, MAX_COUNTERS)
+    for name, count in counters.items():
+        _int(count, f"counters.{name}", 0, MAX_COUNT)
+    return EstimateMessage(robot, k, beliefs, counters)
+
+
+def _decode_snapshot(value: Any, where: str, lim: EstimateLimits) -> BeliefSnapshot:
+    s = _map(value, where, _SNAPSHOT_KEYS)
+    objects = s["objects"]
+    _need(isinstance(objects, list), f"{where}.objects", "expected an array")
+    n = len(objects)
+    _need(n <= lim.max_objects, f"{where}.objects", f"{n} > {lim.max_objects}", LimitExceeded)
+    ids = tuple(_int(j, f"{where}.objects[{i}]", 0, MAX_OBJECT_ID) for i, j in enumerate(objects))
+    _need(len(set(ids)) == n, f"{where}.objects", "duplicate object ids", InvalidValue)
+    for name in _LAYOUT:
+        _need(isinstance(s[name], bytes), f"{where}.{name}", "expected binary data")
+    w = s["weights"]
+    _need(len(w) % 8 == 0, f"{where}.weights", f"{len(w)} bytes is not a whole number of float64")
+    h = len(w) // 8
+    _need(h >= 1, f"{where}.weights", "a belief has at least one hypothesis", InvalidValue)
+    _need(h <= lim.max_hypotheses, f"{where}.weights", f"{h} > {lim.max_hypotheses}", LimitExceeded)
+    arrays: dict[str, Any] = {}
+    for name, (dtype, per) in _LAYOUT.items():
+        shape = _shape(h, n, per)
+        size = 8 * int(np.prod(shape))
+        got = len(s[name])
+        _need(got == size, f"{where}.{name}", f"expected {size} bytes for {shape}, got {got}")
+        native = np.float64 if dtype == "<f8" else np.int64
+        arrays[name] = np.frombuffer(s[name], dtype=dtype).astype(native).reshape(shape)
+    _check_values(arrays, where, lim, InvalidValue)
+    return BeliefSnapshot(ids, **arrays)

@@ -1,0 +1,766 @@
+"""The estimate codec (docs/wire.md, "Estimates"): bit-exact round trips of belief snapshots, one
+error class per fault naming the field, and fuzzing that proves nothing but a RemoteProtocolError
+escapes ``decode_estimate`` and that ``encode_estimate`` never emits bytes it would reject.
+
+Malformed documents are made by unpacking a valid estimate, changing one field and repacking it.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import math
+import struct
+from collections.abc import Iterator
+from typing import Any
+
+import msgpack
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from estimator.hybrid import BeliefSnapshot
+from protocol.errors import (
+    InvalidValue,
+    LimitExceeded,
+    LocalProtocolError,
+    MalformedMessage,
+    RemoteProtocolError,
+    UnsupportedVersion,
+)
+from protocol.estimate import EstimateLimits, EstimateMessage, decode_estimate, encode_estimate
+
+Path = tuple[str | int, ...]
+
+FUZZ = settings(derandomize=True, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+SPECIAL_FLOATS = (0.0, -0.0, 5e-324, -5e-324, 2.2250738585072014e-308, 1.7976931348623157e308)
+ARRAYS = ("weights", "classes", "robot_pose", "robot_cov", "object_pose", "object_cov")
+FLOAT_ARRAYS = tuple(a for a in ARRAYS if a != "classes")
+
+
+def _finite(rng: np.random.Generator, shape: tuple[int, ...]) -> np.ndarray:
+    """Finite float64s: ordinary values or arbitrary bit patterns, with ±0, subnormals, extremes."""
+    if rng.random() < 0.5:
+        values = rng.standard_normal(shape) * 10.0 ** int(rng.integers(-3, 4))
+    else:
+        values = rng.integers(0, 2**64, size=shape, dtype=np.uint64).view(np.float64)
+        values = np.where(np.isfinite(values), values, -0.0)
+    special = rng.random(shape) < 0.2
+    values[special] = rng.choice(SPECIAL_FLOATS, size=int(special.sum()))
+    return values
+
+
+def _symmetric(rng: np.random.Generator, count: int) -> np.ndarray:
+    """(count, 3, 3) exactly symmetric matrices (the upper triangle mirrored, −0.0 kept)."""
+    upper = _finite(rng, (count, 3, 3))
+    return np.where(np.triu(np.ones((3, 3), bool)), upper, upper.transpose(0, 2, 1))
+
+
+def _weights(rng: np.random.Generator, h: int) -> np.ndarray:
+    """Normalised weights, some exactly 0.0 or −0.0."""
+    w = rng.random(h) * (rng.random(h) < 0.8)
+    w[int(rng.integers(h))] += 1.0
+    w /= w.sum()
+    return np.where(w == 0.0, rng.choice([0.0, -0.0], size=h), w)
+
+
+def make_snapshot(
+    rng: np.random.Generator, h: int | None = None, n: int | None = None, num_classes: int = 3
+) -> BeliefSnapshot:
+    """A valid snapshot: H ∈ 1..5 hypotheses over n ∈ 0..5 distinct objects."""
+    h = int(rng.integers(1, 6)) if h is None else h
+    n = int(rng.integers(0, 6)) if n is None else n
+    ids = tuple(int(j) for j in rng.choice(2**32, size=n, replace=False)) if n else ()
+    return BeliefSnapshot(
+        ids,
+        _weights(rng, h),
+        rng.integers(0, num_classes, (h, n)).astype(np.int64),
+        _finite(rng, (h, 3)),
+        _symmetric(rng, h),
+        _finite(rng, (h, n, 3)),
+        _symmetric(rng, h * n).reshape(h, n, 3, 3),
+    )
+
+
+def assert_same_snapshot(got: BeliefSnapshot, want: BeliefSnapshot) -> None:
+    """Equal to the bit, −0.0 and subnormals included, with the snapshot's dtypes."""
+    assert got.object_ids == tuple(want.object_ids)
+    for name in ARRAYS:
+        g, w = getattr(got, name), getattr(want, name)
+        assert g.dtype == (np.int64 if name == "classes" else np.float64), name
+        assert g.shape == w.shape and np.array_equal(g, w), name
+        assert g.tobytes() == np.asarray(w, dtype=g.dtype).tobytes(), name
+
+
+def assert_same_estimate(got: EstimateMessage, want: EstimateMessage) -> None:
+    assert (got.robot, got.k, got.counters) == (want.robot, want.k, want.counters)
+    assert sorted(got.beliefs) == sorted(want.beliefs)
+    for name, snap in want.beliefs.items():
+        assert_same_snapshot(got.beliefs[name], snap)
+
+
+REF = EstimateMessage(
+    "r2",
+    12,
+    {
+        "local": make_snapshot(np.random.default_rng(1), h=2, n=3, num_classes=2),
+        "distributed": make_snapshot(np.random.default_rng(2), h=3, n=4, num_classes=2),
+    },
+    {"stacks_sent": 12, "invalid": 0},
+)
+REF_BLOB = encode_estimate(REF)
+REF_DOC: dict[str, Any] = msgpack.unpackb(REF_BLOB, raw=False)
+BASE_MESSAGES = (
+    REF,
+    EstimateMessage("x" * 32, 0, {"local": make_snapshot(np.random.default_rng(3), h=1, n=0)}),
+    EstimateMessage(
+        "r9",
+        2**63 - 1,
+        {
+            "a": make_snapshot(np.random.default_rng(4)),
+            "b_c": make_snapshot(np.random.default_rng(5)),
+        },
+        {"x" * 48: 2**63 - 1},
+    ),
+)
+BASE_BLOBS = tuple(encode_estimate(m) for m in BASE_MESSAGES)
+BASE_DOCS = tuple(msgpack.unpackb(b, raw=False) for b in BASE_BLOBS)
+LOCAL = ("beliefs", "local")  # 2 hypotheses, 3 objects
+
+
+def _field(path: Path) -> str:
+    out = ""
+    for p in path:
+        out += f"[{p}]" if isinstance(p, int) else (f".{p}" if out else p)
+    return out
+
+
+def _get(doc: Any, path: Path) -> Any:
+    for p in path:
+        doc = doc[p]
+    return doc
+
+
+def _set(doc: Any, path: Path, value: Any) -> Any:
+    if not path:
+        return value
+    _get(doc, path[:-1])[path[-1]] = value
+    return doc
+
+
+def _pack(doc: Any) -> bytes:
+    return bytes(msgpack.packb(doc, use_bin_type=True))
+
+
+def _with(path: Path, value: Any) -> bytes:
+    return _pack(_set(copy.deepcopy(REF_DOC), path, value))
+
+
+def _without(path: Path) -> bytes:
+    doc = copy.deepcopy(REF_DOC)
+    del _get(doc, path[:-1])[path[-1]]
+    return _pack(doc)
+
+
+def _poke(path: Path, index: int, value: float | int, fmt: str = "<d") -> bytes:
+    blob = _get(REF_DOC, path)
+    return _with(path, blob[: 8 * index] + struct.pack(fmt, value) + blob[8 * index + 8 :])
+
+
+def _array(path: Path, values: Any, dtype: str = "<f8") -> bytes:
+    return _with(path, np.asarray(values, dtype=dtype).tobytes())
+
+
+def _assert_rejected(
+    blob: bytes, error: type[RemoteProtocolError], field: str, limits: EstimateLimits | None = None
+) -> None:
+    with pytest.raises(error) as caught:
+        decode_estimate(blob, limits)
+    assert caught.value.field == field
+    assert str(caught.value).startswith(f"{field}: ")
+
+
+def _check_valid(msg: EstimateMessage, lim: EstimateLimits) -> None:
+    """What a decoded estimate promises, and that it survives another round trip."""
+    assert msg.k >= 0 and 1 <= len(msg.beliefs) <= 8
+    assert all(v >= 0 for v in msg.counters.values())
+    for snap in msg.beliefs.values():
+        n, h = len(snap.object_ids), snap.weights.shape[0]
+        assert len(set(snap.object_ids)) == n <= lim.max_objects and 1 <= h <= lim.max_hypotheses
+        assert abs(snap.weights.sum() - 1.0) <= lim.weight_tol and (snap.weights >= 0).all()
+        assert snap.classes.shape == (h, n) and ((snap.classes >= 0) & (snap.classes < 64)).all()
+        assert snap.object_cov.shape == (h, n, 3, 3) and snap.robot_cov.shape == (h, 3, 3)
+        for name in FLOAT_ARRAYS:
+            assert np.isfinite(getattr(snap, name)).all()
+    assert_same_estimate(decode_estimate(encode_estimate(msg, lim), lim), msg)
+
+
+def _decode_or_reject(blob: bytes, limits: EstimateLimits | None = None) -> None:
+    try:
+        msg = decode_estimate(blob, limits)
+    except RemoteProtocolError as exc:
+        assert exc.field, f"error without a field: {exc!r}"
+        return
+    _check_valid(msg, limits or EstimateLimits())
+
+
+# --------------------------------------------------------------------------- round trips
+
+
+@pytest.mark.parametrize("index", range(len(BASE_MESSAGES)))
+def test_estimate_round_trip_is_bit_exact(index: int) -> None:
+    got = decode_estimate(BASE_BLOBS[index])
+    assert_same_estimate(got, BASE_MESSAGES[index])
+    assert encode_estimate(got) == BASE_BLOBS[index]
+
+
+def test_estimate_wire_layout_matches_docs() -> None:
+    assert list(REF_DOC) == ["v", "type", "robot", "k", "beliefs", "counters"]
+    assert (REF_DOC["v"], REF_DOC["type"], REF_DOC["robot"], REF_DOC["k"]) == (
+        1,
+        "estimate",
+        "r2",
+        12,
+    )
+    assert list(REF_DOC["beliefs"]) == ["distributed", "local"]  # sorted by name
+    assert REF_DOC["counters"] == {"invalid": 0, "stacks_sent": 12}
+    local = REF.beliefs["local"]
+    raw = REF_DOC["beliefs"]["local"]
+    assert list(raw) == ["objects", *ARRAYS]
+    assert raw["objects"] == list(local.object_ids)
+    assert raw["classes"] == local.classes.astype("<i8").tobytes()
+    for name in FLOAT_ARRAYS:
+        assert raw[name] == getattr(local, name).astype("<f8").tobytes()
+
+
+def test_estimate_counters_are_optional() -> None:
+    msg = EstimateMessage("r1", 3, {"local": REF.beliefs["local"]})
+    assert msg.counters == {}
+    assert msgpack.unpackb(encode_estimate(msg), raw=False)["counters"] == {}
+    assert_same_estimate(decode_estimate(encode_estimate(msg)), msg)
+
+
+def test_estimate_decode_accepts_bytearray_and_memoryview() -> None:
+    assert_same_estimate(decode_estimate(bytearray(REF_BLOB)), REF)  # type: ignore[arg-type]
+    assert_same_estimate(decode_estimate(memoryview(REF_BLOB)), REF)  # type: ignore[arg-type]
+
+
+def test_estimate_negative_zero_and_subnormals_survive() -> None:
+    snap = make_snapshot(np.random.default_rng(0), h=2, n=1)
+    tiny = dataclasses.replace(
+        snap,
+        weights=np.array([-0.0, 1.0]),
+        robot_pose=np.array([[-0.0, 5e-324, -5e-324], [0.0, -0.0, 1e-310]]),
+    )
+    got = decode_estimate(encode_estimate(EstimateMessage("r1", 1, {"local": tiny})))
+    assert_same_snapshot(got.beliefs["local"], tiny)
+    assert math.copysign(1.0, got.beliefs["local"].weights[0]) == -1.0
+
+
+@settings(FUZZ, max_examples=600)
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    k=st.integers(0, 2**63 - 1),
+    names=st.lists(st.text("abcxyz_", min_size=1, max_size=32), min_size=1, max_size=3),
+    counters=st.dictionaries(
+        st.text("abcxyz_", min_size=1, max_size=48), st.integers(0, 2**63 - 1), max_size=6
+    ),
+)
+def test_estimate_round_trip_is_bit_exact_fuzz(
+    seed: int, k: int, names: list[str], counters: dict[str, int]
+) -> None:
+    rng = np.random.default_rng(seed)
+    msg = EstimateMessage("r1", k, {name: make_snapshot(rng) for name in names}, counters)
+    blob = encode_estimate(msg)
+    got = decode_estimate(blob)
+    assert_same_estimate(got, msg)
+    assert encode_estimate(got) == blob
+
+
+# --------------------------------------------------------------------------- truncation, noise
+
+
+@pytest.mark.parametrize("index", range(len(BASE_BLOBS)))
+def test_estimate_every_truncated_prefix_is_malformed(index: int) -> None:
+    blob = BASE_BLOBS[index]
+    escaped = []
+    for length in range(len(blob)):
+        try:
+            decode_estimate(blob[:length])
+        except MalformedMessage as exc:
+            assert exc.field == "message"
+        except Exception as exc:  # the point of the test: report what escaped, for every length
+            escaped.append((length, repr(exc)))
+        else:
+            escaped.append((length, "decoded"))
+    assert not escaped, escaped[:5]
+
+
+def test_estimate_trailing_bytes_are_malformed() -> None:
+    _assert_rejected(REF_BLOB + b"\x00", MalformedMessage, "message")
+
+
+@pytest.mark.parametrize("blob", [b"", b"\xc1", b"\x93\x01\x02\x03", b"\xa8estimate", b"\xc0"])
+def test_estimate_non_map_documents_are_malformed(blob: bytes) -> None:
+    _assert_rejected(blob, MalformedMessage, "message")
+
+
+def test_estimate_decode_rejects_non_bytes_input() -> None:
+    _assert_rejected(None, MalformedMessage, "message")  # type: ignore[arg-type]
+
+
+@settings(FUZZ, max_examples=500)
+@given(blob=st.binary(max_size=512))
+def test_estimate_random_bytes_raise_only_remote_errors(blob: bytes) -> None:
+    _decode_or_reject(blob)
+
+
+@settings(FUZZ, max_examples=500)
+@given(
+    index=st.integers(0, len(BASE_BLOBS) - 1),
+    edits=st.lists(st.tuples(st.integers(0, 2**20), st.integers(0, 255)), min_size=1, max_size=4),
+)
+def test_estimate_corrupted_bytes_raise_only_remote_errors(
+    index: int, edits: list[tuple[int, int]]
+) -> None:
+    blob = bytearray(BASE_BLOBS[index])
+    for at, byte in edits:
+        blob[at % len(blob)] = byte
+    _decode_or_reject(bytes(blob))
+
+
+# --------------------------------------------------------------------------- one rule at a time
+
+
+@pytest.mark.parametrize("value", [math.nan, math.inf, -math.inf])
+@pytest.mark.parametrize(
+    ("name", "index"),
+    [(n, 0) for n in FLOAT_ARRAYS] + [("robot_pose", 5), ("object_cov", 53), ("weights", 1)],
+)
+def test_estimate_non_finite_number_is_invalid(name: str, index: int, value: float) -> None:
+    _assert_rejected(_poke((*LOCAL, name), index, value), InvalidValue, f"beliefs.local.{name}")
+
+
+def test_estimate_negative_weight_is_invalid() -> None:
+    _assert_rejected(
+        _array((*LOCAL, "weights"), [1.5, -0.5]), InvalidValue, "beliefs.local.weights"
+    )
+
+
+@pytest.mark.parametrize("weights", [[0.5, 0.5 - 2e-6], [0.5, 0.5 + 2e-6], [0.0, 0.0], [2.0, 0.0]])
+def test_estimate_weights_not_summing_to_one_are_invalid(weights: list[float]) -> None:
+    _assert_rejected(_array((*LOCAL, "weights"), weights), InvalidValue, "beliefs.local.weights")
+
+
+@pytest.mark.parametrize("weights", [[0.5, 0.5 - 5e-7], [0.5, 0.5 + 5e-7], [1.0, -0.0]])
+def test_estimate_weights_within_tolerance_are_accepted(weights: list[float]) -> None:
+    got = decode_estimate(_array((*LOCAL, "weights"), weights))
+    assert got.beliefs["local"].weights.tobytes() == np.array(weights).tobytes()
+
+
+@pytest.mark.parametrize("value", [-1, 64, 2**62, -(2**63)])
+def test_estimate_class_out_of_range_is_invalid(value: int) -> None:
+    blob = _poke((*LOCAL, "classes"), 4, value, "<q")
+    _assert_rejected(blob, InvalidValue, "beliefs.local.classes")
+
+
+def test_estimate_class_limit_follows_num_classes() -> None:
+    blob = _poke((*LOCAL, "classes"), 4, 2, "<q")
+    _assert_rejected(blob, InvalidValue, "beliefs.local.classes", EstimateLimits(num_classes=2))
+    assert decode_estimate(blob, EstimateLimits(num_classes=3)).beliefs["local"].classes[1, 1] == 2
+
+
+@pytest.mark.parametrize("name", ["robot_cov", "object_cov"])
+@pytest.mark.parametrize("relative", [1e-6, 1e-3, 1.0])
+def test_estimate_asymmetric_covariance_is_invalid(name: str, relative: float) -> None:
+    cov = np.tile(np.diag([4.0, 4.0, 1.0]), (2 if name == "robot_cov" else 6, 1, 1))
+    cov[-1, 0, 2] += relative * 4.0
+    blob = _array((*LOCAL, name), cov)
+    _assert_rejected(blob, InvalidValue, f"beliefs.local.{name}")
+
+
+def test_estimate_covariance_symmetric_within_tolerance_is_accepted() -> None:
+    cov = np.tile(np.diag([4.0, 4.0, 1.0]), (2, 1, 1))
+    cov[1, 0, 1] = 1e-9
+    blob = _array((*LOCAL, "robot_cov"), cov)
+    assert decode_estimate(blob).beliefs["local"].robot_cov[1, 0, 1] == 1e-9
+    with pytest.raises(InvalidValue):
+        decode_estimate(blob, EstimateLimits(symmetry_tol=1e-12))
+
+
+@pytest.mark.parametrize("name", ARRAYS)
+@pytest.mark.parametrize("change", [-8, 8, -1, 1, None])
+def test_estimate_wrong_array_length_is_malformed(name: str, change: int | None) -> None:
+    """``change`` bytes added or cut; None empties the blob. The weights fix H, so changing them
+    by a whole float64 makes the next array the wrong length."""
+    path = (*LOCAL, name)
+    blob = _get(REF_DOC, path)
+    new = b"" if change is None else blob[:change] if change < 0 else blob + bytes(change)
+    field = f"beliefs.local.{name}"
+    if name == "weights" and change in (8, -8):
+        field = "beliefs.local.classes"
+    error = InvalidValue if name == "weights" and change is None else MalformedMessage
+    _assert_rejected(_with(path, new), error, field)
+
+
+def test_estimate_object_count_disagreeing_with_arrays_is_malformed() -> None:
+    objects = _get(REF_DOC, (*LOCAL, "objects"))
+    _assert_rejected(
+        _with((*LOCAL, "objects"), objects[:-1]), MalformedMessage, "beliefs.local.classes"
+    )
+
+
+def test_estimate_duplicate_object_ids_are_invalid() -> None:
+    _assert_rejected(_with((*LOCAL, "objects"), [5, 6, 5]), InvalidValue, "beliefs.local.objects")
+
+
+@pytest.mark.parametrize(
+    ("path", "value"),
+    [
+        (("k",), -1),
+        (("k",), 2**63),
+        ((*LOCAL, "objects", 1), -1),
+        ((*LOCAL, "objects", 1), 2**32),
+        (("counters", "invalid"), -1),
+        (("counters", "invalid"), 2**63),
+    ],
+)
+def test_estimate_integer_out_of_range_is_invalid(path: Path, value: int) -> None:
+    _assert_rejected(_with(path, value), InvalidValue, _field(path))
+
+
+@pytest.mark.parametrize("robot", ["", "x" * 33, "r 1", "r/1", "rö", "r1\n"])
+def test_estimate_invalid_robot_id_is_invalid(robot: str) -> None:
+    _assert_rejected(_with(("robot",), robot), InvalidValue, "robot")
+
+
+@pytest.mark.parametrize("name", ["", "Local", "local1", "a-b", "x" * 33, "lócal"])
+def test_estimate_invalid_belief_name_is_invalid(name: str) -> None:
+    doc = copy.deepcopy(REF_DOC)
+    doc["beliefs"][name] = doc["beliefs"].pop("local")
+    _assert_rejected(_pack(doc), InvalidValue, "beliefs")
+
+
+@pytest.mark.parametrize("name", ["", "Invalid", "x" * 49, "a b"])
+def test_estimate_invalid_counter_name_is_invalid(name: str) -> None:
+    _assert_rejected(_with(("counters", name), 1), InvalidValue, "counters")
+
+
+def test_estimate_without_beliefs_is_invalid() -> None:
+    _assert_rejected(_with(("beliefs",), {}), InvalidValue, "beliefs")
+
+
+def test_estimate_too_many_beliefs_or_counters_exceed_limits() -> None:
+    local = REF_DOC["beliefs"]["local"]
+    beliefs = {"b" + "_" * i: local for i in range(9)}
+    _assert_rejected(_with(("beliefs",), beliefs), LimitExceeded, "beliefs")
+    counters = {"c" + "_" * i: i for i in range(65)}
+    _assert_rejected(_with(("counters",), counters), LimitExceeded, "counters")
+    assert len(decode_estimate(_with(("beliefs",), dict(list(beliefs.items())[:8]))).beliefs) == 8
+
+
+WRONG_TYPES = [
+    (("robot",), 5),
+    (("robot",), b"r2"),
+    (("k",), 12.0),
+    (("k",), True),
+    (("k",), "12"),
+    (("beliefs",), []),
+    (("beliefs",), None),
+    (LOCAL, []),
+    (LOCAL, b""),
+    ((*LOCAL, "objects"), b"\x01\x02\x03"),
+    ((*LOCAL, "objects"), None),
+    ((*LOCAL, "objects", 0), 1.0),
+    ((*LOCAL, "objects", 0), "1"),
+    ((*LOCAL, "objects", 0), True),
+    *(((*LOCAL, name), value) for name in ARRAYS for value in (None, [0.0, 1.0], "ab")),
+    (("counters",), []),
+    (("counters",), None),
+    (("counters", "invalid"), 0.0),
+    (("counters", "invalid"), False),
+    (("counters", "invalid"), "0"),
+]
+
+
+@pytest.mark.parametrize(
+    ("path", "value"), [pytest.param(p, v, id=f"{_field(p)}={v!r}") for p, v in WRONG_TYPES]
+)
+def test_estimate_wrong_type_is_malformed(path: Path, value: Any) -> None:
+    _assert_rejected(_with(path, value), MalformedMessage, _field(path))
+
+
+def test_estimate_non_string_names_are_malformed() -> None:
+    doc = copy.deepcopy(REF_DOC)
+    doc["beliefs"][b"local"] = doc["beliefs"].pop("local")
+    _assert_rejected(_pack(doc), MalformedMessage, "beliefs")
+    _assert_rejected(_with(("counters",), {b"invalid": 1}), MalformedMessage, "counters")
+
+
+@pytest.mark.parametrize("version", [0, 2, -1, "1", None, 1.0, True])
+def test_estimate_unknown_version_is_unsupported(version: Any) -> None:
+    _assert_rejected(_with(("v",), version), UnsupportedVersion, "v")
+
+
+@pytest.mark.parametrize("kind", ["stack", "frame", "Estimate", "", None, b"estimate"])
+def test_estimate_unknown_message_type_is_unsupported(kind: Any) -> None:
+    _assert_rejected(_with(("type",), kind), UnsupportedVersion, "type")
+
+
+@pytest.mark.parametrize(
+    ("path", "field"),
+    [((k,), "message") for k in REF_DOC]
+    + [((*LOCAL, k), "beliefs.local") for k in _get(REF_DOC, LOCAL)],
+)
+def test_estimate_missing_key_is_malformed(path: Path, field: str) -> None:
+    _assert_rejected(_without(path), MalformedMessage, field)
+
+
+@pytest.mark.parametrize("key", ["x", "V", "weight", ""])
+@pytest.mark.parametrize(("path", "field"), [((), "message"), (LOCAL, "beliefs.local")])
+def test_estimate_extra_key_is_malformed(path: Path, field: str, key: str) -> None:
+    doc = copy.deepcopy(REF_DOC)
+    _get(doc, path)[key] = 0
+    _assert_rejected(_pack(doc), MalformedMessage, field)
+
+
+@pytest.mark.parametrize(
+    ("limits", "field"),
+    [
+        (EstimateLimits(max_hypotheses=2), "beliefs.distributed.weights"),
+        (EstimateLimits(max_objects=3), "beliefs.distributed.objects"),
+        (EstimateLimits(max_message_bytes=len(REF_BLOB) - 1), "message"),
+    ],
+)
+def test_estimate_over_limits_is_rejected(limits: EstimateLimits, field: str) -> None:
+    _assert_rejected(REF_BLOB, LimitExceeded, field, limits)
+    with pytest.raises(LocalProtocolError) as caught:
+        encode_estimate(REF, limits)
+    assert caught.value.field == field
+
+
+def test_estimate_exactly_at_limits_is_accepted() -> None:
+    lim = EstimateLimits(
+        num_classes=3, max_hypotheses=3, max_objects=4, max_message_bytes=len(REF_BLOB)
+    )
+    assert_same_estimate(decode_estimate(REF_BLOB, lim), REF)
+    assert encode_estimate(REF, lim) == REF_BLOB
+
+
+def test_estimate_default_limits_hold_a_large_belief() -> None:
+    snap = make_snapshot(np.random.default_rng(7), h=200, n=60)
+    msg = EstimateMessage("r1", 1, {"local": snap})
+    assert_same_estimate(decode_estimate(encode_estimate(msg)), msg)
+
+
+# --------------------------------------------------------------------------- structured fuzz
+
+KNOWN_KEYS = ("v", "type", "robot", "k", "beliefs", "counters", "local", "objects", *ARRAYS)
+SCALARS = (
+    st.none()
+    | st.booleans()
+    | st.integers(-(2**63), 2**64 - 1)
+    | st.sampled_from((-1, 0, 1, 63, 64, 2**32 - 1, 2**32, 2**63 - 1, 2**63))
+    | st.floats()
+    | st.text(max_size=40)
+    | st.sampled_from(("estimate", "r1", "local", ""))
+    | st.binary(max_size=64)
+    | st.lists(st.floats(), max_size=9).map(lambda xs: struct.pack(f"<{len(xs)}d", *xs))
+    | st.builds(msgpack.ExtType, st.integers(0, 127), st.binary(max_size=12))
+)
+KEYS = st.sampled_from(KNOWN_KEYS) | st.text(max_size=8)
+VALUES = st.recursive(
+    SCALARS,
+    lambda children: st.lists(children, max_size=4) | st.dictionaries(KEYS, children, max_size=4),
+    max_leaves=8,
+)
+
+
+def _paths(node: Any, prefix: Path = ()) -> Iterator[Path]:
+    yield prefix
+    if isinstance(node, dict):
+        for k, v in node.items():
+            yield from _paths(v, (*prefix, k))
+    elif isinstance(node, list):
+        for i, v in enumerate(node):
+            yield from _paths(v, (*prefix, i))
+
+
+def _mutate(doc: Any, data: st.DataObject) -> Any:
+    """One random edit (replace, copy, delete, add, poke a number, resize) at a random path."""
+    paths = list(_paths(doc))[::-1]  # hypothesis favours the first choices: make them leaves
+    path = data.draw(st.sampled_from(paths))
+    node = _get(doc, path)
+    op = data.draw(st.sampled_from(("replace", "copy", "delete", "add", "poke", "resize")))
+    if op == "copy":
+        return _set(doc, path, copy.deepcopy(_get(doc, data.draw(st.sampled_from(paths)))))
+    if op == "delete" and path:
+        del _get(doc, path[:-1])[path[-1]]
+        return doc
+    if op == "add" and isinstance(node, dict):
+        node[data.draw(KEYS | st.integers(-3, 3) | st.binary(max_size=3))] = data.draw(VALUES)
+        return doc
+    if op == "add" and isinstance(node, list):
+        node.insert(data.draw(st.integers(0, len(node))), data.draw(VALUES))
+        return doc
+    if op == "poke" and isinstance(node, bytes) and len(node) >= 8:
+        i = 8 * data.draw(st.integers(0, len(node) // 8 - 1))
+        number = data.draw(
+            st.floats().map(lambda x: struct.pack("<d", x))
+            | st.sampled_from([struct.pack("<q", v) for v in (-1, 0, 2, 64, 2**63 - 1, -(2**63))])
+        )
+        return _set(doc, path, node[:i] + number + node[i + 8 :])
+    if op == "resize" and isinstance(node, bytes | str | list):
+        cut = data.draw(st.integers(0, len(node)))
+        pad: Any = {bytes: b"\x00", str: "a", list: [0]}[type(node)]
+        return _set(doc, path, node[:cut] + pad * data.draw(st.integers(0, 9)))
+    return _set(doc, path, data.draw(VALUES))
+
+
+@settings(FUZZ, max_examples=1000)
+@given(
+    index=st.integers(0, len(BASE_DOCS) - 1),
+    edits=st.integers(1, 3),
+    limits=st.sampled_from([None, None, EstimateLimits(num_classes=2, max_hypotheses=2)]),
+    data=st.data(),
+)
+def test_estimate_mutated_documents_raise_only_remote_errors(
+    index: int, edits: int, limits: EstimateLimits | None, data: st.DataObject
+) -> None:
+    doc = copy.deepcopy(BASE_DOCS[index])
+    for _ in range(edits):
+        doc = _mutate(doc, data)
+    _decode_or_reject(_pack(doc), limits)
+
+
+# --------------------------------------------------------------------------- encode
+
+
+def _message(**changes: Any) -> EstimateMessage:
+    """REF with fields changed, wrong types allowed."""
+    return dataclasses.replace(REF, **changes)
+
+
+def _with_local(**changes: Any) -> EstimateMessage:
+    local = dataclasses.replace(REF.beliefs["local"], **changes)
+    return dataclasses.replace(REF, beliefs={**REF.beliefs, "local": local})
+
+
+def _poked(name: str, value: Any) -> np.ndarray:
+    out = getattr(REF.beliefs["local"], name).copy()
+    out.flat[-1] = value
+    return out
+
+
+L0 = REF.beliefs["local"]
+ASYMMETRIC = L0.robot_cov.copy()
+ASYMMETRIC[0, 0, 1] += 1e-3 * np.abs(ASYMMETRIC[0]).max()
+ENCODE_REJECTS = [
+    ("robot", _message(robot="r 2"), "robot"),
+    ("robot-int", _message(robot=2), "robot"),
+    ("k-negative", _message(k=-1), "k"),
+    ("k-float", _message(k=1.0), "k"),
+    ("no-beliefs", _message(beliefs={}), "beliefs"),
+    ("belief-name", _message(beliefs={"Local": L0}), "beliefs"),
+    (
+        "beliefs-9",
+        _message(beliefs={"b" + "_" * i: L0 for i in range(9)}),
+        "beliefs",
+    ),
+    ("beliefs-list", _message(beliefs=[L0]), "beliefs"),
+    ("counter-name", _message(counters={"Sent": 1}), "counters"),
+    (
+        "counters-65",
+        _message(counters={"c" + "_" * i: 1 for i in range(65)}),
+        "counters",
+    ),
+    ("counter-negative", _message(counters={"sent": -1}), "counters.sent"),
+    ("counter-float", _message(counters={"sent": 1.0}), "counters.sent"),
+    ("counter-bool", _message(counters={"sent": True}), "counters.sent"),
+    ("counter-2**63", _message(counters={"sent": 2**63}), "counters.sent"),
+    ("ids-duplicate", _with_local(object_ids=(1, 2, 1)), "beliefs.local.objects"),
+    ("ids-negative", _with_local(object_ids=(1, 2, -1)), "beliefs.local.objects"),
+    ("ids-float", _with_local(object_ids=(1, 2, 3.0)), "beliefs.local.objects"),
+    ("ids-fewer", _with_local(object_ids=(1, 2)), "beliefs.local.classes"),
+    ("weights-empty", _with_local(weights=np.zeros(0)), "beliefs.local.weights"),
+    ("weights-2d", _with_local(weights=L0.weights[:, None]), "beliefs.local.weights"),
+    ("weights-nan", _with_local(weights=_poked("weights", math.nan)), "beliefs.local.weights"),
+    ("weights-sum", _with_local(weights=np.array([0.5, 0.4])), "beliefs.local.weights"),
+    ("weights-negative", _with_local(weights=np.array([1.5, -0.5])), "beliefs.local.weights"),
+    ("classes-float", _with_local(classes=L0.classes.astype(float)), "beliefs.local.classes"),
+    ("classes-64", _with_local(classes=_poked("classes", 64)), "beliefs.local.classes"),
+    ("classes-negative", _with_local(classes=_poked("classes", -1)), "beliefs.local.classes"),
+    (
+        "classes-uint64-huge",
+        _with_local(classes=np.full((2, 3), 2**64 - 1, np.uint64)),
+        "beliefs.local.classes",
+    ),
+    ("classes-shape", _with_local(classes=L0.classes[:1]), "beliefs.local.classes"),
+    (
+        "robot-pose-inf",
+        _with_local(robot_pose=_poked("robot_pose", math.inf)),
+        "beliefs.local.robot_pose",
+    ),
+    ("robot-pose-shape", _with_local(robot_pose=L0.robot_pose[:, :2]), "beliefs.local.robot_pose"),
+    ("robot-cov-asymmetric", _with_local(robot_cov=ASYMMETRIC), "beliefs.local.robot_cov"),
+    (
+        "object-pose-nan",
+        _with_local(object_pose=_poked("object_pose", math.nan)),
+        "beliefs.local.object_pose",
+    ),
+    (
+        "object-cov-nan",
+        _with_local(object_cov=_poked("object_cov", math.nan)),
+        "beliefs.local.object_cov",
+    ),
+    (
+        "object-cov-shape",
+        _with_local(object_cov=L0.object_cov[:, :, :2]),
+        "beliefs.local.object_cov",
+    ),
+    ("object-cov-complex", _with_local(object_cov=L0.object_cov + 0j), "beliefs.local.object_cov"),
+]
+
+
+@pytest.mark.parametrize(
+    ("msg", "field"), [pytest.param(m, f, id=name) for name, m, f in ENCODE_REJECTS]
+)
+def test_estimate_encode_rejects_what_decode_would_reject(msg: EstimateMessage, field: str) -> None:
+    with pytest.raises(LocalProtocolError) as caught:
+        encode_estimate(msg)
+    assert caught.value.field == field
+
+
+BAD_FLOATS = (math.nan, math.inf, -math.inf, -1.0, 2.0, 1e300)
+
+
+@settings(FUZZ, max_examples=1000)
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    name=st.sampled_from(ARRAYS),
+    index=st.integers(0, 2**20),
+    value=st.sampled_from(BAD_FLOATS) | st.integers(-2, 70) | st.floats(),
+    transpose=st.booleans(),
+)
+def test_estimate_encode_emits_only_what_decode_accepts(
+    seed: int, name: str, index: int, value: float, transpose: bool
+) -> None:
+    """Snapshots with one entry replaced by a doubtful value (or a covariance transposed, which is
+    harmless, after the entry changed): ``encode_estimate`` refuses them with a
+    LocalProtocolError, or emits bytes that decode back to the same estimate."""
+    snap = make_snapshot(np.random.default_rng(seed), n=int(seed % 3) + 1)
+    array = getattr(snap, name).copy()
+    if name == "classes":
+        array.flat[index % array.size] = int(np.clip(value, -2, 70)) if math.isfinite(value) else 0
+    else:
+        array.flat[index % array.size] = value
+        if transpose and name.endswith("cov"):
+            array = np.swapaxes(array, -1, -2).copy()
+    msg = EstimateMessage("r1", 1, {"local": dataclasses.replace(snap, **{name: array})})
+    try:
+        blob = encode_estimate(msg)
+    except LocalProtocolError as exc:
+        assert exc.field
+        return
+    assert_same_estimate(decode_estimate(blob), msg)
