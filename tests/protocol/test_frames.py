@@ -536,7 +536,7 @@ def _mutate(doc: Any, data: st.DataObject) -> Any:
     return _set(doc, path, data.draw(VALUES))
 
 
-@settings(FUZZ, max_examples=2000)
+@settings(FUZZ, max_examples=1200)
 @given(
     index=st.integers(0, len(BASE_DOCS) - 1),
     edits=st.integers(1, 3),
