@@ -271,12 +271,12 @@ def render(doc: dict[str, Any], console: Console) -> None:
     runs = doc["runs"]
     table = Table(
         title=f"{doc['scenario']}: {runs} run{'s' if runs != 1 else ''}, "
-        f"{doc['particles']} particles, mean over runs"
+        f"{doc['particles']} particles, mean over runs (metres)"
     )
-    for col in ("method", "pose RMSE m", "landmark RMSE m", "final error m"):
-        table.add_column(col, justify="left" if col == "method" else "right")
-    for col in ("relations true / false", "ms per step"):
+    table.add_column("method")
+    for col in ("pose\nRMSE", "landmark\nRMSE", "final\nerror", "relations\ntrue / false"):
         table.add_column(col, justify="right")
+    table.add_column("ms per\nstep", justify="right")
     for entry in doc["table"].values():
         rel = (
             f"{entry['relations_true']:.1f} / {entry['relations_false']:.1f}"
@@ -284,7 +284,7 @@ def render(doc: dict[str, Any], console: Console) -> None:
             else "—"
         )
         table.add_row(
-            entry["label"],
+            entry["label"].replace(" (", "\n("),
             f"{entry['pose_rmse']:.3f}",
             f"{entry['landmark_rmse']:.3f}",
             f"{entry['final_error']:.3f}",

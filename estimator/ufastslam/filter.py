@@ -24,6 +24,7 @@ from estimator.ufastslam.models import (
     inverse_observe,
     motion,
     observe,
+    observe_jacobians,
     relation_residual,
 )
 from estimator.ufastslam.relations import (
@@ -241,14 +242,15 @@ class UFastSLAM:
         mapped_before = self.num_landmarks
         pending = self._associate(usable)
         accepted = self._attach_relations(pending, mapped_before)
+        self._attach_known_rows(pending, mapped_before)
         for p in pending:
             if not p.new:
-                self._propose(self._known_rows(p, mapped_before), p)
+                self._propose(p.rows, p)
         for p in pending:
             if p.new and p.rows:
                 self._propose(p.rows, p)
         self._sample(rng)
-        self._update_known([p for p in pending if not p.new], mapped_before)
+        self._update_known([p for p in pending if not p.new])
         self._add_new([p for p in pending if p.new])
         n_eff = self._n_eff()
         resampled = n_eff < self.config.resample_threshold * self.config.particles
@@ -307,19 +309,15 @@ class UFastSLAM:
         return out
 
     def _weighted_chi2(self, z: Array, mapped: int) -> Array:
-        """Σ_i w_i νᵀ S⁻¹ ν per mapped landmark (L,), S = H_m Σ H_mᵀ + R linearised."""
+        """Σ_i w_i νᵀ S⁻¹ ν per mapped landmark (L,), S = H_x P H_xᵀ + H_m Σ H_mᵀ + R linearised
+        at each particle's predicted pose."""
         mu = self.mu[:, :mapped]
-        d = mu - self.pose[:, None, :2]
-        q = np.maximum(np.einsum("...i,...i->...", d, d), 1e-12)
-        r = np.sqrt(q)
-        h = np.stack(
-            [
-                np.stack([d[..., 0] / r, d[..., 1] / r], -1),
-                np.stack([-d[..., 1] / q, d[..., 0] / q], -1),
-            ],
-            axis=-2,
+        h_x, h_m = observe_jacobians(self.pose[:, None, :], mu)
+        s = (
+            h_m @ self.sigma[:, :mapped] @ np.swapaxes(h_m, -1, -2)
+            + h_x @ self.pose_cov[:, None] @ np.swapaxes(h_x, -1, -2)
+            + self.config.measurement_cov
         )
-        s = h @ self.sigma[:, :mapped] @ np.swapaxes(h, -1, -2) + self.config.measurement_cov
         nu = z - observe(self.pose[:, None, :], mu)
         nu[..., 1] = wrap_angle(nu[..., 1])
         d2 = np.einsum("...i,...i->...", nu, np.linalg.solve(s, nu[..., None])[..., 0])
@@ -388,19 +386,19 @@ class UFastSLAM:
         ref_ids = tuple(self.landmark_ids[r] for r in refs)
         return [AcceptedRelation(group.kind, group.name, self.landmark_ids[p.index], ref_ids)]
 
-    def _known_rows(self, p: _Pending, mapped: int) -> list[Row]:
-        """Relation rows of an already mapped landmark: none in ONCE mode."""
-        if self.config.relations.mode == "once":
-            return []
+    def _attach_known_rows(self, pending: list[_Pending], mapped: int) -> None:
+        """EVERY mode: the relation rows of the already mapped landmarks (none in ONCE mode)."""
+        known = [p for p in pending if not p.new]
+        if self.config.relations.mode == "once" or not known:
+            return
         view = self._map_view(mapped)
-        rows = []
-        for g in self._memberships[p.index]:
-            group = self.groups[g]
-            others = [m for m in group.members if m < mapped and m != p.index]
-            refs = references(group.kind, others, view)
-            if refs:
-                rows.append(Row(group.kind, g, p.index, refs))
-        return rows
+        for p in known:
+            for g in self._memberships[p.index]:
+                group = self.groups[g]
+                others = [m for m in group.members if m < mapped and m != p.index]
+                refs = references(group.kind, others, view)
+                if refs:
+                    p.rows.append(Row(group.kind, g, p.index, refs))
 
     def _map_view(self, mapped: int) -> MapView:
         w = self.weights
@@ -486,12 +484,11 @@ class UFastSLAM:
         self.pose_cov = np.zeros_like(self.pose_cov)
 
     # 6. landmark updates given the sampled pose (batched over landmarks in ONCE mode)
-    def _update_known(self, known: list[_Pending], mapped: int) -> None:
+    def _update_known(self, known: list[_Pending]) -> None:
         plain = []
         for p in known:
-            rows = self._known_rows(p, mapped)
-            if rows:
-                self._update_landmark(p, rows)
+            if p.rows:
+                self._update_landmark(p, p.rows)
             else:
                 plain.append(p)
         if not plain:

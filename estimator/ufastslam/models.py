@@ -43,6 +43,19 @@ def observe(pose: ArrayLike, landmark: ArrayLike) -> Array:
     )
 
 
+def observe_jacobians(pose: ArrayLike, landmark: ArrayLike) -> tuple[Array, Array]:
+    """∂h/∂x (..., 2, 3) and ∂h/∂m (..., 2, 2) of :func:`observe` (for the association gate)."""
+    p = np.asarray(pose, dtype=float)
+    m = np.asarray(landmark, dtype=float)
+    dx, dy = m[..., 0] - p[..., 0], m[..., 1] - p[..., 1]
+    q = np.maximum(dx * dx + dy * dy, 1e-12)
+    r = np.sqrt(q)
+    h_m = np.stack([np.stack([dx / r, dy / r], -1), np.stack([-dy / q, dx / q], -1)], axis=-2)
+    h_x = np.concatenate([-h_m, np.zeros((*h_m.shape[:-1], 1))], axis=-1)
+    h_x[..., 1, 2] = -1.0
+    return h_x, h_m
+
+
 def inverse_observe(pose: ArrayLike, z: ArrayLike) -> Array:
     """h⁻¹(x, z) = p + r[cos(θ + b), sin(θ + b)] → (..., 2)."""
     p = np.asarray(pose, dtype=float)

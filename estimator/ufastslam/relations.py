@@ -199,6 +199,9 @@ def _line_candidate(
 ) -> Candidate | None:
     values: list[float] = []
     variances: list[float] = []
+    # Every mapped member must be within the threshold too, not just the group's mean: the row
+    # is referenced to one member, and a loose test lets one false member chain in others.
+    worst: list[float] = []
     targets: list[tuple[int | None, tuple[int, ...]]] = []
     grouped: set[int] = set()
     for g, group in enumerate(groups):
@@ -207,19 +210,22 @@ def _line_candidate(
         members = [m for m in group.members if m < mapped]
         grouped.update(group.members)
         if members:
-            values.append(view.mean[members, axis].mean())
-            variances.append(view.cov[members, axis, axis].mean())
+            coords = view.mean[members, axis]
+            values.append(float(coords.mean()))
+            variances.append(float(view.cov[members, axis, axis].mean()))
+            worst.append(float(np.max(np.abs(p_hat[axis] - coords))))
             targets.append((g, ()))
     for k in range(mapped):
         if k not in grouped:
-            values.append(view.mean[k, axis])
-            variances.append(view.cov[k, axis, axis])
+            values.append(float(view.mean[k, axis]))
+            variances.append(float(view.cov[k, axis, axis]))
+            worst.append(abs(float(p_hat[axis] - view.mean[k, axis])))
             targets.append((None, (k,)))
     if not values:
         return None
     d = p_hat[axis] - np.asarray(values)
     score = d**2 / (p_cov[axis, axis] + np.asarray(variances) + config.std**2)
-    ok = (np.abs(d) < config.line_threshold) & (score < config.gate)
+    ok = (np.asarray(worst) < config.line_threshold) & (score < config.gate)
     if not ok.any():
         return None
     i = int(np.argmin(np.where(ok, score, np.inf)))

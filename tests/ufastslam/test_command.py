@@ -119,16 +119,20 @@ def two_runs(
 def test_command_prints_the_table(two_runs: tuple[subprocess.CompletedProcess[str], Path]) -> None:
     out = two_runs[0].stdout
     for text in (
-        "corridor: 2 runs, 12 particles",
+        "corridor: 2 runs, 12 particles, mean over runs (metres)",
         "dead reckoning",
         "UFastSLAM",
-        "Semantic UFastSLAM (threshold)",
-        "Semantic UFastSLAM (oracle)",
-        "pose RMSE m",
-        "landmark RMSE m",
-        "final error m",
-        "relations true / false",
-        "ms per step",
+        "Semantic UFastSLAM",
+        "(threshold)",
+        "(oracle)",
+        "pose",
+        "landmark",
+        "final",
+        "RMSE",
+        "error",
+        "relations",
+        "true / false",
+        "ms per",
         "has a lower pose RMSE than UFastSLAM on",
     ):
         assert text in out, text

@@ -7,7 +7,13 @@ import math
 import numpy as np
 import pytest
 
-from estimator.ufastslam.models import inverse_observe, motion, observe, relation_residual
+from estimator.ufastslam.models import (
+    inverse_observe,
+    motion,
+    observe,
+    observe_jacobians,
+    relation_residual,
+)
 from tests.tolerance import assert_angles_close, assert_close
 
 
@@ -18,6 +24,26 @@ def test_observe_and_inverse_observe_round_trip() -> None:
     z = observe(poses, landmarks)
     assert np.all(np.abs(z[:, 1]) <= np.pi)
     assert_close(inverse_observe(poses, z), landmarks)
+
+
+def test_observe_jacobians_match_finite_differences() -> None:
+    rng = np.random.default_rng(1)
+    pose = np.array([0.5, -1.0, 2.9])
+    landmark = np.array([-2.0, 1.5])
+    h_x, h_m = observe_jacobians(pose, landmark)
+    eps = 1e-6
+    for i in range(3):
+        d = np.zeros(3)
+        d[i] = eps
+        diff = observe(pose + d, landmark) - observe(pose - d, landmark)
+        assert_close(h_x[:, i], diff / (2 * eps), rtol=1e-6, atol=1e-8)
+    for i in range(2):
+        d = np.zeros(2)
+        d[i] = eps
+        diff = observe(pose, landmark + d) - observe(pose, landmark - d)
+        assert_close(h_m[:, i], diff / (2 * eps), rtol=1e-6, atol=1e-8)
+    batch_x, _ = observe_jacobians(rng.normal(size=(4, 5, 3)), rng.normal(size=(4, 5, 2)))
+    assert batch_x.shape == (4, 5, 2, 3)
 
 
 def test_observe_range_and_bearing() -> None:

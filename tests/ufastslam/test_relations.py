@@ -75,6 +75,14 @@ def test_detect_joins_the_x_group_within_the_threshold() -> None:
     assert [(c.kind, c.group, c.partners) for c in found] == [("x", 0, ())]
 
 
+def test_detect_needs_every_member_of_a_group_within_the_threshold() -> None:
+    """A group's mean alone would admit a landmark 0.5 m from one of its members."""
+    view = _view([(-1.5, 1.0), (-1.1, 3.5)])
+    groups = [Group("x", "wall", [0, 1])]
+    assert detect(np.array([-1.0, 6.0]), P_COV, view, groups, [], CFG) == []
+    assert [c.group for c in detect(np.array([-1.3, 6.0]), P_COV, view, groups, [], CFG)] == [0]
+
+
 def test_detect_founds_a_group_with_an_ungrouped_landmark() -> None:
     view = _view([(-1.5, 1.0), (4.0, 8.0)])
     found = detect(np.array([4.1, 2.0]), P_COV, view, [], [], CFG)
