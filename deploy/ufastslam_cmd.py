@@ -329,7 +329,7 @@ def plot_paths(
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
     ax.set_title(title, fontsize=10)
-    ax.legend(fontsize=7, loc="best")
+    ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.12), ncol=4)
 
 
 def plot_error_curves(ax: Any, curves: dict[str, Array], dt: float, title: str) -> None:
@@ -366,7 +366,9 @@ def write_plots(out: Path, world: UWorld, runs: list[SeedRun], relations: str) -
     sem_label = f"Semantic UFastSLAM ({relations})"
     odometry = first.methods["odometry"].path
     written = []
-    fig, axes = plt.subplots(1, 2, figsize=(14, 7))
+    extent = np.ptp(np.vstack([world.landmarks, first.truth[:, :2], odometry[:, :2]]), axis=0)
+    height = float(np.clip(6.5 * extent[1] / max(extent[0], 1e-9), 3.0, 10.0))
+    fig, axes = plt.subplots(1, 2, figsize=(14, height + 1.6), layout="constrained")
     plot_paths(axes[0], world, first.truth, odometry, first.methods["ufastslam"], "(a) UFastSLAM")
     plot_paths(axes[1], world, first.truth, odometry, first.methods[semantic], f"(b) {sem_label}")
     fig.suptitle(f"{world.name}, seed {first.seed} (like the paper's Fig. 4, 7, 10)")
