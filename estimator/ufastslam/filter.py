@@ -20,7 +20,6 @@ from numpy.typing import ArrayLike, NDArray
 from estimator.models.se2 import wrap_angle
 from estimator.ufastslam import unscented as ut
 from estimator.ufastslam.models import (
-    REFERENCES,
     inverse_observe,
     motion,
     observe,
@@ -106,10 +105,12 @@ class Observation:
     def __post_init__(self) -> None:
         if len(self.z) != 2 or not all(math.isfinite(v) for v in self.z):
             raise ValueError(f"observation of landmark {self.landmark}: z must be 2 finite numbers")
-        if not isinstance(self.labels, tuple):
+        if isinstance(self.labels, str) or not isinstance(self.labels, tuple | list):
             raise RelationError(
-                f"observation of landmark {self.landmark}: labels must be a tuple of strings"
+                f"observation of landmark {self.landmark}: labels must be a tuple of strings, "
+                f"got {self.labels!r}"
             )
+        object.__setattr__(self, "labels", tuple(self.labels))
         for label in self.labels:
             parse_label(label)
 
@@ -238,7 +239,7 @@ class UFastSLAM:
         usable = [o for o in observations if o.z[0] >= self.config.min_range]
         if not usable:
             ids = (-1,) * len(observations)
-            return StepReport(ids, (), (), self._n_eff(), False)
+            return StepReport(ids, (), (), self._normalise(), False)
         mapped_before = self.num_landmarks
         pending = self._associate(usable)
         accepted = self._attach_relations(pending, mapped_before)
@@ -252,7 +253,7 @@ class UFastSLAM:
         self._sample(rng)
         self._update_known([p for p in pending if not p.new])
         self._add_new([p for p in pending if p.new])
-        n_eff = self._n_eff()
+        n_eff = self._normalise()
         resampled = n_eff < self.config.resample_threshold * self.config.particles
         if resampled:
             self._resample(rng)
@@ -435,14 +436,13 @@ class UFastSLAM:
         else:
             blocks_mean = [self.pose, self.mu[:, p.index]]
             blocks_cov = [self.pose_cov, self.sigma[:, p.index]]
-        ref_idx = [r for row in rows for r in row.refs]
-        for r in ref_idx:
+        refs = _unique_refs(rows)
+        for r in refs:
             blocks_mean.append(self.mu[:, r])
             blocks_cov.append(self.sigma[:, r])
         mean = np.concatenate(blocks_mean, axis=1)
         cov = _block_diag(blocks_cov, (n,))
         new = p.new
-        sizes = [REFERENCES[row.kind] for row in rows]
 
         def g(chi: Array) -> Array:
             pose = chi[..., :3]
@@ -452,7 +452,7 @@ class UFastSLAM:
             else:
                 landmark = chi[..., 3:5]
                 out = [observe(pose, landmark)]
-            out += _relation_rows(rows, sizes, landmark, chi[..., 5:])
+            out += _relation_rows(rows, refs, landmark, chi[..., 5:])
             return np.concatenate(out, axis=-1)
 
         y, r_add, angular = self._measurement(z, len(rows), with_range_bearing=not new)
@@ -517,16 +517,15 @@ class UFastSLAM:
         """One landmark with relation rows; the references are consider states."""
         n = self.config.particles
         z = None if p.new else np.asarray(p.obs.z)
-        refs = [r for row in rows for r in row.refs]
+        refs = _unique_refs(rows)
         mean = np.concatenate([self.mu[:, p.index], *(self.mu[:, r] for r in refs)], axis=1)
         cov = _block_diag([self.sigma[:, p.index], *(self.sigma[:, r] for r in refs)], (n,))
-        sizes = [REFERENCES[row.kind] for row in rows]
         pose = self.pose[:, None, :]
 
         def g(chi: Array) -> Array:
             landmark = chi[..., :2]
             out = [] if z is None else [observe(pose, landmark)]
-            out += _relation_rows(rows, sizes, landmark, chi[..., 2:])
+            out += _relation_rows(rows, refs, landmark, chi[..., 2:])
             return np.concatenate(out, axis=-1)
 
         y, r_add, angular = self._measurement(
@@ -555,7 +554,8 @@ class UFastSLAM:
                 self._update_landmark(p, p.rows)
 
     # 8–9. weights and resampling
-    def _n_eff(self) -> float:
+    def _normalise(self) -> float:
+        """Normalise the log-weights; return N_eff = 1 / Σ w²."""
         self.log_w = self.log_w - _logsumexp(self.log_w)
         w = np.exp(self.log_w)
         return float(1.0 / np.sum(w * w))
@@ -570,16 +570,21 @@ class UFastSLAM:
         self.log_w = np.full(self.config.particles, -math.log(self.config.particles))
 
 
-def _relation_rows(rows: list[Row], sizes: list[int], landmark: Array, refs: Array) -> list[Array]:
-    """Residual columns (..., 1) of every row; ``refs`` (..., 2·Σsizes) holds the references of
-    the rows in order."""
+def _unique_refs(rows: list[Row]) -> list[int]:
+    """The reference landmarks of ``rows``, each once: a landmark that anchors two rows is one
+    consider state, not two independent copies."""
+    return list(dict.fromkeys(r for row in rows for r in row.refs))
+
+
+def _relation_rows(rows: list[Row], refs: list[int], landmark: Array, block: Array) -> list[Array]:
+    """Residual columns (..., 1) of every row; ``block`` (..., 2·len(refs)) holds the reference
+    landmarks ``refs`` in order."""
+    where = {r: i for i, r in enumerate(refs)}
     out = []
-    i = 0
-    for row, k in zip(rows, sizes, strict=True):
-        block = refs[..., 2 * i : 2 * (i + k)]
-        ref = block.reshape(*block.shape[:-1], k, 2)
+    for row in rows:
+        cols = [c for r in row.refs for c in (2 * where[r], 2 * where[r] + 1)]
+        ref = block[..., cols].reshape(*block.shape[:-1], len(row.refs), 2)
         out.append(relation_residual(row.kind, landmark, ref)[..., None])
-        i += k
     return out
 
 

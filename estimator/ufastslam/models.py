@@ -14,8 +14,6 @@ from estimator.models.se2 import wrap_angle
 Array = NDArray[np.float64]
 
 RELATION_KINDS = ("x", "y", "col")
-# How many reference landmarks a row of each kind needs.
-REFERENCES = {"x": 1, "y": 1, "col": 2}
 
 
 def motion(pose: ArrayLike, control: ArrayLike, dt: float) -> Array:

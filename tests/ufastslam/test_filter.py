@@ -14,7 +14,8 @@ from estimator.ufastslam import (
     UFastSLAMConfig,
     systematic_resample,
 )
-from estimator.ufastslam.models import observe
+from estimator.ufastslam import unscented as ut
+from estimator.ufastslam.models import inverse_observe, observe
 from tests.tolerance import assert_close
 
 STILL = np.zeros(2)
@@ -51,6 +52,31 @@ def test_same_x_relation_on_a_new_landmark_corrects_the_heading() -> None:
     uncorrected = heading_after_new_wall_landmark("off")
     assert abs(corrected) < 0.02, corrected
     assert abs(uncorrected - 0.1) < 0.03, uncorrected
+
+
+def test_new_landmark_relation_update_is_the_kalman_update_with_a_consider_state() -> None:
+    """B joins an x group and a y group both anchored at A (a correlated Σ_A): the relations are
+    linear, so B's map update must equal the Kalman update of its initial Gaussian by
+    0 = B − A + n_s with A a consider state counted once, correlations included."""
+    sigma_s = 0.05
+    cfg = UFastSLAMConfig(particles=6, relations=RelationConfig(source="labels", std=sigma_s))
+    slam = UFastSLAM(cfg, np.zeros(3))
+    rng = np.random.default_rng(11)
+    slam.step(STILL, [Observation(1, (3.0, 0.2), ("x:a", "y:b"))], rng)
+    sigma_a = np.array([[0.04, 0.03], [0.03, 0.05]])
+    slam.sigma[:, 0] = sigma_a
+    z = (3.1, 0.25)
+    slam.step(STILL, [Observation(2, z, ("x:a", "y:b"))], rng)
+
+    def h_inv(noise: np.ndarray) -> np.ndarray:
+        return inverse_observe(slam.pose[:, None, :], np.asarray(z) - noise)
+
+    mu_obs, cov_obs = ut.transform(np.zeros(2), cfg.measurement_cov, h_inv)
+    s = cov_obs + sigma_a + sigma_s**2 * np.eye(2)
+    gain = cov_obs @ np.linalg.inv(s)
+    nu = slam.mu[:, 0] - mu_obs
+    assert_close(slam.mu[:, 1], mu_obs + np.einsum("nij,nj->ni", gain, nu), atol=1e-9)
+    assert_close(slam.sigma[:, 1], cov_obs - gain @ cov_obs, atol=1e-9)
 
 
 def test_threshold_detection_finds_the_same_relation() -> None:

@@ -39,6 +39,7 @@ def test_observation_rejects_malformed_labels_at_construction() -> None:
         Observation(4, (2.0, 0.1), ("x:wall", "q:wall"))
     with pytest.raises(RelationError, match="labels must be a tuple"):
         Observation(4, (2.0, 0.1), "x:wall")  # type: ignore[arg-type]
+    assert Observation(4, (2.0, 0.1), ["x:wall"]).labels == ("x:wall",)  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="z must be 2 finite numbers"):
         Observation(4, (float("nan"), 0.1))
 
