@@ -82,3 +82,26 @@ class AllOf:
         self, sender: str, receiver: str, k: int, sender_pos: ArrayLike, receiver_pos: ArrayLike
     ) -> bool:
         return all(m.allowed(sender, receiver, k, sender_pos, receiver_pos) for m in self.models)
+
+
+@dataclass(frozen=True, slots=True)
+class Partition:
+    """Steps ``first``…``last``: robots in ``group`` hear only each other, the rest only the rest
+    (a chaos fault; healed after ``last``)."""
+
+    group: frozenset[str]
+    first: int
+    last: int
+
+    def __post_init__(self) -> None:
+        if not self.group:
+            raise ValueError("a partition needs at least one robot")
+        if not 0 <= self.first <= self.last:
+            raise ValueError(f"partition steps {self.first}-{self.last}: need 0 ≤ first ≤ last")
+
+    def allowed(
+        self, sender: str, receiver: str, k: int, sender_pos: ArrayLike, receiver_pos: ArrayLike
+    ) -> bool:
+        if not self.first <= k <= self.last:
+            return True
+        return (sender in self.group) == (receiver in self.group)

@@ -126,13 +126,22 @@ class RobotNode:
     def on_stack(self, data: bytes) -> bool:
         """Decode and merge a received stack; True if it brought a newer slot. Invalid input is
         counted and dropped: nothing already accepted is lost."""
+        message = self.decode_stack(data)
+        return message is not None and self.merge(message)
+
+    def decode_stack(self, data: bytes) -> StackMessage | None:
+        """Decode a received stack (counted); None, counted by error type, if it is invalid."""
         self.counters.stacks_received += 1
         self.counters.bytes_received += len(data)
         try:
-            message = decode(data, self.limits)
+            return decode(data, self.limits)
         except RemoteProtocolError as exc:
             self._count_error(exc)
-            return False
+            return None
+
+    def merge(self, message: StackMessage) -> bool:
+        """Merge a decoded stack (newest version per owner, never the own slot); True if it
+        brought a newer slot."""
         merged = self.stack.merge(message.stack, own=self.robot)
         if merged.stamps() == self.stack.stamps():
             self.counters.stacks_unchanged += 1
@@ -193,9 +202,13 @@ class RobotNode:
 
     def outgoing(self) -> bytes | None:
         """The encoded stack to gossip, or None while the node has nothing to share."""
-        stack = self.current_stack()
-        if len(stack) == 0:
+        if len(self.current_stack()) == 0:
             return None
+        return self.encoded_stack()
+
+    def encoded_stack(self) -> bytes:
+        """The encoded stack, even when empty (a lock-step agent still announces its round)."""
+        stack = self.current_stack()
         if self._encoded is None:
             self._encoded = encode(StackMessage(self.robot, self.position, stack, self.k))
         return self._encoded

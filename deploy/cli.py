@@ -16,7 +16,15 @@ from collections.abc import Sequence  # noqa: E402
 
 from rich.console import Console  # noqa: E402
 
-from deploy import demo, scenario_cmd, study_cmd, ufastslam_cmd  # noqa: E402
+from deploy import (  # noqa: E402
+    agent_cmd,
+    demo,
+    launch_cmd,
+    scenario_cmd,
+    study_cmd,
+    ufastslam_cmd,
+)
+from deploy.launch import LaunchError  # noqa: E402
 from deploy.study_cmd import StudyError  # noqa: E402
 from sim.scenario import ScenarioError  # noqa: E402
 
@@ -37,6 +45,8 @@ def build_parser() -> argparse.ArgumentParser:
     study_cmd.add_parser(sub)
     demo.add_parser(sub)
     ufastslam_cmd.add_parser(sub)
+    launch_cmd.add_parser(sub)
+    agent_cmd.add_parser(sub)
     return parser
 
 
@@ -54,7 +64,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ScenarioError as exc:
         _error(str(exc))
         return EXIT_USAGE
-    except (OSError, ValueError, StudyError) as exc:
+    except (OSError, ValueError, StudyError, LaunchError) as exc:
         _error(str(exc))
         return EXIT_FAILURE
     except KeyboardInterrupt:

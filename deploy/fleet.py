@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from agents.links import AllOf, LinkModel, Proximity, RandomDrop, Schedule
+from agents.links import AllOf, LinkModel, Partition, Proximity, RandomDrop, Schedule
 from agents.node import LocalTrack, RobotNode
 from estimator.hybrid import BeliefConfig, BeliefModel
 from estimator.models import SensorFrame
@@ -25,10 +25,14 @@ StepCallback = Callable[[str, int, RobotNode, float, float], None]
 
 
 def link_model_for(
-    scenario: Scenario, comm: str | None = None, drop: float = 0.0, seed: int = 0
+    scenario: Scenario,
+    comm: str | None = None,
+    drop: float = 0.0,
+    seed: int = 0,
+    partitions: Sequence[Partition] = (),
 ) -> LinkModel:
     """The scenario's communication as a link model; ``comm`` overrides its mode, ``drop`` adds
-    seeded random loss."""
+    seeded random loss, ``partitions`` cut the fleet for a while."""
     c = scenario.communication
     mode = comm or c.mode
     if mode not in COMM_MODES:
@@ -44,6 +48,8 @@ def link_model_for(
         model = AllOf((schedule, proximity))
     if drop > 0.0:
         model = AllOf((model, RandomDrop(drop, seed)))
+    if partitions:
+        model = AllOf((model, *partitions))
     return model
 
 

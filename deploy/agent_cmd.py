@@ -1,0 +1,233 @@
+"""`semfleet agent --robot ID --config FILE`: one robot of the fleet as an asyncio process.
+
+The config file (TOML, docs/agents.md) names the fleet, the scenario that provides the belief model
+and the link model, the seed, the run mode, the journal and the Zenoh endpoints. The process runs
+until SIGINT/SIGTERM or a ``ctl/stop`` and then closes its Zenoh session and journal within 2 s.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import logging
+import math
+import signal
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from rich.console import Console
+
+from agents.journal import Journal, JournalError, Record
+from agents.links import Partition
+from agents.node import RobotNode
+from agents.runtime import MODES, Agent, RuntimeSettings
+from agents.transport.base import Keys
+from agents.transport.zenoh_transport import ZenohSettings, ZenohTransport
+from deploy.fleet import COMM_MODES, link_model_for
+from deploy.study import belief_model, belief_rng
+from estimator.hybrid import BeliefConfig
+from protocol.codec import valid_id
+from sim.loader import load_scenario
+from sim.scenario import Scenario
+
+log = logging.getLogger("semfleet.agent")
+
+
+class AgentConfigError(ValueError):
+    """A bad agent config: names the file and field."""
+
+    def __init__(self, path: Path, field: str, reason: str) -> None:
+        super().__init__(f"{path}: {field}: {reason}")
+        self.field = field
+
+
+@dataclass(frozen=True, slots=True)
+class AgentConfig:
+    robot: str
+    fleet: str
+    scenario: str
+    variants: tuple[str, ...]
+    seed: int
+    runtime: RuntimeSettings
+    journal: Path | None
+    comm: str | None
+    drop: float
+    partitions: tuple[Partition, ...]
+    zenoh: ZenohSettings
+
+
+def _get(
+    table: dict[str, Any], key: str, kind: type | tuple[type, ...], path: Path, where: str
+) -> Any:
+    value = table[key]
+    if isinstance(value, bool) and bool not in (kind if isinstance(kind, tuple) else (kind,)):
+        raise AgentConfigError(path, f"{where}.{key}", f"expected {_name(kind)}, got a boolean")
+    if not isinstance(value, kind):
+        raise AgentConfigError(
+            path, f"{where}.{key}", f"expected {_name(kind)}, got {type(value).__name__}"
+        )
+    return value
+
+
+def _name(kind: type | tuple[type, ...]) -> str:
+    kinds = kind if isinstance(kind, tuple) else (kind,)
+    return " or ".join(k.__name__ for k in kinds)
+
+
+_AGENT_KEYS = {
+    "fleet", "scenario", "variants", "seed", "mode", "gossip_period", "journal", "comm", "drop",
+    "partitions", "publish_local",
+}  # fmt: skip
+_ZENOH_KEYS = {"listen", "connect", "gossip", "shared_memory", "lease_ms", "config_file"}
+
+
+def load_agent_config(path: Path, robot: str) -> AgentConfig:
+    """Parse and validate an agent config; relative paths are relative to the file's folder."""
+    try:
+        doc = tomllib.loads(path.read_text(encoding="utf-8"))
+    except tomllib.TOMLDecodeError as exc:
+        raise AgentConfigError(path, "toml", str(exc)) from None
+    if not valid_id(robot):
+        raise AgentConfigError(path, "--robot", f"invalid robot id {robot!r}")
+    unknown = set(doc) - {"agent", "zenoh"}
+    if unknown:
+        raise AgentConfigError(path, sorted(unknown)[0], "unknown table (known: agent, zenoh)")
+    a = doc.get("agent", {})
+    z = doc.get("zenoh", {})
+    for table, keys, name in ((a, _AGENT_KEYS, "agent"), (z, _ZENOH_KEYS, "zenoh")):
+        if not isinstance(table, dict):
+            raise AgentConfigError(path, name, "expected a table")
+        extra = set(table) - keys
+        if extra:
+            raise AgentConfigError(path, f"{name}.{sorted(extra)[0]}", "unknown key")
+    if "scenario" not in a:
+        raise AgentConfigError(path, "agent.scenario", "missing")
+    base = path.parent
+    fleet = _get(a, "fleet", str, path, "agent") if "fleet" in a else "default"
+    if not valid_id(fleet):
+        raise AgentConfigError(path, "agent.fleet", f"invalid fleet name {fleet!r}")
+    seed = _get(a, "seed", int, path, "agent") if "seed" in a else 0
+    if not 0 <= seed < 2**63:
+        raise AgentConfigError(path, "agent.seed", "must be in 0..2^63-1")
+    mode = _get(a, "mode", str, path, "agent") if "mode" in a else "realtime"
+    if mode not in MODES:
+        raise AgentConfigError(path, "agent.mode", f"{mode!r} (known: {', '.join(MODES)})")
+    period = (
+        float(_get(a, "gossip_period", (int, float), path, "agent"))
+        if "gossip_period" in a
+        else 0.5
+    )
+    if not (math.isfinite(period) and 0.01 <= period <= 3600):
+        raise AgentConfigError(path, "agent.gossip_period", "must be in 0.01..3600 s")
+    comm = _get(a, "comm", str, path, "agent") if "comm" in a else None
+    if comm is not None and comm not in COMM_MODES:
+        raise AgentConfigError(path, "agent.comm", f"{comm!r} (known: {', '.join(COMM_MODES)})")
+    drop = float(_get(a, "drop", (int, float), path, "agent")) if "drop" in a else 0.0
+    if not 0.0 <= drop <= 1.0:
+        raise AgentConfigError(path, "agent.drop", "must be in [0, 1]")
+    partitions = []
+    for i, p in enumerate(_get(a, "partitions", list, path, "agent") if "partitions" in a else []):
+        where = f"agent.partitions[{i}]"
+        if not (isinstance(p, list) and len(p) == 3 and isinstance(p[0], list)):
+            raise AgentConfigError(path, where, "expected [[robot ids], first step, last step]")
+        try:
+            partitions.append(Partition(frozenset(map(str, p[0])), int(p[1]), int(p[2])))
+        except (TypeError, ValueError) as exc:
+            raise AgentConfigError(path, where, str(exc)) from None
+    journal = None
+    if "journal" in a:
+        journal = base / _get(a, "journal", str, path, "agent")
+    variants = tuple(_get(a, "variants", list, path, "agent")) if "variants" in a else ()
+    runtime = RuntimeSettings(
+        mode=mode,
+        gossip_period=period,
+        publish_local=bool(a.get("publish_local", True)),
+    )
+    listen = tuple(_get(z, "listen", list, path, "zenoh")) if "listen" in z else ()
+    connect = tuple(_get(z, "connect", list, path, "zenoh")) if "connect" in z else ()
+    for name, endpoints in (("listen", listen), ("connect", connect)):
+        for e in endpoints:
+            if not isinstance(e, str) or "/" not in e:
+                raise AgentConfigError(
+                    path, f"zenoh.{name}", f"bad endpoint {e!r} (e.g. tcp/127.0.0.1:7447)"
+                )
+    config_file = base / z["config_file"] if z.get("config_file") else None
+    zenoh_settings = ZenohSettings(
+        listen=listen,
+        connect=connect,
+        gossip=bool(z.get("gossip", True)),
+        shared_memory=bool(z.get("shared_memory", False)),
+        lease_ms=int(z.get("lease_ms", 3000)),
+        config_file=config_file,
+    )
+    scenario = _get(a, "scenario", str, path, "agent")
+    if scenario.endswith(".toml") and not Path(scenario).is_absolute():
+        scenario = str(base / scenario)
+    return AgentConfig(
+        robot, fleet, scenario, tuple(map(str, variants)), seed, runtime, journal, comm, drop,
+        tuple(partitions), zenoh_settings,
+    )  # fmt: skip
+
+
+def build_agent(config: AgentConfig, scenario: Scenario, transport: ZenohTransport) -> Agent:
+    """The node (L and D seeded exactly like the in-process runner's), its journal, the agent."""
+    if config.robot not in scenario.robot_ids:
+        raise AgentConfigError(
+            Path(config.scenario), "--robot", f"{config.robot} is not in the scenario"
+        )
+    model = belief_model(scenario)
+    start = scenario.robot(config.robot).start
+    rng = lambda: belief_rng(config.seed, [config.robot])  # noqa: E731
+    node = RobotNode(config.robot, start, model, rng(), rng(), BeliefConfig())
+    links = link_model_for(scenario, config.comm, config.drop, config.seed, config.partitions)
+    journal = None
+    records: list[Record] = []
+    if config.journal is not None:
+        identity: dict[str, str | int] = {
+            "robot": config.robot,
+            "fleet": config.fleet,
+            "scenario": scenario.name,
+            "seed": config.seed,
+            "mode": config.runtime.mode,
+        }
+        journal, records = Journal.open(config.journal, identity)
+    agent = Agent(node, transport, Keys(config.fleet), links, config.runtime, journal)
+    agent.replay(records)
+    return agent
+
+
+async def serve(config: AgentConfig) -> int:
+    scenario = load_scenario(config.scenario, config.variants)
+    transport = ZenohTransport(config.zenoh)
+    agent = build_agent(config, scenario, transport)
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, agent.stop, signal.Signals(sig).name)
+    log.info("%s: up at step %d (%s mode)", config.robot, agent.node.k, config.runtime.mode)
+    await agent.run()
+    counters = agent.counter_values()
+    log.info("%s: stopped (%s) %s", config.robot, agent.stop_reason, counters)
+    return 0
+
+
+def run(args: argparse.Namespace, console: Console) -> int:
+    config = load_agent_config(Path(args.config), args.robot)
+    logging.getLogger("semfleet").setLevel(logging.INFO)
+    logging.getLogger("agents").setLevel(logging.INFO)
+    try:
+        return asyncio.run(serve(config))
+    except JournalError as exc:
+        raise ValueError(f"journal: {exc}") from None
+    finally:
+        with contextlib.suppress(Exception):
+            logging.shutdown()
+
+
+def add_parser(sub: Any) -> None:
+    p = sub.add_parser("agent", help="run one robot of the fleet (asyncio, Zenoh)")
+    p.add_argument("--robot", required=True, help="the robot id (as in the scenario)")
+    p.add_argument("--config", required=True, help="agent config TOML (docs/agents.md)")
+    p.set_defaults(run=run)

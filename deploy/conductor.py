@@ -1,0 +1,247 @@
+"""The conductor of a simulated fleet: the world's side of a launch.
+
+It publishes every robot's sensor frames (``frames/<robot>``), orders lock-step rounds
+(``ctl/step``) with the links the scenario's link model allows on ground truth, answers agents'
+requests for missing frames (``ctl/need``), and collects their estimates (``estimate/<robot>``),
+which it scores against ground truth into the same metrics as ``semfleet study``.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from agents.control import NeedFrames, StepOrder, Stop, decode_control, encode_control
+from agents.links import LinkModel
+from agents.transport.base import Inbox, Keys, Transport
+from estimator.metrics import METRICS, evaluate
+from estimator.models import SensorFrame
+from protocol.errors import RemoteProtocolError
+from protocol.estimate import EstimateMessage, decode_estimate
+from protocol.frames import encode_frame
+from sim.scenario import Scenario
+
+log = logging.getLogger(__name__)
+
+Array = NDArray[np.float64]
+BELIEFS = {"local": "local", "distributed": "distributed"}
+
+
+class ConductorError(RuntimeError):
+    """The run cannot go on (an agent is gone, a deadline passed)."""
+
+
+@dataclass(slots=True)
+class Collected:
+    """What came back: metrics per belief (robots, steps), step times and the agents' counters."""
+
+    metrics: dict[str, dict[str, Array]]
+    step_ms: dict[str, list[float]] = field(default_factory=dict)
+    counters: dict[str, dict[str, int]] = field(default_factory=dict)
+    received: dict[str, int] = field(default_factory=dict)
+    invalid: int = 0
+    last_step: dict[str, int] = field(default_factory=dict)
+    final: dict[str, EstimateMessage] = field(default_factory=dict)
+
+
+def links_at(
+    links: LinkModel, frames: Mapping[str, Sequence[SensorFrame]], robots: Sequence[str], k: int
+) -> dict[str, tuple[str, ...]]:
+    """Who hears whom at the start of step k, on the true poses of step k (as the in-process
+    runner delivers)."""
+    pos = {r: frames[r][k - 1].true_pose for r in robots}
+    return {
+        receiver: tuple(
+            s
+            for s in robots
+            if s != receiver and links.allowed(s, receiver, k, pos[s], pos[receiver])
+        )
+        for receiver in robots
+    }
+
+
+class Conductor:
+    """Drives ``robots`` of ``scenario`` through its steps over ``transport``."""
+
+    def __init__(
+        self,
+        scenario: Scenario,
+        frames: Mapping[str, Sequence[SensorFrame]],
+        robots: Sequence[str],
+        transport: Transport,
+        keys: Keys,
+        links: LinkModel,
+        retry_period: float = 0.5,
+    ) -> None:
+        self.scenario = scenario
+        self.frames = frames
+        self.robots = list(robots)
+        self.transport = transport
+        self.keys = keys
+        self.links = links
+        self.retry_period = retry_period
+        self.estimates = Inbox(100_000)
+        self.control = Inbox(10_000)
+        self.alive_events = Inbox(10_000)
+        self.alive: set[str] = set()
+        self.k = 0
+        self.published_up_to: dict[str, int] = {r: 0 for r in self.robots}
+        truth = {o.id: (np.array(o.pose), o.class_index) for o in scenario.objects}
+        self._truth = truth
+        shape = (len(self.robots), scenario.steps)
+        self.collected = Collected(
+            {b: {m: np.full(shape, np.nan) for m in METRICS} for b in BELIEFS}
+        )
+        self._index = {r: i for i, r in enumerate(self.robots)}
+        self._acked: dict[str, int] = {r: 0 for r in self.robots}
+
+    async def open(self) -> None:
+        self.transport.subscribe(self.keys.estimate("*"), self.estimates)
+        self.transport.subscribe(self.keys.ctl("need", "*"), self.control)
+        self.transport.watch_alive(self.keys.alive("*"), self.alive_events)
+        await self.transport.open()
+
+    # -- helpers -----------------------------------------------------------------------------
+
+    def _publish_frames(self, robot: str, first: int, last: int) -> None:
+        for k in range(max(first, 1), last + 1):
+            self.transport.publish(self.keys.frames(robot), encode_frame(self.frames[robot][k - 1]))
+        self.published_up_to[robot] = max(self.published_up_to[robot], last)
+
+    def _order(self, k: int) -> None:
+        order = StepOrder(k, links_at(self.links, self.frames, self.robots, k))
+        self.transport.publish(self.keys.ctl("step"), encode_control(order))
+
+    def pump(self) -> None:
+        """Handle everything that arrived: liveliness, frame requests, estimates."""
+        for m in self.alive_events.drain():
+            robot = self.keys.robot_of(m.key)
+            if robot in self._index:
+                (self.alive.add if m.kind == "alive" else self.alive.discard)(robot)
+        for m in self.control.drain():
+            try:
+                need = decode_control(m.payload)
+            except RemoteProtocolError:
+                continue
+            if isinstance(need, NeedFrames) and need.robot in self._index and self.k > 0:
+                self._publish_frames(need.robot, need.k, self.k)
+                if need.k <= self.k:
+                    self._order(self.k)
+        for m in self.estimates.drain():
+            self._on_estimate(m.payload)
+
+    def _on_estimate(self, data: bytes) -> None:
+        try:
+            est = decode_estimate(data)
+        except RemoteProtocolError as exc:
+            self.collected.invalid += 1
+            log.warning("invalid estimate: %s", exc)
+            return
+        if est.robot not in self._index or not 1 <= est.k <= self.scenario.steps:
+            return
+        c = self.collected
+        c.received[est.robot] = c.received.get(est.robot, 0) + 1
+        c.counters[est.robot] = dict(est.counters)
+        c.final[est.robot] = est
+        c.last_step[est.robot] = max(c.last_step.get(est.robot, 0), est.k)
+        self._acked[est.robot] = max(self._acked[est.robot], est.k)
+        i = self._index[est.robot]
+        true_pose = self.frames[est.robot][est.k - 1].true_pose
+        for belief, snap in est.beliefs.items():
+            if belief not in c.metrics:
+                continue
+            values = evaluate(snap, self.scenario.num_classes, true_pose, self._truth)
+            for name, value in values.items():
+                c.metrics[belief][name][i, est.k - 1] = value
+        for belief, key in (("local", "step_us_local"), ("distributed", "step_us_distributed")):
+            if key in est.counters:
+                c.step_ms.setdefault(belief, []).append(est.counters[key] / 1e3)
+
+    def acked(self, robot: str) -> int:
+        return self._acked[robot]
+
+    # -- runs --------------------------------------------------------------------------------
+
+    async def wait_alive(self, timeout: float, check: Callable[[], None] | None = None) -> None:
+        deadline = time.monotonic() + timeout
+        while set(self.robots) - self.alive:
+            if check is not None:
+                check()
+            if time.monotonic() > deadline:
+                missing = sorted(set(self.robots) - self.alive)
+                raise ConductorError(f"agents {missing} did not come up within {timeout:.0f} s")
+            await self.alive_events.wait(0.1)
+            self.pump()
+
+    async def run_lockstep(
+        self,
+        steps: int,
+        on_step: Callable[[int], None] | None = None,
+        check: Callable[[], None] | None = None,
+        step_timeout: float = 120.0,
+    ) -> None:
+        """Round by round: order round k, send frame k, wait for every agent's estimate of k
+        (re-sending what an agent may have missed every ``retry_period``)."""
+        for k in range(1, steps + 1):
+            self.k = k
+            self._order(k)
+            for r in self.robots:
+                self._publish_frames(r, k, k)
+            deadline = time.monotonic() + step_timeout
+            last_send = time.monotonic()
+            while any(self._acked[r] < k for r in self.robots):
+                if check is not None:
+                    check()
+                await self.estimates.wait(0.05)
+                self.pump()
+                now = time.monotonic()
+                if now > deadline:
+                    late = [r for r in self.robots if self._acked[r] < k]
+                    raise ConductorError(f"step {k}: no estimate from {late} in {step_timeout} s")
+                if now - last_send > self.retry_period:
+                    last_send = now
+                    self._order(k)
+                    for r in self.robots:
+                        if self._acked[r] < k:
+                            self._publish_frames(r, k, k)
+            if on_step is not None:
+                on_step(k)
+
+    async def run_realtime(
+        self,
+        steps: int,
+        period: float,
+        on_step: Callable[[int], None] | None = None,
+        check: Callable[[], None] | None = None,
+        settle: float = 10.0,
+    ) -> None:
+        """One frame per robot every ``period`` seconds whatever the agents do; then up to
+        ``settle`` seconds for the last estimates."""
+        start = time.monotonic()
+        for k in range(1, steps + 1):
+            self.k = k
+            for r in self.robots:
+                self._publish_frames(r, k, k)
+            if on_step is not None:
+                on_step(k)
+            while time.monotonic() < start + k * period:
+                if check is not None:
+                    check()
+                await self.estimates.wait(
+                    max(0.0, min(0.05, start + k * period - time.monotonic()))
+                )
+                self.pump()
+        deadline = time.monotonic() + settle
+        while any(self._acked[r] < steps for r in self.robots) and time.monotonic() < deadline:
+            if check is not None:
+                check()
+            await self.estimates.wait(0.05)
+            self.pump()
+
+    def stop_agents(self, reason: str = "run complete") -> None:
+        self.transport.publish(self.keys.ctl("stop"), encode_control(Stop(reason)))

@@ -1,0 +1,218 @@
+"""`semfleet launch` and `semfleet chaos`: multi-process runs of a scenario over loopback Zenoh."""
+
+from __future__ import annotations
+
+import argparse
+import re
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from rich.console import Console
+from rich.table import Table
+
+from agents.links import Partition
+from deploy.args import positive_int, seed
+from deploy.fleet import COMM_MODES
+from deploy.launch import LAUNCH_METHODS, Faults, LaunchOutcome, LaunchPlan, launch
+from deploy.results import summarise, write_results
+from deploy.study import run_single
+from deploy.study_cmd import render_summary, write_plots
+from estimator.hybrid import BeliefConfig
+from sim.loader import load_scenario
+from sim.scenario import Scenario
+
+_ROBOT_AT = re.compile(r"^([A-Za-z0-9_-]{1,32})@(\d+)$")
+_PARTITION = re.compile(r"^([A-Za-z0-9_,-]+):(\d+)-(\d+)$")
+
+
+def robot_at(text: str) -> tuple[str, int]:
+    m = _ROBOT_AT.fullmatch(text)
+    if not m:
+        raise argparse.ArgumentTypeError(f"expected ROBOT@STEP, got {text!r}")
+    return m.group(1), int(m.group(2))
+
+
+def partition(text: str) -> Partition:
+    m = _PARTITION.fullmatch(text)
+    if not m:
+        raise argparse.ArgumentTypeError(f"expected IDS:FROM-TO (e.g. r1,r2:20-30), got {text!r}")
+    ids = frozenset(i for i in m.group(1).split(",") if i)
+    try:
+        return Partition(ids, int(m.group(2)), int(m.group(3)))
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def probability(text: str) -> float:
+    try:
+        p = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number in [0, 1], got {text!r}") from None
+    if not 0.0 <= p <= 1.0:
+        raise argparse.ArgumentTypeError(f"expected a number in [0, 1], got {text!r}")
+    return p
+
+
+def positive_float(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}") from None
+    if not (v > 0 and v < 1e6):
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}")
+    return v
+
+
+def _robots(scenario: Scenario, text: str) -> list[str]:
+    if text == "all":
+        return list(scenario.robot_ids)
+    robots = [r for r in text.split(",") if r]
+    unknown = [r for r in robots if r not in scenario.robot_ids]
+    if unknown or not robots:
+        known = ", ".join(scenario.robot_ids)
+        raise ValueError(f"--robots: unknown robots {unknown} (scenario has {known})")
+    return robots
+
+
+def write_outputs(
+    plan: LaunchPlan, outcome: LaunchOutcome, console: Console, extra: dict[str, Any]
+) -> dict[str, Any]:
+    """results.json/npz and plots like `semfleet study`, and the summary table."""
+    s = plan.scenario
+    methods = list(LAUNCH_METHODS)
+    doc = summarise(s.name, [outcome.result], methods, extra)
+    write_results(plan.out, doc, [outcome.result], methods)
+    steps = min(s.steps, plan.steps or s.steps)
+    at = sorted({max(1, steps // 4), max(1, steps // 2), max(1, 3 * steps // 4), steps})
+    render_summary(doc, console, at)
+    plots = write_plots(plan.out, doc, s, [outcome.result], steps, plan.robots[0])
+    console.print(f"wrote {plan.out / 'results.json'} and {len(plots)} plots in {plan.out}")
+    return doc
+
+
+def counters_table(outcome: LaunchOutcome) -> Table:
+    names = (
+        "step", "stacks_sent", "stacks_received", "stacks_merged", "stacks_invalid",
+        "ignored_out_of_range", "frames_processed", "replayed_frames", "bytes_sent",
+    )  # fmt: skip
+    t = Table(title="agent counters (last estimate)")
+    t.add_column("robot")
+    for n in names:
+        t.add_column(n.replace("_", " "), justify="right")
+    for r, c in sorted(outcome.collected.counters.items()):
+        t.add_row(r, *(f"{c.get(n, 0):,}" for n in names))
+    return t
+
+
+def run_launch(args: argparse.Namespace, console: Console) -> int:
+    scenario = load_scenario(args.scenario)
+    plan = LaunchPlan(
+        scenario,
+        args.seed,
+        _robots(scenario, args.robots),
+        Path(args.out),
+        mode=args.mode,
+        period=args.period,
+        comm=args.comm,
+        steps=args.steps,
+    )
+    console.print(
+        f"launching {len(plan.robots)} agents of {scenario.name} ({plan.mode}, seed {plan.seed}) "
+        f"on loopback Zenoh; logs in {plan.out / 'logs'}"
+    )
+    outcome = launch(plan, args.scenario, console)
+    console.print(counters_table(outcome))
+    console.print(f"run took {outcome.wall_s:.1f} s")
+    write_outputs(plan, outcome, console, {"launch": {"mode": plan.mode, "wall_s": outcome.wall_s}})
+    return 0
+
+
+def run_chaos(args: argparse.Namespace, console: Console) -> int:
+    scenario = load_scenario(args.scenario)
+    kills, restarts = tuple(args.kill), tuple(args.restart)
+    for r, _ in (*kills, *restarts):
+        if r not in scenario.robot_ids:
+            raise ValueError(f"--kill/--restart: unknown robot {r!r}")
+    faults = Faults(args.drop, tuple(args.partition), kills, restarts, args.garbage)
+    plan = LaunchPlan(
+        scenario,
+        args.seed,
+        list(scenario.robot_ids),
+        Path(args.out),
+        mode="realtime",
+        period=args.period,
+        comm=args.comm,
+        faults=faults,
+        steps=args.steps,
+    )
+    console.print(
+        f"chaos on {scenario.name}, seed {plan.seed}: drop {faults.drop}, partitions "
+        f"{[(sorted(p.group), p.first, p.last) for p in faults.partitions]}, kills {list(kills)}, "
+        f"restarts {list(restarts)}, garbage {faults.garbage_rate}/s "
+        f"(realtime, period {plan.period} s)"
+    )
+    outcome = launch(plan, args.scenario, console)
+    for e in outcome.events:
+        console.print(f"- {e}")
+    console.print(f"- garbage stacks published: {outcome.garbage_sent}")
+    console.print(counters_table(outcome))
+    doc = write_outputs(plan, outcome, console, {"chaos": {"events": outcome.events}})
+    steps = plan.steps or scenario.steps
+    reference = run_single(
+        scenario, ["local", "distributed"], plan.seed, BeliefConfig(), None, args.comm
+    )
+    t = Table(
+        title=f"final step {steps}: chaos run vs the lossless in-process run of seed {plan.seed}"
+    )
+    t.add_column("metric")
+    for m in LAUNCH_METHODS:
+        t.add_column(f"{m} chaos", justify="right")
+        t.add_column(f"{m} lossless", justify="right")
+    for metric in ("msde", "robot_error", "object_error", "hypotheses"):
+        row = [metric]
+        for m in LAUNCH_METHODS:
+            got = doc["methods"][m]["mean"][metric][steps - 1]
+            ref = float(np.nanmean(reference.metrics[m][metric][:, steps - 1]))
+            row += ["—" if got is None else f"{got:.4f}", f"{ref:.4f}"]
+        t.add_row(*row)
+    console.print(t)
+    return 0
+
+
+def _common(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--scenario", required=True, help="bundled scenario name or TOML file")
+    p.add_argument("--seed", type=seed, default=0, help="seed of the simulated world (default 0)")
+    p.add_argument(
+        "--period", type=positive_float, default=0.5, help="realtime step period in s (default 0.5)"
+    )
+    p.add_argument(
+        "--comm",
+        choices=COMM_MODES,
+        default=None,
+        help="override the scenario's communication mode",
+    )
+    p.add_argument("--steps", type=positive_int, default=None, help="run only the first N steps")
+
+
+def add_parser(sub: Any) -> None:
+    p = sub.add_parser("launch", help="run a scenario as one process per robot over Zenoh")
+    _common(p)
+    p.add_argument("--mode", choices=("lockstep", "realtime"), default="lockstep")
+    p.add_argument("--robots", default="all", help="'all' or comma-separated robot ids")
+    p.add_argument("--out", default="out/launch", help="folder for results, logs, journals")
+    p.set_defaults(run=run_launch)
+
+    c = sub.add_parser("chaos", help="a realtime launch with loss, partitions, kills and garbage")
+    _common(c)
+    c.add_argument("--drop", type=probability, default=0.0, help="probability of losing a stack")
+    c.add_argument(
+        "--partition", type=partition, action="append", default=[], metavar="IDS:FROM-TO"
+    )
+    c.add_argument("--kill", type=robot_at, action="append", default=[], metavar="ID@STEP")
+    c.add_argument("--restart", type=robot_at, action="append", default=[], metavar="ID@STEP")
+    c.add_argument(
+        "--garbage", type=float, default=0.0, metavar="RATE", help="garbage stacks per second"
+    )
+    c.add_argument("--out", default="out/chaos", help="folder for results, logs, journals")
+    c.set_defaults(run=run_chaos)
