@@ -21,6 +21,7 @@ from agents.links import LinkModel
 from agents.transport.base import Inbox, Keys, Transport
 from estimator.metrics import METRICS, evaluate
 from estimator.models import SensorFrame
+from protocol.codec import decode
 from protocol.errors import RemoteProtocolError
 from protocol.estimate import EstimateMessage, decode_estimate
 from protocol.frames import encode_frame
@@ -47,6 +48,8 @@ class Collected:
     invalid: int = 0
     last_step: dict[str, int] = field(default_factory=dict)
     final: dict[str, EstimateMessage] = field(default_factory=dict)
+    estimates: dict[tuple[str, int], EstimateMessage] = field(default_factory=dict)
+    stack_log: list[tuple[float, str, dict[str, int]]] = field(default_factory=list)
 
 
 def links_at(
@@ -77,7 +80,11 @@ class Conductor:
         keys: Keys,
         links: LinkModel,
         retry_period: float = 0.5,
+        keep_estimates: bool = False,
+        observe_stacks: bool = False,
     ) -> None:
+        """``keep_estimates``: keep every decoded estimate in ``collected.estimates``;
+        ``observe_stacks``: log (time, robot, {owner: stamp}) of every stack heard."""
         self.scenario = scenario
         self.frames = frames
         self.robots = list(robots)
@@ -85,6 +92,9 @@ class Conductor:
         self.keys = keys
         self.links = links
         self.retry_period = retry_period
+        self.keep_estimates = keep_estimates
+        self.observe_stacks = observe_stacks
+        self.stacks = Inbox(100_000)
         self.estimates = Inbox(100_000)
         self.control = Inbox(10_000)
         self.alive_events = Inbox(10_000)
@@ -104,6 +114,8 @@ class Conductor:
         self.transport.subscribe(self.keys.estimate("*"), self.estimates)
         self.transport.subscribe(self.keys.ctl("need", "*"), self.control)
         self.transport.watch_alive(self.keys.alive("*"), self.alive_events)
+        if self.observe_stacks:
+            self.transport.subscribe(self.keys.stack("*"), self.stacks)
         await self.transport.open()
 
     # -- helpers -----------------------------------------------------------------------------
@@ -134,6 +146,17 @@ class Conductor:
                     self._order(self.k)
         for m in self.estimates.drain():
             self._on_estimate(m.payload)
+        now = time.monotonic()
+        for m in self.stacks.drain():
+            robot = self.keys.robot_of(m.key)
+            if robot not in self._index:
+                continue
+            try:
+                message = decode(m.payload)
+            except RemoteProtocolError:
+                continue
+            if message.sender == robot:
+                self.collected.stack_log.append((now, robot, message.stack.stamps()))
 
     def _on_estimate(self, data: bytes) -> None:
         try:
@@ -148,6 +171,8 @@ class Conductor:
         c.received[est.robot] = c.received.get(est.robot, 0) + 1
         c.counters[est.robot] = dict(est.counters)
         c.final[est.robot] = est
+        if self.keep_estimates:
+            c.estimates[(est.robot, est.k)] = est
         c.last_step[est.robot] = max(c.last_step.get(est.robot, 0), est.k)
         self._acked[est.robot] = max(self._acked[est.robot], est.k)
         i = self._index[est.robot]

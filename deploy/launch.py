@@ -87,6 +87,8 @@ class LaunchPlan:
     steps: int | None = None
     zenoh_neighbours: Mapping[str, Sequence[str]] | None = None  # None: full mesh via gossip
     publish_local: bool = True
+    keep_estimates: bool = False  # every estimate in LaunchOutcome.collected.estimates
+    observe_stacks: bool = False  # log every robot's stack stamps (collected.stack_log)
 
 
 @dataclass(slots=True)
@@ -266,7 +268,16 @@ class Launcher:
                 gossip=plan.zenoh_neighbours is None,
             )
         )
-        conductor = Conductor(plan.scenario, frames, plan.robots, transport, keys, self.links)
+        conductor = Conductor(
+            plan.scenario,
+            frames,
+            plan.robots,
+            transport,
+            keys,
+            self.links,
+            keep_estimates=plan.keep_estimates,
+            observe_stacks=plan.observe_stacks,
+        )
         kills = {k: r for r, k in plan.faults.kills}
         restarts = {k: r for r, k in plan.faults.restarts}
         garbage: asyncio.Task[None] | None = None
