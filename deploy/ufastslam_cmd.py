@@ -48,6 +48,8 @@ LABELS = {
 }
 METRICS = ("pose_rmse", "landmark_rmse", "final_error", "step_ms")
 COUNTS = ("relations_true", "relations_false")
+# Variance floor (m², rad²) when the particles' pose covariance is singular.
+_NEES_FLOOR = 1e-12
 # The filter's random stream of a run; the same for every method, so that relations "off" is
 # bit-identical to plain UFastSLAM.
 _FILTER_STREAM = 0x5EED
@@ -55,8 +57,9 @@ _FILTER_STREAM = 0x5EED
 
 @dataclass(frozen=True, slots=True)
 class MethodRun:
-    """One method on one run: the metrics, the estimated path (steps + 1, 3), the final map
-    (landmark ids, (L, 2)) and the relation groups it used (kind, name, member ids)."""
+    """One method on one run: the metrics (``pose_nees``: mean over steps, filters only), the
+    estimated path (steps + 1, 3), the final map (landmark ids, (L, 2)) and the relation groups it
+    used (kind, name, member ids)."""
 
     pose_rmse: float
     landmark_rmse: float
@@ -64,6 +67,7 @@ class MethodRun:
     step_ms: float
     relations_true: int
     relations_false: int
+    pose_nees: float | None
     path: Array
     map_ids: tuple[int, ...]
     map_xy: Array
@@ -117,7 +121,18 @@ def dead_reckoning(world: UWorld, run: Run) -> MethodRun:
     xy = np.array([np.mean(sums[i], axis=0) for i in ids]).reshape(-1, 2)
     pose_rmse, lm_rmse, final = _errors(world, run, path, ids, xy)
     step_ms = 1e3 * elapsed / world.steps
-    return MethodRun(pose_rmse, lm_rmse, final, step_ms, 0, 0, path, tuple(ids), xy, ())
+    return MethodRun(pose_rmse, lm_rmse, final, step_ms, 0, 0, None, path, tuple(ids), xy, ())
+
+
+def pose_nees(mean: Array, cov: Array, truth: Array) -> float:
+    """Normalised estimation error squared of a pose belief N(mean, cov), 3 dof, θ wrapped; a
+    singular covariance is floored (a collapsed particle set is reported as overconfident, not
+    hidden)."""
+    e = truth - mean
+    e[2] = (e[2] + math.pi) % (2 * math.pi) - math.pi
+    w, v = np.linalg.eigh(0.5 * (cov + cov.T))
+    proj = v.T @ e
+    return float(np.sum(proj**2 / np.maximum(w, _NEES_FLOOR)))
 
 
 def relation_is_true(world: UWorld, relation: AcceptedRelation) -> bool:
@@ -137,6 +152,7 @@ def run_filter(world: UWorld, run: Run, config: UFastSLAMConfig) -> MethodRun:
     path[0] = world.start
     true_rel = false_rel = 0
     elapsed = 0.0
+    nees = np.empty(world.steps)
     for frame in run.frames:
         obs = [
             Observation(int(i), (float(z[0]), float(z[1])), world.labels[int(i)] if oracle else ())
@@ -146,6 +162,7 @@ def run_filter(world: UWorld, run: Run, config: UFastSLAMConfig) -> MethodRun:
         report = slam.step(run.odometry[frame.k - 1], obs, rng)
         path[frame.k] = slam.pose_estimate()
         elapsed += time.perf_counter() - start
+        nees[frame.k - 1] = pose_nees(*slam.pose_moments(), run.truth[frame.k])
         for rel in report.relations:
             if relation_is_true(world, rel):
                 true_rel += 1
@@ -155,8 +172,19 @@ def run_filter(world: UWorld, run: Run, config: UFastSLAMConfig) -> MethodRun:
     pose_rmse, lm_rmse, final = _errors(world, run, path, ids, xy)
     groups = tuple((k, n, tuple(m)) for k, n, m in slam.group_members())
     step_ms = 1e3 * elapsed / world.steps
+    mean_nees = float(np.mean(nees))
     return MethodRun(
-        pose_rmse, lm_rmse, final, step_ms, true_rel, false_rel, path, tuple(ids), xy, groups
+        pose_rmse,
+        lm_rmse,
+        final,
+        step_ms,
+        true_rel,
+        false_rel,
+        mean_nees,
+        path,
+        tuple(ids),
+        xy,
+        groups,
     )
 
 
@@ -206,6 +234,8 @@ def _stats(runs: list[SeedRun], method: str) -> dict[str, float]:
         out.update(
             {c: float(np.mean([getattr(r.methods[method], c) for r in runs])) for c in COUNTS}
         )
+    if method != "odometry":
+        out["pose_nees"] = float(np.mean([r.methods[method].pose_nees for r in runs]))
     return out
 
 
@@ -259,6 +289,8 @@ def write_results(out: Path, doc: dict[str, Any], runs: list[SeedRun], relations
             arrays[f"{name}/{metric}"] = np.array(
                 [getattr(r.methods[method], metric) for r in runs]
             )
+        if method != "odometry":
+            arrays[f"{name}/pose_nees"] = np.array([r.methods[method].pose_nees for r in runs])
         paths = np.stack([r.methods[method].path for r in runs])
         arrays[f"{name}/path"] = paths
         arrays[f"{name}/position_error"] = np.linalg.norm(
@@ -292,6 +324,10 @@ def render(doc: dict[str, Any], console: Console) -> None:
             f"{entry['step_ms']:.3f}",
         )
     console.print(table)
+    nees = ", ".join(
+        f"{e['label']} {e['pose_nees']:.1f}" for e in doc["table"].values() if "pose_nees" in e
+    )
+    console.print(f"pose NEES (3 dof, mean over steps and runs; 3 if consistent): {nees}")
     relations = doc["methods"]["semantic_ufastslam"]["relations"]
     if relations != "off":
         console.print(

@@ -216,6 +216,16 @@ class UFastSLAM:
         theta = math.atan2(float(w @ np.sin(self.pose[:, 2])), float(w @ np.cos(self.pose[:, 2])))
         return np.array([xy[0], xy[1], theta])
 
+    def pose_moments(self) -> tuple[Array, Array]:
+        """The filter's pose belief as a Gaussian: the weighted mean (3,) and the covariance
+        (3, 3) of the particles' spread plus their mean proposal covariance (θ wrapped)."""
+        w = self.weights
+        mean = self.pose_estimate()
+        dev = self.pose - mean
+        dev[:, 2] = wrap_angle(dev[:, 2])
+        cov = np.einsum("i,ik,im->km", w, dev, dev) + np.einsum("i,ikm->km", w, self.pose_cov)
+        return mean, cov
+
     def map_estimate(self) -> tuple[list[int], Array]:
         """Landmark ids and their weighted mean positions (L, 2)."""
         n = self.num_landmarks
@@ -355,7 +365,7 @@ class UFastSLAM:
                         g = self._new_group(parsed.kind, parsed.key, [])
                     accepted += self._join(p, g, mapped, view)
             return accepted
-        pose, pose_cov = self._pose_moments()
+        pose, pose_cov = self.pose_moments()
         covisible = [p.index for p in pending if not p.new]
         for p in new:
             p_hat, p_cov = self._inverse_moments(pose, pose_cov, np.asarray(p.obs.z))
@@ -408,14 +418,6 @@ class UFastSLAM:
         dev = mu - mean
         spread = np.einsum("i,ilk,ilm->lkm", w, dev, dev)
         return MapView(mean, np.einsum("i,ilkm->lkm", w, sigma) + spread)
-
-    def _pose_moments(self) -> tuple[Array, Array]:
-        w = self.weights
-        mean = self.pose_estimate()
-        dev = self.pose - mean
-        dev[:, 2] = wrap_angle(dev[:, 2])
-        cov = np.einsum("i,ik,im->km", w, dev, dev) + np.einsum("i,ikm->km", w, self.pose_cov)
-        return mean, cov
 
     def _inverse_moments(self, pose: Array, pose_cov: Array, z: Array) -> tuple[Array, Array]:
         mean = np.concatenate([pose, np.zeros(2)])

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from deploy.cli import main
-from deploy.ufastslam_cmd import METHODS, relation_is_true, run_all, run_seed
+from deploy.ufastslam_cmd import METHODS, pose_nees, relation_is_true, run_all, run_seed
 from estimator.ufastslam import AcceptedRelation
 from sim.ufastslam import UWorld, parse_world
 from tests.tolerance import assert_close
@@ -134,6 +134,7 @@ def test_command_prints_the_table(two_runs: tuple[subprocess.CompletedProcess[st
         "true / false",
         "ms per",
         "has a lower pose RMSE than UFastSLAM on",
+        "pose NEES (3 dof",
     ):
         assert text in out, text
 
@@ -151,6 +152,10 @@ def test_results_json_schema(two_runs: tuple[subprocess.CompletedProcess[str], P
     assert semantic["relations"] == "oracle"  # the default source
     assert semantic["relations_false"] == 0.0 and semantic["relations_true"] > 0
     assert set(doc["table"]) == set(METHODS)
+    # the filters' pose NEES is reported (RBPF SLAM is overconfident: it is rarely near 3)
+    assert "pose_nees" not in doc["methods"]["odometry"]
+    for method in ("ufastslam", "semantic_threshold", "semantic_oracle"):
+        assert doc["table"][method]["pose_nees"] > 0
 
 
 def test_results_npz_holds_the_per_run_values(
@@ -166,6 +171,7 @@ def test_results_npz_holds_the_per_run_values(
             assert values.shape == (2,)
             assert_close(values.mean(), doc["methods"][method][metric], rtol=1e-12)
         assert arrays[f"{method}/path"].shape == (2, steps + 1, 3)
+        assert (f"{method}/pose_nees" in arrays) == (method != "odometry")
         assert arrays[f"{method}/position_error"].shape == (2, steps + 1)
     np.testing.assert_array_equal(
         arrays["semantic_ufastslam/pose_rmse"], arrays["semantic_oracle/pose_rmse"]
@@ -247,6 +253,16 @@ def test_relations_are_judged_against_the_truth() -> None:
     assert oracle.relations_true == once_relations(world) == 5
     threshold = result.methods["semantic_threshold"]
     assert threshold.relations_true + threshold.relations_false > 0
+
+
+def test_pose_nees() -> None:
+    cov = np.diag([0.04, 0.01, 0.0025])
+    assert_close(pose_nees(np.zeros(3), cov, np.array([0.2, 0.1, 0.05])), 3.0)
+    # θ is wrapped: 2π − 0.05 away is 0.05 away
+    assert_close(
+        pose_nees(np.array([0, 0, np.pi - 0.02]), cov, np.array([0, 0, -np.pi + 0.03])), 1.0
+    )
+    assert pose_nees(np.zeros(3), np.zeros((3, 3)), np.array([0.1, 0.0, 0.0])) > 1e9
 
 
 def test_relation_truth_judge() -> None:
