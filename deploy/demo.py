@@ -1,8 +1,8 @@
-"""`semfleet demo`: the most complete thing semfleet can show so far.
+"""`semfleet demo`: the README's first command.
 
-Until the Zenoh agents exist (issue 5) the demo runs the paper's scenario once, in one process:
-every method of the study (local, distributed, double counting, centralized) on the same seeded
-sensor data, then prints the comparison and writes the plots.
+Launches the paper's 3-robot fleet as three agent processes talking over Zenoh on loopback, in
+lock-step with a conductor that simulates the world, shows a live table while they run, then the
+comparison of every robot's local and distributed belief and the paper's plots.
 """
 
 from __future__ import annotations
@@ -13,43 +13,56 @@ from pathlib import Path
 from typing import Any
 
 from rich.console import Console
+from rich.table import Table
 
 from deploy.args import seed
-from deploy.results import summarise, write_results
+from deploy.launch import LaunchPlan, launch
+from deploy.launch_cmd import counters_table, write_outputs
 from deploy.scenario_cmd import render_show, save_ground_truth_plot
-from deploy.study import METHODS, run_single
-from deploy.study_cmd import render_summary, write_plots
-from estimator.hybrid import BeliefConfig
 from sim.loader import load_scenario
 
 
+def final_table(doc: dict[str, Any], steps: int) -> Table:
+    """Local vs distributed at the final step, mean over robots."""
+    t = Table(title=f"paper scenario, final step k = {steps}: mean over robots")
+    t.add_column("metric")
+    t.add_column("local", justify="right")
+    t.add_column("distributed", justify="right")
+    for metric in ("msde", "robot_error", "object_error", "robot_sqrt_det", "hypotheses"):
+        cells = []
+        for method in ("local", "distributed"):
+            value = doc["methods"][method]["mean"][metric][steps - 1]
+            cells.append("—" if value is None else f"{value:.4f}")
+        t.add_row(metric, *cells)
+    return t
+
+
 def run(args: argparse.Namespace, console: Console) -> int:
+    start = time.perf_counter()
     console.rule("semfleet demo")
-    console.print(
-        "The Zenoh agents are not built yet: this demo runs the paper's 3-robot fleet in one "
-        "process (in-memory transport, the paper's communication schedule), every method on the "
-        f"same sensor data of seed {args.seed}."
-    )
     scenario = load_scenario("paper")
     render_show(scenario, console)
     out = Path(args.out)
     png = save_ground_truth_plot(scenario, out / "paper-ground-truth.png", [20, 40, 60])
-    start = time.perf_counter()
-    with console.status("running local, distributed, double_count and centralized …"):
-        result = run_single(scenario, list(METHODS), args.seed, BeliefConfig(), scenario.steps)
-    doc = summarise(scenario.name, [result], list(METHODS), {"demo": True})
-    write_results(out, doc, [result], list(METHODS))
-    render_summary(doc, console, [15, 30, 45, scenario.steps])
-    plots = write_plots(out, doc, scenario, [result], scenario.steps, scenario.robot_ids[0])
+    plan = LaunchPlan(scenario, args.seed, list(scenario.robot_ids), out, mode="lockstep")
     console.print(
-        f"ran in {time.perf_counter() - start:.1f} s; wrote {png}, {out / 'results.json'} and "
-        f"{len(plots)} plots in {out}"
+        f"launching {len(plan.robots)} agent processes (Zenoh on loopback, lock-step, seed "
+        f"{plan.seed}); logs in {out / 'logs'}"
+    )
+    outcome = launch(plan, "paper", console)
+    console.print(counters_table(outcome))
+    doc = write_outputs(plan, outcome, console, {"demo": True})
+    console.print(final_table(doc, scenario.steps))
+    console.print(
+        f"demo took {time.perf_counter() - start:.1f} s (agents ran {outcome.wall_s:.1f} s); "
+        f"ground truth in {png}. All four methods over 100 runs: "
+        "semfleet study --methods local,distributed,double_count,centralized --runs 100"
     )
     return 0
 
 
 def add_parser(sub: Any) -> None:
-    p = sub.add_parser("demo", help="show what semfleet can do (the README's first command)")
+    p = sub.add_parser("demo", help="the paper's fleet as 3 agent processes over Zenoh")
     p.add_argument("--seed", type=seed, default=0, help="seed of the simulated run (default 0)")
     p.add_argument("--out", default="out/demo", help="folder for outputs (default out/demo)")
     p.set_defaults(run=run)

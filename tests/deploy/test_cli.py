@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 from pathlib import Path
@@ -143,13 +144,17 @@ def test_scenario_generate_rejects_bad_arguments(tmp_path: Path) -> None:
     assert "must be a positive integer" in r.stderr
 
 
-def test_demo_prints_summary_and_writes_plot(tmp_path: Path) -> None:
+def test_demo_launches_three_agents_over_zenoh_and_prints_the_final_table(tmp_path: Path) -> None:
     r = semfleet("demo", "--out", str(tmp_path / "demo"))
     assert r.returncode == 0, r.stderr
-    assert "not built yet" in r.stdout
-    for method in ("local", "distributed", "double_count", "centralized"):
-        assert method in r.stdout
+    assert "launching 3 agent processes" in r.stdout
+    assert "final step k = 60" in r.stdout
     demo = tmp_path / "demo"
-    for png in ("paper-ground-truth.png", "msde.png", "hypotheses_distributed_r1_k60.png"):
+    for png in ("paper-ground-truth.png", "msde.png", "robot_error.png"):
         assert (demo / png).read_bytes()[:8] == PNG_MAGIC, png
-    assert (demo / "results.json").exists()
+    doc = json.loads((demo / "results.json").read_text())
+    assert set(doc["methods"]) == {"local", "distributed"}
+    final = {m: doc["methods"][m]["mean"]["msde"][-1] for m in ("local", "distributed")}
+    assert final["distributed"] < final["local"]  # the paper's result, seed 0
+    for robot in ("r1", "r2", "r3"):  # every agent really ran as its own process, with a log
+        assert "up at step 0" in (demo / "logs" / f"{robot}.log").read_text()
