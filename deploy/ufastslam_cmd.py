@@ -48,6 +48,7 @@ LABELS = {
 }
 METRICS = ("pose_rmse", "landmark_rmse", "final_error", "step_ms")
 COUNTS = ("relations_true", "relations_false")
+_CHI2_3DOF_99 = 11.345
 # Variance floor (m², rad²) when the particles' pose covariance is singular.
 _NEES_FLOOR = 1e-12
 # The filter's random stream of a run; the same for every method, so that relations "off" is
@@ -57,7 +58,8 @@ _FILTER_STREAM = 0x5EED
 
 @dataclass(frozen=True, slots=True)
 class MethodRun:
-    """One method on one run: the metrics (``pose_nees``: mean over steps, filters only), the
+    """One method on one run: the metrics (``pose_nees``: the median over steps, and
+    ``nees_over_bound``: the share of steps above the χ²₃ 99 % bound, filters only), the
     estimated path (steps + 1, 3), the final map (landmark ids, (L, 2)) and the relation groups it
     used (kind, name, member ids)."""
 
@@ -68,6 +70,7 @@ class MethodRun:
     relations_true: int
     relations_false: int
     pose_nees: float | None
+    nees_over_bound: float | None
     path: Array
     map_ids: tuple[int, ...]
     map_xy: Array
@@ -121,7 +124,7 @@ def dead_reckoning(world: UWorld, run: Run) -> MethodRun:
     xy = np.array([np.mean(sums[i], axis=0) for i in ids]).reshape(-1, 2)
     pose_rmse, lm_rmse, final = _errors(world, run, path, ids, xy)
     step_ms = 1e3 * elapsed / world.steps
-    return MethodRun(pose_rmse, lm_rmse, final, step_ms, 0, 0, None, path, tuple(ids), xy, ())
+    return MethodRun(pose_rmse, lm_rmse, final, step_ms, 0, 0, None, None, path, tuple(ids), xy, ())
 
 
 def pose_nees(mean: Array, cov: Array, truth: Array) -> float:
@@ -172,7 +175,8 @@ def run_filter(world: UWorld, run: Run, config: UFastSLAMConfig) -> MethodRun:
     pose_rmse, lm_rmse, final = _errors(world, run, path, ids, xy)
     groups = tuple((k, n, tuple(m)) for k, n, m in slam.group_members())
     step_ms = 1e3 * elapsed / world.steps
-    mean_nees = float(np.mean(nees))
+    median_nees = float(np.median(nees))
+    over = float(np.mean(nees > _CHI2_3DOF_99))
     return MethodRun(
         pose_rmse,
         lm_rmse,
@@ -180,7 +184,8 @@ def run_filter(world: UWorld, run: Run, config: UFastSLAMConfig) -> MethodRun:
         step_ms,
         true_rel,
         false_rel,
-        mean_nees,
+        median_nees,
+        over,
         path,
         tuple(ids),
         xy,
@@ -235,7 +240,8 @@ def _stats(runs: list[SeedRun], method: str) -> dict[str, float]:
             {c: float(np.mean([getattr(r.methods[method], c) for r in runs])) for c in COUNTS}
         )
     if method != "odometry":
-        out["pose_nees"] = float(np.mean([r.methods[method].pose_nees for r in runs]))
+        for key in ("pose_nees", "nees_over_bound"):
+            out[key] = float(np.mean([getattr(r.methods[method], key) for r in runs]))
     return out
 
 
@@ -290,7 +296,8 @@ def write_results(out: Path, doc: dict[str, Any], runs: list[SeedRun], relations
                 [getattr(r.methods[method], metric) for r in runs]
             )
         if method != "odometry":
-            arrays[f"{name}/pose_nees"] = np.array([r.methods[method].pose_nees for r in runs])
+            for key in ("pose_nees", "nees_over_bound"):
+                arrays[f"{name}/{key}"] = np.array([getattr(r.methods[method], key) for r in runs])
         paths = np.stack([r.methods[method].path for r in runs])
         arrays[f"{name}/path"] = paths
         arrays[f"{name}/position_error"] = np.linalg.norm(
@@ -325,9 +332,14 @@ def render(doc: dict[str, Any], console: Console) -> None:
         )
     console.print(table)
     nees = ", ".join(
-        f"{e['label']} {e['pose_nees']:.1f}" for e in doc["table"].values() if "pose_nees" in e
+        f"{e['label']} {e['pose_nees']:.1f} / {100 * e['nees_over_bound']:.0f} %"
+        for e in doc["table"].values()
+        if "pose_nees" in e
     )
-    console.print(f"pose NEES (3 dof, mean over steps and runs; 3 if consistent): {nees}")
+    console.print(
+        "pose NEES (3 dof; median over steps, mean over runs; 3 if consistent) / steps above the "
+        f"χ² 99 % bound: {nees}"
+    )
     relations = doc["methods"]["semantic_ufastslam"]["relations"]
     if relations != "off":
         console.print(

@@ -156,6 +156,7 @@ def test_results_json_schema(two_runs: tuple[subprocess.CompletedProcess[str], P
     assert "pose_nees" not in doc["methods"]["odometry"]
     for method in ("ufastslam", "semantic_threshold", "semantic_oracle"):
         assert doc["table"][method]["pose_nees"] > 0
+        assert 0 <= doc["table"][method]["nees_over_bound"] <= 1
 
 
 def test_results_npz_holds_the_per_run_values(
@@ -172,6 +173,7 @@ def test_results_npz_holds_the_per_run_values(
             assert_close(values.mean(), doc["methods"][method][metric], rtol=1e-12)
         assert arrays[f"{method}/path"].shape == (2, steps + 1, 3)
         assert (f"{method}/pose_nees" in arrays) == (method != "odometry")
+        assert (f"{method}/nees_over_bound" in arrays) == (method != "odometry")
         assert arrays[f"{method}/position_error"].shape == (2, steps + 1)
     np.testing.assert_array_equal(
         arrays["semantic_ufastslam/pose_rmse"], arrays["semantic_oracle/pose_rmse"]
