@@ -261,7 +261,10 @@ class Agent:
         receiver_pos = own if own is not None else (math.nan, math.nan)
         k = self.node.k + 1
         if not self.links.allowed(message.sender, self.robot, k, sender_pos, receiver_pos):
-            self.counters.ignored_out_of_range += 1
+            # Before a robot's first step its position is unknown: no range to judge, so a stack
+            # refused then is not counted as out of range (a neighbour's start-up announcement).
+            if message.position is not None and own is not None:
+                self.counters.ignored_out_of_range += 1
             return
         if self.node.merge(message) and self.journal is not None:
             self.journal.append("stack", m.payload)
