@@ -30,7 +30,7 @@ def test_world_basics(name: str) -> None:
     for g in w.groups:
         pts = w.landmarks[[index[m] for m in g.members]]
         assert np.max(np.abs(group_residuals(g.kind, pts))) <= GROUP_TOLERANCE
-    seen = set()
+    seen: set[int] = set()
     for k in range(1, w.steps + 1):
         seen.update(int(w.landmark_ids[j]) for j in w.visible(k)[0])
     assert seen == set(w.landmark_ids), "every landmark is seen at least once"
