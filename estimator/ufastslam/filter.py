@@ -266,6 +266,7 @@ class UFastSLAM:
         n_eff = self._normalise()
         resampled = n_eff < self.config.resample_threshold * self.config.particles
         if resampled:
+            log.debug("resampling at N_eff = %.1f", n_eff)
             self._resample(rng)
         by_obs = {id(p.obs): self.landmark_ids[p.index] for p in pending}
         ids = tuple(by_obs.get(id(o), -1) for o in observations)
@@ -395,6 +396,12 @@ class UFastSLAM:
             return []
         p.rows.append(Row(group.kind, g, p.index, refs))
         ref_ids = tuple(self.landmark_ids[r] for r in refs)
+        log.debug(
+            "landmark %d joins %s, referenced to %s",
+            self.landmark_ids[p.index],
+            group.name,
+            ref_ids,
+        )
         return [AcceptedRelation(group.kind, group.name, self.landmark_ids[p.index], ref_ids)]
 
     def _attach_known_rows(self, pending: list[_Pending], mapped: int) -> None:
