@@ -41,6 +41,7 @@ from sim.sensors import Simulator
 
 LAUNCH_METHODS = ("local", "distributed")
 SHUTDOWN_GRACE_S = 2.0
+GARBAGE_BURST = 200
 
 
 class LaunchError(RuntimeError):
@@ -328,65 +329,78 @@ class Launcher:
         return LaunchOutcome(result, c, wall, self.agents, self.events, self.garbage_sent)
 
     async def _garbage(self, transport: ZenohTransport, keys: Keys) -> None:
-        """Malformed, truncated, NaN-laden and oversized stacks on the stack keys."""
+        """Malformed, truncated, NaN-laden and oversized stacks on the stack keys, at
+        ``faults.garbage_rate`` per second. asyncio wakes a sleeper about once a millisecond at
+        best, and later on a busy loop: every wake-up publishes what is due by then (at most
+        ``GARBAGE_BURST``), or high rates would never be reached."""
         rng = random.Random(self.plan.seed ^ 0x6A5BA6E)
-        interval = 1.0 / self.plan.faults.garbage_rate
+        rate = self.plan.faults.garbage_rate
         robots = self.plan.robots
+        start, sent = time.monotonic(), 0
         while True:
-            kind = rng.randrange(5)
-            if kind == 0:
-                data = rng.randbytes(rng.randrange(0, 512))
-            elif kind == 1:
-                data = msgpack.packb(
-                    {"v": 1, "type": "stack", "sender": "chaos", "k": 1, "pos": None, "slots": "x"}
-                )
-            elif kind == 2:
-                nan = np.full(3, np.nan).astype("<f8").tobytes()
-                data = msgpack.packb(
+            due = int((time.monotonic() - start) * rate) + 1
+            for _ in range(min(due - sent, GARBAGE_BURST)):
+                data = garbage_stack(rng)
+                key = keys.stack("chaos") if rng.random() < 0.5 else keys.stack(rng.choice(robots))
+                transport.publish(key, data)
+                self.garbage_sent += 1
+            sent = due
+            await asyncio.sleep(1.0 / rate)
+
+
+def garbage_stack(rng: random.Random) -> bytes:
+    """One invalid stack message: random bytes, wrong types, NaNs, too many slots or an unknown
+    version."""
+    kind = rng.randrange(5)
+    if kind == 0:
+        data = rng.randbytes(rng.randrange(0, 512))
+    elif kind == 1:
+        data = msgpack.packb(
+            {"v": 1, "type": "stack", "sender": "chaos", "k": 1, "pos": None, "slots": "x"}
+        )
+    elif kind == 2:
+        nan = np.full(3, np.nan).astype("<f8").tobytes()
+        data = msgpack.packb(
+            {
+                "v": 1,
+                "type": "stack",
+                "sender": "chaos",
+                "k": 1,
+                "pos": [float("nan"), 0.0],
+                "slots": [
                     {
-                        "v": 1,
-                        "type": "stack",
-                        "sender": "chaos",
-                        "k": 1,
-                        "pos": [float("nan"), 0.0],
-                        "slots": [
+                        "owner": "chaos",
+                        "stamp": 1,
+                        "objects": [1],
+                        "real": [
                             {
-                                "owner": "chaos",
-                                "stamp": 1,
-                                "objects": [1],
-                                "real": [
-                                    {
-                                        "c": b"\x00",
-                                        "phi": 0.0,
-                                        "lin": nan,
-                                        "info": nan * 2,
-                                        "eta": nan,
-                                    }
-                                ],
+                                "c": b"\x00",
+                                "phi": 0.0,
+                                "lin": nan,
+                                "info": nan * 2,
+                                "eta": nan,
                             }
                         ],
                     }
-                )
-            elif kind == 3:
-                data = msgpack.packb(
-                    {
-                        "v": 1,
-                        "type": "stack",
-                        "sender": "chaos",
-                        "k": 1,
-                        "pos": None,
-                        "slots": [
-                            {"owner": f"o{i}", "stamp": 1, "objects": [], "real": []}
-                            for i in range(100)
-                        ],
-                    }
-                )
-            else:
-                data = msgpack.packb({"v": 99, "type": "stack"})
-            key = keys.stack("chaos") if rng.random() < 0.5 else keys.stack(rng.choice(robots))
-            transport.publish(key, bytes(data))
-            self.garbage_sent += 1
-            await asyncio.sleep(interval)
+                ],
+            }
+        )
+    elif kind == 3:
+        data = msgpack.packb(
+            {
+                "v": 1,
+                "type": "stack",
+                "sender": "chaos",
+                "k": 1,
+                "pos": None,
+                "slots": [
+                    {"owner": f"o{i}", "stamp": 1, "objects": [], "real": []} for i in range(100)
+                ],
+            }
+        )
+    else:
+        data = msgpack.packb({"v": 99, "type": "stack"})
+    return bytes(data)
 
 
 def _tail(path: Path, lines: int = 3) -> str:
