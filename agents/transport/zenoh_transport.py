@@ -138,6 +138,16 @@ class ZenohTransport:
         if self._session is not None:
             self._declare_watch(key_expr, inbox)
 
+    def subscribe_raw(self, key_expr: str, callback: Callable[[bytes], None]) -> None:
+        """``callback(payload)`` on Zenoh's own thread, with no hand-off to the loop: for
+        measuring the raw transport only (benchmarks). The session must be open."""
+        assert self._session is not None, "open the session first"
+        self._handles.append(
+            self._session.declare_subscriber(
+                key_expr, lambda sample: callback(sample.payload.to_bytes())
+            )
+        )
+
     # -- declarations -----------------------------------------------------------------------
 
     def _handoff(self, inbox: Inbox) -> Callable[[zenoh.Sample], None]:

@@ -1,0 +1,256 @@
+"""Issue 5's figures: gossip latency against raw Zenoh, relay latency per hop, and how many agents
+one 2-core machine runs in realtime mode, with CPU and memory per agent.
+
+- Gossip latency: publish of a real paper stack on one Zenoh session → decoded and merged by a
+  RobotNode behind a second session (the agent's path: Zenoh thread → ``call_soon_threadsafe`` →
+  inbox → decode → merge), against the raw Zenoh put → subscriber-callback latency for the same
+  payload, measured in the same run. Target: ≤ 2 × raw + decode time.
+- Relay per hop: 4 agent processes on a line whose Zenoh links only join neighbours (gossip
+  scouting off), realtime; the time from a new version of r1's slot in r1's stack to the same
+  version in r4's stack, over 3 hops. Agents gossip on a timer, so a hop costs on average half a
+  gossip period plus the transit.
+- Capacity: N agents (3, 10, 20) of a generated world in realtime mode at the step period; the
+  fraction of steps every agent kept up with, CPU % and peak RSS per agent from /proc.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import statistics
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from agents.node import RobotNode
+from agents.transport.base import Inbox, Keys
+from agents.transport.zenoh_transport import ZenohTransport, settings_for
+from bench import Result
+from deploy.fleet import link_model_for, make_nodes, run_fleet
+from deploy.launch import Launcher, LaunchOutcome, LaunchPlan, free_ports
+from deploy.study import belief_model, belief_rng
+from estimator.hybrid import BeliefConfig
+from protocol.codec import StackMessage, decode, encode
+from protocol.stack import Slot, Stack
+from sim.generate import dump_scenario, generate_scenario, line_world
+from sim.loader import load_scenario, parse_scenario
+from sim.sensors import Simulator
+
+PERIOD_S = 0.5  # the realtime step period (the scenario format has no rate; see docs/agents.md)
+GOSSIP_S = 0.25
+ROUNDS = 200
+AGENT_COUNTS = tuple(int(n) for n in os.environ.get("SEMFLEET_BENCH_AGENTS", "3,10,20").split(","))
+
+_notes: list[str] = []
+
+
+def notes() -> list[str]:
+    return list(_notes)
+
+
+def _paper_stacks(count: int) -> tuple[list[bytes], RobotNode]:
+    """``count`` encodings of the largest paper stack, each with a newer stamp of its slots, and
+    a fresh receiving node."""
+    s = load_scenario("paper")
+    frames = Simulator(s, 0).all_frames()
+    model = belief_model(s)
+    nodes = make_nodes(s, model, BeliefConfig(), lambda r: belief_rng(0, [r]))
+    run_fleet(nodes, frames, link_model_for(s), s.steps)
+    node = max(nodes.values(), key=lambda n: len(n.outgoing() or b""))
+    stack = node.current_stack()
+    blobs = []
+    for i in range(count):
+        bumped = Stack(tuple(Slot(sl.owner, sl.stamp + 1 + i, sl.summary) for sl in stack))
+        blobs.append(encode(StackMessage(node.robot, node.position, bumped, node.k + i)))
+    # A receiver that owns none of the slots (so that it merges every one of them).
+    receiver = RobotNode(
+        "rx",
+        (0.0, 0.0, 0.0),
+        model,
+        belief_rng(0, ["rx"]),
+        belief_rng(0, ["rx"]),
+    )
+    return blobs, receiver
+
+
+async def _latencies(blobs: list[bytes], receiver: RobotNode) -> tuple[list[float], list[float]]:
+    a_port, b_port = free_ports(2)
+    a = ZenohTransport(settings_for(a_port, [], gossip=False))
+    b = ZenohTransport(settings_for(b_port, [a_port], gossip=False))
+    keys = Keys("bench")
+    inbox = Inbox(len(blobs) + 1)
+    arrivals: list[float] = []
+    got = asyncio.Event()
+    loop = asyncio.get_running_loop()
+
+    def raw(_: bytes) -> None:
+        arrivals.append(time.perf_counter())
+        loop.call_soon_threadsafe(got.set)
+
+    raw_ms, gossip_ms = [], []
+    try:
+        b.subscribe(keys.stack("r9"), inbox)
+        await a.open()
+        await b.open()
+        b.subscribe_raw(keys.ctl("raw"), raw)
+        await asyncio.sleep(1.0)  # let the declarations reach the publisher (pitfall 9)
+        for data in blobs:
+            # raw: put → the subscriber's callback on Zenoh's thread
+            got.clear()
+            t0 = time.perf_counter()
+            a.publish(keys.ctl("raw"), data)
+            await asyncio.wait_for(got.wait(), 5)
+            raw_ms.append(1e3 * (arrivals[-1] - t0))
+            # gossip: put → inbox on the loop → decode → merge
+            t0 = time.perf_counter()
+            a.publish(keys.stack("r9"), data)
+            message = await asyncio.wait_for(inbox.get(), 5)
+            decoded = receiver.decode_stack(message.payload)
+            assert decoded is not None and receiver.merge(decoded)
+            gossip_ms.append(1e3 * (time.perf_counter() - t0))
+    finally:
+        await a.close()
+        await b.close()
+    return raw_ms, gossip_ms
+
+
+def _gossip_rows() -> list[Result]:
+    blobs, receiver = _paper_stacks(ROUNDS)
+    raw_ms, gossip_ms = asyncio.run(_latencies(blobs, receiver))
+    t = time.perf_counter()
+    for data in blobs[:50]:
+        decode(data)
+    decode_ms = 1e3 * (time.perf_counter() - t) / 50
+    raw, gossip = statistics.median(raw_ms), statistics.median(gossip_ms)
+    target = 2 * raw + decode_ms
+    met = "met" if gossip <= target else "NOT met"
+    return [
+        Result(
+            "gossip latency: put → merged at the peer",
+            ROUNDS,
+            gossip,
+            baseline_ms=raw,
+            note=f"median; baseline = raw Zenoh put → callback, same {len(blobs[0]):,}-byte "
+            f"paper stack; decode {decode_ms:.3f} ms; p95 {np.percentile(gossip_ms, 95):.3f} ms vs "
+            f"raw {np.percentile(raw_ms, 95):.3f}; target ≤ 2×raw + decode = {target:.3f} ms {met}",
+        )
+    ]
+
+
+def _run_launch(
+    plan: LaunchPlan, source: str, sample: bool = False
+) -> tuple[LaunchOutcome, dict[str, dict[str, float]]]:
+    launcher = Launcher(plan, source)
+    usage: dict[str, dict[str, float]] = {}
+
+    def on_step(conductor: object, k: int) -> None:
+        if not sample:
+            return
+        for r, a in launcher.agents.items():
+            if a.proc is None or a.proc.poll() is not None:
+                continue
+            cpu, rss = _proc_usage(a.proc.pid)
+            u = usage.setdefault(r, {"cpu0": cpu, "t0": time.monotonic(), "rss": 0.0})
+            u["cpu"], u["t"], u["rss"] = cpu, time.monotonic(), max(u["rss"], rss)
+
+    outcome = asyncio.run(launcher.run(on_step))
+    return outcome, usage
+
+
+def _proc_usage(pid: int) -> tuple[float, float]:
+    """CPU seconds (user + system) and resident memory in MB of ``pid``."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    ticks = os.sysconf("SC_CLK_TCK")
+    cpu = (int(fields[11]) + int(fields[12])) / ticks
+    rss_pages = int(Path(f"/proc/{pid}/statm").read_text().split()[1])
+    return cpu, rss_pages * os.sysconf("SC_PAGE_SIZE") / 1e6
+
+
+def _relay_rows(tmp: Path) -> list[Result]:
+    robots = [f"r{i}" for i in range(1, 5)]
+    text = line_world(len(robots), steps=24)
+    path = tmp / "line.toml"
+    path.write_text(text, encoding="utf-8")
+    s = parse_scenario(text, str(path))
+    neighbours = {
+        r: [robots[j] for j in (i - 1, i + 1) if 0 <= j < len(robots)] for i, r in enumerate(robots)
+    }
+    plan = LaunchPlan(
+        s, 0, robots, tmp / "relay", mode="realtime", period=PERIOD_S, gossip_period=GOSSIP_S,
+        fleet="relay", zenoh_neighbours=neighbours, observe_stacks=True, publish_local=False,
+    )  # fmt: skip
+    outcome, _ = _run_launch(plan, str(path))
+    log = outcome.collected.stack_log
+    first_seen: dict[tuple[str, int], dict[str, float]] = {}
+    for t, holder, stamps in log:
+        for owner, stamp in stamps.items():
+            first_seen.setdefault((owner, stamp), {}).setdefault(holder, t)
+    per_hop = []
+    for (owner, _stamp), seen in first_seen.items():
+        if owner == "r1" and "r1" in seen and "r4" in seen:
+            per_hop.append(1e3 * (seen["r4"] - seen["r1"]) / 3)
+    if not per_hop:
+        _notes.append("relay: r4 never held a version of r1's slot (no figure)")
+        return []
+    return [
+        Result(
+            "relay latency per hop (4 agents on a line)",
+            len(per_hop),
+            statistics.median(per_hop),
+            note=f"median over {len(per_hop)} versions of r1's slot reaching r4 over 3 hops; "
+            f"gossip period {GOSSIP_S * 1e3:.0f} ms (a hop waits for the next gossip: expected "
+            f"≈ {GOSSIP_S * 500:.0f} ms + transit)",
+        )
+    ]
+
+
+def _capacity_rows(tmp: Path) -> list[Result]:
+    rows = []
+    for n in AGENT_COUNTS:
+        s = generate_scenario(n, 3 * n, 3, seed=11, steps=20)
+        path = tmp / f"gen{n}.toml"
+        path.write_text(dump_scenario(s), encoding="utf-8")
+        s = parse_scenario(path.read_text(encoding="utf-8"), str(path))
+        plan = LaunchPlan(
+            s, 0, list(s.robot_ids), tmp / f"cap{n}", mode="realtime", period=PERIOD_S,
+            gossip_period=GOSSIP_S, fleet=f"cap{n}", publish_local=False,
+        )  # fmt: skip
+        start = time.perf_counter()
+        try:
+            outcome, usage = _run_launch(plan, str(path), sample=True)
+        except Exception as exc:  # a capacity probe may fail at high N: that is the figure
+            rows.append(
+                Result(f"realtime capacity: {n} agents", n, float("nan"), note=f"failed: {exc}")
+            )
+            continue
+        wall = time.perf_counter() - start
+        c = outcome.collected
+        kept = np.mean([c.last_step.get(r, 0) >= s.steps for r in s.robot_ids])
+        cpu = [
+            100 * (u["cpu"] - u["cpu0"]) / max(u["t"] - u["t0"], 1e-9)
+            for u in usage.values()
+            if "cpu" in u
+        ]
+        rss = [u["rss"] for u in usage.values()]
+        rows.append(
+            Result(
+                f"realtime capacity: {n} agents, period {PERIOD_S:g} s",
+                n,
+                1e3 * wall,
+                note=f"{100 * kept:.0f} % of agents finished all {s.steps} steps in time; CPU per "
+                f"agent {np.mean(cpu):.0f} % (max {np.max(cpu):.0f} %); peak RSS per agent "
+                f"{np.mean(rss):.0f} MB (max {np.max(rss):.0f} MB)",
+            )
+        )
+    return rows
+
+
+def run() -> list[Result]:
+    _notes.clear()
+    rows = _gossip_rows()
+    with tempfile.TemporaryDirectory() as d:
+        rows += _relay_rows(Path(d))
+        rows += _capacity_rows(Path(d))
+    return rows
