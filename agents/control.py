@@ -14,8 +14,8 @@ from typing import Any
 
 import msgpack
 
-from protocol.codec import valid_id
 from protocol.errors import InvalidValue, MalformedMessage, RemoteProtocolError
+from protocol.validate import valid_id
 
 MAX_STEP = 10**9
 

@@ -29,7 +29,7 @@ from agents.transport.zenoh_transport import ZenohSettings, ZenohTransport
 from deploy.fleet import COMM_MODES, link_model_for
 from deploy.study import belief_model, belief_rng
 from estimator.hybrid import BeliefConfig
-from protocol.codec import valid_id
+from protocol.validate import valid_id
 from sim.loader import load_scenario
 from sim.scenario import Scenario
 

@@ -9,7 +9,6 @@ names the field; nothing else escapes it.
 from __future__ import annotations
 
 import math
-import re
 from dataclasses import dataclass
 from typing import Any
 
@@ -22,17 +21,15 @@ from protocol.errors import (
     InvalidValue,
     LimitExceeded,
     LocalProtocolError,
-    MalformedMessage,
-    ProtocolError,
     UnsupportedVersion,
 )
 from protocol.stack import Slot, Stack
+from protocol.validate import as_int, as_map, decode_document, need, robot_id, valid_id
 
 Array = NDArray[np.float64]
 
 VERSION = 1
 STACK = "stack"
-ID_PATTERN = re.compile(r"^[A-Za-z0-9_-]{1,32}$")
 _F64 = np.dtype("<f8")
 _MAX_STAMP = 2**63 - 1
 _MAX_OBJECT_ID = 2**32 - 1
@@ -67,11 +64,6 @@ class StackMessage:
 
 def _tri(n: int) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
     return np.triu_indices(3 * n)
-
-
-def valid_id(value: object) -> bool:
-    """Robot ids: 1–32 of A–Z a–z 0–9 _ - (they become Zenoh key segments)."""
-    return isinstance(value, str) and ID_PATTERN.fullmatch(value) is not None
 
 
 def encode(message: StackMessage) -> bytes:
@@ -189,102 +181,45 @@ def first_indefinite(infos: list[Array], tol: float) -> int | None:
 def decode(data: bytes, limits: Limits | None = None) -> StackMessage:
     """Parse and validate a stack message. Raises only :class:`RemoteProtocolError` subclasses."""
     lim = limits or Limits()
-    if not isinstance(data, bytes | bytearray | memoryview):
-        raise MalformedMessage(f"expected bytes, got {type(data).__name__}", "message")
-    if len(data) > lim.max_message_bytes:
-        raise LimitExceeded(f"{len(data)} bytes > {lim.max_message_bytes}", "message")
-    try:
-        doc = msgpack.unpackb(
-            bytes(data),
-            raw=False,
-            strict_map_key=True,
-            use_list=True,
-        )
-    except Exception as exc:  # msgpack raises a dozen types for bad input; all mean "malformed"
-        raise MalformedMessage(
-            f"not a msgpack document ({type(exc).__name__}: {exc})", "message"
-        ) from None
-    try:
-        return _decode_doc(doc, lim)
-    except ProtocolError:
-        raise
-    except (
-        ValueError,
-        TypeError,
-        OverflowError,
-        IndexError,
-        KeyError,
-        np.linalg.LinAlgError,
-    ) as exc:
-        # Defence in depth: a validation gap must still surface as a remote error, never a crash.
-        raise MalformedMessage(f"{type(exc).__name__}: {exc}", "message") from None
-
-
-def _need(
-    cond: bool, field: str, message: str, error: type[ProtocolError] = MalformedMessage
-) -> None:
-    if not cond:
-        raise error(message, field)
-
-
-def _map(value: Any, field: str, keys: frozenset[str]) -> dict[str, Any]:
-    _need(isinstance(value, dict), field, f"expected a map, got {type(value).__name__}")
-    missing, extra = keys - value.keys(), value.keys() - keys
-    _need(not missing, field, f"missing keys {sorted(missing)}")
-    _need(not extra, field, f"unknown keys {sorted(map(str, extra))}")
-    return dict(value)
-
-
-def _int(value: Any, field: str, lo: int, hi: int) -> int:
-    _need(isinstance(value, int) and not isinstance(value, bool), field, "expected an integer")
-    _need(lo <= value <= hi, field, f"{value} outside {lo}..{hi}", InvalidValue)
-    return int(value)
-
-
-def _robot_id(value: Any, field: str) -> str:
-    _need(isinstance(value, str), field, "expected a string")
-    _need(valid_id(value), field, f"invalid robot id {value!r}", InvalidValue)
-    return str(value)
+    return decode_document(data, lim.max_message_bytes, lambda doc: _decode_doc(doc, lim))
 
 
 def _floats(blobs: list[Any], where: str, name: str, count: int) -> Array:
     """The float64 blobs ``name`` of every realisation of a slot as one (R, count) array."""
     for i, value in enumerate(blobs):
         field = f"{where}[{i}].{name}"
-        _need(isinstance(value, bytes), field, "expected binary float64 data")
-        _need(len(value) == 8 * count, field, f"expected {8 * count} bytes, got {len(value)}")
+        need(isinstance(value, bytes), field, "expected binary float64 data")
+        need(len(value) == 8 * count, field, f"expected {8 * count} bytes, got {len(value)}")
     arr = np.frombuffer(b"".join(blobs), dtype=_F64).astype(float).reshape(len(blobs), count)
     bad = ~np.isfinite(arr).all(axis=1)
-    _need(
-        not bad.any(), f"{where}[{int(np.argmax(bad))}].{name}", "non-finite number", InvalidValue
-    )
+    need(not bad.any(), f"{where}[{int(np.argmax(bad))}].{name}", "non-finite number", InvalidValue)
     return arr
 
 
 def _decode_doc(doc: Any, lim: Limits) -> StackMessage:
-    _need(isinstance(doc, dict), "message", f"expected a map, got {type(doc).__name__}")
+    need(isinstance(doc, dict), "message", f"expected a map, got {type(doc).__name__}")
     version = doc.get("v")
     if "v" in doc and (type(version) is not int or version != VERSION):
         raise UnsupportedVersion(f"schema version {doc['v']!r} (this side speaks {VERSION})", "v")
-    top = _map(doc, "message", _TOP_KEYS)
+    top = as_map(doc, "message", _TOP_KEYS)
     if top["type"] != STACK:
         raise UnsupportedVersion(f"message type {top['type']!r}", "type")
-    sender = _robot_id(top["sender"], "sender")
-    step = _int(top["k"], "k", 0, _MAX_STAMP)
+    sender = robot_id(top["sender"], "sender")
+    step = as_int(top["k"], "k", 0, _MAX_STAMP)
     position = None
     if top["pos"] is not None:
         pos = top["pos"]
-        _need(isinstance(pos, list) and len(pos) == 2, "pos", "expected [x, y] or nil")
-        _need(
+        need(isinstance(pos, list) and len(pos) == 2, "pos", "expected [x, y] or nil")
+        need(
             all(isinstance(v, float | int) and not isinstance(v, bool) for v in pos),
             "pos",
             "expected numbers",
         )
-        _need(all(math.isfinite(v) for v in pos), "pos", "non-finite number", InvalidValue)
+        need(all(math.isfinite(v) for v in pos), "pos", "non-finite number", InvalidValue)
         position = (float(pos[0]), float(pos[1]))
     raw_slots = top["slots"]
-    _need(isinstance(raw_slots, list), "slots", "expected an array")
-    _need(
+    need(isinstance(raw_slots, list), "slots", "expected an array")
+    need(
         len(raw_slots) <= lim.max_slots,
         "slots",
         f"{len(raw_slots)} > {lim.max_slots}",
@@ -292,24 +227,26 @@ def _decode_doc(doc: Any, lim: Limits) -> StackMessage:
     )
     slots = [_decode_slot(raw, f"slots[{i}]", lim) for i, raw in enumerate(raw_slots)]
     owners = [s.owner for s in slots]
-    _need(len(set(owners)) == len(owners), "slots", f"duplicate owners {owners}", InvalidValue)
+    need(len(set(owners)) == len(owners), "slots", f"duplicate owners {owners}", InvalidValue)
     return StackMessage(sender, position, Stack(tuple(slots)), step)
 
 
 def _decode_slot(raw: Any, where: str, lim: Limits) -> Slot:
-    s = _map(raw, where, _SLOT_KEYS)
-    owner = _robot_id(s["owner"], f"{where}.owner")
-    stamp = _int(s["stamp"], f"{where}.stamp", 0, _MAX_STAMP)
+    s = as_map(raw, where, _SLOT_KEYS)
+    owner = robot_id(s["owner"], f"{where}.owner")
+    stamp = as_int(s["stamp"], f"{where}.stamp", 0, _MAX_STAMP)
     objects = s["objects"]
-    _need(isinstance(objects, list), f"{where}.objects", "expected an array")
+    need(isinstance(objects, list), f"{where}.objects", "expected an array")
     n = len(objects)
-    _need(n <= lim.max_objects, f"{where}.objects", f"{n} > {lim.max_objects}", LimitExceeded)
-    ids = tuple(_int(j, f"{where}.objects[{i}]", 0, _MAX_OBJECT_ID) for i, j in enumerate(objects))
-    _need(len(set(ids)) == n, f"{where}.objects", "duplicate object ids", InvalidValue)
+    need(n <= lim.max_objects, f"{where}.objects", f"{n} > {lim.max_objects}", LimitExceeded)
+    ids = tuple(
+        as_int(j, f"{where}.objects[{i}]", 0, _MAX_OBJECT_ID) for i, j in enumerate(objects)
+    )
+    need(len(set(ids)) == n, f"{where}.objects", "duplicate object ids", InvalidValue)
     reals = s["real"]
-    _need(isinstance(reals, list), f"{where}.real", "expected an array")
-    _need(len(reals) >= 1, f"{where}.real", "a slot has at least one realisation", InvalidValue)
-    _need(
+    need(isinstance(reals, list), f"{where}.real", "expected an array")
+    need(len(reals) >= 1, f"{where}.real", "a slot has at least one realisation", InvalidValue)
+    need(
         len(reals) <= lim.max_realisations,
         f"{where}.real",
         f"{len(reals)} > {lim.max_realisations}",
@@ -326,7 +263,7 @@ def _decode_slot(raw: Any, where: str, lim: Limits) -> Slot:
     info[:, iu[0], iu[1]] = arrays["info"]
     info[:, iu[1], iu[0]] = arrays["info"]
     bad = first_indefinite(list(info), lim.psd_tol)
-    _need(bad is None, f"{where}.real[{bad}].info", "Λ is indefinite", InvalidValue)
+    need(bad is None, f"{where}.real[{bad}].info", "Λ is indefinite", InvalidValue)
     lin = arrays["lin"].reshape(len(heads), n, 3)
     out = tuple(
         Realisation(classes, phi, lin[i], info[i], arrays["eta"][i])
@@ -339,21 +276,21 @@ def _decode_head(
     raw: Any, where: str, n: int, lim: Limits
 ) -> tuple[tuple[int, ...], float, dict[str, Any]]:
     """Classes, log φ and the raw float blobs of one realisation."""
-    r = _map(raw, where, _REAL_KEYS)
+    r = as_map(raw, where, _REAL_KEYS)
     c = r["c"]
-    _need(isinstance(c, bytes) and len(c) == n, f"{where}.c", f"expected {n} class bytes")
+    need(isinstance(c, bytes) and len(c) == n, f"{where}.c", f"expected {n} class bytes")
     classes = tuple(c)
-    _need(
+    need(
         all(v < lim.num_classes for v in classes),
         f"{where}.c",
         f"class ≥ {lim.num_classes}",
         InvalidValue,
     )
     phi = r["phi"]
-    _need(
+    need(
         isinstance(phi, float | int) and not isinstance(phi, bool),
         f"{where}.phi",
         "expected a number",
     )
-    _need(math.isfinite(phi), f"{where}.phi", "non-finite number", InvalidValue)
+    need(math.isfinite(phi), f"{where}.phi", "non-finite number", InvalidValue)
     return classes, float(phi), r

@@ -24,15 +24,14 @@ import msgpack
 import numpy as np
 
 from estimator.hybrid import BeliefSnapshot
-from protocol.codec import _int, _map, _need, _robot_id, valid_id
 from protocol.errors import (
     InvalidValue,
     LimitExceeded,
     LocalProtocolError,
-    MalformedMessage,
     ProtocolError,
     UnsupportedVersion,
 )
+from protocol.validate import as_int, as_map, decode_document, need, robot_id, valid_id
 
 VERSION = 1
 ESTIMATE = "estimate"
@@ -197,74 +196,58 @@ def _encode_snapshot(snap: BeliefSnapshot, where: str, lim: EstimateLimits) -> d
 def decode_estimate(data: bytes, limits: EstimateLimits | None = None) -> EstimateMessage:
     """Parse and validate an estimate. Raises only :class:`RemoteProtocolError` subclasses."""
     lim = limits or EstimateLimits()
-    if not isinstance(data, bytes | bytearray | memoryview):
-        raise MalformedMessage(f"expected bytes, got {type(data).__name__}", "message")
-    if len(data) > lim.max_message_bytes:
-        raise LimitExceeded(f"{len(data)} bytes > {lim.max_message_bytes}", "message")
-    try:
-        doc = msgpack.unpackb(bytes(data), raw=False, strict_map_key=True, use_list=True)
-    except Exception as exc:  # msgpack raises a dozen types for bad input; all mean "malformed"
-        raise MalformedMessage(
-            f"not a msgpack document ({type(exc).__name__}: {exc})", "message"
-        ) from None
-    try:
-        return _decode_doc(doc, lim)
-    except ProtocolError:
-        raise
-    except (ValueError, TypeError, OverflowError, IndexError, KeyError) as exc:
-        # Defence in depth: a validation gap must still surface as a remote error, never a crash.
-        raise MalformedMessage(f"{type(exc).__name__}: {exc}", "message") from None
+    return decode_document(data, lim.max_message_bytes, lambda doc: _decode_doc(doc, lim))
 
 
 def _named(value: Any, where: str, pattern: re.Pattern[str], most: int) -> dict[str, Any]:
     """A map from names matching ``pattern`` to anything, with at most ``most`` entries."""
-    _need(isinstance(value, dict), where, f"expected a map, got {type(value).__name__}")
-    _need(len(value) <= most, where, f"{len(value)} entries > {most}", LimitExceeded)
-    _need(all(isinstance(k, str) for k in value), where, "expected string names")
+    need(isinstance(value, dict), where, f"expected a map, got {type(value).__name__}")
+    need(len(value) <= most, where, f"{len(value)} entries > {most}", LimitExceeded)
+    need(all(isinstance(k, str) for k in value), where, "expected string names")
     bad = [k for k in value if not pattern.fullmatch(k)]
-    _need(not bad, where, f"invalid names {bad!r}", InvalidValue)
+    need(not bad, where, f"invalid names {bad!r}", InvalidValue)
     return dict(value)
 
 
 def _decode_doc(doc: Any, lim: EstimateLimits) -> EstimateMessage:
-    _need(isinstance(doc, dict), "message", f"expected a map, got {type(doc).__name__}")
+    need(isinstance(doc, dict), "message", f"expected a map, got {type(doc).__name__}")
     if "v" in doc and (type(doc["v"]) is not int or doc["v"] != VERSION):
         raise UnsupportedVersion(f"schema version {doc['v']!r} (this side speaks {VERSION})", "v")
-    top = _map(doc, "message", _TOP_KEYS)
+    top = as_map(doc, "message", _TOP_KEYS)
     if top["type"] != ESTIMATE:
         raise UnsupportedVersion(f"message type {top['type']!r}", "type")
-    robot = _robot_id(top["robot"], "robot")
-    k = _int(top["k"], "k", 0, MAX_STEP)
+    robot = robot_id(top["robot"], "robot")
+    k = as_int(top["k"], "k", 0, MAX_STEP)
     raw = _named(top["beliefs"], "beliefs", BELIEF_NAME, MAX_BELIEFS)
-    _need(len(raw) >= 1, "beliefs", "no belief", InvalidValue)
+    need(len(raw) >= 1, "beliefs", "no belief", InvalidValue)
     beliefs = {name: _decode_snapshot(v, f"beliefs.{name}", lim) for name, v in raw.items()}
     counters = _named(top["counters"], "counters", COUNTER_NAME, MAX_COUNTERS)
     for name, count in counters.items():
-        _int(count, f"counters.{name}", 0, MAX_COUNT)
+        as_int(count, f"counters.{name}", 0, MAX_COUNT)
     return EstimateMessage(robot, k, beliefs, counters)
 
 
 def _decode_snapshot(value: Any, where: str, lim: EstimateLimits) -> BeliefSnapshot:
-    s = _map(value, where, _SNAPSHOT_KEYS)
+    s = as_map(value, where, _SNAPSHOT_KEYS)
     objects = s["objects"]
-    _need(isinstance(objects, list), f"{where}.objects", "expected an array")
+    need(isinstance(objects, list), f"{where}.objects", "expected an array")
     n = len(objects)
-    _need(n <= lim.max_objects, f"{where}.objects", f"{n} > {lim.max_objects}", LimitExceeded)
-    ids = tuple(_int(j, f"{where}.objects[{i}]", 0, MAX_OBJECT_ID) for i, j in enumerate(objects))
-    _need(len(set(ids)) == n, f"{where}.objects", "duplicate object ids", InvalidValue)
+    need(n <= lim.max_objects, f"{where}.objects", f"{n} > {lim.max_objects}", LimitExceeded)
+    ids = tuple(as_int(j, f"{where}.objects[{i}]", 0, MAX_OBJECT_ID) for i, j in enumerate(objects))
+    need(len(set(ids)) == n, f"{where}.objects", "duplicate object ids", InvalidValue)
     for name in _LAYOUT:
-        _need(isinstance(s[name], bytes), f"{where}.{name}", "expected binary data")
+        need(isinstance(s[name], bytes), f"{where}.{name}", "expected binary data")
     w = s["weights"]
-    _need(len(w) % 8 == 0, f"{where}.weights", f"{len(w)} bytes is not a whole number of float64")
+    need(len(w) % 8 == 0, f"{where}.weights", f"{len(w)} bytes is not a whole number of float64")
     h = len(w) // 8
-    _need(h >= 1, f"{where}.weights", "a belief has at least one hypothesis", InvalidValue)
-    _need(h <= lim.max_hypotheses, f"{where}.weights", f"{h} > {lim.max_hypotheses}", LimitExceeded)
+    need(h >= 1, f"{where}.weights", "a belief has at least one hypothesis", InvalidValue)
+    need(h <= lim.max_hypotheses, f"{where}.weights", f"{h} > {lim.max_hypotheses}", LimitExceeded)
     arrays: dict[str, Any] = {}
     for name, (dtype, per) in _LAYOUT.items():
         shape = _shape(h, n, per)
         size = 8 * int(np.prod(shape))
         got = len(s[name])
-        _need(got == size, f"{where}.{name}", f"expected {size} bytes for {shape}, got {got}")
+        need(got == size, f"{where}.{name}", f"expected {size} bytes for {shape}, got {got}")
         native = np.float64 if dtype == "<f8" else np.int64
         arrays[name] = np.frombuffer(s[name], dtype=dtype).astype(native).reshape(shape)
     _check_values(arrays, where, lim, InvalidValue)

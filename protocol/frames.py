@@ -19,16 +19,15 @@ import numpy as np
 from numpy.typing import NDArray
 
 from estimator.models import Detection, SensorFrame
-from protocol.codec import _int, _map, _need, _robot_id, valid_id
 from protocol.errors import (
     InvalidValue,
     LimitExceeded,
     LocalProtocolError,
     MalformedMessage,
-    ProtocolError,
     RemoteProtocolError,
     UnsupportedVersion,
 )
+from protocol.validate import as_int, as_map, decode_document, need, robot_id, valid_id
 
 Array = NDArray[np.float64]
 
@@ -155,46 +154,30 @@ def _no_truth(value: Any) -> bool:
 def decode_frame(data: bytes, limits: FrameLimits | None = None) -> SensorFrame:
     """Parse and validate a frame. Raises only :class:`RemoteProtocolError` subclasses."""
     lim = limits or FrameLimits()
-    if not isinstance(data, bytes | bytearray | memoryview):
-        raise MalformedMessage(f"expected bytes, got {type(data).__name__}", "message")
-    if len(data) > lim.max_message_bytes:
-        raise LimitExceeded(f"{len(data)} bytes > {lim.max_message_bytes}", "message")
-    try:
-        doc = msgpack.unpackb(bytes(data), raw=False, strict_map_key=True, use_list=True)
-    except Exception as exc:  # msgpack raises a dozen types for bad input; all mean "malformed"
-        raise MalformedMessage(
-            f"not a msgpack document ({type(exc).__name__}: {exc})", "message"
-        ) from None
-    try:
-        return _decode_doc(doc, lim)
-    except ProtocolError:
-        raise
-    except (ValueError, TypeError, OverflowError, IndexError, KeyError) as exc:
-        # Defence in depth: a validation gap must still surface as a remote error, never a crash.
-        raise MalformedMessage(f"{type(exc).__name__}: {exc}", "message") from None
+    return decode_document(data, lim.max_message_bytes, lambda doc: _decode_doc(doc, lim))
 
 
 def _floats(value: Any, field: str, length: int | None) -> Array:
     """A float64 blob of ``length`` numbers (any whole number of them if None), all finite."""
-    _need(isinstance(value, bytes), field, "expected binary float64 data")
+    need(isinstance(value, bytes), field, "expected binary float64 data")
     if length is None:
-        _need(len(value) % 8 == 0, field, f"{len(value)} bytes is not a whole number of float64")
+        need(len(value) % 8 == 0, field, f"{len(value)} bytes is not a whole number of float64")
     else:
-        _need(len(value) == 8 * length, field, f"expected {8 * length} bytes, got {len(value)}")
+        need(len(value) == 8 * length, field, f"expected {8 * length} bytes, got {len(value)}")
     arr = np.frombuffer(value, dtype=_F64).astype(np.float64)
-    _need(bool(np.isfinite(arr).all()), field, "non-finite number", InvalidValue)
+    need(bool(np.isfinite(arr).all()), field, "non-finite number", InvalidValue)
     return arr
 
 
 def _decode_doc(doc: Any, lim: FrameLimits) -> SensorFrame:
-    _need(isinstance(doc, dict), "message", f"expected a map, got {type(doc).__name__}")
+    need(isinstance(doc, dict), "message", f"expected a map, got {type(doc).__name__}")
     if "v" in doc and (type(doc["v"]) is not int or doc["v"] != VERSION):
         raise UnsupportedVersion(f"schema version {doc['v']!r} (this side speaks {VERSION})", "v")
-    top = _map(doc, "message", _TOP_KEYS)
+    top = as_map(doc, "message", _TOP_KEYS)
     if top["type"] != FRAME:
         raise UnsupportedVersion(f"message type {top['type']!r}", "type")
-    robot = _robot_id(top["robot"], "robot")
-    k = _int(top["k"], "k", 1, MAX_STEP)
+    robot = robot_id(top["robot"], "robot")
+    k = as_int(top["k"], "k", 1, MAX_STEP)
     odo = _floats(top["odo"], "odo", 3)
     truth = np.full(3, np.nan) if top["truth"] is None else _floats(top["truth"], "truth", 3)
     dets = _decode_detections(top["det"], lim)
@@ -202,18 +185,16 @@ def _decode_doc(doc: Any, lim: FrameLimits) -> SensorFrame:
 
 
 def _decode_detections(raw: Any, lim: FrameLimits) -> list[Detection]:
-    _need(isinstance(raw, list), "det", "expected an array")
-    _need(
-        len(raw) <= lim.max_detections, "det", f"{len(raw)} > {lim.max_detections}", LimitExceeded
-    )
+    need(isinstance(raw, list), "det", "expected an array")
+    need(len(raw) <= lim.max_detections, "det", f"{len(raw)} > {lim.max_detections}", LimitExceeded)
     seen: set[int] = set()
     first: int | None = None
     dets = []
     for i, value in enumerate(raw):
         where = f"det[{i}]"
-        d = _map(value, where, _DET_KEYS)
-        oid = _int(d["id"], f"{where}.id", 0, MAX_OBJECT_ID)
-        _need(oid not in seen, f"{where}.id", f"duplicate object id {oid}", InvalidValue)
+        d = as_map(value, where, _DET_KEYS)
+        oid = as_int(d["id"], f"{where}.id", 0, MAX_OBJECT_ID)
+        need(oid not in seen, f"{where}.id", f"duplicate object id {oid}", InvalidValue)
         seen.add(oid)
         geo = _floats(d["geo"], f"{where}.geo", 3)
         sem = _floats(d["sem"], f"{where}.sem", None)

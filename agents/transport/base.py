@@ -12,7 +12,7 @@ import collections
 from dataclasses import dataclass
 from typing import Literal, Protocol
 
-from protocol.codec import valid_id
+from protocol.validate import valid_id
 
 Kind = Literal["put", "alive", "gone"]
 

@@ -1,0 +1,77 @@
+"""Shared validation of the wire codecs (stacks, frames, estimates): every check raises a
+:class:`~protocol.errors.ProtocolError` subclass that names the field."""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Callable
+from typing import Any, TypeVar
+
+import msgpack
+import numpy as np
+
+from protocol.errors import InvalidValue, LimitExceeded, MalformedMessage, ProtocolError
+
+T = TypeVar("T")
+ID_PATTERN = re.compile(r"^[A-Za-z0-9_-]{1,32}$")
+
+
+def valid_id(value: object) -> bool:
+    """Robot ids: 1–32 of A–Z a–z 0–9 _ - (they become Zenoh key segments)."""
+    return isinstance(value, str) and ID_PATTERN.fullmatch(value) is not None
+
+
+def decode_document(data: bytes, max_bytes: int, parse: Callable[[Any], T]) -> T:
+    """Unpack ``data`` (at most ``max_bytes``) as msgpack and ``parse`` the document. Raises only
+    :class:`~protocol.errors.RemoteProtocolError` subclasses."""
+    if not isinstance(data, bytes | bytearray | memoryview):
+        raise MalformedMessage(f"expected bytes, got {type(data).__name__}", "message")
+    if len(data) > max_bytes:
+        raise LimitExceeded(f"{len(data)} bytes > {max_bytes}", "message")
+    try:
+        doc = msgpack.unpackb(bytes(data), raw=False, strict_map_key=True, use_list=True)
+    except Exception as exc:  # msgpack raises a dozen types for bad input; all mean "malformed"
+        raise MalformedMessage(
+            f"not a msgpack document ({type(exc).__name__}: {exc})", "message"
+        ) from None
+    try:
+        return parse(doc)
+    except ProtocolError:
+        raise
+    except (
+        ValueError,
+        TypeError,
+        OverflowError,
+        IndexError,
+        KeyError,
+        np.linalg.LinAlgError,
+    ) as exc:
+        # Defence in depth: a validation gap must still surface as a remote error, never a crash.
+        raise MalformedMessage(f"{type(exc).__name__}: {exc}", "message") from None
+
+
+def need(
+    cond: bool, field: str, message: str, error: type[ProtocolError] = MalformedMessage
+) -> None:
+    if not cond:
+        raise error(message, field)
+
+
+def as_map(value: Any, field: str, keys: frozenset[str]) -> dict[str, Any]:
+    need(isinstance(value, dict), field, f"expected a map, got {type(value).__name__}")
+    missing, extra = keys - value.keys(), value.keys() - keys
+    need(not missing, field, f"missing keys {sorted(missing)}")
+    need(not extra, field, f"unknown keys {sorted(map(str, extra))}")
+    return dict(value)
+
+
+def as_int(value: Any, field: str, lo: int, hi: int) -> int:
+    need(isinstance(value, int) and not isinstance(value, bool), field, "expected an integer")
+    need(lo <= value <= hi, field, f"{value} outside {lo}..{hi}", InvalidValue)
+    return int(value)
+
+
+def robot_id(value: Any, field: str) -> str:
+    need(isinstance(value, str), field, "expected a string")
+    need(valid_id(value), field, f"invalid robot id {value!r}", InvalidValue)
+    return str(value)
