@@ -97,7 +97,7 @@ def parse_scenario(
         raw = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ScenarioError(f"{label}: not valid TOML: {exc}") from None
-    top = _Field(label, raw, "")
+    top = FieldReader(label, raw, "")
     _check_format(top)
     defined = _variants(top)
     by_name = {v.name: v for v in defined}
@@ -145,7 +145,7 @@ def _build_attributed(raw: dict[str, Any], label: str, origins: Mapping[str, str
         raise
 
 
-def _check_format(top: _Field) -> None:
+def _check_format(top: FieldReader) -> None:
     """Checked first, so a file of a newer format is reported as such and not as unknown keys."""
     version = top.integer("format")
     if version != FORMAT_VERSION:
@@ -154,7 +154,7 @@ def _check_format(top: _Field) -> None:
         )
 
 
-def _variants(top: _Field) -> tuple[Variant, ...]:
+def _variants(top: FieldReader) -> tuple[Variant, ...]:
     if not top.has("variants"):
         return ()
     table = top.table("variants")
@@ -186,7 +186,7 @@ def _apply_override(raw: dict[str, Any], label: str, path: str, value: Any, wher
     node[parts[-1]] = copy.deepcopy(value)
 
 
-class _Field:
+class FieldReader:
     """A cursor into the raw TOML data that knows its dotted path, for precise errors."""
 
     def __init__(self, label: str, raw: Any, path: str) -> None:
@@ -220,28 +220,28 @@ class _Field:
             raise self.fail(key, "missing required field")
         return self.raw[key]
 
-    def table(self, key: str) -> _Field:
+    def table(self, key: str) -> FieldReader:
         value = self._get(key)
         if not isinstance(value, dict):
             raise self.fail(key, f"expected a table, got {_type_name(value)}")
-        return _Field(self.label, value, self._name(key))
+        return FieldReader(self.label, value, self._name(key))
 
     def optional_table(self, key: str) -> dict[str, Any] | None:
         return self.table(key).raw if key in self.raw else None
 
-    def array(self, key: str | int) -> _Field:
+    def array(self, key: str | int) -> FieldReader:
         value = self._get(key)
         if not isinstance(value, list):
             raise self.fail(key, f"expected an array, got {_type_name(value)}")
-        return _Field(self.label, value, self._name(key))
+        return FieldReader(self.label, value, self._name(key))
 
-    def tables(self, key: str) -> list[_Field]:
+    def tables(self, key: str) -> list[FieldReader]:
         arr = self.array(key)
         out = []
         for i, item in enumerate(arr.raw):
             if not isinstance(item, dict):
                 raise arr.fail(i, f"expected a table, got {_type_name(item)}")
-            out.append(_Field(self.label, item, arr._name(i)))
+            out.append(FieldReader(self.label, item, arr._name(i)))
         return out
 
     def string(self, key: str | int) -> str:
@@ -291,7 +291,7 @@ def _type_name(value: Any) -> str:
 
 
 def _build(raw: dict[str, Any], label: str) -> Scenario:
-    top = _Field(label, raw, "")
+    top = FieldReader(label, raw, "")
     _check_format(top)
     top.check_keys(
         {"format", "name", "description", "steps", "classes", "classifier", "noise", "sensor"}
@@ -327,7 +327,7 @@ def _build(raw: dict[str, Any], label: str) -> Scenario:
     )
 
 
-def _classes(f: _Field) -> tuple[int, tuple[float, ...]]:
+def _classes(f: FieldReader) -> tuple[int, tuple[float, ...]]:
     f.check_keys({"count", "prior"})
     m = f.integer("count", minimum=2, maximum=_MAX_CLASSES)
     if not f.has("prior"):
@@ -338,7 +338,7 @@ def _classes(f: _Field) -> tuple[int, tuple[float, ...]]:
     return m, tuple(prior)
 
 
-def _classifier(f: _Field, m: int) -> ClassifierSpec:
+def _classifier(f: FieldReader, m: int) -> ClassifierSpec:
     model = f.string("model")
     if model not in _CLASSIFIER_MODELS:
         raise f.fail("model", f"unknown model {model!r} (known: {', '.join(_CLASSIFIER_MODELS)})")
@@ -364,7 +364,7 @@ def _classifier(f: _Field, m: int) -> ClassifierSpec:
     return ClassifierSpec("aliased", tuple(alias), tuple(best), noise_std)
 
 
-def _sensor(f: _Field) -> Sensor:
+def _sensor(f: FieldReader) -> Sensor:
     f.check_keys({"half_angle_deg", "range"})
     half = f.number("half_angle_deg", positive=True)
     if half > 180.0:
@@ -372,12 +372,12 @@ def _sensor(f: _Field) -> Sensor:
     return Sensor(math.radians(half), f.number("range", positive=True))
 
 
-def _check_id(f: _Field, key: str | int, value: str) -> None:
+def _check_id(f: FieldReader, key: str | int, value: str) -> None:
     if not _ID_PATTERN.match(value):
         raise f.fail(key, f"{value!r} is not a valid robot id (1–32 of A–Z a–z 0–9 _ -)")
 
 
-def _robots(top: _Field, steps: int, default_sensor: Sensor) -> tuple[Robot, ...]:
+def _robots(top: FieldReader, steps: int, default_sensor: Sensor) -> tuple[Robot, ...]:
     robots: list[Robot] = []
     seen: set[str] = set()
     entries = top.tables("robots")
@@ -397,7 +397,7 @@ def _robots(top: _Field, steps: int, default_sensor: Sensor) -> tuple[Robot, ...
     return tuple(robots)
 
 
-def _actions(f: _Field, steps: int) -> tuple[tuple[float, float, float], ...]:
+def _actions(f: FieldReader, steps: int) -> tuple[tuple[float, float, float], ...]:
     if f.has("actions") == f.has("turns"):
         raise f.fail(None, "give exactly one of 'actions' or 'turns'")
     if f.has("actions"):
@@ -421,7 +421,7 @@ def _actions(f: _Field, steps: int) -> tuple[tuple[float, float, float], ...]:
     return tuple((speed, 0.0, omega) for count, omega in parsed for _ in range(count))
 
 
-def _objects(top: _Field, m: int) -> tuple[Object, ...]:
+def _objects(top: FieldReader, m: int) -> tuple[Object, ...]:
     objects: list[Object] = []
     seen: set[int] = set()
     for f in top.tables("objects"):
@@ -438,7 +438,7 @@ def _objects(top: _Field, m: int) -> tuple[Object, ...]:
     return tuple(objects)
 
 
-def _communication(f: _Field, steps: int, robot_ids: list[str]) -> Communication:
+def _communication(f: FieldReader, steps: int, robot_ids: list[str]) -> Communication:
     f.check_keys({"mode", "range", "schedule"})
     comm_range = f.number("range", positive=True) if f.has("range") else None
     schedule: list[ScheduleEdge] = []

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sim.loader import _Field
+from sim.loader import FieldReader
 from sim.scenario import FORMAT_VERSION, ScenarioError
 from sim.ufastslam.world import (
     GROUP_KINDS,
@@ -69,7 +69,7 @@ def parse_world(text: str, label: str = "<string>") -> UWorld:
         raw = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ScenarioError(f"{label}: not valid TOML: {exc}") from None
-    top = _Field(label, raw, "")
+    top = FieldReader(label, raw, "")
     version = top.integer("format")
     if version != FORMAT_VERSION:
         raise top.fail(
@@ -108,14 +108,14 @@ def parse_world(text: str, label: str = "<string>") -> UWorld:
     return world
 
 
-def _non_negative(f: _Field, key: str) -> float:
+def _non_negative(f: FieldReader, key: str) -> float:
     value = f.number(key)
     if value < 0:
         raise f.fail(key, f"{value} must be ≥ 0")
     return value
 
 
-def _path(f: _Field) -> tuple[tuple[float, float, float], float, float, tuple[Leg, ...]]:
+def _path(f: FieldReader) -> tuple[tuple[float, float, float], float, float, tuple[Leg, ...]]:
     f.check_keys({"start", "speed", "turn_rate_deg", "legs"})
     x, y, theta = f.vector("start", 3)
     speed = f.number("speed", positive=True)
@@ -136,7 +136,7 @@ def _path(f: _Field) -> tuple[tuple[float, float, float], float, float, tuple[Le
     return (x, y, theta), speed, turn_rate, tuple(legs)
 
 
-def _landmarks(top: _Field) -> tuple[tuple[int, ...], tuple[tuple[float, float], ...]]:
+def _landmarks(top: FieldReader) -> tuple[tuple[int, ...], tuple[tuple[float, float], ...]]:
     arr = top.array("landmarks")
     if not arr.raw:
         raise top.fail("landmarks", "at least one landmark is required")
@@ -157,7 +157,7 @@ def _landmarks(top: _Field) -> tuple[tuple[int, ...], tuple[tuple[float, float],
 
 
 def _groups(
-    top: _Field, ids: tuple[int, ...], xy: tuple[tuple[float, float], ...]
+    top: FieldReader, ids: tuple[int, ...], xy: tuple[tuple[float, float], ...]
 ) -> tuple[RelationGroup, ...]:
     if not top.has("groups"):
         return ()
@@ -199,7 +199,7 @@ def _groups(
     return tuple(out)
 
 
-def _odometry(f: _Field) -> Odometry:
+def _odometry(f: FieldReader) -> Odometry:
     f.check_keys({"speed_std", "yaw_rate_std_deg", "scale_error", "yaw_rate_bias_deg"})
     scale = f.number("scale_error")
     if not -0.5 < scale < 0.5:
@@ -212,7 +212,7 @@ def _odometry(f: _Field) -> Odometry:
     )
 
 
-def _camera(f: _Field) -> Camera:
+def _camera(f: FieldReader) -> Camera:
     f.check_keys({"half_angle_deg", "range", "range_std", "bearing_std_deg"})
     half = f.number("half_angle_deg", positive=True)
     if half > 180.0:
@@ -225,7 +225,7 @@ def _camera(f: _Field) -> Camera:
     )
 
 
-def _filter(f: _Field) -> FilterNoise:
+def _filter(f: FieldReader) -> FilterNoise:
     f.check_keys({"speed_std", "yaw_rate_std_deg", "relation_std"})
     relation = (
         f.number("relation_std", positive=True)
