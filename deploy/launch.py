@@ -145,6 +145,8 @@ class Launcher:
         unknown = [r for r in plan.robots if r not in s.robot_ids]
         if unknown:
             raise LaunchError(f"robots {unknown} are not in scenario {s.name}")
+        if plan.steps is not None and not 1 <= plan.steps <= s.steps:
+            raise LaunchError(f"steps: {plan.steps} outside 1..{s.steps} (scenario {s.name})")
         self.steps = plan.steps or s.steps
         self.links: LinkModel = link_model_for(
             s, plan.comm, plan.faults.drop, plan.seed, plan.faults.partitions
