@@ -9,10 +9,12 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import contextlib
+import json
 import logging
 import math
+import os
 import signal
+import sys
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
@@ -24,14 +26,16 @@ from agents.journal import Journal, JournalError, Record
 from agents.links import Partition
 from agents.node import RobotNode
 from agents.runtime import MODES, Agent, RuntimeSettings
-from agents.transport.base import Keys
+from agents.transport.base import Keys, Message
 from agents.transport.zenoh_transport import ZenohSettings, ZenohTransport
 from deploy.fleet import COMM_MODES, link_model_for
 from deploy.study import belief_model, belief_rng
 from estimator.hybrid import BeliefConfig
+from protocol.frames import encode_frame
 from protocol.validate import valid_id
 from sim.loader import load_scenario
 from sim.scenario import Scenario
+from sim.sensors import Simulator
 
 log = logging.getLogger("semfleet.agent")
 
@@ -57,6 +61,7 @@ class AgentConfig:
     drop: float
     partitions: tuple[Partition, ...]
     zenoh: ZenohSettings
+    replay_period: float | None = None
 
 
 def _get(
@@ -79,7 +84,7 @@ def _name(kind: type | tuple[type, ...]) -> str:
 
 _AGENT_KEYS = {
     "fleet", "scenario", "variants", "seed", "mode", "gossip_period", "journal", "comm", "drop",
-    "partitions", "publish_local",
+    "partitions", "publish_local", "replay_period",
 }  # fmt: skip
 _ZENOH_KEYS = {"listen", "connect", "gossip", "shared_memory", "lease_ms", "config_file"}
 
@@ -137,6 +142,13 @@ def load_agent_config(path: Path, robot: str) -> AgentConfig:
             partitions.append(Partition(frozenset(map(str, p[0])), int(p[1]), int(p[2])))
         except (TypeError, ValueError) as exc:
             raise AgentConfigError(path, where, str(exc)) from None
+    replay_period = None
+    if "replay_period" in a:
+        replay_period = float(_get(a, "replay_period", (int, float), path, "agent"))
+        if not (math.isfinite(replay_period) and 0.001 <= replay_period <= 3600):
+            raise AgentConfigError(path, "agent.replay_period", "must be in 0.001..3600 s")
+        if mode != "realtime":
+            raise AgentConfigError(path, "agent.replay_period", 'needs mode = "realtime"')
     journal = None
     if "journal" in a:
         journal = base / _get(a, "journal", str, path, "agent")
@@ -168,7 +180,7 @@ def load_agent_config(path: Path, robot: str) -> AgentConfig:
         scenario = str(base / scenario)
     return AgentConfig(
         robot, fleet, scenario, tuple(map(str, variants)), seed, runtime, journal, comm, drop,
-        tuple(partitions), zenoh_settings,
+        tuple(partitions), zenoh_settings, replay_period,
     )  # fmt: skip
 
 
@@ -199,6 +211,44 @@ def build_agent(config: AgentConfig, scenario: Scenario, transport: ZenohTranspo
     return agent
 
 
+class JsonLines(logging.Formatter):
+    """One JSON object per line: time, level, logger, message and any ``extra`` fields."""
+
+    _STANDARD = set(vars(logging.LogRecord("", 0, "", 0, "", None, None))) | {"message"}
+
+    def __init__(self, robot: str) -> None:
+        super().__init__()
+        self.robot = robot
+
+    def format(self, record: logging.LogRecord) -> str:
+        doc: dict[str, Any] = {
+            "ts": round(record.created, 6),
+            "level": record.levelname.lower(),
+            "logger": record.name,
+            "robot": self.robot,
+            "msg": record.getMessage(),
+        }
+        doc.update({k: v for k, v in vars(record).items() if k not in self._STANDARD})
+        if record.exc_info:
+            doc["exc"] = self.formatException(record.exc_info)
+        return json.dumps(doc, default=str)
+
+
+async def _replay_frames(agent: Agent, scenario: Scenario, seed: int, period: float) -> None:
+    """The simulation source without a conductor: the robot's own frames, one per period."""
+    frames = Simulator(scenario, seed).all_frames()[agent.robot]
+    key = agent.keys.frames(agent.robot)
+    for frame in frames[agent.node.k :]:
+        agent.frames.put(Message(key, encode_frame(frame)))
+        await asyncio.sleep(period)
+
+
+async def _log_counters(agent: Agent, every: float) -> None:
+    while True:
+        await asyncio.sleep(every)
+        log.info("%s: counters", agent.robot, extra={"event": "counters", **agent.counter_values()})
+
+
 async def serve(config: AgentConfig) -> int:
     scenario = load_scenario(config.scenario, config.variants)
     transport = ZenohTransport(config.zenoh)
@@ -206,24 +256,50 @@ async def serve(config: AgentConfig) -> int:
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, agent.stop, signal.Signals(sig).name)
-    log.info("%s: up at step %d (%s mode)", config.robot, agent.node.k, config.runtime.mode)
-    await agent.run()
-    counters = agent.counter_values()
-    log.info("%s: stopped (%s) %s", config.robot, agent.stop_reason, counters)
+    log.info(
+        "%s: up at step %d (%s mode)",
+        config.robot,
+        agent.node.k,
+        config.runtime.mode,
+        extra={"event": "start", "step": agent.node.k, "mode": config.runtime.mode},
+    )
+    helpers = [asyncio.create_task(_log_counters(agent, 10.0))]
+    if config.replay_period is not None:
+        helpers.append(
+            asyncio.create_task(_replay_frames(agent, scenario, config.seed, config.replay_period))
+        )
+    try:
+        await agent.run()
+    finally:
+        for task in helpers:
+            task.cancel()
+    log.info(
+        "%s: stopped (%s)",
+        config.robot,
+        agent.stop_reason,
+        extra={"event": "stop", "reason": agent.stop_reason, **agent.counter_values()},
+    )
     return 0
 
 
 def run(args: argparse.Namespace, console: Console) -> int:
     config = load_agent_config(Path(args.config), args.robot)
-    logging.getLogger("semfleet").setLevel(logging.INFO)
-    logging.getLogger("agents").setLevel(logging.INFO)
+    handler = logging.StreamHandler()
+    handler.setFormatter(JsonLines(config.robot))
+    root = logging.getLogger()
+    root.handlers[:] = [handler]
+    root.setLevel(logging.INFO if not args.verbose else logging.DEBUG)
     try:
-        return asyncio.run(serve(config))
+        code = asyncio.run(serve(config))
     except JournalError as exc:
         raise ValueError(f"journal: {exc}") from None
-    finally:
-        with contextlib.suppress(Exception):
-            logging.shutdown()
+    # The Zenoh session and the journal are closed and flushed by now; tearing down the
+    # interpreter (tokio's threads, GTSAM's statics) can take seconds on a loaded machine, which
+    # would break the 2 s shutdown promise. Leave at once.
+    logging.shutdown()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)
 
 
 def add_parser(sub: Any) -> None:
