@@ -1,0 +1,345 @@
+"""The asyncio agent over the in-memory transport, in one event loop: lock-step rounds merge exactly
+the peers the conductor ordered (and so repeat the in-process runner), the realtime proximity
+filter refuses and counts out-of-range stacks, invalid input is counted and logged rate-limited
+while the agent lives on, and a journal replay rebuilds the very belief the agent had.
+
+The world: three robots 10 m apart driving along +x, each with two objects just ahead of it (seen
+from k = 1), talking along a chain r1–r2–r3 (never r1–r3).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+from collections.abc import AsyncIterator, Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from agents.control import StepOrder, encode_control
+from agents.journal import Journal
+from agents.links import LinkModel, Proximity, Schedule
+from agents.node import RobotNode
+from agents.runtime import Agent, RuntimeSettings
+from agents.transport import Inbox, Keys, MemoryBus, MemoryTransport
+from deploy.conductor import Conductor
+from deploy.fleet import make_nodes, run_fleet
+from deploy.study import belief_model, belief_rng
+from estimator.hybrid import BeliefConfig, BeliefSnapshot
+from estimator.models import SensorFrame
+from protocol.codec import StackMessage, encode
+from protocol.estimate import EstimateMessage
+from protocol.frames import encode_frame
+from sim.loader import parse_scenario
+from sim.sensors import Simulator
+from tests.tolerance import assert_close
+
+STEPS = 8
+SEED = 5
+ROBOTS = ("r1", "r2", "r3")
+_TEXT = f"""
+format = 1
+name = "chain3"
+description = "three robots 10 m apart, two objects each"
+steps = {STEPS}
+[classes]
+count = 2
+prior = [0.5, 0.5]
+[classifier]
+model = "paper"
+[noise]
+odometry_var = [0.003, 0.003, 0.001]
+geometric_var = [0.1, 0.1, 0.01]
+[sensor]
+half_angle_deg = 50.0
+range = 3.5
+[communication]
+mode = "schedule"
+schedule = [[1, {STEPS}, "r1", "r2"], [1, {STEPS}, "r2", "r3"]]
+"""
+for _i, _r in enumerate(ROBOTS):
+    _TEXT += f'\n[[robots]]\nid = "{_r}"\nstart = [0.0, {10.0 * _i}, 0.0]\n'
+    _TEXT += f"speed = 0.25\nturns = [[{STEPS}, 0.0]]\n"
+    for _j, (_x, _dy) in enumerate(((2.0, 0.3), (2.8, -0.6))):
+        _TEXT += f"\n[[objects]]\nid = {2 * _i + _j + 1}\npose = [{_x}, {10.0 * _i + _dy}, 0.4]\n"
+        _TEXT += f"class = {1 + (_i + _j) % 2}\n"
+SCENARIO = parse_scenario(_TEXT, "chain3.toml")
+CHAIN = Schedule(((1, STEPS, "r1", "r2"), (1, STEPS, "r2", "r3")))
+KEYS = Keys("rt")
+QUIET = 60.0  # a gossip period longer than any test: only steps publish stacks
+
+
+@pytest.fixture(scope="module")
+def frames() -> dict[str, list[SensorFrame]]:
+    return Simulator(SCENARIO, SEED).all_frames()
+
+
+def _nodes() -> dict[str, RobotNode]:
+    """One node per robot, seeded exactly as `semfleet agent` and the in-process runner do."""
+    model = belief_model(SCENARIO)
+    return make_nodes(SCENARIO, model, BeliefConfig(), lambda r: belief_rng(SEED, [r]))
+
+
+def _agent(
+    node: RobotNode,
+    bus: MemoryBus,
+    mode: str,
+    links: LinkModel = CHAIN,
+    journal: Journal | None = None,
+    gossip_period: float = QUIET,
+    clock: Callable[[], float] | None = None,
+) -> Agent:
+    settings = RuntimeSettings(mode=mode, gossip_period=gossip_period, retry_period=0.05)
+    extra = {} if clock is None else {"clock": clock}
+    return Agent(node, MemoryTransport(bus), KEYS, links, settings, journal, **extra)
+
+
+@contextlib.asynccontextmanager
+async def _running(*agents: Agent) -> AsyncIterator[list[asyncio.Task[None]]]:
+    """The agents' run() as tasks, once their transports are open; stopped and awaited at the end
+    (a crash fails the test)."""
+    tasks = [asyncio.create_task(a.run()) for a in agents]
+    try:
+        await _until(
+            lambda: all(
+                isinstance(a.transport, MemoryTransport) and a.transport.is_open for a in agents
+            )
+        )
+        yield tasks
+    finally:
+        for a in agents:
+            a.stop("test over")
+        await asyncio.wait_for(asyncio.gather(*tasks), 10)
+
+
+async def _until(predicate: Callable[[], bool], timeout: float = 10.0) -> None:
+    async with asyncio.timeout(timeout):
+        while not predicate():
+            await asyncio.sleep(0.005)
+
+
+def assert_same_snapshot(a: BeliefSnapshot, b: BeliefSnapshot, what: str) -> None:
+    assert a.object_ids == b.object_ids, what
+    np.testing.assert_array_equal(a.classes, b.classes, err_msg=what)
+    for name in ("weights", "robot_pose", "robot_cov", "object_pose", "object_cov"):
+        assert_close(getattr(a, name), getattr(b, name), what=f"{what}: {name}")
+
+
+# --------------------------------------------------------------------------- lock-step fleet
+
+
+@dataclass
+class LockstepRun:
+    estimates: dict[tuple[str, int], EstimateMessage]
+    stamps: dict[str, dict[str, int]]  # each agent's stack at the end
+    journals: Path
+
+
+async def _lockstep_fleet(
+    frames: dict[str, list[SensorFrame]], journals: Path
+) -> tuple[dict[tuple[str, int], EstimateMessage], dict[str, dict[str, int]]]:
+    bus = MemoryBus()
+    conductor = Conductor(
+        SCENARIO, frames, ROBOTS, MemoryTransport(bus), KEYS, CHAIN, keep_estimates=True
+    )
+    await conductor.open()
+    agents = []
+    for r, node in _nodes().items():
+        journal, records = Journal.open(journals / f"{r}.log", {"robot": r, "seed": SEED})
+        assert records == []
+        # The timer re-sends stacks an agent that opened later missed (as over Zenoh).
+        agents.append(_agent(node, bus, "lockstep", journal=journal, gossip_period=0.05))
+    async with _running(*agents) as tasks:
+        await conductor.wait_alive(10)
+        await conductor.run_lockstep(STEPS, step_timeout=30)
+        assert not any(t.done() for t in tasks)
+        conductor.stop_agents()
+        await asyncio.wait_for(asyncio.gather(*tasks), 10)
+    assert {a.stop_reason for a in agents} == {"run complete"}
+    stamps = {a.robot: a.node.current_stack().stamps() for a in agents}
+    return conductor.collected.estimates, stamps
+
+
+@pytest.fixture(scope="module")
+def lockstep_run(
+    frames: dict[str, list[SensorFrame]], tmp_path_factory: pytest.TempPathFactory
+) -> LockstepRun:
+    journals = tmp_path_factory.mktemp("journals")
+    estimates, stamps = asyncio.run(_lockstep_fleet(frames, journals))
+    return LockstepRun(estimates, stamps, journals)
+
+
+@pytest.fixture(scope="module")
+def reference(frames: dict[str, list[SensorFrame]]) -> dict[tuple[str, int], dict[str, object]]:
+    """The in-process runner over the same link model: snapshots of L and D after every step."""
+    snaps: dict[tuple[str, int], dict[str, object]] = {}
+
+    def record(robot: str, k: int, node: RobotNode, _fused: float, _ms: float) -> None:
+        snaps[(robot, k)] = {
+            "distributed": node.distributed.snapshot(robot),
+            "local": node.local.snapshot(robot),
+            "stamps": node.current_stack().stamps(),
+        }
+
+    run_fleet(_nodes(), frames, CHAIN, STEPS, record)
+    return snaps
+
+
+def test_agent_lockstep_fleet_repeats_the_in_process_runner(
+    lockstep_run: LockstepRun, reference: dict[tuple[str, int], dict[str, object]]
+) -> None:
+    for r in ROBOTS:
+        for k in range(1, STEPS + 1):
+            est = lockstep_run.estimates[(r, k)]
+            for belief in ("distributed", "local"):
+                ref = reference[(r, k)][belief]
+                assert isinstance(ref, BeliefSnapshot)
+                assert_same_snapshot(est.beliefs[belief], ref, f"{r} k={k} {belief}")
+        assert lockstep_run.stamps[r] == reference[(r, STEPS)]["stamps"]
+    # Relay along the chain: r3 holds r1's slot, one round behind r2's copy of it.
+    assert lockstep_run.stamps["r3"]["r1"] == STEPS - 2
+    # D gained from the peers: r3's distributed belief maps r1's objects, its local one does not.
+    final = lockstep_run.estimates[("r3", STEPS)].beliefs
+    assert {1, 2} <= set(final["distributed"].object_ids)
+    assert not {1, 2} & set(final["local"].object_ids)
+
+
+@pytest.mark.asyncio
+async def test_agent_lockstep_round_merges_exactly_the_ordered_peers(
+    frames: dict[str, list[SensorFrame]],
+) -> None:
+    bus = MemoryBus()
+    world = MemoryTransport(bus)
+    await world.open()
+    peers = _nodes()
+    agent = _agent(peers.pop("r3"), bus, "lockstep")
+
+    def order(k: int, senders: tuple[str, ...]) -> None:
+        world.publish(KEYS.ctl("step"), encode_control(StepOrder(k, {"r3": senders})))
+        world.publish(KEYS.frames("r3"), encode_frame(frames["r3"][k - 1]))
+
+    def gossip(robot: str) -> None:
+        world.publish(KEYS.stack(robot), peers[robot].encoded_stack())
+
+    async with _running(agent) as (task,):
+        order(1, ())
+        await _until(lambda: agent.node.k == 1)
+        for node in peers.values():
+            node.on_frame(frames[node.robot][0])
+        order(2, ("r1", "r2"))
+        gossip("r2")
+        await asyncio.sleep(0.3)  # r1's stack of round 1 is missing: the agent must wait
+        assert agent.node.k == 1
+        assert agent.node.stack.stamps() == {"r3": 1}
+        gossip("r1")
+        await _until(lambda: agent.node.k == 2)
+        assert agent.node.stack.stamps() == {"r1": 1, "r2": 1, "r3": 2}
+        for node in peers.values():
+            node.on_frame(frames[node.robot][1])
+        gossip("r1")  # round 2 of r1 arrives, but round 3 orders r2 only
+        gossip("r2")
+        order(3, ("r2",))
+        await _until(lambda: agent.node.k == 3)
+        assert agent.node.stack.stamps() == {"r1": 1, "r2": 2, "r3": 3}
+        assert agent.counters.frames_processed == 3
+        assert not task.done()
+
+
+# --------------------------------------------------------------------------- realtime
+
+
+def _stack_from(node: RobotNode, position: tuple[float, float] | None) -> bytes:
+    """``node``'s stack as sent from ``position`` (the proximity filter reads it)."""
+    return encode(StackMessage(node.robot, position, node.current_stack(), node.k))
+
+
+@pytest.mark.asyncio
+async def test_agent_realtime_proximity_filter_counts_ignored_out_of_range(
+    frames: dict[str, list[SensorFrame]],
+) -> None:
+    bus = MemoryBus()
+    world = MemoryTransport(bus)
+    await world.open()
+    nodes = _nodes()
+    peer = nodes["r2"]
+    peer.on_frame(frames["r2"][0])
+    agent = _agent(nodes["r1"], bus, "realtime", links=Proximity(10.0))
+    async with _running(agent) as (task,):
+        # Before its first step the agent has no position: refused, but not "out of range".
+        world.publish(KEYS.stack("r2"), _stack_from(peer, (0.0, 5.0)))
+        await _until(lambda: agent.node.counters.stacks_received == 1)
+        world.publish(KEYS.frames("r1"), encode_frame(frames["r1"][0]))
+        await _until(lambda: agent.node.k == 1)
+        world.publish(KEYS.stack("r2"), _stack_from(peer, None))  # a sender without a position
+        far = [(40.0, 0.0), (0.25, 10.5), (-9.0, -5.0)]  # 39.75, 10.5 and 10.3 m from r1
+        for position in far:
+            world.publish(KEYS.stack("r2"), _stack_from(peer, position))
+        await _until(lambda: agent.node.counters.stacks_received == 5)
+        assert agent.counters.ignored_out_of_range == len(far)
+        assert agent.node.stack.stamps() == {"r1": 1}
+        world.publish(KEYS.stack("r2"), _stack_from(peer, (0.25, 9.9)))  # 9.9 m: in range
+        await _until(lambda: agent.node.counters.stacks_received == 6)
+        assert agent.node.stack.stamps() == {"r1": 1, "r2": 1}
+        assert agent.counters.ignored_out_of_range == len(far)
+        assert agent.counter_values()["ignored_out_of_range"] == len(far)
+        assert not task.done()
+
+
+@pytest.mark.asyncio
+async def test_agent_counts_invalid_stacks_frames_and_control_and_keeps_running(
+    frames: dict[str, list[SensorFrame]], caplog: pytest.LogCaptureFixture
+) -> None:
+    bus = MemoryBus()
+    world = MemoryTransport(bus)
+    estimates = Inbox(64)
+    world.subscribe(KEYS.estimate("r1"), estimates)
+    await world.open()
+    agent = _agent(_nodes()["r1"], bus, "realtime", links=Proximity(10.0), clock=lambda: 100.0)
+    garbage = [b"", b"\xc1", b"\x81\xa1v\x02", bytes(range(200)), b"\x93\x01\x02"] * 10
+    caplog.set_level(logging.WARNING, logger="agents.runtime")
+    async with _running(agent) as (task,):
+        for data in garbage:
+            world.publish(KEYS.stack("r2"), data)
+        world.publish(KEYS.stack("chaos"), b"\x00\x01")
+        world.publish(KEYS.frames("r1"), b"not a frame")
+        world.publish(KEYS.frames("r1"), encode_frame(frames["r2"][0]))  # another robot's frame
+        world.publish(KEYS.ctl("step"), b"\xff\xff")
+        world.publish(KEYS.frames("r1"), encode_frame(frames["r1"][0]))
+        await _until(lambda: agent.node.k == 1 and len(estimates) > 0)
+        counters = agent.counter_values()
+        assert counters["stacks_invalid"] == len(garbage) + 1
+        assert counters["frames_invalid"] == 2
+        assert counters["control_invalid"] == 1
+        assert counters["frames_processed"] == 1
+        world.publish(KEYS.frames("r1"), encode_frame(frames["r1"][1]))
+        await _until(lambda: agent.node.k == 2)  # still stepping
+        assert not task.done()
+    # One line per source while the (frozen) clock stays within the log period.
+    sources = [r.getMessage().split(": ")[1] for r in caplog.records if "invalid" in r.message]
+    assert sorted(sources) == [f"invalid input from {s}" for s in ("chaos", "ctl", "frames", "r2")]
+
+
+# --------------------------------------------------------------------------- journal
+
+
+@pytest.mark.parametrize("robot", ROBOTS)
+def test_agent_journal_replay_rebuilds_the_identical_belief(
+    lockstep_run: LockstepRun, robot: str
+) -> None:
+    journal, records = Journal.open(
+        lockstep_run.journals / f"{robot}.log", {"robot": robot, "seed": SEED}
+    )
+    with journal:
+        agent = _agent(_nodes()[robot], MemoryBus(), "lockstep", journal=journal)
+        agent.replay(records)
+    kinds = [r.kind for r in records]
+    assert agent.counters.replayed_frames == kinds.count("frame") == STEPS
+    assert agent.counters.replayed_stacks == kinds.count("stack") > 0
+    assert agent.node.k == STEPS
+    assert agent.node.current_stack().stamps() == lockstep_run.stamps[robot]
+    final = lockstep_run.estimates[(robot, STEPS)].beliefs
+    assert_same_snapshot(agent.node.distributed.snapshot(robot), final["distributed"], "D")
+    assert_same_snapshot(agent.node.local.snapshot(robot), final["local"], "L")

@@ -1,0 +1,273 @@
+"""Transports: key expressions, the bounded drop-oldest inbox, the in-memory bus, and a real pair
+of Zenoh sessions on loopback (put → inbox, liveliness alive/gone, no multicast discovery)."""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import Callable
+
+import pytest
+
+from agents.transport import Inbox, Keys, MemoryBus, MemoryTransport, Message
+from agents.transport.base import Kind
+from agents.transport.memory import key_matches
+from agents.transport.zenoh_transport import ZenohSettings, ZenohTransport, settings_for
+from deploy.launch import free_ports
+
+KEYS = Keys("t1")
+
+
+async def _until(predicate: Callable[[], bool], timeout: float, poll: float = 0.01) -> None:
+    async with asyncio.timeout(timeout):
+        while not predicate():
+            await asyncio.sleep(poll)
+
+
+# --------------------------------------------------------------------------- keys
+
+
+@pytest.mark.parametrize(
+    ("expr", "key", "matches"),
+    [
+        ("a/b/c", "a/b/c", True),
+        ("a/b/c", "a/b", False),
+        ("a/b", "a/b/c", False),
+        ("a/*/c", "a/x/c", True),
+        ("a/*/c", "a/x/y/c", False),
+        ("a/*", "a", False),
+        ("a/**", "a", True),
+        ("a/**", "a/b/c/d", True),
+        ("a/**/d", "a/d", True),
+        ("a/**/d", "a/b/c/d", True),
+        ("a/**/d", "a/b/c/e", False),
+        ("**", "x/y", True),
+        ("semfleet/f/stack/*", "semfleet/f/stack/r1", True),
+        ("semfleet/f/stack/*", "semfleet/g/stack/r1", False),
+        ("semfleet/f/ctl/**", "semfleet/f/ctl/need/r2", True),
+    ],
+)
+def test_key_matches_follows_zenoh_wildcards(expr: str, key: str, matches: bool) -> None:
+    assert key_matches(expr, key) is matches
+
+
+def test_keys_live_under_one_fleet_prefix() -> None:
+    assert KEYS.stack("r1") == "semfleet/t1/stack/r1"
+    assert KEYS.alive("r2") == "semfleet/t1/alive/r2"
+    assert KEYS.frames("r3") == "semfleet/t1/frames/r3"
+    assert KEYS.estimate("*") == "semfleet/t1/estimate/*"
+    assert KEYS.ctl("need", "r1") == "semfleet/t1/ctl/need/r1"
+    assert KEYS.ctl("**") == "semfleet/t1/ctl/**"
+    assert KEYS.robot_of(KEYS.stack("r_9-x")) == "r_9-x"
+    assert KEYS.robot_of("semfleet/t1/stack/bad id") is None
+
+
+@pytest.mark.parametrize("bad", ["", "a b", "x/y", "x" * 33, "**"])
+def test_keys_refuse_invalid_fleet_and_robot_ids(bad: str) -> None:
+    with pytest.raises(ValueError, match="1–32"):
+        Keys(bad)
+    with pytest.raises(ValueError, match="robot id"):
+        KEYS.stack(bad)
+
+
+# --------------------------------------------------------------------------- inbox
+
+
+def _m(i: int) -> Message:
+    return Message(f"k/{i}", bytes([i]))
+
+
+def test_inbox_full_drops_the_oldest_and_counts_it() -> None:
+    inbox = Inbox(3)
+    for i in range(5):
+        inbox.put(_m(i))
+    assert len(inbox) == 3
+    assert (inbox.dropped, inbox.received) == (2, 5)
+    assert inbox.drain() == [_m(2), _m(3), _m(4)]
+    assert len(inbox) == 0
+    assert inbox.drain() == []
+
+
+def test_inbox_capacity_must_be_positive() -> None:
+    with pytest.raises(ValueError, match="capacity"):
+        Inbox(0)
+
+
+@pytest.mark.asyncio
+async def test_inbox_get_and_wait_block_until_a_message_arrives() -> None:
+    inbox = Inbox(4)
+    assert await inbox.wait(0.01) is False
+    asyncio.get_running_loop().call_later(0.02, inbox.put, _m(1))
+    assert await inbox.get() == _m(1)
+    asyncio.get_running_loop().call_later(0.02, inbox.put, _m(2))
+    assert await inbox.wait(5.0) is True
+    assert await inbox.wait(0.0) is True  # already queued: no waiting
+    assert inbox.drain() == [_m(2)]
+
+
+# --------------------------------------------------------------------------- memory
+
+
+@pytest.mark.asyncio
+async def test_memory_transport_delivers_on_the_loop_to_matching_subscriptions_only() -> None:
+    bus = MemoryBus()
+    a, b = MemoryTransport(bus), MemoryTransport(bus)
+    stacks, frames_r2 = Inbox(8), Inbox(8)
+    b.subscribe(KEYS.stack("*"), stacks)
+    b.subscribe(KEYS.frames("r2"), frames_r2)
+    await a.open()
+    await b.open()
+    payload = bytearray(b"stack of r1")
+    a.publish(KEYS.stack("r1"), payload)
+    a.publish(KEYS.frames("r1"), b"not for r2")
+    a.publish(KEYS.frames("r2"), b"frame")
+    payload[:] = b"overwritten"  # the transport copied the bytes
+    assert len(stacks) == 0  # scheduled on the loop, never delivered synchronously
+    await asyncio.sleep(0)
+    assert stacks.drain() == [Message(KEYS.stack("r1"), b"stack of r1")]
+    assert frames_r2.drain() == [Message(KEYS.frames("r2"), b"frame")]
+    assert (a.sent, bus.published) == (3, 3)
+
+
+@pytest.mark.asyncio
+async def test_memory_transport_closed_sends_and_receives_nothing() -> None:
+    bus = MemoryBus()
+    a, b = MemoryTransport(bus), MemoryTransport(bus)
+    inbox = Inbox(8)
+    b.subscribe(KEYS.stack("*"), inbox)
+    await a.open()
+    await b.open()
+    await b.close()
+    await b.close()  # twice is harmless
+    a.publish(KEYS.stack("r1"), b"x")
+    await a.close()
+    a.publish(KEYS.stack("r1"), b"y")
+    await asyncio.sleep(0)
+    assert len(inbox) == 0
+    assert a.sent == 1
+
+
+@pytest.mark.asyncio
+async def test_memory_transport_liveliness_announces_alive_and_gone() -> None:
+    bus = MemoryBus()
+    watcher, early, late = MemoryTransport(bus), MemoryTransport(bus), MemoryTransport(bus)
+    early.declare_alive(KEYS.alive("r1"))
+    await early.open()
+    await watcher.open()
+    events = Inbox(8)
+    watcher.watch_alive(KEYS.alive("*"), events)
+    await asyncio.sleep(0)
+    assert events.drain() == [Message(KEYS.alive("r1"), b"", "alive")]  # a token already there
+    await late.open()
+    late.declare_alive(KEYS.alive("r2"))
+    late.declare_alive("semfleet/other/alive/r9")
+    await early.close()
+    await asyncio.sleep(0)
+    assert events.drain() == [
+        Message(KEYS.alive("r2"), b"", "alive"),
+        Message(KEYS.alive("r1"), b"", "gone"),
+    ]
+
+
+# --------------------------------------------------------------------------- zenoh
+
+
+def test_zenoh_settings_peer_mode_without_multicast_or_shared_memory() -> None:
+    cfg = settings_for(17001, [17002, 17003], gossip=False).config()
+    assert cfg.get_json("mode") == '"peer"'
+    assert cfg.get_json("scouting/multicast/enabled") == "false"
+    assert cfg.get_json("scouting/gossip/enabled") == "false"
+    assert cfg.get_json("transport/shared_memory/enabled") == "false"
+    assert cfg.get_json("listen/endpoints") == '["tcp/127.0.0.1:17001"]'
+    assert cfg.get_json("connect/endpoints") == '["tcp/127.0.0.1:17002","tcp/127.0.0.1:17003"]'
+    # Multicast stays off whatever else is asked for.
+    assert ZenohSettings().config().get_json("scouting/multicast/enabled") == "false"
+
+
+@pytest.mark.asyncio
+async def test_zenoh_pair_on_loopback_put_reaches_the_inbox() -> None:
+    port_a, port_b = free_ports(2)
+    a = ZenohTransport(settings_for(port_a, []))
+    b = ZenohTransport(settings_for(port_b, [port_a]))
+    stacks = Inbox(64)
+    b.subscribe(KEYS.stack("*"), stacks)
+    payload = bytes(range(256)) * 400  # 100 KB: several Zenoh batches
+    try:
+        await a.open()
+        await b.open()
+        assert a.is_open and b.is_open
+
+        # A put sent before b's subscription reached a is dropped: re-publish, as gossip does.
+        async def delivered() -> None:
+            while not len(stacks):
+                a.publish(KEYS.stack("r1"), payload)
+                await stacks.wait(0.1)
+
+        async with asyncio.timeout(15):
+            await delivered()
+        message = stacks.drain()[0]
+        assert message == Message(KEYS.stack("r1"), payload)
+        a.publish(KEYS.frames("r1"), b"not subscribed")
+        a.publish(KEYS.stack("r2"), b"second")
+        async with asyncio.timeout(5):
+            while not any(m.payload == b"second" for m in stacks.drain()):
+                await stacks.wait(0.1)
+        assert a.sent >= 3 and a.send_errors == 0
+    finally:
+        await b.close()
+        await a.close()
+    assert not a.is_open and not b.is_open
+    a.publish(KEYS.stack("r1"), b"after close")  # a no-op, not an error
+
+
+@pytest.mark.asyncio
+async def test_zenoh_liveliness_tokens_are_seen_alive_then_gone() -> None:
+    port_a, port_b = free_ports(2)
+    watcher = ZenohTransport(settings_for(port_a, []))
+    robot = ZenohTransport(settings_for(port_b, [port_a]))
+    events = Inbox(64)
+    watcher.watch_alive(KEYS.alive("*"), events)
+    robot.declare_alive(KEYS.alive("r2"))
+    seen: list[Message] = []
+
+    def saw(kind: Kind) -> bool:
+        seen.extend(events.drain())
+        return Message(KEYS.alive("r2"), b"", kind) in seen
+
+    try:
+        await watcher.open()
+        await robot.open()
+        await _until(lambda: saw("alive"), 15)
+        await robot.close()
+        await _until(lambda: saw("gone"), 10)  # a closed session ends its tokens at once
+    finally:
+        await robot.close()
+        await watcher.close()
+    assert all(m.key == KEYS.alive("r2") for m in seen)
+
+
+@pytest.mark.asyncio
+async def test_zenoh_sessions_without_endpoints_in_common_never_meet() -> None:
+    """Multicast scouting is off: a session that dials nobody and is dialled by nobody hears
+    nothing, even on the same host and key."""
+    port_a, port_b, port_c = free_ports(3)
+    a = ZenohTransport(settings_for(port_a, []))
+    b = ZenohTransport(settings_for(port_b, [port_a]))
+    loner = ZenohTransport(settings_for(port_c, []))
+    heard, control = Inbox(64), Inbox(64)
+    loner.subscribe(KEYS.stack("*"), heard)
+    b.subscribe(KEYS.stack("*"), control)
+    try:
+        for t in (a, b, loner):
+            await t.open()
+        async with asyncio.timeout(15):
+            while not len(control):  # until the linked peer hears a, for 1 s more after that
+                a.publish(KEYS.stack("r1"), b"hello")
+                await control.wait(0.1)
+        for _ in range(10):
+            a.publish(KEYS.stack("r1"), b"hello")
+            await asyncio.sleep(0.1)
+    finally:
+        for t in (loner, b, a):
+            await t.close()
+    assert len(heard) == 0
+    assert len(control) > 0
