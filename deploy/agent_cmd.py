@@ -136,7 +136,13 @@ def load_agent_config(path: Path, robot: str) -> AgentConfig:
     partitions = []
     for i, p in enumerate(_get(a, "partitions", list, path, "agent") if "partitions" in a else []):
         where = f"agent.partitions[{i}]"
-        if not (isinstance(p, list) and len(p) == 3 and isinstance(p[0], list)):
+        if not (
+            isinstance(p, list)
+            and len(p) == 3
+            and isinstance(p[0], list)
+            and all(isinstance(r, str) and valid_id(r) for r in p[0])
+            and all(isinstance(v, int) and not isinstance(v, bool) for v in p[1:])
+        ):
             raise AgentConfigError(path, where, "expected [[robot ids], first step, last step]")
         try:
             partitions.append(Partition(frozenset(map(str, p[0])), int(p[1]), int(p[2])))
@@ -156,7 +162,9 @@ def load_agent_config(path: Path, robot: str) -> AgentConfig:
     runtime = RuntimeSettings(
         mode=mode,
         gossip_period=period,
-        publish_local=bool(a.get("publish_local", True)),
+        publish_local=_get(a, "publish_local", bool, path, "agent")
+        if "publish_local" in a
+        else True,
     )
     listen = tuple(_get(z, "listen", list, path, "zenoh")) if "listen" in z else ()
     connect = tuple(_get(z, "connect", list, path, "zenoh")) if "connect" in z else ()
@@ -166,13 +174,18 @@ def load_agent_config(path: Path, robot: str) -> AgentConfig:
                 raise AgentConfigError(
                     path, f"zenoh.{name}", f"bad endpoint {e!r} (e.g. tcp/127.0.0.1:7447)"
                 )
-    config_file = base / z["config_file"] if z.get("config_file") else None
+    config_file = base / _get(z, "config_file", str, path, "zenoh") if "config_file" in z else None
+    lease_ms = _get(z, "lease_ms", int, path, "zenoh") if "lease_ms" in z else 3000
+    if not 100 <= lease_ms <= 3_600_000:
+        raise AgentConfigError(path, "zenoh.lease_ms", "must be in 100..3600000 ms")
     zenoh_settings = ZenohSettings(
         listen=listen,
         connect=connect,
-        gossip=bool(z.get("gossip", True)),
-        shared_memory=bool(z.get("shared_memory", False)),
-        lease_ms=int(z.get("lease_ms", 3000)),
+        gossip=_get(z, "gossip", bool, path, "zenoh") if "gossip" in z else True,
+        shared_memory=_get(z, "shared_memory", bool, path, "zenoh")
+        if "shared_memory" in z
+        else False,
+        lease_ms=lease_ms,
         config_file=config_file,
     )
     scenario = _get(a, "scenario", str, path, "agent")
