@@ -3,7 +3,8 @@
 ``step``: the conductor's order for lock-step round k, with, for every robot, the peers whose
 stacks of round k − 1 it must merge first (the link model evaluated on ground truth).
 ``need``: an agent asks for frames from step k on (after a restart or a gap).
-``stop``: end of the run. Payloads are msgpack maps; ``decode_control`` raises only
+``status``: every agent publishes its estimate with its counters now. ``stop``: end of the run.
+Payloads are msgpack maps; ``decode_control`` raises only
 :class:`~protocol.errors.RemoteProtocolError` subclasses naming the field.
 """
 
@@ -37,13 +38,18 @@ class NeedFrames:
 
 
 @dataclass(frozen=True, slots=True)
+class Status:
+    """Asks every agent to publish its estimate (with all its counters) now."""
+
+
+@dataclass(frozen=True, slots=True)
 class Stop:
     """The run is over: agents finish and exit."""
 
     reason: str = ""
 
 
-Control = StepOrder | NeedFrames | Stop
+Control = StepOrder | NeedFrames | Status | Stop
 
 
 def encode_control(message: Control) -> bytes:
@@ -56,6 +62,8 @@ def encode_control(message: Control) -> bytes:
         }
     elif isinstance(message, NeedFrames):
         doc = {"type": "need", "robot": message.robot, "k": message.k}
+    elif isinstance(message, Status):
+        doc = {"type": "status"}
     else:
         doc = {"type": "stop", "reason": message.reason}
     return bytes(msgpack.packb(doc, use_bin_type=True))
@@ -84,6 +92,9 @@ def decode_control(data: bytes) -> Control:
     if kind == "need":
         _keys(doc, {"type", "robot", "k"})
         return NeedFrames(_robot(doc["robot"], "ctl.robot"), _step(doc["k"]))
+    if kind == "status":
+        _keys(doc, {"type"})
+        return Status()
     if kind == "stop":
         _keys(doc, {"type", "reason"})
         if not isinstance(doc["reason"], str):
@@ -115,6 +126,7 @@ __all__ = [
     "Control",
     "NeedFrames",
     "RemoteProtocolError",
+    "Status",
     "StepOrder",
     "Stop",
     "decode_control",

@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from agents.control import NeedFrames, StepOrder, Stop, decode_control, encode_control
+from agents.control import NeedFrames, Status, StepOrder, Stop, decode_control, encode_control
 from agents.journal import Journal, Record
 from agents.links import LinkModel
 from agents.node import RobotNode
@@ -72,6 +72,7 @@ class AgentCounters:
     frames_duplicate: int = 0
     estimates_sent: int = 0
     need_requests: int = 0
+    status_requests: int = 0
     replayed_frames: int = 0
     replayed_stacks: int = 0
     inbox_dropped: int = 0
@@ -219,6 +220,9 @@ class Agent:
                 self._orders[order.k] = order
             elif order.k == self.node.k and self._last_estimate is not None:
                 self._publish_estimate(self._last_estimate)  # the conductor missed our ack
+        elif isinstance(order, Status):
+            self.counters.status_requests += 1
+            self._publish_estimate()  # fresh, with the counters of this moment
         elif isinstance(order, Stop):
             self.stop(order.reason or "stopped by the conductor")
         elif isinstance(order, NeedFrames):
@@ -378,6 +382,7 @@ class Agent:
             "control_invalid": a.invalid_control,
             "estimates_sent": a.estimates_sent,
             "need_requests": a.need_requests,
+            "status_requests": a.status_requests,
             "replayed_frames": a.replayed_frames,
             "replayed_stacks": a.replayed_stacks,
             "inbox_dropped": a.inbox_dropped,

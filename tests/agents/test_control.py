@@ -15,6 +15,7 @@ from agents.control import (
     MAX_STEP,
     Control,
     NeedFrames,
+    Status,
     StepOrder,
     Stop,
     decode_control,
@@ -45,6 +46,7 @@ STOP = {"type": "stop", "reason": "done"}
         NeedFrames("r_9-x", 12),
         Stop(),
         Stop("run complete ✓"),
+        Status(),
     ],
 )
 def test_control_round_trip_is_exact(message: Control) -> None:

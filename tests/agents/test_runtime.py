@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from agents.control import StepOrder, encode_control
+from agents.control import Status, StepOrder, encode_control
 from agents.journal import Journal
 from agents.links import LinkModel, Proximity, Schedule
 from agents.node import RobotNode
@@ -31,7 +31,7 @@ from deploy.study import belief_model, belief_rng
 from estimator.hybrid import BeliefConfig, BeliefSnapshot
 from estimator.models import SensorFrame
 from protocol.codec import StackMessage, encode
-from protocol.estimate import EstimateMessage
+from protocol.estimate import EstimateMessage, decode_estimate
 from protocol.frames import encode_frame
 from sim.loader import parse_scenario
 from sim.sensors import Simulator
@@ -320,6 +320,29 @@ async def test_agent_counts_invalid_stacks_frames_and_control_and_keeps_running(
     # One line per source while the (frozen) clock stays within the log period.
     sources = [r.getMessage().split(": ")[1] for r in caplog.records if "invalid" in r.message]
     assert sorted(sources) == [f"invalid input from {s}" for s in ("chaos", "ctl", "frames", "r2")]
+
+
+@pytest.mark.asyncio
+async def test_agent_answers_a_status_request_with_its_counters(
+    frames: dict[str, list[SensorFrame]],
+) -> None:
+    bus = MemoryBus()
+    world = MemoryTransport(bus)
+    estimates = Inbox(64)
+    world.subscribe(KEYS.estimate("r1"), estimates)
+    await world.open()
+    agent = _agent(_nodes()["r1"], bus, "realtime", links=Proximity(10.0))
+    async with _running(agent):
+        world.publish(KEYS.frames("r1"), encode_frame(frames["r1"][0]))
+        await _until(lambda: agent.node.k == 1 and len(estimates) == 1)
+        world.publish(KEYS.stack("r2"), b"junk")
+        await _until(lambda: agent.node.counters.invalid == 1)
+        world.publish(KEYS.ctl("status"), encode_control(Status()))
+        await _until(lambda: len(estimates) == 2)
+        first, answer = (decode_estimate(m.payload) for m in estimates.drain())
+    assert first.counters["stacks_invalid"] == 0
+    assert answer.k == 1 and answer.counters["stacks_invalid"] == 1
+    assert answer.counters["status_requests"] == 1
 
 
 # --------------------------------------------------------------------------- journal
