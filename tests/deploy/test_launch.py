@@ -28,7 +28,16 @@ from agents.node import RobotNode
 from agents.transport import Inbox, Keys
 from agents.transport.zenoh_transport import ZenohTransport, loopback_endpoint, settings_for
 from deploy.fleet import link_model_for, make_nodes, run_fleet
-from deploy.launch import Faults, LaunchOutcome, LaunchPlan, free_ports, launch, write_agent_config
+from deploy.launch import (
+    Faults,
+    Launcher,
+    LaunchError,
+    LaunchOutcome,
+    LaunchPlan,
+    free_ports,
+    launch,
+    write_agent_config,
+)
 from deploy.study import belief_model, belief_rng
 from estimator.hybrid import BeliefConfig, BeliefSnapshot
 from estimator.metrics import METRICS, evaluate
@@ -485,3 +494,21 @@ def test_launch_commands_user_errors_are_one_line(
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("semfleet: error: "), r.stderr
     assert fragment in lines[0], lines[0]
+
+
+@pytest.mark.slow
+def test_launch_stops_with_a_clear_error_when_an_agent_dies_unplanned(tmp_path: Path) -> None:
+    launcher = Launcher(_plan(tmp_path / "die", steps=8), "paper")
+
+    def murder(_conductor: object, k: int) -> None:
+        if k == 3:  # not through the chaos schedule: nobody expects this exit
+            proc = launcher.agents["r2"].proc
+            assert proc is not None
+            os.kill(proc.pid, signal.SIGKILL)
+
+    start = time.monotonic()
+    with pytest.raises(LaunchError, match=r"agent r2 exited unexpectedly with code -9 \(log "):
+        asyncio.run(launcher.run(murder))
+    assert time.monotonic() - start < 60  # no waiting for the step timeout (120 s)
+    for r, agent in launcher.agents.items():  # every other agent was stopped on the way out
+        assert agent.proc is not None and agent.proc.poll() is not None, r
