@@ -10,14 +10,12 @@ from __future__ import annotations
 import copy
 import dataclasses
 import math
-import struct
-from collections.abc import Iterator
 from typing import Any
 
 import msgpack
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from estimator.summary import LocalSummary, Realisation
@@ -31,37 +29,17 @@ from protocol.errors import (
     UnsupportedVersion,
 )
 from protocol.stack import Slot, Stack
-
-Path = tuple[str | int, ...]
-
-# Reproducible in CI: the same examples on every run, no example database, no timing flakiness.
-FUZZ = settings(derandomize=True, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+from tests.protocol import fuzz
+from tests.protocol.fuzz import FUZZ, Path, field_name, get_at, pack, set_at
 
 SPECIAL_FLOATS = (
     *(0.0, -0.0, 5e-324, -5e-324, 2.2250738585072014e-308),
     *(1.7976931348623157e308, -1.7976931348623157e308, 1.0, -1.0, 1e-300, 1e300),
 )
-ROBOT_IDS = st.text(
-    "ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789_-", min_size=1, max_size=32
-)
 BAD_ROBOT_IDS = ("", "x" * 33, "r 1", " r1", "r1 ", "r/1", "r.1", "rö", "r1\x00", "r1\n1")
 
 
 # --------------------------------------------------------------------------- valid messages
-
-
-def _finite(rng: np.random.Generator, shape: tuple[int, ...]) -> np.ndarray:
-    """Finite float64s of ``shape``: ordinary magnitudes, or arbitrary bit patterns (subnormals,
-    ±0, extremes), with special values sprinkled in."""
-    if rng.random() < 0.5:
-        values = rng.standard_normal(shape) * 10.0 ** int(rng.integers(-3, 4))
-    else:
-        bits = rng.integers(0, 2**64, size=shape, dtype=np.uint64)
-        values = bits.view(np.float64)
-        values = np.where(np.isfinite(values), values, -0.0)
-    special = rng.random(shape) < 0.2
-    values[special] = rng.choice(SPECIAL_FLOATS, size=int(special.sum()))
-    return values
 
 
 def make_realisation(rng: np.random.Generator, n: int, num_classes: int) -> Realisation:
@@ -71,8 +49,14 @@ def make_realisation(rng: np.random.Generator, n: int, num_classes: int) -> Real
     b = a @ a.T + np.eye(3 * n)
     info = (b + b.T) / 2.0 * 2.0 ** int(rng.integers(-500, 501))
     classes = tuple(int(c) for c in rng.integers(0, num_classes, n))
-    log_phi = float(_finite(rng, (1,))[0])
-    return Realisation(classes, log_phi, _finite(rng, (n, 3)), info, _finite(rng, (3 * n,)))
+    log_phi = float(fuzz.finite(rng, (1,), SPECIAL_FLOATS)[0])
+    return Realisation(
+        classes,
+        log_phi,
+        fuzz.finite(rng, (n, 3), SPECIAL_FLOATS),
+        info,
+        fuzz.finite(rng, (3 * n,), SPECIAL_FLOATS),
+    )
 
 
 def make_summary(
@@ -158,17 +142,6 @@ def _check_valid(msg: StackMessage, lim: Limits) -> None:
     assert_same_message(again, msg)
 
 
-def _decode_or_reject(blob: bytes, limits: Limits | None = None) -> StackMessage | None:
-    """Decode, or return None on a RemoteProtocolError naming a field; anything else fails."""
-    try:
-        msg = decode(blob, limits)
-    except RemoteProtocolError as exc:
-        assert exc.field, f"error without a field: {exc!r}"
-        return None
-    _check_valid(msg, limits or Limits())
-    return msg
-
-
 # --------------------------------------------------------------------------- documents
 
 # Wire order is owner order: slots[0] is r1 (3 objects, 2 realisations, M = 2), slots[1] is r2
@@ -202,68 +175,11 @@ BASE_BLOBS = tuple(encode(m) for m in BASE_MESSAGES)
 BASE_DOCS = tuple(msgpack.unpackb(b, raw=False) for b in BASE_BLOBS)
 
 
-def _field(path: Path) -> str:
-    out = ""
-    for p in path:
-        out += f"[{p}]" if isinstance(p, int) else (f".{p}" if out else p)
-    return out
-
-
-def _get(doc: Any, path: Path) -> Any:
-    for p in path:
-        doc = doc[p]
-    return doc
-
-
-def _set(doc: Any, path: Path, value: Any) -> Any:
-    if not path:
-        return value
-    _get(doc, path[:-1])[path[-1]] = value
-    return doc
-
-
-def _paths(node: Any, prefix: Path = ()) -> Iterator[Path]:
-    yield prefix
-    if isinstance(node, dict):
-        for k, v in node.items():
-            yield from _paths(v, (*prefix, k))
-    elif isinstance(node, list):
-        for i, v in enumerate(node):
-            yield from _paths(v, (*prefix, i))
-
-
-def _pack(doc: Any) -> bytes:
-    return bytes(msgpack.packb(doc, use_bin_type=True))
-
-
-def _with(path: Path, value: Any) -> bytes:
-    """The reference message with the field at ``path`` replaced."""
-    return _pack(_set(copy.deepcopy(REF_DOC), path, value))
-
-
-def _without(path: Path) -> bytes:
-    doc = copy.deepcopy(REF_DOC)
-    del _get(doc, path[:-1])[path[-1]]
-    return _pack(doc)
-
-
-def _poke(path: Path, index: int, value: float) -> bytes:
-    """The reference message with float64 number ``index`` of the blob at ``path`` replaced."""
-    blob = _get(REF_DOC, path)
-    return _with(path, blob[: 8 * index] + struct.pack("<d", value) + blob[8 * index + 8 :])
+WIRE = fuzz.Wire(decode, REF_DOC, Limits(), _check_valid)
 
 
 def _upper(info: np.ndarray) -> bytes:
     return info[np.triu_indices(info.shape[0])].astype("<f8").tobytes()
-
-
-def _assert_rejected(
-    blob: bytes, error: type[RemoteProtocolError], field: str, limits: Limits | None = None
-) -> None:
-    with pytest.raises(error) as caught:
-        decode(blob, limits)
-    assert caught.value.field == field
-    assert str(caught.value).startswith(f"{field}: ")
 
 
 # --------------------------------------------------------------------------- round trips
@@ -336,14 +252,14 @@ def test_codec_realisation_size_at_fifteen_objects() -> None:
 @settings(FUZZ, max_examples=2000)
 @given(
     seed=st.integers(0, 2**32 - 1),
-    sender=ROBOT_IDS,
+    sender=fuzz.ROBOT_IDS,
     position=st.none()
     | st.tuples(
         st.floats(allow_nan=False, allow_infinity=False),
         st.floats(allow_nan=False, allow_infinity=False),
     ),
     versions=st.dictionaries(
-        ROBOT_IDS,
+        fuzz.ROBOT_IDS,
         st.integers(0, 2**63 - 1),
         max_size=4,
     ),
@@ -365,63 +281,46 @@ def test_codec_round_trip_is_bit_exact_fuzz(
 
 @pytest.mark.parametrize("index", range(len(BASE_BLOBS)))
 def test_codec_every_truncated_prefix_is_malformed(index: int) -> None:
-    blob = BASE_BLOBS[index]
-    escaped = []
-    for length in range(len(blob)):
-        try:
-            decode(blob[:length])
-        except MalformedMessage as exc:
-            assert exc.field == "message"
-        except Exception as exc:  # the point of the test: report what escaped, for every length
-            escaped.append((length, repr(exc)))
-        else:
-            escaped.append((length, "decoded"))
-    assert not escaped, escaped[:5]
+    WIRE.assert_every_prefix_malformed(BASE_BLOBS[index])
 
 
 def test_codec_trailing_bytes_are_malformed() -> None:
-    _assert_rejected(REF_BLOB + b"\x00", MalformedMessage, "message")
-    _assert_rejected(REF_BLOB + REF_BLOB, MalformedMessage, "message")
+    WIRE.assert_rejected(REF_BLOB + b"\x00", MalformedMessage, "message")
+    WIRE.assert_rejected(REF_BLOB + REF_BLOB, MalformedMessage, "message")
 
 
 @pytest.mark.parametrize(
     "blob", [b"", b"\xc1", b"\x93\x01\x02\x03", b"\x05", b"\xa5stack", b"\xc0", b"\x80"]
 )
 def test_codec_non_map_documents_are_malformed(blob: bytes) -> None:
-    _assert_rejected(blob, MalformedMessage, "message")
+    WIRE.assert_rejected(blob, MalformedMessage, "message")
 
 
 def test_codec_decode_rejects_non_bytes_input() -> None:
-    _assert_rejected("not bytes", MalformedMessage, "message")  # type: ignore[arg-type]
+    WIRE.assert_rejected("not bytes", MalformedMessage, "message")  # type: ignore[arg-type]
 
 
 def test_codec_non_string_map_keys_are_malformed() -> None:
     doc = copy.deepcopy(REF_DOC)
     doc[1] = 2
-    _assert_rejected(_pack(doc), MalformedMessage, "message")
+    WIRE.assert_rejected(pack(doc), MalformedMessage, "message")
     doc = copy.deepcopy(REF_DOC)
     doc[b"v"] = 1
-    _assert_rejected(_pack(doc), MalformedMessage, "message")
+    WIRE.assert_rejected(pack(doc), MalformedMessage, "message")
 
 
 @settings(FUZZ, max_examples=4000)
 @given(blob=st.binary(max_size=1024))
 def test_codec_random_bytes_raise_only_remote_errors(blob: bytes) -> None:
-    _decode_or_reject(blob)
+    WIRE.decode_or_reject(blob)
 
 
 @settings(FUZZ, max_examples=1000)
-@given(
-    index=st.integers(0, len(BASE_BLOBS) - 1),
-    edits=st.lists(st.tuples(st.integers(0, 2**20), st.integers(0, 255)), min_size=1, max_size=4),
-)
+@given(index=st.integers(0, len(BASE_BLOBS) - 1), edits=fuzz.BYTE_EDITS)
 def test_codec_corrupted_bytes_raise_only_remote_errors(
     index: int, edits: list[tuple[int, int]]
 ) -> None:
-    blob = bytearray(BASE_BLOBS[index])
-    for at, byte in edits:
-        blob[at % len(blob)] = byte
-    _decode_or_reject(bytes(blob))
+    WIRE.decode_or_reject(fuzz.corrupt(BASE_BLOBS[index], edits))
 
 
 # --------------------------------------------------------------------------- one rule at a time
@@ -443,14 +342,14 @@ REAL = ("slots", 0, "real", 1)  # r1's second realisation: 3 objects
     ],
 )
 def test_codec_non_finite_blob_is_invalid(path: Path, index: int, value: float) -> None:
-    _assert_rejected(_poke(path, index, value), InvalidValue, _field(path))
+    WIRE.assert_rejected(WIRE.poke(path, index, value), InvalidValue, field_name(path))
 
 
 @pytest.mark.parametrize("value", [math.nan, math.inf, -math.inf])
 def test_codec_non_finite_phi_and_position_are_invalid(value: float) -> None:
-    _assert_rejected(_with((*REAL, "phi"), value), InvalidValue, "slots[0].real[1].phi")
-    _assert_rejected(_with(("pos",), [0.0, value]), InvalidValue, "pos")
-    _assert_rejected(_with(("pos",), [value, 0.0]), InvalidValue, "pos")
+    WIRE.assert_rejected(WIRE.with_((*REAL, "phi"), value), InvalidValue, "slots[0].real[1].phi")
+    WIRE.assert_rejected(WIRE.with_(("pos",), [0.0, value]), InvalidValue, "pos")
+    WIRE.assert_rejected(WIRE.with_(("pos",), [value, 0.0]), InvalidValue, "pos")
 
 
 def _symmetric(n: int, smallest: float) -> np.ndarray:
@@ -465,8 +364,8 @@ def _symmetric(n: int, smallest: float) -> np.ndarray:
 
 @pytest.mark.parametrize("smallest", [-1.0, -1e-3, -1e-6])
 def test_codec_indefinite_info_is_invalid(smallest: float) -> None:
-    _assert_rejected(
-        _with((*REAL, "info"), _upper(_symmetric(3, smallest))),
+    WIRE.assert_rejected(
+        WIRE.with_((*REAL, "info"), _upper(_symmetric(3, smallest))),
         InvalidValue,
         "slots[0].real[1].info",
     )
@@ -474,13 +373,15 @@ def test_codec_indefinite_info_is_invalid(smallest: float) -> None:
 
 def test_codec_negated_info_is_invalid() -> None:
     info = REF.stack.slots[0].summary.realisations[1].info
-    _assert_rejected(_with((*REAL, "info"), _upper(-info)), InvalidValue, "slots[0].real[1].info")
+    WIRE.assert_rejected(
+        WIRE.with_((*REAL, "info"), _upper(-info)), InvalidValue, "slots[0].real[1].info"
+    )
 
 
 def test_codec_negative_eigenvalue_within_psd_tol_is_accepted() -> None:
-    decode(_with((*REAL, "info"), _upper(_symmetric(3, -1e-13))))
+    decode(WIRE.with_((*REAL, "info"), _upper(_symmetric(3, -1e-13))))
     with pytest.raises(InvalidValue):
-        decode(_with((*REAL, "info"), _upper(_symmetric(3, -1e-13))), Limits(psd_tol=1e-15))
+        decode(WIRE.with_((*REAL, "info"), _upper(_symmetric(3, -1e-13))), Limits(psd_tol=1e-15))
 
 
 @pytest.mark.parametrize("name", ["lin", "info", "eta"])
@@ -488,24 +389,26 @@ def test_codec_negative_eigenvalue_within_psd_tol_is_accepted() -> None:
 def test_codec_wrong_blob_length_is_malformed(name: str, change: int | None) -> None:
     """``change`` bytes added or cut; None empties the blob."""
     path = (*REAL, name)
-    blob = _get(REF_DOC, path)
+    blob = get_at(REF_DOC, path)
     new = b"" if change is None else blob[:change] if change < 0 else blob + bytes(change)
-    _assert_rejected(_with(path, new), MalformedMessage, _field(path))
+    WIRE.assert_rejected(WIRE.with_(path, new), MalformedMessage, field_name(path))
 
 
 @pytest.mark.parametrize("classes", [b"", b"\x00\x01", b"\x00\x01\x00\x01"])
 def test_codec_wrong_class_count_is_malformed(classes: bytes) -> None:
-    _assert_rejected(_with((*REAL, "c"), classes), MalformedMessage, "slots[0].real[1].c")
+    WIRE.assert_rejected(WIRE.with_((*REAL, "c"), classes), MalformedMessage, "slots[0].real[1].c")
 
 
 def test_codec_object_count_disagreeing_with_arrays_is_malformed() -> None:
     # Drop one object id: the first realisation's class bytes no longer match.
-    objects = _get(REF_DOC, ("slots", 0, "objects"))
-    _assert_rejected(
-        _with(("slots", 0, "objects"), objects[:-1]), MalformedMessage, "slots[0].real[0].c"
+    objects = get_at(REF_DOC, ("slots", 0, "objects"))
+    WIRE.assert_rejected(
+        WIRE.with_(("slots", 0, "objects"), objects[:-1]), MalformedMessage, "slots[0].real[0].c"
     )
     # Empty slot r2 given an object: its realisation has no class byte for it.
-    _assert_rejected(_with(("slots", 1, "objects"), [4]), MalformedMessage, "slots[1].real[0].c")
+    WIRE.assert_rejected(
+        WIRE.with_(("slots", 1, "objects"), [4]), MalformedMessage, "slots[1].real[0].c"
+    )
 
 
 WRONG_TYPES = [
@@ -574,32 +477,32 @@ WRONG_TYPES = [
 
 @pytest.mark.parametrize(
     ("path", "value", "error"),
-    [pytest.param(p, v, e, id=f"{_field(p)}={v!r}") for p, v, e in WRONG_TYPES],
+    [pytest.param(p, v, e, id=f"{field_name(p)}={v!r}") for p, v, e in WRONG_TYPES],
 )
 def test_codec_wrong_type_is_rejected(
     path: Path, value: Any, error: type[RemoteProtocolError]
 ) -> None:
-    _assert_rejected(_with(path, value), error, _field(path))
+    WIRE.assert_rejected(WIRE.with_(path, value), error, field_name(path))
 
 
 @pytest.mark.parametrize("value", [True, 1.0])
 def test_codec_version_of_wrong_type_is_rejected(value: Any) -> None:
     with pytest.raises(RemoteProtocolError):
-        decode(_with(("v",), value))
+        decode(WIRE.with_(("v",), value))
 
 
 @pytest.mark.parametrize("version", [0, 2, -1, 255])
 def test_codec_unknown_version_is_unsupported(version: int) -> None:
-    _assert_rejected(_with(("v",), version), UnsupportedVersion, "v")
+    WIRE.assert_rejected(WIRE.with_(("v",), version), UnsupportedVersion, "v")
 
 
 def test_codec_unknown_version_is_unsupported_whatever_its_layout() -> None:
-    _assert_rejected(_pack({"v": 2, "frames": []}), UnsupportedVersion, "v")
+    WIRE.assert_rejected(pack({"v": 2, "frames": []}), UnsupportedVersion, "v")
 
 
 @pytest.mark.parametrize("kind", ["alive", "Stack", "", "stack "])
 def test_codec_unknown_message_type_is_unsupported(kind: str) -> None:
-    _assert_rejected(_with(("type",), kind), UnsupportedVersion, "type")
+    WIRE.assert_rejected(WIRE.with_(("type",), kind), UnsupportedVersion, "type")
 
 
 @pytest.mark.parametrize(
@@ -612,7 +515,7 @@ def test_codec_unknown_message_type_is_unsupported(kind: str) -> None:
     ],
 )
 def test_codec_over_limits_is_rejected(limits: Limits, field: str) -> None:
-    _assert_rejected(REF_BLOB, LimitExceeded, field, limits)
+    WIRE.assert_rejected(REF_BLOB, LimitExceeded, field, limits)
 
 
 def test_codec_exactly_at_limits_is_accepted() -> None:
@@ -627,22 +530,26 @@ def test_codec_exactly_at_limits_is_accepted() -> None:
 
 
 def test_codec_class_index_at_num_classes_is_invalid() -> None:
-    blob = _with((*REAL, "c"), bytes([0, 1, 2]))
-    _assert_rejected(blob, InvalidValue, "slots[0].real[1].c", Limits(num_classes=2))
+    blob = WIRE.with_((*REAL, "c"), bytes([0, 1, 2]))
+    WIRE.assert_rejected(blob, InvalidValue, "slots[0].real[1].c", Limits(num_classes=2))
     assert decode(blob, Limits(num_classes=3)).stack.slots[0].summary.realisations[1].classes == (
         0,
         1,
         2,
     )
-    _assert_rejected(_with((*REAL, "c"), bytes([0, 255, 0])), InvalidValue, "slots[0].real[1].c")
+    WIRE.assert_rejected(
+        WIRE.with_((*REAL, "c"), bytes([0, 255, 0])), InvalidValue, "slots[0].real[1].c"
+    )
 
 
 def test_codec_duplicate_owners_are_invalid() -> None:
-    _assert_rejected(_with(("slots", 1, "owner"), "r1"), InvalidValue, "slots")
+    WIRE.assert_rejected(WIRE.with_(("slots", 1, "owner"), "r1"), InvalidValue, "slots")
 
 
 def test_codec_duplicate_object_ids_are_invalid() -> None:
-    _assert_rejected(_with(("slots", 0, "objects"), [5, 6, 5]), InvalidValue, "slots[0].objects")
+    WIRE.assert_rejected(
+        WIRE.with_(("slots", 0, "objects"), [5, 6, 5]), InvalidValue, "slots[0].objects"
+    )
 
 
 @pytest.mark.parametrize(
@@ -656,18 +563,18 @@ def test_codec_duplicate_object_ids_are_invalid() -> None:
     ],
 )
 def test_codec_integer_out_of_range_is_invalid(path: Path, value: int) -> None:
-    _assert_rejected(_with(path, value), InvalidValue, _field(path))
+    WIRE.assert_rejected(WIRE.with_(path, value), InvalidValue, field_name(path))
 
 
 def test_codec_slot_without_realisations_is_invalid() -> None:
-    _assert_rejected(_with(("slots", 1, "real"), []), InvalidValue, "slots[1].real")
+    WIRE.assert_rejected(WIRE.with_(("slots", 1, "real"), []), InvalidValue, "slots[1].real")
 
 
 def test_codec_integer_phi_and_position_are_accepted_as_floats() -> None:
     doc = copy.deepcopy(REF_DOC)
     doc["pos"] = [1, -2]
-    _set(doc, (*REAL, "phi"), 3)
-    msg = decode(_pack(doc))
+    set_at(doc, (*REAL, "phi"), 3)
+    msg = decode(pack(doc))
     assert msg.position == (1.0, -2.0)
     assert msg.stack.slots[0].summary.realisations[1].log_phi == 3.0
 
@@ -681,12 +588,12 @@ def test_codec_integer_phi_and_position_are_accepted_as_floats() -> None:
 )
 @pytest.mark.parametrize("path", [("sender",), ("slots", 1, "owner")])
 def test_codec_invalid_robot_id_is_invalid(path: Path, robot_id: str) -> None:
-    _assert_rejected(_with(path, robot_id), InvalidValue, _field(path))
+    WIRE.assert_rejected(WIRE.with_(path, robot_id), InvalidValue, field_name(path))
 
 
 @pytest.mark.parametrize("robot_id", ["x" * 32, "A", "Robot_7-b"])
 def test_codec_valid_robot_ids_are_accepted(robot_id: str) -> None:
-    assert decode(_with(("sender",), robot_id)).sender == robot_id
+    assert decode(WIRE.with_(("sender",), robot_id)).sender == robot_id
 
 
 MAPS = [((), "message"), (("slots", 1), "slots[1]"), (("slots", 2, "real", 2), "slots[2].real[2]")]
@@ -694,81 +601,35 @@ MAPS = [((), "message"), (("slots", 1), "slots[1]"), (("slots", 2, "real", 2), "
 
 @pytest.mark.parametrize(
     ("path", "key", "field"),
-    [((*p, k), k, f) for p, f in MAPS for k in _get(REF_DOC, p)],
+    [((*p, k), k, f) for p, f in MAPS for k in get_at(REF_DOC, p)],
 )
 def test_codec_missing_key_is_malformed(path: Path, key: str, field: str) -> None:
-    _assert_rejected(_without(path), MalformedMessage, field)
+    WIRE.assert_rejected(WIRE.without(path), MalformedMessage, field)
 
 
 @pytest.mark.parametrize("key", ["x", "V", "type2", ""])
 @pytest.mark.parametrize(("path", "field"), MAPS)
 def test_codec_extra_key_is_malformed(path: Path, field: str, key: str) -> None:
-    doc = copy.deepcopy(REF_DOC)
-    _get(doc, path)[key] = 0
-    _assert_rejected(_pack(doc), MalformedMessage, field)
+    WIRE.assert_rejected(WIRE.with_((*path, key), 0), MalformedMessage, field)
 
 
 # --------------------------------------------------------------------------- structured fuzz
 
-KNOWN_KEYS = (
-    *("v", "type", "sender", "k", "pos", "slots", "owner", "stamp", "objects", "real"),
-    *("c", "phi", "lin", "info", "eta"),
+MUTATOR = fuzz.Mutator(
+    known_keys=(
+        *("v", "type", "sender", "k", "pos", "slots", "owner", "stamp", "objects", "real"),
+        *("c", "phi", "lin", "info", "eta"),
+    ),
+    strings=("stack", "r1", "r1\n", ""),
+    edge_ints=(-1, 0, 1, 2, 3, 255, 256, 2**32 - 1, 2**32, 2**63 - 1, 2**63, 2**64 - 1, -(2**63)),
+    float_blob_size=24,
+    extra_scalars=(
+        st.builds(msgpack.Timestamp, st.integers(0, 2**34 - 1), st.integers(0, 999_999_999)),
+    ),
 )
-EDGE_INTS = (-1, 0, 1, 2, 3, 255, 256, 2**32 - 1, 2**32, 2**63 - 1, 2**63, 2**64 - 1, -(2**63))
-FLOAT_BLOBS = st.lists(st.floats(), max_size=24).map(lambda xs: struct.pack(f"<{len(xs)}d", *xs))
-SCALARS = (
-    st.none()
-    | st.booleans()
-    | st.integers(-(2**63), 2**64 - 1)
-    | st.sampled_from(EDGE_INTS)
-    | st.floats()
-    | st.text(max_size=40)
-    | st.sampled_from(("stack", "r1", "r1\n", ""))
-    | st.binary(max_size=64)
-    | FLOAT_BLOBS
-    | st.builds(msgpack.ExtType, st.integers(0, 127), st.binary(max_size=12))
-    | st.builds(msgpack.Timestamp, st.integers(0, 2**34 - 1), st.integers(0, 999_999_999))
-)
-# Keys of generated maps; ADD_KEYS adds the non-string keys msgpack carries but decode must refuse.
-KEYS = st.sampled_from(KNOWN_KEYS) | st.text(max_size=8)
-ADD_KEYS = KEYS | st.integers(-3, 3) | st.binary(max_size=3)
-VALUES = st.recursive(
-    SCALARS,
-    lambda children: st.lists(children, max_size=4) | st.dictionaries(KEYS, children, max_size=4),
-    max_leaves=8,
-)
-OPS = ("replace", "copy", "delete", "add", "poke", "resize")
 SMALL_LIMITS = Limits(
     num_classes=2, max_message_bytes=12_000, max_slots=3, max_objects=3, max_realisations=2
 )
-
-
-def _mutate(doc: Any, data: st.DataObject) -> Any:
-    """One random edit at a random field path of ``doc``."""
-    paths = list(_paths(doc))[::-1]  # hypothesis favours the first choices: make them leaves
-    path = data.draw(st.sampled_from(paths))
-    node = _get(doc, path)
-    op = data.draw(st.sampled_from(OPS))
-    if op == "copy":
-        source = _get(doc, data.draw(st.sampled_from(paths)))
-        return _set(doc, path, copy.deepcopy(source))
-    if op == "delete" and path:
-        del _get(doc, path[:-1])[path[-1]]
-        return doc
-    if op == "add" and isinstance(node, dict):
-        node[data.draw(ADD_KEYS)] = data.draw(VALUES)
-        return doc
-    if op == "add" and isinstance(node, list):
-        node.insert(data.draw(st.integers(0, len(node))), data.draw(VALUES))
-        return doc
-    if op == "poke" and isinstance(node, bytes) and len(node) >= 8:
-        i = 8 * data.draw(st.integers(0, len(node) // 8 - 1))
-        return _set(doc, path, node[:i] + struct.pack("<d", data.draw(st.floats())) + node[i + 8 :])
-    if op == "resize" and isinstance(node, bytes | str | list):
-        cut = data.draw(st.integers(0, len(node)))
-        pad: Any = {bytes: b"\x00", str: "a", list: [0]}[type(node)]
-        return _set(doc, path, node[:cut] + pad * data.draw(st.integers(0, 9)))
-    return _set(doc, path, data.draw(VALUES))
 
 
 @settings(FUZZ, max_examples=4000)
@@ -781,10 +642,7 @@ def _mutate(doc: Any, data: st.DataObject) -> Any:
 def test_codec_mutated_documents_raise_only_remote_errors(
     index: int, edits: int, limits: Limits | None, data: st.DataObject
 ) -> None:
-    doc = copy.deepcopy(BASE_DOCS[index])
-    for _ in range(edits):
-        doc = _mutate(doc, data)
-    _decode_or_reject(_pack(doc), limits)
+    WIRE.decode_or_reject(pack(MUTATOR.mutated(BASE_DOCS[index], edits, data)), limits)
 
 
 # --------------------------------------------------------------------------- encode

@@ -11,13 +11,12 @@ import copy
 import dataclasses
 import math
 import struct
-from collections.abc import Iterator
 from typing import Any
 
 import msgpack
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from estimator.hybrid import BeliefSnapshot
@@ -26,34 +25,19 @@ from protocol.errors import (
     LimitExceeded,
     LocalProtocolError,
     MalformedMessage,
-    RemoteProtocolError,
     UnsupportedVersion,
 )
 from protocol.estimate import EstimateLimits, EstimateMessage, decode_estimate, encode_estimate
+from tests.protocol import fuzz
+from tests.protocol.fuzz import FUZZ, Path, field_name, get_at, pack
 
-Path = tuple[str | int, ...]
-
-FUZZ = settings(derandomize=True, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-SPECIAL_FLOATS = (0.0, -0.0, 5e-324, -5e-324, 2.2250738585072014e-308, 1.7976931348623157e308)
 ARRAYS = ("weights", "classes", "robot_pose", "robot_cov", "object_pose", "object_cov")
 FLOAT_ARRAYS = tuple(a for a in ARRAYS if a != "classes")
 
 
-def _finite(rng: np.random.Generator, shape: tuple[int, ...]) -> np.ndarray:
-    """Finite float64s: ordinary values or arbitrary bit patterns, with ±0, subnormals, extremes."""
-    if rng.random() < 0.5:
-        values = rng.standard_normal(shape) * 10.0 ** int(rng.integers(-3, 4))
-    else:
-        values = rng.integers(0, 2**64, size=shape, dtype=np.uint64).view(np.float64)
-        values = np.where(np.isfinite(values), values, -0.0)
-    special = rng.random(shape) < 0.2
-    values[special] = rng.choice(SPECIAL_FLOATS, size=int(special.sum()))
-    return values
-
-
 def _symmetric(rng: np.random.Generator, count: int) -> np.ndarray:
     """(count, 3, 3) exactly symmetric matrices (the upper triangle mirrored, −0.0 kept)."""
-    upper = _finite(rng, (count, 3, 3))
+    upper = fuzz.finite(rng, (count, 3, 3))
     return np.where(np.triu(np.ones((3, 3), bool)), upper, upper.transpose(0, 2, 1))
 
 
@@ -76,9 +60,9 @@ def make_snapshot(
         ids,
         _weights(rng, h),
         rng.integers(0, num_classes, (h, n)).astype(np.int64),
-        _finite(rng, (h, 3)),
+        fuzz.finite(rng, (h, 3)),
         _symmetric(rng, h),
-        _finite(rng, (h, n, 3)),
+        fuzz.finite(rng, (h, n, 3)),
         _symmetric(rng, h * n).reshape(h, n, 3, 3),
     )
 
@@ -129,56 +113,8 @@ BASE_DOCS = tuple(msgpack.unpackb(b, raw=False) for b in BASE_BLOBS)
 LOCAL = ("beliefs", "local")  # 2 hypotheses, 3 objects
 
 
-def _field(path: Path) -> str:
-    out = ""
-    for p in path:
-        out += f"[{p}]" if isinstance(p, int) else (f".{p}" if out else p)
-    return out
-
-
-def _get(doc: Any, path: Path) -> Any:
-    for p in path:
-        doc = doc[p]
-    return doc
-
-
-def _set(doc: Any, path: Path, value: Any) -> Any:
-    if not path:
-        return value
-    _get(doc, path[:-1])[path[-1]] = value
-    return doc
-
-
-def _pack(doc: Any) -> bytes:
-    return bytes(msgpack.packb(doc, use_bin_type=True))
-
-
-def _with(path: Path, value: Any) -> bytes:
-    return _pack(_set(copy.deepcopy(REF_DOC), path, value))
-
-
-def _without(path: Path) -> bytes:
-    doc = copy.deepcopy(REF_DOC)
-    del _get(doc, path[:-1])[path[-1]]
-    return _pack(doc)
-
-
-def _poke(path: Path, index: int, value: float | int, fmt: str = "<d") -> bytes:
-    blob = _get(REF_DOC, path)
-    return _with(path, blob[: 8 * index] + struct.pack(fmt, value) + blob[8 * index + 8 :])
-
-
 def _array(path: Path, values: Any, dtype: str = "<f8") -> bytes:
-    return _with(path, np.asarray(values, dtype=dtype).tobytes())
-
-
-def _assert_rejected(
-    blob: bytes, error: type[RemoteProtocolError], field: str, limits: EstimateLimits | None = None
-) -> None:
-    with pytest.raises(error) as caught:
-        decode_estimate(blob, limits)
-    assert caught.value.field == field
-    assert str(caught.value).startswith(f"{field}: ")
+    return WIRE.with_(path, np.asarray(values, dtype=dtype).tobytes())
 
 
 def _check_valid(msg: EstimateMessage, lim: EstimateLimits) -> None:
@@ -196,13 +132,7 @@ def _check_valid(msg: EstimateMessage, lim: EstimateLimits) -> None:
     assert_same_estimate(decode_estimate(encode_estimate(msg, lim), lim), msg)
 
 
-def _decode_or_reject(blob: bytes, limits: EstimateLimits | None = None) -> None:
-    try:
-        msg = decode_estimate(blob, limits)
-    except RemoteProtocolError as exc:
-        assert exc.field, f"error without a field: {exc!r}"
-        return
-    _check_valid(msg, limits or EstimateLimits())
+WIRE = fuzz.Wire(decode_estimate, REF_DOC, EstimateLimits(), _check_valid)
 
 
 # --------------------------------------------------------------------------- round trips
@@ -283,51 +213,34 @@ def test_estimate_round_trip_is_bit_exact_fuzz(
 
 @pytest.mark.parametrize("index", range(len(BASE_BLOBS)))
 def test_estimate_every_truncated_prefix_is_malformed(index: int) -> None:
-    blob = BASE_BLOBS[index]
-    escaped = []
-    for length in range(len(blob)):
-        try:
-            decode_estimate(blob[:length])
-        except MalformedMessage as exc:
-            assert exc.field == "message"
-        except Exception as exc:  # the point of the test: report what escaped, for every length
-            escaped.append((length, repr(exc)))
-        else:
-            escaped.append((length, "decoded"))
-    assert not escaped, escaped[:5]
+    WIRE.assert_every_prefix_malformed(BASE_BLOBS[index])
 
 
 def test_estimate_trailing_bytes_are_malformed() -> None:
-    _assert_rejected(REF_BLOB + b"\x00", MalformedMessage, "message")
+    WIRE.assert_rejected(REF_BLOB + b"\x00", MalformedMessage, "message")
 
 
 @pytest.mark.parametrize("blob", [b"", b"\xc1", b"\x93\x01\x02\x03", b"\xa8estimate", b"\xc0"])
 def test_estimate_non_map_documents_are_malformed(blob: bytes) -> None:
-    _assert_rejected(blob, MalformedMessage, "message")
+    WIRE.assert_rejected(blob, MalformedMessage, "message")
 
 
 def test_estimate_decode_rejects_non_bytes_input() -> None:
-    _assert_rejected(None, MalformedMessage, "message")  # type: ignore[arg-type]
+    WIRE.assert_rejected(None, MalformedMessage, "message")  # type: ignore[arg-type]
 
 
 @settings(FUZZ, max_examples=500)
 @given(blob=st.binary(max_size=512))
 def test_estimate_random_bytes_raise_only_remote_errors(blob: bytes) -> None:
-    _decode_or_reject(blob)
+    WIRE.decode_or_reject(blob)
 
 
 @settings(FUZZ, max_examples=500)
-@given(
-    index=st.integers(0, len(BASE_BLOBS) - 1),
-    edits=st.lists(st.tuples(st.integers(0, 2**20), st.integers(0, 255)), min_size=1, max_size=4),
-)
+@given(index=st.integers(0, len(BASE_BLOBS) - 1), edits=fuzz.BYTE_EDITS)
 def test_estimate_corrupted_bytes_raise_only_remote_errors(
     index: int, edits: list[tuple[int, int]]
 ) -> None:
-    blob = bytearray(BASE_BLOBS[index])
-    for at, byte in edits:
-        blob[at % len(blob)] = byte
-    _decode_or_reject(bytes(blob))
+    WIRE.decode_or_reject(fuzz.corrupt(BASE_BLOBS[index], edits))
 
 
 # --------------------------------------------------------------------------- one rule at a time
@@ -339,18 +252,22 @@ def test_estimate_corrupted_bytes_raise_only_remote_errors(
     [(n, 0) for n in FLOAT_ARRAYS] + [("robot_pose", 5), ("object_cov", 53), ("weights", 1)],
 )
 def test_estimate_non_finite_number_is_invalid(name: str, index: int, value: float) -> None:
-    _assert_rejected(_poke((*LOCAL, name), index, value), InvalidValue, f"beliefs.local.{name}")
+    WIRE.assert_rejected(
+        WIRE.poke((*LOCAL, name), index, value), InvalidValue, f"beliefs.local.{name}"
+    )
 
 
 def test_estimate_negative_weight_is_invalid() -> None:
-    _assert_rejected(
+    WIRE.assert_rejected(
         _array((*LOCAL, "weights"), [1.5, -0.5]), InvalidValue, "beliefs.local.weights"
     )
 
 
 @pytest.mark.parametrize("weights", [[0.5, 0.5 - 2e-6], [0.5, 0.5 + 2e-6], [0.0, 0.0], [2.0, 0.0]])
 def test_estimate_weights_not_summing_to_one_are_invalid(weights: list[float]) -> None:
-    _assert_rejected(_array((*LOCAL, "weights"), weights), InvalidValue, "beliefs.local.weights")
+    WIRE.assert_rejected(
+        _array((*LOCAL, "weights"), weights), InvalidValue, "beliefs.local.weights"
+    )
 
 
 @pytest.mark.parametrize("weights", [[0.5, 0.5 - 5e-7], [0.5, 0.5 + 5e-7], [1.0, -0.0]])
@@ -361,13 +278,13 @@ def test_estimate_weights_within_tolerance_are_accepted(weights: list[float]) ->
 
 @pytest.mark.parametrize("value", [-1, 64, 2**62, -(2**63)])
 def test_estimate_class_out_of_range_is_invalid(value: int) -> None:
-    blob = _poke((*LOCAL, "classes"), 4, value, "<q")
-    _assert_rejected(blob, InvalidValue, "beliefs.local.classes")
+    blob = WIRE.poke((*LOCAL, "classes"), 4, value, "<q")
+    WIRE.assert_rejected(blob, InvalidValue, "beliefs.local.classes")
 
 
 def test_estimate_class_limit_follows_num_classes() -> None:
-    blob = _poke((*LOCAL, "classes"), 4, 2, "<q")
-    _assert_rejected(blob, InvalidValue, "beliefs.local.classes", EstimateLimits(num_classes=2))
+    blob = WIRE.poke((*LOCAL, "classes"), 4, 2, "<q")
+    WIRE.assert_rejected(blob, InvalidValue, "beliefs.local.classes", EstimateLimits(num_classes=2))
     assert decode_estimate(blob, EstimateLimits(num_classes=3)).beliefs["local"].classes[1, 1] == 2
 
 
@@ -377,7 +294,7 @@ def test_estimate_asymmetric_covariance_is_invalid(name: str, relative: float) -
     cov = np.tile(np.diag([4.0, 4.0, 1.0]), (2 if name == "robot_cov" else 6, 1, 1))
     cov[-1, 0, 2] += relative * 4.0
     blob = _array((*LOCAL, name), cov)
-    _assert_rejected(blob, InvalidValue, f"beliefs.local.{name}")
+    WIRE.assert_rejected(blob, InvalidValue, f"beliefs.local.{name}")
 
 
 def test_estimate_covariance_symmetric_within_tolerance_is_accepted() -> None:
@@ -395,24 +312,26 @@ def test_estimate_wrong_array_length_is_malformed(name: str, change: int | None)
     """``change`` bytes added or cut; None empties the blob. The weights fix H, so changing them
     by a whole float64 makes the next array the wrong length."""
     path = (*LOCAL, name)
-    blob = _get(REF_DOC, path)
+    blob = get_at(REF_DOC, path)
     new = b"" if change is None else blob[:change] if change < 0 else blob + bytes(change)
     field = f"beliefs.local.{name}"
     if name == "weights" and change in (8, -8):
         field = "beliefs.local.classes"
     error = InvalidValue if name == "weights" and change is None else MalformedMessage
-    _assert_rejected(_with(path, new), error, field)
+    WIRE.assert_rejected(WIRE.with_(path, new), error, field)
 
 
 def test_estimate_object_count_disagreeing_with_arrays_is_malformed() -> None:
-    objects = _get(REF_DOC, (*LOCAL, "objects"))
-    _assert_rejected(
-        _with((*LOCAL, "objects"), objects[:-1]), MalformedMessage, "beliefs.local.classes"
+    objects = get_at(REF_DOC, (*LOCAL, "objects"))
+    WIRE.assert_rejected(
+        WIRE.with_((*LOCAL, "objects"), objects[:-1]), MalformedMessage, "beliefs.local.classes"
     )
 
 
 def test_estimate_duplicate_object_ids_are_invalid() -> None:
-    _assert_rejected(_with((*LOCAL, "objects"), [5, 6, 5]), InvalidValue, "beliefs.local.objects")
+    WIRE.assert_rejected(
+        WIRE.with_((*LOCAL, "objects"), [5, 6, 5]), InvalidValue, "beliefs.local.objects"
+    )
 
 
 @pytest.mark.parametrize(
@@ -427,37 +346,39 @@ def test_estimate_duplicate_object_ids_are_invalid() -> None:
     ],
 )
 def test_estimate_integer_out_of_range_is_invalid(path: Path, value: int) -> None:
-    _assert_rejected(_with(path, value), InvalidValue, _field(path))
+    WIRE.assert_rejected(WIRE.with_(path, value), InvalidValue, field_name(path))
 
 
 @pytest.mark.parametrize("robot", ["", "x" * 33, "r 1", "r/1", "rö", "r1\n"])
 def test_estimate_invalid_robot_id_is_invalid(robot: str) -> None:
-    _assert_rejected(_with(("robot",), robot), InvalidValue, "robot")
+    WIRE.assert_rejected(WIRE.with_(("robot",), robot), InvalidValue, "robot")
 
 
 @pytest.mark.parametrize("name", ["", "Local", "local1", "a-b", "x" * 33, "lócal"])
 def test_estimate_invalid_belief_name_is_invalid(name: str) -> None:
     doc = copy.deepcopy(REF_DOC)
     doc["beliefs"][name] = doc["beliefs"].pop("local")
-    _assert_rejected(_pack(doc), InvalidValue, "beliefs")
+    WIRE.assert_rejected(pack(doc), InvalidValue, "beliefs")
 
 
 @pytest.mark.parametrize("name", ["", "Invalid", "x" * 49, "a b"])
 def test_estimate_invalid_counter_name_is_invalid(name: str) -> None:
-    _assert_rejected(_with(("counters", name), 1), InvalidValue, "counters")
+    WIRE.assert_rejected(WIRE.with_(("counters", name), 1), InvalidValue, "counters")
 
 
 def test_estimate_without_beliefs_is_invalid() -> None:
-    _assert_rejected(_with(("beliefs",), {}), InvalidValue, "beliefs")
+    WIRE.assert_rejected(WIRE.with_(("beliefs",), {}), InvalidValue, "beliefs")
 
 
 def test_estimate_too_many_beliefs_or_counters_exceed_limits() -> None:
     local = REF_DOC["beliefs"]["local"]
     beliefs = {"b" + "_" * i: local for i in range(9)}
-    _assert_rejected(_with(("beliefs",), beliefs), LimitExceeded, "beliefs")
+    WIRE.assert_rejected(WIRE.with_(("beliefs",), beliefs), LimitExceeded, "beliefs")
     counters = {"c" + "_" * i: i for i in range(65)}
-    _assert_rejected(_with(("counters",), counters), LimitExceeded, "counters")
-    assert len(decode_estimate(_with(("beliefs",), dict(list(beliefs.items())[:8]))).beliefs) == 8
+    WIRE.assert_rejected(WIRE.with_(("counters",), counters), LimitExceeded, "counters")
+    assert (
+        len(decode_estimate(WIRE.with_(("beliefs",), dict(list(beliefs.items())[:8]))).beliefs) == 8
+    )
 
 
 WRONG_TYPES = [
@@ -485,44 +406,42 @@ WRONG_TYPES = [
 
 
 @pytest.mark.parametrize(
-    ("path", "value"), [pytest.param(p, v, id=f"{_field(p)}={v!r}") for p, v in WRONG_TYPES]
+    ("path", "value"), [pytest.param(p, v, id=f"{field_name(p)}={v!r}") for p, v in WRONG_TYPES]
 )
 def test_estimate_wrong_type_is_malformed(path: Path, value: Any) -> None:
-    _assert_rejected(_with(path, value), MalformedMessage, _field(path))
+    WIRE.assert_rejected(WIRE.with_(path, value), MalformedMessage, field_name(path))
 
 
 def test_estimate_non_string_names_are_malformed() -> None:
     doc = copy.deepcopy(REF_DOC)
     doc["beliefs"][b"local"] = doc["beliefs"].pop("local")
-    _assert_rejected(_pack(doc), MalformedMessage, "beliefs")
-    _assert_rejected(_with(("counters",), {b"invalid": 1}), MalformedMessage, "counters")
+    WIRE.assert_rejected(pack(doc), MalformedMessage, "beliefs")
+    WIRE.assert_rejected(WIRE.with_(("counters",), {b"invalid": 1}), MalformedMessage, "counters")
 
 
 @pytest.mark.parametrize("version", [0, 2, -1, "1", None, 1.0, True])
 def test_estimate_unknown_version_is_unsupported(version: Any) -> None:
-    _assert_rejected(_with(("v",), version), UnsupportedVersion, "v")
+    WIRE.assert_rejected(WIRE.with_(("v",), version), UnsupportedVersion, "v")
 
 
 @pytest.mark.parametrize("kind", ["stack", "frame", "Estimate", "", None, b"estimate"])
 def test_estimate_unknown_message_type_is_unsupported(kind: Any) -> None:
-    _assert_rejected(_with(("type",), kind), UnsupportedVersion, "type")
+    WIRE.assert_rejected(WIRE.with_(("type",), kind), UnsupportedVersion, "type")
 
 
 @pytest.mark.parametrize(
     ("path", "field"),
     [((k,), "message") for k in REF_DOC]
-    + [((*LOCAL, k), "beliefs.local") for k in _get(REF_DOC, LOCAL)],
+    + [((*LOCAL, k), "beliefs.local") for k in get_at(REF_DOC, LOCAL)],
 )
 def test_estimate_missing_key_is_malformed(path: Path, field: str) -> None:
-    _assert_rejected(_without(path), MalformedMessage, field)
+    WIRE.assert_rejected(WIRE.without(path), MalformedMessage, field)
 
 
 @pytest.mark.parametrize("key", ["x", "V", "weight", ""])
 @pytest.mark.parametrize(("path", "field"), [((), "message"), (LOCAL, "beliefs.local")])
 def test_estimate_extra_key_is_malformed(path: Path, field: str, key: str) -> None:
-    doc = copy.deepcopy(REF_DOC)
-    _get(doc, path)[key] = 0
-    _assert_rejected(_pack(doc), MalformedMessage, field)
+    WIRE.assert_rejected(WIRE.with_((*path, key), 0), MalformedMessage, field)
 
 
 @pytest.mark.parametrize(
@@ -534,7 +453,7 @@ def test_estimate_extra_key_is_malformed(path: Path, field: str, key: str) -> No
     ],
 )
 def test_estimate_over_limits_is_rejected(limits: EstimateLimits, field: str) -> None:
-    _assert_rejected(REF_BLOB, LimitExceeded, field, limits)
+    WIRE.assert_rejected(REF_BLOB, LimitExceeded, field, limits)
     with pytest.raises(LocalProtocolError) as caught:
         encode_estimate(REF, limits)
     assert caught.value.field == field
@@ -556,66 +475,14 @@ def test_estimate_default_limits_hold_a_large_belief() -> None:
 
 # --------------------------------------------------------------------------- structured fuzz
 
-KNOWN_KEYS = ("v", "type", "robot", "k", "beliefs", "counters", "local", "objects", *ARRAYS)
-SCALARS = (
-    st.none()
-    | st.booleans()
-    | st.integers(-(2**63), 2**64 - 1)
-    | st.sampled_from((-1, 0, 1, 63, 64, 2**32 - 1, 2**32, 2**63 - 1, 2**63))
-    | st.floats()
-    | st.text(max_size=40)
-    | st.sampled_from(("estimate", "r1", "local", ""))
-    | st.binary(max_size=64)
-    | st.lists(st.floats(), max_size=9).map(lambda xs: struct.pack(f"<{len(xs)}d", *xs))
-    | st.builds(msgpack.ExtType, st.integers(0, 127), st.binary(max_size=12))
+# Class indices (int64) at and past their edges, poked like the float64s.
+EDGE_CLASSES = st.sampled_from([struct.pack("<q", v) for v in (-1, 0, 2, 64, 2**63 - 1, -(2**63))])
+MUTATOR = fuzz.Mutator(
+    known_keys=("v", "type", "robot", "k", "beliefs", "counters", "local", "objects", *ARRAYS),
+    strings=("estimate", "r1", "local", ""),
+    edge_ints=(-1, 0, 1, 63, 64, 2**32 - 1, 2**32, 2**63 - 1, 2**63),
+    numbers=fuzz.FLOAT64S | EDGE_CLASSES,
 )
-KEYS = st.sampled_from(KNOWN_KEYS) | st.text(max_size=8)
-VALUES = st.recursive(
-    SCALARS,
-    lambda children: st.lists(children, max_size=4) | st.dictionaries(KEYS, children, max_size=4),
-    max_leaves=8,
-)
-
-
-def _paths(node: Any, prefix: Path = ()) -> Iterator[Path]:
-    yield prefix
-    if isinstance(node, dict):
-        for k, v in node.items():
-            yield from _paths(v, (*prefix, k))
-    elif isinstance(node, list):
-        for i, v in enumerate(node):
-            yield from _paths(v, (*prefix, i))
-
-
-def _mutate(doc: Any, data: st.DataObject) -> Any:
-    """One random edit (replace, copy, delete, add, poke a number, resize) at a random path."""
-    paths = list(_paths(doc))[::-1]  # hypothesis favours the first choices: make them leaves
-    path = data.draw(st.sampled_from(paths))
-    node = _get(doc, path)
-    op = data.draw(st.sampled_from(("replace", "copy", "delete", "add", "poke", "resize")))
-    if op == "copy":
-        return _set(doc, path, copy.deepcopy(_get(doc, data.draw(st.sampled_from(paths)))))
-    if op == "delete" and path:
-        del _get(doc, path[:-1])[path[-1]]
-        return doc
-    if op == "add" and isinstance(node, dict):
-        node[data.draw(KEYS | st.integers(-3, 3) | st.binary(max_size=3))] = data.draw(VALUES)
-        return doc
-    if op == "add" and isinstance(node, list):
-        node.insert(data.draw(st.integers(0, len(node))), data.draw(VALUES))
-        return doc
-    if op == "poke" and isinstance(node, bytes) and len(node) >= 8:
-        i = 8 * data.draw(st.integers(0, len(node) // 8 - 1))
-        number = data.draw(
-            st.floats().map(lambda x: struct.pack("<d", x))
-            | st.sampled_from([struct.pack("<q", v) for v in (-1, 0, 2, 64, 2**63 - 1, -(2**63))])
-        )
-        return _set(doc, path, node[:i] + number + node[i + 8 :])
-    if op == "resize" and isinstance(node, bytes | str | list):
-        cut = data.draw(st.integers(0, len(node)))
-        pad: Any = {bytes: b"\x00", str: "a", list: [0]}[type(node)]
-        return _set(doc, path, node[:cut] + pad * data.draw(st.integers(0, 9)))
-    return _set(doc, path, data.draw(VALUES))
 
 
 @settings(FUZZ, max_examples=1000)
@@ -628,10 +495,7 @@ def _mutate(doc: Any, data: st.DataObject) -> Any:
 def test_estimate_mutated_documents_raise_only_remote_errors(
     index: int, edits: int, limits: EstimateLimits | None, data: st.DataObject
 ) -> None:
-    doc = copy.deepcopy(BASE_DOCS[index])
-    for _ in range(edits):
-        doc = _mutate(doc, data)
-    _decode_or_reject(_pack(doc), limits)
+    WIRE.decode_or_reject(pack(MUTATOR.mutated(BASE_DOCS[index], edits, data)), limits)
 
 
 # --------------------------------------------------------------------------- encode

@@ -11,14 +11,12 @@ from __future__ import annotations
 import copy
 import dataclasses
 import math
-import struct
-from collections.abc import Iterator
 from typing import Any
 
 import msgpack
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from estimator.models import Detection, SensorFrame
@@ -31,28 +29,10 @@ from protocol.errors import (
     UnsupportedVersion,
 )
 from protocol.frames import FrameLimits, decode_frame, encode_frame
+from tests.protocol import fuzz
+from tests.protocol.fuzz import FUZZ, Path, field_name, get_at, pack
 
-Path = tuple[str | int, ...]
-
-# Reproducible: the same examples on every run, no example database, no deadline.
-FUZZ = settings(derandomize=True, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-SPECIAL_FLOATS = (0.0, -0.0, 5e-324, -5e-324, 2.2250738585072014e-308, 1.7976931348623157e308)
-ROBOT_IDS = st.text(
-    "ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789_-", min_size=1, max_size=32
-)
 NO_TRUTH = np.full(3, np.nan)
-
-
-def _finite(rng: np.random.Generator, shape: tuple[int, ...]) -> np.ndarray:
-    """Finite float64s: ordinary values or arbitrary bit patterns, with ±0, subnormals, extremes."""
-    if rng.random() < 0.5:
-        values = rng.standard_normal(shape) * 10.0 ** int(rng.integers(-3, 4))
-    else:
-        values = rng.integers(0, 2**64, size=shape, dtype=np.uint64).view(np.float64)
-        values = np.where(np.isfinite(values), values, -0.0)
-    special = rng.random(shape) < 0.2
-    values[special] = rng.choice(SPECIAL_FLOATS, size=int(special.sum()))
-    return values
 
 
 def make_frame(
@@ -67,9 +47,9 @@ def make_frame(
     count = int(rng.integers(0, 6)) if detections is None else detections
     m = int(rng.integers(1, 7)) if scores is None else scores
     ids: Any = rng.choice(2**32, size=count, replace=False) if count else []
-    dets = tuple(Detection(int(j), _finite(rng, (3,)), _finite(rng, (m,))) for j in ids)
-    true_pose = _finite(rng, (3,)) if truth else NO_TRUTH.copy()
-    return SensorFrame(robot, k, _finite(rng, (3,)), dets, true_pose)
+    dets = tuple(Detection(int(j), fuzz.finite(rng, (3,)), fuzz.finite(rng, (m,))) for j in ids)
+    true_pose = fuzz.finite(rng, (3,)) if truth else NO_TRUTH.copy()
+    return SensorFrame(robot, k, fuzz.finite(rng, (3,)), dets, true_pose)
 
 
 def _bits(a: Any) -> bytes:
@@ -115,63 +95,8 @@ BASE_BLOBS = tuple(encode_frame(f) for f in BASE_FRAMES)
 BASE_DOCS = tuple(msgpack.unpackb(b, raw=False) for b in BASE_BLOBS)
 
 
-def _field(path: Path) -> str:
-    out = ""
-    for p in path:
-        out += f"[{p}]" if isinstance(p, int) else (f".{p}" if out else p)
-    return out
-
-
-def _get(doc: Any, path: Path) -> Any:
-    for p in path:
-        doc = doc[p]
-    return doc
-
-
-def _set(doc: Any, path: Path, value: Any) -> Any:
-    if not path:
-        return value
-    _get(doc, path[:-1])[path[-1]] = value
-    return doc
-
-
-def _pack(doc: Any) -> bytes:
-    return bytes(msgpack.packb(doc, use_bin_type=True))
-
-
-def _with(path: Path, value: Any) -> bytes:
-    return _pack(_set(copy.deepcopy(REF_DOC), path, value))
-
-
-def _without(path: Path) -> bytes:
-    doc = copy.deepcopy(REF_DOC)
-    del _get(doc, path[:-1])[path[-1]]
-    return _pack(doc)
-
-
-def _poke(path: Path, index: int, value: float) -> bytes:
-    blob = _get(REF_DOC, path)
-    return _with(path, blob[: 8 * index] + struct.pack("<d", value) + blob[8 * index + 8 :])
-
-
-def _assert_rejected(
-    blob: bytes, error: type[RemoteProtocolError], field: str, limits: FrameLimits | None = None
-) -> None:
-    with pytest.raises(error) as caught:
-        decode_frame(blob, limits)
-    assert caught.value.field == field
-    assert str(caught.value).startswith(f"{field}: ")
-
-
-def _decode_or_reject(blob: bytes, limits: FrameLimits | None = None) -> None:
-    """Decode and check what a decoded frame promises, or accept a RemoteProtocolError with a
-    field; any other exception fails the test."""
-    lim = limits or FrameLimits()
-    try:
-        frame = decode_frame(blob, limits)
-    except RemoteProtocolError as exc:
-        assert exc.field, f"error without a field: {exc!r}"
-        return
+def _check_decoded(frame: SensorFrame, lim: FrameLimits) -> None:
+    """What a decoded frame promises, and that it survives another round trip."""
     assert frame.k >= 1 and len(frame.detections) <= lim.max_detections
     assert np.isfinite(frame.odometry).all()
     assert np.isfinite(frame.true_pose).all() or np.isnan(frame.true_pose).all()
@@ -179,7 +104,10 @@ def _decode_or_reject(blob: bytes, limits: FrameLimits | None = None) -> None:
     assert len(set(ids)) == len(ids)
     for d in frame.detections:
         assert np.isfinite(d.z_geo).all() and np.isfinite(d.z_sem).all()
-    assert_same_frame(decode_frame(encode_frame(frame, limits), limits), frame)
+    assert_same_frame(decode_frame(encode_frame(frame, lim), lim), frame)
+
+
+WIRE = fuzz.Wire(decode_frame, REF_DOC, FrameLimits(), _check_decoded)
 
 
 # --------------------------------------------------------------------------- round trips
@@ -243,7 +171,7 @@ def test_frames_size_matches_docs(robot: str, k: int, count: int, m: int, truth:
 @settings(FUZZ, max_examples=1000)
 @given(
     seed=st.integers(0, 2**32 - 1),
-    robot=ROBOT_IDS,
+    robot=fuzz.ROBOT_IDS,
     k=st.integers(1, 2**63 - 1),
     detections=st.integers(0, 8),
     scores=st.integers(1, 64),
@@ -264,51 +192,34 @@ def test_frames_round_trip_is_bit_exact_fuzz(
 
 @pytest.mark.parametrize("index", range(len(BASE_BLOBS)))
 def test_frames_every_truncated_prefix_is_malformed(index: int) -> None:
-    blob = BASE_BLOBS[index]
-    escaped = []
-    for length in range(len(blob)):
-        try:
-            decode_frame(blob[:length])
-        except MalformedMessage as exc:
-            assert exc.field == "message"
-        except Exception as exc:  # the point of the test: report what escaped, for every length
-            escaped.append((length, repr(exc)))
-        else:
-            escaped.append((length, "decoded"))
-    assert not escaped, escaped[:5]
+    WIRE.assert_every_prefix_malformed(BASE_BLOBS[index])
 
 
 def test_frames_trailing_bytes_are_malformed() -> None:
-    _assert_rejected(REF_BLOB + b"\x00", MalformedMessage, "message")
+    WIRE.assert_rejected(REF_BLOB + b"\x00", MalformedMessage, "message")
 
 
 @pytest.mark.parametrize("blob", [b"", b"\xc1", b"\x93\x01\x02\x03", b"\xa5frame", b"\xc0"])
 def test_frames_non_map_documents_are_malformed(blob: bytes) -> None:
-    _assert_rejected(blob, MalformedMessage, "message")
+    WIRE.assert_rejected(blob, MalformedMessage, "message")
 
 
 def test_frames_decode_rejects_non_bytes_input() -> None:
-    _assert_rejected("not bytes", MalformedMessage, "message")  # type: ignore[arg-type]
+    WIRE.assert_rejected("not bytes", MalformedMessage, "message")  # type: ignore[arg-type]
 
 
 @settings(FUZZ, max_examples=1000)
 @given(blob=st.binary(max_size=512))
 def test_frames_random_bytes_raise_only_remote_errors(blob: bytes) -> None:
-    _decode_or_reject(blob)
+    WIRE.decode_or_reject(blob)
 
 
 @settings(FUZZ, max_examples=1000)
-@given(
-    index=st.integers(0, len(BASE_BLOBS) - 1),
-    edits=st.lists(st.tuples(st.integers(0, 2**20), st.integers(0, 255)), min_size=1, max_size=4),
-)
+@given(index=st.integers(0, len(BASE_BLOBS) - 1), edits=fuzz.BYTE_EDITS)
 def test_frames_corrupted_bytes_raise_only_remote_errors(
     index: int, edits: list[tuple[int, int]]
 ) -> None:
-    blob = bytearray(BASE_BLOBS[index])
-    for at, byte in edits:
-        blob[at % len(blob)] = byte
-    _decode_or_reject(bytes(blob))
+    WIRE.decode_or_reject(fuzz.corrupt(BASE_BLOBS[index], edits))
 
 
 # --------------------------------------------------------------------------- one rule at a time
@@ -328,16 +239,16 @@ def test_frames_corrupted_bytes_raise_only_remote_errors(
     ],
 )
 def test_frames_non_finite_number_is_invalid(path: Path, index: int, value: float) -> None:
-    _assert_rejected(_poke(path, index, value), InvalidValue, _field(path))
+    WIRE.assert_rejected(WIRE.poke(path, index, value), InvalidValue, field_name(path))
 
 
 @pytest.mark.parametrize("path", [("odo",), ("truth",), ("det", 1, "geo")])
 @pytest.mark.parametrize("change", [-8, 8, -1, 1, None])
 def test_frames_wrong_blob_length_is_malformed(path: Path, change: int | None) -> None:
     """``change`` bytes added or cut; None empties the blob."""
-    blob = _get(REF_DOC, path)
+    blob = get_at(REF_DOC, path)
     new = b"" if change is None else blob[:change] if change < 0 else blob + bytes(change)
-    _assert_rejected(_with(path, new), MalformedMessage, _field(path))
+    WIRE.assert_rejected(WIRE.with_(path, new), MalformedMessage, field_name(path))
 
 
 @pytest.mark.parametrize(
@@ -351,11 +262,11 @@ def test_frames_wrong_blob_length_is_malformed(path: Path, change: int | None) -
     ],
 )
 def test_frames_wrong_score_count_is_rejected(sem: bytes, error: type[RemoteProtocolError]) -> None:
-    _assert_rejected(_with(("det", 1, "sem"), sem), error, "det[1].sem")
+    WIRE.assert_rejected(WIRE.with_(("det", 1, "sem"), sem), error, "det[1].sem")
 
 
 def test_frames_score_count_must_equal_num_classes_when_given() -> None:
-    _assert_rejected(REF_BLOB, MalformedMessage, "det[0].sem", FrameLimits(num_classes=2))
+    WIRE.assert_rejected(REF_BLOB, MalformedMessage, "det[0].sem", FrameLimits(num_classes=2))
     assert_same_frame(decode_frame(REF_BLOB, FrameLimits(num_classes=3)), REF)
     frame = make_frame(np.random.default_rng(0), detections=2, scores=64)
     decode_frame(encode_frame(frame))
@@ -364,7 +275,7 @@ def test_frames_score_count_must_equal_num_classes_when_given() -> None:
 
 
 def test_frames_duplicate_object_ids_are_invalid() -> None:
-    _assert_rejected(_with(("det", 2, "id"), 4), InvalidValue, "det[2].id")
+    WIRE.assert_rejected(WIRE.with_(("det", 2, "id"), 4), InvalidValue, "det[2].id")
 
 
 @pytest.mark.parametrize(
@@ -378,12 +289,12 @@ def test_frames_duplicate_object_ids_are_invalid() -> None:
     ],
 )
 def test_frames_integer_out_of_range_is_invalid(path: Path, value: int) -> None:
-    _assert_rejected(_with(path, value), InvalidValue, _field(path))
+    WIRE.assert_rejected(WIRE.with_(path, value), InvalidValue, field_name(path))
 
 
 @pytest.mark.parametrize("robot", ["", "x" * 33, "r 1", "r/1", "rö", "r1\n"])
 def test_frames_invalid_robot_id_is_invalid(robot: str) -> None:
-    _assert_rejected(_with(("robot",), robot), InvalidValue, "robot")
+    WIRE.assert_rejected(WIRE.with_(("robot",), robot), InvalidValue, "robot")
 
 
 WRONG_TYPES = [
@@ -414,24 +325,24 @@ WRONG_TYPES = [
 
 
 @pytest.mark.parametrize(
-    ("path", "value"), [pytest.param(p, v, id=f"{_field(p)}={v!r}") for p, v in WRONG_TYPES]
+    ("path", "value"), [pytest.param(p, v, id=f"{field_name(p)}={v!r}") for p, v in WRONG_TYPES]
 )
 def test_frames_wrong_type_is_malformed(path: Path, value: Any) -> None:
-    _assert_rejected(_with(path, value), MalformedMessage, _field(path))
+    WIRE.assert_rejected(WIRE.with_(path, value), MalformedMessage, field_name(path))
 
 
 @pytest.mark.parametrize("version", [0, 2, -1, "1", None, 1.0, True])
 def test_frames_unknown_version_is_unsupported(version: Any) -> None:
-    _assert_rejected(_with(("v",), version), UnsupportedVersion, "v")
+    WIRE.assert_rejected(WIRE.with_(("v",), version), UnsupportedVersion, "v")
 
 
 def test_frames_unknown_version_is_unsupported_whatever_its_layout() -> None:
-    _assert_rejected(_pack({"v": 2, "frames": []}), UnsupportedVersion, "v")
+    WIRE.assert_rejected(pack({"v": 2, "frames": []}), UnsupportedVersion, "v")
 
 
 @pytest.mark.parametrize("kind", ["stack", "estimate", "Frame", "", None, b"frame"])
 def test_frames_unknown_message_type_is_unsupported(kind: Any) -> None:
-    _assert_rejected(_with(("type",), kind), UnsupportedVersion, "type")
+    WIRE.assert_rejected(WIRE.with_(("type",), kind), UnsupportedVersion, "type")
 
 
 @pytest.mark.parametrize(
@@ -439,21 +350,19 @@ def test_frames_unknown_message_type_is_unsupported(kind: Any) -> None:
     [((k,), "message") for k in REF_DOC] + [(("det", 1, k), "det[1]") for k in REF_DOC["det"][1]],
 )
 def test_frames_missing_key_is_malformed(path: Path, field: str) -> None:
-    _assert_rejected(_without(path), MalformedMessage, field)
+    WIRE.assert_rejected(WIRE.without(path), MalformedMessage, field)
 
 
 @pytest.mark.parametrize("key", ["x", "V", "truth2", ""])
 @pytest.mark.parametrize(("path", "field"), [((), "message"), (("det", 1), "det[1]")])
 def test_frames_extra_key_is_malformed(path: Path, field: str, key: str) -> None:
-    doc = copy.deepcopy(REF_DOC)
-    _get(doc, path)[key] = 0
-    _assert_rejected(_pack(doc), MalformedMessage, field)
+    WIRE.assert_rejected(WIRE.with_((*path, key), 0), MalformedMessage, field)
 
 
 def test_frames_non_string_map_keys_are_malformed() -> None:
     doc: dict[Any, Any] = copy.deepcopy(REF_DOC)
     doc[b"v"] = 1
-    _assert_rejected(_pack(doc), MalformedMessage, "message")
+    WIRE.assert_rejected(pack(doc), MalformedMessage, "message")
 
 
 @pytest.mark.parametrize(
@@ -464,7 +373,7 @@ def test_frames_non_string_map_keys_are_malformed() -> None:
     ],
 )
 def test_frames_over_limits_is_rejected(limits: FrameLimits, field: str) -> None:
-    _assert_rejected(REF_BLOB, LimitExceeded, field, limits)
+    WIRE.assert_rejected(REF_BLOB, LimitExceeded, field, limits)
     with pytest.raises(LocalProtocolError) as caught:
         encode_frame(REF, limits)
     assert caught.value.field == field
@@ -478,62 +387,11 @@ def test_frames_exactly_at_limits_is_accepted() -> None:
 
 # --------------------------------------------------------------------------- structured fuzz
 
-KNOWN_KEYS = ("v", "type", "robot", "k", "odo", "truth", "det", "id", "geo", "sem")
-SCALARS = (
-    st.none()
-    | st.booleans()
-    | st.integers(-(2**63), 2**64 - 1)
-    | st.sampled_from((-1, 0, 1, 2**32 - 1, 2**32, 2**63 - 1, 2**63))
-    | st.floats()
-    | st.text(max_size=40)
-    | st.sampled_from(("frame", "r1", "r1\n", ""))
-    | st.binary(max_size=64)
-    | st.lists(st.floats(), max_size=9).map(lambda xs: struct.pack(f"<{len(xs)}d", *xs))
-    | st.builds(msgpack.ExtType, st.integers(0, 127), st.binary(max_size=12))
+MUTATOR = fuzz.Mutator(
+    known_keys=("v", "type", "robot", "k", "odo", "truth", "det", "id", "geo", "sem"),
+    strings=("frame", "r1", "r1\n", ""),
+    edge_ints=(-1, 0, 1, 2**32 - 1, 2**32, 2**63 - 1, 2**63),
 )
-KEYS = st.sampled_from(KNOWN_KEYS) | st.text(max_size=8)
-VALUES = st.recursive(
-    SCALARS,
-    lambda children: st.lists(children, max_size=4) | st.dictionaries(KEYS, children, max_size=4),
-    max_leaves=8,
-)
-
-
-def _paths(node: Any, prefix: Path = ()) -> Iterator[Path]:
-    yield prefix
-    if isinstance(node, dict):
-        for k, v in node.items():
-            yield from _paths(v, (*prefix, k))
-    elif isinstance(node, list):
-        for i, v in enumerate(node):
-            yield from _paths(v, (*prefix, i))
-
-
-def _mutate(doc: Any, data: st.DataObject) -> Any:
-    """One random edit (replace, copy, delete, add, poke a float, resize) at a random path."""
-    paths = list(_paths(doc))[::-1]  # hypothesis favours the first choices: make them leaves
-    path = data.draw(st.sampled_from(paths))
-    node = _get(doc, path)
-    op = data.draw(st.sampled_from(("replace", "copy", "delete", "add", "poke", "resize")))
-    if op == "copy":
-        return _set(doc, path, copy.deepcopy(_get(doc, data.draw(st.sampled_from(paths)))))
-    if op == "delete" and path:
-        del _get(doc, path[:-1])[path[-1]]
-        return doc
-    if op == "add" and isinstance(node, dict):
-        node[data.draw(KEYS | st.integers(-3, 3) | st.binary(max_size=3))] = data.draw(VALUES)
-        return doc
-    if op == "add" and isinstance(node, list):
-        node.insert(data.draw(st.integers(0, len(node))), data.draw(VALUES))
-        return doc
-    if op == "poke" and isinstance(node, bytes) and len(node) >= 8:
-        i = 8 * data.draw(st.integers(0, len(node) // 8 - 1))
-        return _set(doc, path, node[:i] + struct.pack("<d", data.draw(st.floats())) + node[i + 8 :])
-    if op == "resize" and isinstance(node, bytes | str | list):
-        cut = data.draw(st.integers(0, len(node)))
-        pad: Any = {bytes: b"\x00", str: "a", list: [0]}[type(node)]
-        return _set(doc, path, node[:cut] + pad * data.draw(st.integers(0, 9)))
-    return _set(doc, path, data.draw(VALUES))
 
 
 @settings(FUZZ, max_examples=1200)
@@ -546,10 +404,7 @@ def _mutate(doc: Any, data: st.DataObject) -> Any:
 def test_frames_mutated_documents_raise_only_remote_errors(
     index: int, edits: int, limits: FrameLimits | None, data: st.DataObject
 ) -> None:
-    doc = copy.deepcopy(BASE_DOCS[index])
-    for _ in range(edits):
-        doc = _mutate(doc, data)
-    _decode_or_reject(_pack(doc), limits)
+    WIRE.decode_or_reject(pack(MUTATOR.mutated(BASE_DOCS[index], edits, data)), limits)
 
 
 # --------------------------------------------------------------------------- encode
