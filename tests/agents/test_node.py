@@ -23,36 +23,24 @@ from protocol.stack import Slot, Stack
 from sim.loader import parse_scenario
 from sim.sensors import Simulator
 from sim.world import World
+from tests.estimator.scenarios import fleet_text
 
 STEPS = 12
 SEED = 3
 _OBJECTS = [(3.0, 0.5, 0.5, 1), (4.0, -0.8, -1.0, 2), (5.5, 10.3, 2.0, 2), (3.0, 20.5, 1.0, 1)]
-_TEXT = f"""
-format = 1
-name = "chain"
-description = "three robots 10 m apart, each with objects of its own"
-steps = {STEPS}
-[classes]
-count = 2
-prior = [0.5, 0.5]
-[classifier]
-model = "paper"
-[noise]
-odometry_var = [0.003, 0.003, 0.001]
-geometric_var = [0.1, 0.1, 0.01]
-[sensor]
-half_angle_deg = 60.0
-range = 4.0
-[communication]
-mode = "schedule"
-schedule = [[1, {STEPS}, "r1", "r2"], [1, {STEPS}, "r2", "r3"]]
-"""
-for _rid, _y in (("r1", 0.0), ("r2", 10.0), ("r3", 20.0)):
-    _TEXT += f'\n[[robots]]\nid = "{_rid}"\nstart = [0.0, {_y}, 0.0]\n'
-    _TEXT += f"speed = 0.25\nturns = [[{STEPS}, 0.0]]\n"
-for _oid, (_x, _y, _yaw, _c) in enumerate(_OBJECTS, start=1):
-    _TEXT += f"\n[[objects]]\nid = {_oid}\npose = [{_x}, {_y}, {_yaw}]\nclass = {_c}\n"
-SCENARIO = parse_scenario(_TEXT, "chain.toml")
+SCENARIO = parse_scenario(
+    fleet_text(
+        "chain",
+        STEPS,
+        [0.0, 10.0, 20.0],
+        _OBJECTS,
+        description="three robots 10 m apart, each with objects of its own",
+        communication=(
+            f'mode = "schedule"\nschedule = [[1, {STEPS}, "r1", "r2"], [1, {STEPS}, "r2", "r3"]]'
+        ),
+    ),
+    "chain.toml",
+)
 WORLD = World(SCENARIO)
 R2_FIRST_SIGHTING = 7
 # r1–r2 and r2–r3 talk at every step, r1–r3 never: r1's news reaches r3 only through r2.
@@ -291,13 +279,22 @@ def test_node_ignores_a_forged_newer_version_of_its_own_slot(
     assert node.distributed.stamps == {}
 
 
-def test_node_ignores_an_older_version_of_a_slot_it_holds(
+def _peer_after_6_and_its_stack_after_3(
     frames: dict[str, list[SensorFrame]],
-) -> None:
-    peer, node = _node("r1"), _node("r2")
+) -> tuple[RobotNode, bytes | None]:
+    """r1 after 6 frames, and the stack message it had to send after 3 (an older version)."""
+    peer = _node("r1")
     _advance(peer, frames, 3)
     old = peer.outgoing()
     _advance(peer, frames, 6)
+    return peer, old
+
+
+def test_node_ignores_an_older_version_of_a_slot_it_holds(
+    frames: dict[str, list[SensorFrame]],
+) -> None:
+    peer, old = _peer_after_6_and_its_stack_after_3(frames)
+    node = _node("r2")
     new = peer.outgoing()
     assert node.on_stack(new)
     node.on_frame(frames["r2"][0])
@@ -313,10 +310,8 @@ def test_node_ignores_an_older_version_of_a_slot_it_holds(
 def test_node_takes_the_newer_version_after_an_older_one(
     frames: dict[str, list[SensorFrame]],
 ) -> None:
-    peer, node = _node("r1"), _node("r2")
-    _advance(peer, frames, 3)
-    old = peer.outgoing()
-    _advance(peer, frames, 6)
+    peer, old = _peer_after_6_and_its_stack_after_3(frames)
+    node = _node("r2")
     assert node.on_stack(old)
     node.on_frame(frames["r2"][0])
     assert node.on_stack(peer.outgoing())

@@ -16,6 +16,7 @@ from deploy.study import run_single
 from estimator.hybrid import BeliefConfig
 from estimator.metrics import METRICS
 from sim.loader import parse_scenario
+from tests.estimator.scenarios import fleet_text
 from tests.tolerance import assert_close
 
 SEMFLEET = Path(sys.executable).with_name("semfleet")
@@ -25,58 +26,17 @@ STEPS = 12
 ROBOTS = 2
 CURVE_PLOTS = ("msde", "robot_error", "object_error", "robot_sqrt_det", "object_sqrt_det")
 
-_HEADER = f"""\
-format = 1
-name = "tiny"
-description = "a fast world for study tests"
-steps = {STEPS}
-
-[classes]
-count = 2
-prior = [0.5, 0.5]
-
-[classifier]
-model = "paper"
-
-[noise]
-odometry_var = [0.003, 0.003, 0.001]
-geometric_var = [0.1, 0.1, 0.01]
-
-[sensor]
-half_angle_deg = 60.0
-range = 4.0
-
-[communication]
-mode = "range"
-range = 10.0
-"""
-
-# Robots drive along +x at 0.25 m per step, 4 m apart; each has two objects of its own ahead of
-# it, first in range at k = 3 and k = 5. Steps 1–2 see nothing, so the object metrics of those
-# steps are NaN for every robot and run: the JSON must carry them as null.
-_ROBOT = """
-[[robots]]
-id = "{id}"
-start = [0.0, {y}, 0.0]
-turns = [[{steps}, 0.0]]
-"""
-_OBJECT = """
-[[objects]]
-id = {id}
-pose = [{x}, {y}, {yaw}]
-class = {cls}
-"""
-
 
 def scenario_text(robots: int) -> str:
-    parts = [_HEADER]
-    for i in range(robots):
-        parts.append(_ROBOT.format(id=f"r{i + 1}", y=4.0 * i, steps=STEPS))
+    """Robots drive along +x at 0.25 m per step, 4 m apart; each has two objects of its own ahead
+    of it, first in range at k = 3 and k = 5. Steps 1–2 see nothing, so the object metrics of
+    those steps are NaN for every robot and run: the JSON must carry them as null."""
+    objects = []
     for i in range(robots):
         y = 4.0 * i
-        parts.append(_OBJECT.format(id=2 * i + 1, x=4.5, y=y + 0.5, yaw=math.pi / 2, cls=1 + i))
-        parts.append(_OBJECT.format(id=2 * i + 2, x=5.0, y=y - 0.5, yaw=0.0, cls=2 - i))
-    return "".join(parts)
+        objects += [(4.5, y + 0.5, math.pi / 2, 1 + i), (5.0, y - 0.5, 0.0, 2 - i)]
+    ys = [4.0 * i for i in range(robots)]
+    return fleet_text("tiny", STEPS, ys, objects, description="a fast world for study tests")
 
 
 def semfleet(*args: str, columns: int | None = 200) -> subprocess.CompletedProcess[str]:

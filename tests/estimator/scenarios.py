@@ -1,35 +1,59 @@
-"""Tiny hand-made scenarios for estimator tests, built through the real scenario loader."""
+"""Tiny hand-made scenarios for tests, built through the real scenario loader."""
 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 from sim.loader import parse_scenario
 from sim.scenario import Scenario
 
-_TEMPLATE = """
+RANGE_10_M = 'mode = "range"\nrange = 10.0'
+
+
+def fleet_text(
+    name: str,
+    steps: int,
+    robot_ys: Sequence[float],
+    objects: Sequence[tuple[float, float, float, int]],
+    *,
+    description: str = "",
+    speed: float = 0.25,
+    half_angle_deg: float = 60.0,
+    sensing: float = 4.0,
+    communication: str = RANGE_10_M,
+    odometry_var: Sequence[float] = (0.003, 0.003, 0.001),
+    geometric_var: Sequence[float] = (0.1, 0.1, 0.01),
+) -> str:
+    """Scenario TOML: two classes (uniform prior, the paper's classifier), robots r1, r2, …
+    starting at (0, y, 0) for each y of ``robot_ys`` and driving straight along +x at ``speed``
+    m per step, objects 1, 2, … at ``objects`` (x, y, yaw in radians, class 1..2), and the
+    ``communication`` table's body."""
+    text = f"""\
 format = 1
-name = "tiny"
+name = "{name}"
+description = "{description}"
 steps = {steps}
 [classes]
 count = 2
+prior = [0.5, 0.5]
 [classifier]
 model = "paper"
 [noise]
-odometry_var = {odometry_var}
-geometric_var = {geometric_var}
+odometry_var = {list(odometry_var)}
+geometric_var = {list(geometric_var)}
 [sensor]
-half_angle_deg = 60.0
+half_angle_deg = {half_angle_deg}
 range = {sensing}
 [communication]
-mode = "range"
-range = 10.0
-[[robots]]
-id = "r1"
-start = [0.0, 0.0, 0.0]
-speed = {speed}
-turns = [[{steps}, 0.0]]
+{communication}
 """
+    for i, y in enumerate(robot_ys, start=1):
+        text += f'\n[[robots]]\nid = "r{i}"\nstart = [0.0, {y}, 0.0]\n'
+        text += f"speed = {speed}\nturns = [[{steps}, 0.0]]\n"
+    for i, (x, y, yaw, c) in enumerate(objects, start=1):
+        text += f"\n[[objects]]\nid = {i}\npose = [{x}, {y}, {yaw}]\nclass = {c}\n"
+    return text
 
 
 def tiny_scenario(
@@ -40,11 +64,14 @@ def tiny_scenario(
     noise_scale: float = 1.0,
 ) -> Scenario:
     """One robot driving along +x from the origin; ``objects`` are (x, y, yaw_deg, class 1..2)."""
-    odometry = [v * noise_scale for v in (0.003, 0.003, 0.001)]
-    geometric = [v * noise_scale for v in (0.1, 0.1, 0.01)]
-    text = _TEMPLATE.format(
-        steps=steps, speed=speed, sensing=sensing, odometry_var=odometry, geometric_var=geometric
+    text = fleet_text(
+        "tiny",
+        steps,
+        [0.0],
+        [(x, y, math.radians(yaw_deg), c) for x, y, yaw_deg, c in objects],
+        speed=speed,
+        sensing=sensing,
+        odometry_var=[v * noise_scale for v in (0.003, 0.003, 0.001)],
+        geometric_var=[v * noise_scale for v in (0.1, 0.1, 0.01)],
     )
-    for i, (x, y, yaw_deg, c) in enumerate(objects, start=1):
-        text += f"[[objects]]\nid = {i}\npose = [{x}, {y}, {math.radians(yaw_deg)}]\nclass = {c}\n"
     return parse_scenario(text, "tiny.toml")
