@@ -32,7 +32,7 @@ from deploy.fleet import link_model_for, make_nodes, run_fleet
 from deploy.launch import Launcher, LaunchOutcome, LaunchPlan, free_ports
 from deploy.study import belief_model, belief_rng
 from estimator.hybrid import BeliefConfig
-from protocol.codec import StackMessage, decode, encode
+from protocol.codec import StackMessage, encode
 from protocol.stack import Slot, Stack
 from sim.generate import dump_scenario, generate_scenario, line_world
 from sim.loader import load_scenario, parse_scenario
@@ -75,7 +75,10 @@ def _paper_stacks(count: int) -> tuple[list[bytes], RobotNode]:
     return blobs, receiver
 
 
-async def _latencies(blobs: list[bytes], receiver: RobotNode) -> tuple[list[float], list[float]]:
+async def _latencies(
+    blobs: list[bytes], receiver: RobotNode
+) -> tuple[list[float], list[float], list[float]]:
+    """Raw put → callback, and put → merged with the decode inside it timed on its own (ms)."""
     a_port, b_port = free_ports(2)
     a = ZenohTransport(settings_for(a_port, [], gossip=False))
     b = ZenohTransport(settings_for(b_port, [a_port], gossip=False))
@@ -89,41 +92,43 @@ async def _latencies(blobs: list[bytes], receiver: RobotNode) -> tuple[list[floa
         arrivals.append(time.perf_counter())
         loop.call_soon_threadsafe(got.set)
 
-    raw_ms, gossip_ms = [], []
+    raw_ms: list[float] = []
+    gossip_ms: list[float] = []
+    decode_ms: list[float] = []
     try:
         b.subscribe(keys.stack("r9"), inbox)
         await a.open()
         await b.open()
         b.subscribe_raw(keys.ctl("raw"), raw)
         await asyncio.sleep(1.0)  # let the declarations reach the publisher (pitfall 9)
-        for data in blobs:
-            # raw: put → the subscriber's callback on Zenoh's thread
+        # Two separate passes over the same payloads (interleaving them lets one message's
+        # transmission overlap the other's measurement); the first 10 of each are warm-up.
+        for data in blobs:  # raw: put → the subscriber's callback on Zenoh's thread
             got.clear()
             t0 = time.perf_counter()
             a.publish(keys.ctl("raw"), data)
             await asyncio.wait_for(got.wait(), 5)
             raw_ms.append(1e3 * (arrivals[-1] - t0))
-            # gossip: put → inbox on the loop → decode → merge
+        for data in blobs:  # gossip: put → inbox on the loop → decode → merge
             t0 = time.perf_counter()
             a.publish(keys.stack("r9"), data)
             message = await asyncio.wait_for(inbox.get(), 5)
+            t1 = time.perf_counter()
             decoded = receiver.decode_stack(message.payload)
+            decode_ms.append(1e3 * (time.perf_counter() - t1))
             assert decoded is not None and receiver.merge(decoded)
             gossip_ms.append(1e3 * (time.perf_counter() - t0))
     finally:
         await a.close()
         await b.close()
-    return raw_ms, gossip_ms
+    return raw_ms[10:], gossip_ms[10:], decode_ms[10:]
 
 
 def _gossip_rows() -> list[Result]:
     blobs, receiver = _paper_stacks(ROUNDS)
-    raw_ms, gossip_ms = asyncio.run(_latencies(blobs, receiver))
-    t = time.perf_counter()
-    for data in blobs[:50]:
-        decode(data)
-    decode_ms = 1e3 * (time.perf_counter() - t) / 50
+    raw_ms, gossip_ms, decode_times = asyncio.run(_latencies(blobs, receiver))
     raw, gossip = statistics.median(raw_ms), statistics.median(gossip_ms)
+    decode_ms = statistics.median(decode_times)  # the very decodes inside the gossip path
     target = 2 * raw + decode_ms
     met = "met" if gossip <= target else "NOT met"
     return [
@@ -133,8 +138,9 @@ def _gossip_rows() -> list[Result]:
             gossip,
             baseline_ms=raw,
             note=f"median; baseline = raw Zenoh put → callback, same {len(blobs[0]):,}-byte "
-            f"paper stack; decode {decode_ms:.3f} ms; p95 {np.percentile(gossip_ms, 95):.3f} ms vs "
-            f"raw {np.percentile(raw_ms, 95):.3f}; target ≤ 2×raw + decode = {target:.3f} ms {met}",
+            f"paper stack; decode (in the path) {decode_ms:.3f} ms; p95 "
+            f"{np.percentile(gossip_ms, 95):.3f} ms vs raw {np.percentile(raw_ms, 95):.3f}; "
+            f"target ≤ 2×raw + decode = {target:.3f} ms {met}",
         )
     ]
 

@@ -201,7 +201,8 @@ def _q(text: str) -> str:
 
 def line_world(n: int, steps: int, spacing: float = 8.0) -> str:
     """Scenario TOML: ``n`` robots ``spacing`` m apart on the x axis, driving slowly along +y, each
-    with two objects just ahead of it; range communication at 10 m, so with the default spacing
+    with two objects just ahead of it, facing it (the paper classifier's informative viewpoint,
+    ψ ≈ +90°, so classes converge); range communication at 10 m, so with the default spacing
     only neighbours hear each other."""
     lines = [
         "format = 1",
@@ -223,7 +224,7 @@ def line_world(n: int, steps: int, spacing: float = 8.0) -> str:
         x = spacing * i
         for j, (dx, dy) in enumerate(((-0.8, 2.5), (0.9, 3.5))):
             lines.append(
-                f"[[objects]]\nid = {2 * i + j + 1}\npose = [{x + dx}, {dy}, 0.0]\n"
+                f"[[objects]]\nid = {2 * i + j + 1}\npose = [{x + dx}, {dy}, {math.pi}]\n"
                 f"class = {1 + (i + j) % 2}"
             )
     return "\n\n".join(lines) + "\n"
