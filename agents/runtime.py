@@ -207,7 +207,7 @@ class Agent:
     # -- input -------------------------------------------------------------------------------
 
     def _on_control(self, m: Message) -> None:
-        if not m.key.startswith(self.keys.ctl("")) or m.key.startswith(self.keys.ctl("ack")):
+        if not m.key.startswith(self.keys.ctl("")):
             return
         try:
             order = decode_control(m.payload)

@@ -245,7 +245,9 @@ def _capacity_rows(tmp: Path) -> list[Result]:
                 f"realtime capacity: {n} agents, period {PERIOD_S:g} s",
                 n,
                 1e3 * wall,
-                note=f"{100 * kept:.0f} % of agents finished all {s.steps} steps in time; CPU per "
+                note=f"{100 * kept:.0f} % of agents finished all {s.steps} steps in time (mean "
+                f"last step {np.mean([c.last_step.get(r, 0) for r in s.robot_ids]):.1f}, 10 s "
+                f"after the last frame); CPU per "
                 f"agent {np.mean(cpu):.0f} % (max {np.max(cpu):.0f} %); peak RSS per agent "
                 f"{np.mean(rss):.0f} MB (max {np.max(rss):.0f} MB)",
             )
