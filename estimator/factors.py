@@ -75,8 +75,39 @@ def semantic_factor(
     z = np.asarray(z_sem, dtype=float).copy()
     noise = gtsam.noiseModel.Gaussian.Covariance(model.cov(c, psi0))
 
-    # The same maths as viewpoint_with_jacobians/semantic_error, inlined on plain floats: this runs
-    # inside iSAM2 once per relinearisation and dominates the cost of a belief step.
+    if isinstance(model, AliasedClassifier):
+        # h_c(ψ) = blur + s(ψ)·sharp, s = ½(1 + cos(ψ − b)): constants bound once per factor.
+        blur, sharp, best = model.components(c)
+        blur_minus_z = blur - z
+
+        def residual(psi: float) -> Array:
+            return blur_minus_z + (0.5 * (1.0 + math.cos(psi - best))) * sharp
+
+        def slope(psi: float) -> Array:
+            return (-0.5 * math.sin(psi - best)) * sharp
+
+    else:
+
+        def residual(psi: float) -> Array:
+            return np.asarray(model.mean(c, psi) - z)
+
+        def slope(psi: float) -> Array:
+            return model.mean_dpsi(c, psi)
+
+    callback = _semantic_callback(x_key, o_key, residual, slope)
+    return gtsam.CustomFactor(noise, gtsam.KeyVector([x_key, o_key]), callback)
+
+
+def _semantic_callback(
+    x_key: int,
+    o_key: int,
+    residual: Callable[[float], Array],
+    slope: Callable[[float], Array],
+) -> Callable[..., Array]:
+    """The GTSAM callback of a semantic factor: ``residual(ψ)`` = h_c(ψ) − z and its Jacobians
+    ``slope(ψ)`` = dh_c/dψ times dψ/dδx, dψ/dδo. The same maths as viewpoint_with_jacobians, inlined
+    on plain floats: this runs inside iSAM2 at every relinearisation and dominates a belief step."""
+
     def error(
         this: gtsam.CustomFactor, values: gtsam.Values, jacobians: list[Array] | None
     ) -> Array:
@@ -91,45 +122,10 @@ def semantic_factor(
             gx, gy = -py / r2, px / r2
             d = x.theta() - ot
             cd, sd = math.cos(d), math.sin(d)
-            dh = model.mean_dpsi(c, psi)
-            jacobians[0] = np.outer(dh, (gx * cd + gy * sd, -gx * sd + gy * cd, 0.0))
-            jacobians[1] = np.outer(dh, (-gx, -gy, gx * py - gy * px))
-        return np.asarray(model.mean(c, psi) - z)
-
-    callback: Callable[..., Array] = error
-    if isinstance(model, AliasedClassifier):
-        callback = _aliased_error(model, c, z, x_key, o_key)
-    return gtsam.CustomFactor(noise, gtsam.KeyVector([x_key, o_key]), callback)
-
-
-def _aliased_error(
-    model: AliasedClassifier, c: int, z: Array, x_key: int, o_key: int
-) -> Callable[..., Array]:
-    """The semantic error of :func:`semantic_factor` specialised to the aliased model (the paper's):
-    h_c(ψ) = blur + s(ψ)·sharp with s = ½(1 + cos(ψ − b)), so dh/dψ = −½ sin(ψ − b)·sharp. The
-    constants are bound once per factor; the callback then runs on plain floats."""
-    blur, sharp, best = model.components(c)
-    blur_minus_z = blur - z
-    sharp_col = sharp[:, None]
-
-    def error(
-        this: gtsam.CustomFactor, values: gtsam.Values, jacobians: list[Array] | None
-    ) -> Array:
-        x, o = values.atPose2(x_key), values.atPose2(o_key)
-        ot = o.theta()
-        co, so = math.cos(ot), math.sin(ot)
-        dx, dy = x.x() - o.x(), x.y() - o.y()
-        px, py = co * dx + so * dy, -so * dx + co * dy
-        psi = math.atan2(py, px)
-        if jacobians is not None:
-            r2 = px * px + py * py
-            ds = -0.5 * math.sin(psi - best)
-            gx, gy = ds * -py / r2, ds * px / r2
-            d = x.theta() - ot
-            cd, sd = math.cos(d), math.sin(d)
-            jacobians[0] = sharp_col * np.array((gx * cd + gy * sd, -gx * sd + gy * cd, 0.0))
-            jacobians[1] = sharp_col * np.array((-gx, -gy, gx * py - gy * px))
-        return blur_minus_z + (0.5 * (1.0 + math.cos(psi - best))) * sharp
+            dh = slope(psi)[:, None]
+            jacobians[0] = dh * np.array((gx * cd + gy * sd, -gx * sd + gy * cd, 0.0))
+            jacobians[1] = dh * np.array((-gx, -gy, gx * py - gy * px))
+        return residual(psi)
 
     return error
 
