@@ -35,37 +35,25 @@ from protocol.estimate import EstimateMessage, decode_estimate
 from protocol.frames import encode_frame
 from sim.loader import parse_scenario
 from sim.sensors import Simulator
+from tests.estimator.scenarios import fleet_text, objects_ahead
 from tests.tolerance import assert_close
 
 STEPS = 8
 SEED = 5
 ROBOTS = ("r1", "r2", "r3")
-_TEXT = f"""
-format = 1
-name = "chain3"
-description = "three robots 10 m apart, two objects each"
-steps = {STEPS}
-[classes]
-count = 2
-prior = [0.5, 0.5]
-[classifier]
-model = "paper"
-[noise]
-odometry_var = [0.003, 0.003, 0.001]
-geometric_var = [0.1, 0.1, 0.01]
-[sensor]
-half_angle_deg = 50.0
-range = 3.5
-[communication]
-mode = "schedule"
-schedule = [[1, {STEPS}, "r1", "r2"], [1, {STEPS}, "r2", "r3"]]
-"""
-for _i, _r in enumerate(ROBOTS):
-    _TEXT += f'\n[[robots]]\nid = "{_r}"\nstart = [0.0, {10.0 * _i}, 0.0]\n'
-    _TEXT += f"speed = 0.25\nturns = [[{STEPS}, 0.0]]\n"
-    for _j, (_x, _dy) in enumerate(((2.0, 0.3), (2.8, -0.6))):
-        _TEXT += f"\n[[objects]]\nid = {2 * _i + _j + 1}\npose = [{_x}, {10.0 * _i + _dy}, 0.4]\n"
-        _TEXT += f"class = {1 + (_i + _j) % 2}\n"
+_YS = [10.0 * i for i in range(len(ROBOTS))]
+_TEXT = fleet_text(
+    "chain3",
+    STEPS,
+    _YS,
+    objects_ahead(_YS),
+    description="three robots 10 m apart, two objects each",
+    half_angle_deg=50.0,
+    sensing=3.5,
+    communication=(
+        f'mode = "schedule"\nschedule = [[1, {STEPS}, "r1", "r2"], [1, {STEPS}, "r2", "r3"]]'
+    ),
+)
 SCENARIO = parse_scenario(_TEXT, "chain3.toml")
 CHAIN = Schedule(((1, STEPS, "r1", "r2"), (1, STEPS, "r2", "r3")))
 KEYS = Keys("rt")

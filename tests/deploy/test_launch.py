@@ -44,6 +44,7 @@ from estimator.metrics import METRICS, evaluate
 from sim.loader import load_scenario, parse_scenario
 from sim.scenario import Scenario
 from sim.sensors import Simulator
+from tests.estimator.scenarios import fleet_text, objects_ahead
 from tests.tolerance import assert_close
 
 SEMFLEET = Path(sys.executable).with_name("semfleet")
@@ -236,34 +237,17 @@ def test_launch_realtime_with_30_percent_loss_completes_close_to_lossless(
 def world_text(name: str, n: int, spacing: float, steps: int, speed: float) -> str:
     """``n`` robots ``spacing`` m apart along y, driving along +x at ``speed`` m per step, each
     with two objects just ahead (seen from k = 1, so each has a slot at once); range comms 10 m."""
-    text = f"""
-format = 1
-name = "{name}"
-description = "{n} robots {spacing} m apart"
-steps = {steps}
-[classes]
-count = 2
-prior = [0.5, 0.5]
-[classifier]
-model = "paper"
-[noise]
-odometry_var = [0.003, 0.003, 0.001]
-geometric_var = [0.1, 0.1, 0.01]
-[sensor]
-half_angle_deg = 50.0
-range = 3.5
-[communication]
-mode = "range"
-range = 10.0
-"""
-    for i in range(n):
-        y = spacing * i
-        text += f'\n[[robots]]\nid = "r{i + 1}"\nstart = [0.0, {y}, 0.0]\n'
-        text += f"speed = {speed}\nturns = [[{steps}, 0.0]]\n"
-        for j, (x, dy) in enumerate(((2.0, 0.3), (2.8, -0.6))):
-            text += f"\n[[objects]]\nid = {2 * i + j + 1}\npose = [{x}, {y + dy}, 0.4]\n"
-            text += f"class = {1 + (i + j) % 2}\n"
-    return text
+    ys = [spacing * i for i in range(n)]
+    return fleet_text(
+        name,
+        steps,
+        ys,
+        objects_ahead(ys),
+        description=f"{n} robots {spacing} m apart",
+        speed=speed,
+        half_angle_deg=50.0,
+        sensing=3.5,
+    )
 
 
 def _world(tmp_path: Path, text: str) -> tuple[Scenario, str]:

@@ -75,3 +75,13 @@ def tiny_scenario(
         geometric_var=[v * noise_scale for v in (0.1, 0.1, 0.01)],
     )
     return parse_scenario(text, "tiny.toml")
+
+
+def objects_ahead(robot_ys: Sequence[float]) -> list[tuple[float, float, float, int]]:
+    """Two objects just ahead of each robot starting at (0, y) (seen from k = 1 with a 3.5 m,
+    50° sensor), classes alternating: object ids 2i + 1, 2i + 2 belong to robot i."""
+    return [
+        (x, y + dy, 0.4, 1 + (i + j) % 2)
+        for i, y in enumerate(robot_ys)
+        for j, (x, dy) in enumerate(((2.0, 0.3), (2.8, -0.6)))
+    ]
