@@ -6,7 +6,7 @@ import argparse
 import contextlib
 import multiprocessing
 import os
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 from typing import Any
@@ -53,15 +53,28 @@ def run_study(
 ) -> list[RunResult]:
     """Run every seed in its own spawned process; results come back in seed order."""
     task = progress.add_task("runs", total=len(seeds)) if progress else None
-    done: dict[int, RunResult] = {}
+
+    def advance() -> None:
+        if progress is not None and task is not None:
+            progress.advance(task)
+
+    calls = {
+        seed: (run_single, scenario, methods, seed, config, snapshot_step if i == 0 else None, comm)
+        for i, seed in enumerate(seeds)
+    }
+    return run_seeded(calls, jobs, advance)
+
+
+def run_seeded(
+    calls: dict[int, tuple[Any, ...]], jobs: int, advance: Callable[[], None] = lambda: None
+) -> list[Any]:
+    """``calls[seed] = (function, *args)``, each in a spawned single-threaded process (at most
+    ``jobs`` at once); results in the order of ``calls``. The first failure cancels the rest and
+    raises a :class:`StudyError` naming its seed; ``advance()`` after every finished run."""
+    done: dict[int, Any] = {}
     ctx = multiprocessing.get_context("spawn")
     with single_threaded_children(), ProcessPoolExecutor(max_workers=jobs, mp_context=ctx) as pool:
-        futures = {
-            pool.submit(
-                run_single, scenario, methods, seed, config, snapshot_step if i == 0 else None, comm
-            ): seed
-            for i, seed in enumerate(seeds)
-        }
+        futures = {pool.submit(*call): seed for seed, call in calls.items()}
         for fut in as_completed(futures):
             seed = futures[fut]
             try:
@@ -72,9 +85,8 @@ def run_study(
                 raise StudyError(
                     f"run with seed {seed} failed: {type(exc).__name__}: {exc}"
                 ) from exc
-            if progress is not None and task is not None:
-                progress.advance(task)
-    return [done[s] for s in seeds]
+            advance()
+    return [done[s] for s in calls]
 
 
 @contextlib.contextmanager

@@ -7,10 +7,8 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import multiprocessing
 import time
 from collections.abc import Callable
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -22,7 +20,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from rich.table import Table
 
 from deploy.args import MAX_SEED, positive_int, seed
-from deploy.study_cmd import StudyError, single_threaded_children
+from deploy.study_cmd import run_seeded
 from estimator.ufastslam import (
     AcceptedRelation,
     Observation,
@@ -217,20 +215,7 @@ def run_all(
             out.append(run_seed(world, s, particles))
             advance()
         return out
-    done: dict[int, SeedRun] = {}
-    ctx = multiprocessing.get_context("spawn")
-    with single_threaded_children(), ProcessPoolExecutor(max_workers=jobs, mp_context=ctx) as pool:
-        futures = {pool.submit(run_seed, world, s, particles): s for s in seeds}
-        for fut in as_completed(futures):
-            s = futures[fut]
-            try:
-                done[s] = fut.result()
-            except Exception as exc:
-                for other in futures:
-                    other.cancel()
-                raise StudyError(f"run with seed {s} failed: {type(exc).__name__}: {exc}") from exc
-            advance()
-    return [done[s] for s in seeds]
+    return run_seeded({s: (run_seed, world, s, particles) for s in seeds}, jobs, advance)
 
 
 def _stats(runs: list[SeedRun], method: str) -> dict[str, float]:
