@@ -48,12 +48,17 @@ class IncomingSlot:
 
 @dataclass(frozen=True, slots=True)
 class FusionStats:
-    """What one integration did: slots integrated, slots skipped (empty join), hypotheses."""
+    """What one integration did: slots integrated, slots skipped (empty join), hypotheses.
+
+    ``empty_joins`` counts slots whose join with D's hypotheses was empty and ``rebuilds`` the
+    times D was rebuilt from its local data and every held slot because of one."""
 
     integrated: tuple[str, ...]
     skipped: tuple[str, ...]
     candidates: int
     kept: int
+    empty_joins: int = 0
+    rebuilds: int = 0
 
 
 @dataclass(frozen=True, slots=True)
