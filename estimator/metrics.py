@@ -24,8 +24,12 @@ METRICS = (
     "robot_nees_mixture",
     "object_nees_mixture",
     "class_log_loss",
+    "class_ece",
     "hypotheses",
 )
+
+# Equal-width bins on [0, 1] of the class expected calibration error.
+ECE_BINS = 10
 
 # A probability below this is clipped before the log-loss, so a pruned true class costs a large
 # but finite amount.
@@ -53,6 +57,40 @@ def class_log_loss(prob: Array, true_classes: NDArray[np.int64]) -> float:
         return float("nan")
     p = prob[np.arange(len(true_classes)), true_classes]
     return float(np.mean(-np.log(np.maximum(p, _MIN_PROBABILITY))))
+
+
+def calibration_stats(prob: Array, true_classes: NDArray[np.int64], bins: int = ECE_BINS) -> Array:
+    """Per-bin sufficient statistics (3, bins) of every class marginal P(c_j = i), prob (n, M),
+    against the true classes (n,): row 0 counts the marginals in the bin, row 1 sums them, row 2
+    counts those whose class is the true one. Bin b holds b/bins ≤ p < (b+1)/bins, the last one
+    also p = 1. Additive over objects, robots and runs: sum first, then :func:`ece_from_stats`."""
+    m = prob.shape[1]
+    p = prob.ravel()
+    outcome = (true_classes[:, None] == np.arange(m)[None, :]).ravel().astype(float)
+    # b/bins is correctly rounded, so p = 0.1 (the same float as 1/10) opens bin 1.
+    edges = np.arange(bins + 1) / bins
+    b = np.clip(np.searchsorted(edges, p, side="right") - 1, 0, bins - 1)
+    return np.stack(
+        [
+            np.bincount(b, minlength=bins).astype(float),
+            np.bincount(b, weights=p, minlength=bins),
+            np.bincount(b, weights=outcome, minlength=bins),
+        ]
+    )
+
+
+def ece_from_stats(stats: Array) -> Array:
+    """ECE = Σ_b (n_b/N) |mean p_b − mean 1[c = i]_b| = Σ_b |Σp_b − Σ1_b| / N from (pooled)
+    statistics (..., 3, bins) → (...); NaN where N = 0."""
+    n = stats[..., 0, :].sum(axis=-1)
+    gap = np.abs(stats[..., 1, :] - stats[..., 2, :]).sum(axis=-1)
+    return np.asarray(np.where(n > 0, gap / np.maximum(n, 1.0), np.nan))
+
+
+def class_ece(prob: Array, true_classes: NDArray[np.int64]) -> float:
+    """Expected calibration error of the class marginals prob (n, M) over every object and class
+    (:data:`ECE_BINS` bins); NaN when no object is known."""
+    return float(ece_from_stats(calibration_stats(prob, true_classes)))
 
 
 def world_position_cov(pose: Array, cov: Array) -> Array:
@@ -108,7 +146,7 @@ def evaluate(
     )
     n = len(snap.object_ids)
     if n == 0:
-        for key in ("msde", "class_log_loss", "object_error", "object_sqrt_det"):
+        for key in ("msde", "class_log_loss", "class_ece", "object_error", "object_sqrt_det"):
             out[key] = float("nan")
         out["object_nees"] = out["object_nees_mixture"] = float("nan")
         return out
@@ -117,6 +155,7 @@ def evaluate(
     prob = class_marginals(w, snap.classes, num_classes)
     out["msde"] = msde(prob, true_classes)
     out["class_log_loss"] = class_log_loss(prob, true_classes)
+    out["class_ece"] = class_ece(prob, true_classes)
     err = np.hypot(*(snap.object_pose[..., :2] - truth[None, :, :2]).transpose(2, 0, 1))  # (H, n)
     out["object_error"] = float(np.mean(w @ err))
     obj_pos_cov = world_position_cov(snap.object_pose, snap.object_cov)
@@ -129,6 +168,16 @@ def evaluate(
         np.mean(mixture_position_nees(w, snap.object_pose, snap.object_cov, truth[:, :2]))
     )
     return out
+
+
+def evaluate_calibration(
+    snap: BeliefSnapshot, num_classes: int, true_objects: Mapping[int, tuple[Array, int]]
+) -> Array:
+    """:func:`calibration_stats` (3, :data:`ECE_BINS`) of one robot's belief at one step, the
+    poolable counterpart of ``evaluate(...)["class_ece"]``; zeros while no object is known."""
+    true_classes = np.array([true_objects[j][1] for j in snap.object_ids], dtype=np.int64)
+    prob = class_marginals(snap.weights, snap.classes, num_classes)
+    return calibration_stats(prob, true_classes)
 
 
 def chi2_bounds(dof: int, runs: int, probability: float = 0.95) -> tuple[float, float]:

@@ -10,11 +10,16 @@ import pytest
 
 from estimator.hybrid import BeliefSnapshot
 from estimator.metrics import (
+    ECE_BINS,
     METRICS,
+    calibration_stats,
     chi2_bounds,
+    class_ece,
     class_log_loss,
     class_marginals,
+    ece_from_stats,
     evaluate,
+    evaluate_calibration,
     mixture_position_nees,
     msde,
     pose_nees,
@@ -61,6 +66,68 @@ def test_class_log_loss_clips_pruned_true_class() -> None:
 
 def test_class_log_loss_no_objects_is_nan() -> None:
     assert math.isnan(class_log_loss(np.zeros((0, 2)), NO_CLASSES))
+
+
+def test_class_ece_calibrated_marginals_give_zero() -> None:
+    # P(c = 1) = 0.7 for ten objects of which seven are class 1: bin 7 holds ten 0.7s with seven
+    # hits, bin 3 ten 0.3s with three.
+    prob = np.tile([0.7, 0.3], (10, 1))
+    assert_close(class_ece(prob, np.array([0] * 7 + [1] * 3)), 0.0)
+    assert class_ece(np.array([[0.0, 1.0], [1.0, 0.0]]), np.array([1, 0])) == 0.0
+
+
+def test_class_ece_overconfident_weights_bins_by_count() -> None:
+    # Four objects at P(c = 1) = 0.9, two of them class 1, and one certain and right. Bin 9 holds
+    # 0.9 × 4 and 1.0 (Σp = 4.6, 3 hits), bin 1 the four 0.1s (Σp = 0.4, 2 hits), bin 0 the 0.0
+    # (no hit): ECE = (5/10)|0.92 − 0.6| + (4/10)|0.1 − 0.5| + (1/10)·0 = 0.32. Unweighted bins
+    # would give 0.24, one bin of everything 0.
+    prob = np.array([[0.9, 0.1]] * 4 + [[1.0, 0.0]])
+    assert_close(class_ece(prob, np.array([0, 0, 1, 1, 0])), 0.32)
+
+
+def test_class_ece_every_class_counts() -> None:
+    # Three classes: 0.6 (hit), 0.3 and 0.1 (misses) → (|0.6 − 1| + 0.3 + 0.1) / 3.
+    assert_close(class_ece(np.array([[0.6, 0.3, 0.1]]), np.array([0])), 0.8 / 3)
+
+
+def test_class_ece_no_objects_is_nan() -> None:
+    assert math.isnan(class_ece(np.zeros((0, 2)), NO_CLASSES))
+
+
+def test_calibration_stats_bin_edges() -> None:
+    # A bin is closed below and open above, the last one also holds 1.0.
+    prob = np.array([[0.0, 0.1, 0.9], [1.0, 0.0999, 0.3], [0.7, 0.2, 0.19999]])
+    stats = calibration_stats(prob, np.array([2, 0, 0]))
+    assert stats.shape == (3, ECE_BINS)
+    # bins of 0.0 0.1 0.9 / 1.0 0.0999 0.3 / 0.7 0.2 0.19999
+    expected = np.zeros((3, ECE_BINS))
+    expected[0, [0, 1, 2, 3, 7, 9]] = (2, 2, 1, 1, 1, 2)
+    expected[1, [0, 1, 2, 3, 7, 9]] = (0.0999, 0.29999, 0.2, 0.3, 0.7, 1.9)
+    # the true classes' marginals: 0.9 (object 0, class 3), 1.0 and 0.7 (objects 1, 2, class 1)
+    expected[2, [7, 9]] = (1, 2)
+    assert_close(stats, expected)
+
+
+def test_calibration_stats_pool_by_summing() -> None:
+    # Pooled statistics are those of all objects together; the pooled ECE is not the mean of
+    # the parts' ECEs (the parts hold different numbers of marginals).
+    a_prob, a_true = np.array([[0.9, 0.1]]), np.array([0])
+    b_prob, b_true = np.array([[0.9, 0.1]] * 3), np.array([1, 1, 1])
+    a, b = calibration_stats(a_prob, a_true), calibration_stats(b_prob, b_true)
+    both = calibration_stats(np.vstack([a_prob, b_prob]), np.concatenate([a_true, b_true]))
+    assert_close(a + b, both)
+    # bins 9 and 1 each hold four marginals with one and three hits: (|3.6 − 1| + |0.4 − 3|)/8
+    assert_close(ece_from_stats(a + b), 5.2 / 8)
+    assert_close(class_ece(a_prob, a_true), 0.1)
+    assert_close(class_ece(b_prob, b_true), 0.9)
+
+
+def test_ece_from_stats_vectorises_and_empty_is_nan() -> None:
+    stats = np.stack([calibration_stats(np.array([[0.9, 0.1]]), np.array([1])), np.zeros((3, 10))])
+    got = ece_from_stats(stats)
+    assert got.shape == (2,)
+    assert_close(got[0], 0.9)
+    assert math.isnan(got[1])
 
 
 def test_class_marginals_sum_weights_per_class() -> None:
@@ -242,6 +309,8 @@ def _expected_metrics(snap: BeliefSnapshot) -> dict[str, float]:
         "hypotheses": 2.0,
         "msde": sum(sq) / 2,
         "class_log_loss": -(math.log(0.75) + math.log(1.0)) / 2,
+        # marginals 0.75 (hit), 0.25, 0.0 (misses), 1.0 (hit) in bins 7, 2, 0, 9
+        "class_ece": (0.25 + 0.25 + 0.0 + 0.0) / 4,
         "robot_error": sum(
             w[h] * math.dist(snap.robot_pose[h, :2], TRUE_POSE[:2]) for h in range(2)
         ),
@@ -308,6 +377,7 @@ def test_evaluate_no_objects_gives_nan_object_metrics() -> None:
     object_keys = {
         "msde",
         "class_log_loss",
+        "class_ece",
         "object_error",
         "object_sqrt_det",
         "object_nees",
@@ -318,3 +388,29 @@ def test_evaluate_no_objects_gives_nan_object_metrics() -> None:
             assert math.isnan(got[key]), key
         else:
             assert_close(got[key], expected[key], what=key)
+
+
+def test_evaluate_calibration_is_the_poolable_class_ece() -> None:
+    snap = _snapshot()
+    stats = evaluate_calibration(snap, 2, TRUE_OBJECTS)
+    expected = np.zeros((3, ECE_BINS))
+    expected[:, 7] = (1, 0.75, 1)
+    expected[:, 2] = (1, 0.25, 0)
+    expected[:, 0] = (1, 0.0, 0)
+    expected[:, 9] = (1, 1.0, 1)
+    assert_close(stats, expected)
+    assert_close(ece_from_stats(stats), evaluate(snap, 2, TRUE_POSE, TRUE_OBJECTS)["class_ece"])
+
+
+def test_evaluate_calibration_no_objects_is_zero() -> None:
+    snap = _snapshot()
+    empty = BeliefSnapshot(
+        (),
+        snap.weights,
+        np.zeros((2, 0), dtype=np.int64),
+        snap.robot_pose,
+        snap.robot_cov,
+        np.zeros((2, 0, 3)),
+        np.zeros((2, 0, 3, 3)),
+    )
+    assert_close(evaluate_calibration(empty, 2, TRUE_OBJECTS), np.zeros((3, ECE_BINS)))
