@@ -167,12 +167,19 @@ def save_ground_truth_plot(scenario: Scenario, out: Path, cone_steps: list[int])
     return out
 
 
+def default_cone_steps(steps: int, count: int = 3) -> list[int]:
+    """``count`` evenly spaced steps ending at the last one (20 40 60 for 60 steps, as in the
+    paper's Fig. 2a), without repeats when the world has fewer steps than that."""
+    return sorted({max(1, round(steps * i / count)) for i in range(1, count + 1)})
+
+
 def run_plot(args: argparse.Namespace, console: Console) -> int:
     scenario = scenario_from_args(args)
-    bad = [k for k in args.cones if not 0 <= k <= scenario.steps]
+    cones = default_cone_steps(scenario.steps) if args.cones is None else args.cones
+    bad = [k for k in cones if not 0 <= k <= scenario.steps]
     if bad:
         raise ScenarioError(f"--cones: steps {bad} are outside 0..{scenario.steps}")
-    path = save_ground_truth_plot(scenario, Path(args.output), args.cones)
+    path = save_ground_truth_plot(scenario, Path(args.output), cones)
     console.print(f"wrote {path}")
     return 0
 
@@ -207,9 +214,10 @@ def add_parser(sub: Any) -> None:
         "--cones",
         type=int,
         nargs="*",
-        default=[20, 40, 60],
+        default=None,
         metavar="K",
-        help="steps at which to draw the sensing cones (default: 20 40 60)",
+        help="steps at which to draw the sensing cones (default: 3 evenly spaced steps ending at "
+        "the last one, 20 40 60 for 60 steps)",
     )
     plot.set_defaults(run=run_plot)
     gen = ssub.add_parser("generate", help="write a random world as a scenario file")
