@@ -87,6 +87,13 @@ def test_scenario_plot_writes_png(tmp_path: Path) -> None:
     assert out.stat().st_size > 20_000
 
 
+def test_scenario_plot_default_cones_fit_a_world_shorter_than_60_steps(tmp_path: Path) -> None:
+    out = tmp_path / "short.png"
+    r = semfleet("scenario", "plot", "lanes:short", "-o", str(out))
+    assert r.returncode == 0, r.stderr
+    assert out.read_bytes()[:8] == PNG_MAGIC
+
+
 def test_scenario_generate_then_show(tmp_path: Path) -> None:
     out = tmp_path / "world.toml"
     r = semfleet(

@@ -664,7 +664,9 @@ def test_load_scenario_missing_file(tmp_path: Path) -> None:
 def test_load_scenario_unknown_bundled_name() -> None:
     with pytest.raises(ScenarioError) as info:
         load_scenario("papper")
-    assert str(info.value) == "papper: not a file and not a bundled scenario (bundled: paper)"
+    assert str(info.value) == (
+        "papper: not a file and not a bundled scenario (bundled: lanes, paper, rendezvous)"
+    )
 
 
 def test_load_scenario_invalid_utf8(tmp_path: Path) -> None:
