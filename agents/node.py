@@ -8,7 +8,8 @@ touches a socket, a clock or a thread; the shells (in-process runner, asyncio ag
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
+from collections.abc import Iterable
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -28,13 +29,17 @@ log = logging.getLogger(__name__)
 @dataclass(slots=True)
 class NodeCounters:
     """What a node has seen. ``invalid`` counts messages rejected by the protocol layer,
-    ``rejected_slots`` slots that decoded but contradict the belief's model."""
+    ``rejected_slots`` slots that decoded but contradict the belief's model, ``empty_joins`` slots
+    whose join with D was empty and ``rebuilds`` the times D was rebuilt from L and the held slots
+    because of one."""
 
     stacks_received: int = 0
     stacks_merged: int = 0
     stacks_unchanged: int = 0
     invalid: int = 0
     rejected_slots: int = 0
+    empty_joins: int = 0
+    rebuilds: int = 0
     bytes_received: int = 0
     stacks_sent: int = 0
     bytes_sent: int = 0
@@ -168,9 +173,32 @@ class RobotNode:
 
     def integrate_pending(self) -> FusionStats:
         """Integrate into D every slot of the stack newer than the version D used (also done by
-        ``on_frame``; shells call it first to time the fusion on its own)."""
-        incoming = []
-        for s in self.stack.newer_than(self.distributed.stamps, own=self.robot):
+        ``on_frame``; shells call it first to time the fusion on its own).
+
+        If a slot's join with D is empty (D pruned a class combination the slot needs), D is
+        rebuilt from L and every held slot, so no peer's information is lost; both are counted.
+        """
+        incoming = self._checked(self.stack.newer_than(self.distributed.stamps, own=self.robot))
+        # D is stepped right after (on_frame), which updates iSAM2 again: no settling here.
+        stats = self.distributed.integrate(incoming, settle=False)
+        if stats.empty_joins and self.distributed.fusion == "consistent":
+            held = self._checked(self.stack.newer_than({}, own=self.robot))
+            rebuilt = self.distributed.rebuild(self.local, held, settle=False)
+            stats = replace(rebuilt, empty_joins=stats.empty_joins + rebuilt.empty_joins)
+        self.counters.empty_joins += stats.empty_joins
+        self.counters.rebuilds += stats.rebuilds
+        if stats.skipped:
+            log.warning(
+                "%s: slots of %s join with no hypothesis of D even after a rebuild",
+                self.robot,
+                ", ".join(stats.skipped),
+            )
+        return stats
+
+    def _checked(self, slots: Iterable[Slot]) -> list[IncomingSlot]:
+        """The slots that fit D's model; the others are counted and logged."""
+        out = []
+        for s in slots:
             slot = IncomingSlot(s.owner, s.stamp, s.summary)
             try:
                 self.distributed.check(slot)
@@ -179,9 +207,8 @@ class RobotNode:
                 self.counters.last_error = str(exc)
                 log.warning("%s: rejected slot: %s", self.robot, exc)
                 continue
-            incoming.append(slot)
-        # D is stepped right after (on_frame), which updates iSAM2 again: no settling here.
-        return self.distributed.integrate(incoming, settle=False)
+            out.append(slot)
+        return out
 
     def _count_error(self, exc: RemoteProtocolError) -> None:
         name = type(exc).__name__

@@ -22,6 +22,7 @@ from estimator.hybrid import BeliefConfig, BeliefModel, HybridBelief, Hypothesis
 from estimator.summary import LocalSummary, Realisation
 
 Array = NDArray[np.float64]
+IntArray = NDArray[np.int64]
 
 log = logging.getLogger(__name__)
 
@@ -63,10 +64,24 @@ class FusionStats:
 
 @dataclass(frozen=True, slots=True)
 class _Join:
-    parent: int
-    picks: tuple[tuple[int, int], ...]  # (slot index in the batch, realisation index)
-    classes: tuple[int, ...]
-    log_weight: float
+    """Candidate children of a fusion: parent index (J,), classes of D's objects followed by the
+    objects new to D (J, n'), the realisation picked from every slot of the batch (J, B; −1 for
+    none), log-weights (J,), and the ids of the objects new to D in column order."""
+
+    parent: IntArray
+    classes: IntArray
+    picks: IntArray
+    log_weight: Array
+    order: list[int]
+
+    def keep(self, kept: IntArray) -> _Join:
+        return _Join(
+            self.parent[kept],
+            self.classes[kept],
+            self.picks[kept],
+            self.log_weight[kept],
+            self.order,
+        )
 
 
 def xi_factor(
@@ -125,7 +140,9 @@ class DistributedBelief(HybridBelief):
         """Integrate every slot that is newer than the version used before (Eq. 12, 17).
 
         ``settle`` runs the configured extra iSAM2 updates after the fusion; a caller that steps
-        D right away (the RobotNode) passes False, since that step updates iSAM2 again.
+        D right away (the RobotNode) passes False, since that step updates iSAM2 again. A slot
+        whose join with D's hypotheses is empty is left out and counted in ``empty_joins``: the
+        caller decides whether to :meth:`rebuild` (the RobotNode does).
         """
         batch = [s for s in slots if self.wants(s.owner, s.stamp)]
         owners = [s.owner for s in batch]
@@ -135,32 +152,61 @@ class DistributedBelief(HybridBelief):
             self.check(s)
         if not batch:
             return FusionStats((), (), 0, len(self.hypotheses))
-        joins, order, skipped = self._join(batch)
-        if not joins:
-            return FusionStats((), tuple(owners), 0, len(self.hypotheses))
-        kept = self._select([(j.parent, i, j.log_weight) for i, j in enumerate(joins)])
-        used_batch = [s for i, s in enumerate(batch) if s.owner not in skipped]
+        join, skipped = self._join(batch)
+        used = tuple(s.owner for s in batch if s.owner not in skipped)
+        if not used:
+            return FusionStats((), tuple(sorted(skipped)), 0, len(self.hypotheses), len(skipped))
+        candidates = len(join.parent)
+        join = join.keep(self._select(join.log_weight, join.classes))
         parents = self.hypotheses
-        for j in order:
+        for j in join.order:
             self._object_index[j] = len(self.object_ids)
             self.object_ids.append(j)
-        survivors = [joins[i] for _, i, _ in kept]
-        last_child = {}
-        for n, join in enumerate(survivors):
-            last_child[join.parent] = n
+        last_child = {int(p): n for n, p in enumerate(join.parent)}
         children = []
-        for n, join in enumerate(survivors):
-            child = parents[join.parent].branch(
-                join.classes, join.log_weight, copy_isam=last_child[join.parent] != n
+        for n, p in enumerate(join.parent):
+            classes = tuple(int(c) for c in join.classes[n])
+            child = parents[p].branch(
+                classes, float(join.log_weight[n]), copy_isam=last_child[int(p)] != n
             )
-            self._fuse(child, join, batch, order, settle)
+            picks = [(b, int(r)) for b, r in enumerate(join.picks[n]) if r >= 0]
+            self._fuse(child, picks, batch, join.order, settle)
             children.append(child)
         self.hypotheses = children
         self._normalise()
-        for s in used_batch:
-            self.stamps[s.owner] = s.stamp
+        for s in batch:
+            if s.owner not in skipped:
+                self.stamps[s.owner] = s.stamp
+        return FusionStats(used, tuple(sorted(skipped)), candidates, len(children), len(skipped))
+
+    def rebuild(
+        self, local: HybridBelief, held: Sequence[IncomingSlot], settle: bool = True
+    ) -> FusionStats:
+        """Make D anew from the owner's local belief ``local`` and every ``held`` slot (the newest
+        version of every other robot's slot).
+
+        D is a derived belief: its hypotheses pruned a class combination that a newer slot needs
+        (an empty join) can only come back from the undivided pieces, L and the slots. The
+        integration that follows is the one of a D that received all held slots at once.
+        """
+        if local.robots != [self.owner]:
+            raise ValueError(f"D of {self.owner} cannot be rebuilt from the belief of {local.robots}")
+        self.step_of = dict(local.step_of)
+        self.object_ids = list(local.object_ids)
+        self._object_index = {j: i for i, j in enumerate(self.object_ids)}
+        self.hypotheses = [
+            Hypothesis(h.classes, gtsam.ISAM2(h.isam), h.log_weight, h.estimate, dict(h.object_priors))
+            for h in local.hypotheses
+        ]
+        self.stamps = {}
+        stats = self.integrate([s for s in held if s.owner != self.owner], settle)
         return FusionStats(
-            tuple(s.owner for s in used_batch), tuple(sorted(skipped)), len(joins), len(children)
+            stats.integrated,
+            stats.skipped,
+            stats.candidates,
+            stats.kept,
+            stats.empty_joins,
+            stats.rebuilds + 1,
         )
 
     def check(self, s: IncomingSlot) -> None:
@@ -177,58 +223,71 @@ class DistributedBelief(HybridBelief):
             if r.lin.shape != (n, 3) or r.info.shape != (3 * n, 3 * n) or r.eta.shape != (3 * n,):
                 raise SlotError(f"slot of {s.owner}: ξ shapes do not fit {n} objects")
 
-    def _join(self, batch: Sequence[IncomingSlot]) -> tuple[list[_Join], list[int], set[str]]:
+    def _join(self, batch: Sequence[IncomingSlot]) -> tuple[_Join, set[str]]:
         """Join D's hypotheses with every slot's realisations on shared objects (bookkeeping only:
-        no iSAM2 is touched). Returns the joins, the ids of objects new to D in order, and the
-        owners whose slot joined with nothing (skipped)."""
+        no iSAM2 is touched). Returns the joins and the owners whose slot joined with nothing."""
         known = dict(self._object_index)
-        order: list[int] = []
-        joins = [_Join(p, (), h.classes, h.log_weight) for p, h in enumerate(self.hypotheses)]
+        parent_cls = np.array([h.classes for h in self.hypotheses], dtype=np.int64)
+        join = _Join(
+            np.arange(len(self.hypotheses)),
+            parent_cls.reshape(len(self.hypotheses), len(known)),
+            np.full((len(self.hypotheses), len(batch)), -1, dtype=np.int64),
+            np.array([h.log_weight for h in self.hypotheses]),
+            [],
+        )
         skipped: set[str] = set()
         for b, s in enumerate(batch):
             ids = s.summary.object_ids
             shared = [(known[j], i) for i, j in enumerate(ids) if j in known]
             fresh = [i for i, j in enumerate(ids) if j not in known]
-            extended = []
-            for join in joins:
-                old = self.hypotheses[join.parent].used.get(s.owner)
-                divide = old is not None and self.fusion == "consistent"
-                minus = old.realisation.log_phi if old is not None and divide else 0.0
-                for r, real in enumerate(s.summary.realisations):
-                    if any(join.classes[a] != real.classes[i] for a, i in shared):
-                        continue
-                    new_classes = tuple(real.classes[i] for i in fresh)
-                    lw = join.log_weight + real.log_phi - minus
-                    lw += float(sum(self._log_prior[c] for c in new_classes))
-                    extended.append(
-                        _Join(join.parent, (*join.picks, (b, r)), join.classes + new_classes, lw)
-                    )
-            if not extended:
+            real_cls = np.array([r.classes for r in s.summary.realisations], dtype=np.int64)
+            real_cls = real_cls.reshape(len(s.summary.realisations), len(ids))
+            d_cols = np.array([a for a, _ in shared], dtype=np.int64)
+            s_cols = np.array([i for _, i in shared], dtype=np.int64)
+            fits = np.all(
+                join.classes[:, None, d_cols] == real_cls[None, :, s_cols], axis=2
+            )  # (J, R)
+            rows, cols = np.nonzero(fits)
+            if len(rows) == 0:
                 # Expected under double counting (D becomes overconfident and prunes what the
-                # owner keeps); a sign of trouble under consistent fusion.
-                level = logging.WARNING if self.fusion == "consistent" else logging.DEBUG
-                log.log(
-                    level,
-                    "slot of %s (stamp %d) joins with no hypothesis: skipped",
-                    s.owner,
-                    s.stamp,
-                )
+                # owner keeps); under consistent fusion the RobotNode rebuilds D.
+                level = logging.INFO if self.fusion == "consistent" else logging.DEBUG
+                log.log(level, "slot of %s (stamp %d) joins with no hypothesis", s.owner, s.stamp)
                 skipped.add(s.owner)
                 continue
-            guard = _JOIN_GUARD * self.config.max_hypotheses
-            if len(extended) > guard:
-                extended.sort(key=lambda j: -j.log_weight)
-                extended = extended[:guard]
-            joins = extended
+            log_phi = np.array([r.log_phi for r in s.summary.realisations])
+            new_cls = real_cls[:, fresh]
+            lw = join.log_weight[rows] + log_phi[cols] + self._log_prior[new_cls[cols]].sum(axis=1)
+            if self.fusion == "consistent":
+                lw -= self._old_log_phi(s.owner)[join.parent[rows]]
+            picks = join.picks[rows].copy()
+            picks[:, b] = cols
+            join = _Join(
+                join.parent[rows],
+                np.concatenate([join.classes[rows], new_cls[cols]], axis=1),
+                picks,
+                lw,
+                join.order + [ids[i] for i in fresh],
+            )
+            if len(rows) > _JOIN_GUARD * self.config.max_hypotheses:
+                join = join.keep(self._select(join.log_weight, join.classes))
             for i in fresh:
                 known[ids[i]] = len(known)
-                order.append(ids[i])
-        return joins, order, skipped
+        return join, skipped
+
+    def _old_log_phi(self, owner: str) -> Array:
+        """log φ of the version of ``owner``'s slot each hypothesis used before (0 if none)."""
+        return np.array(
+            [
+                h.used[owner].realisation.log_phi if owner in h.used else 0.0
+                for h in self.hypotheses
+            ]
+        )
 
     def _fuse(
         self,
         h: Hypothesis,
-        join: _Join,
+        picks: Sequence[tuple[int, int]],
         batch: Sequence[IncomingSlot],
         order: Sequence[int],
         settle: bool,
@@ -240,7 +299,7 @@ class DistributedBelief(HybridBelief):
         remove: list[int] = []
         new_objects = set(order)
         positions = []  # (slot, realisation, first and last graph position of its factors)
-        for b, r in join.picks:
+        for b, r in picks:
             s = batch[b]
             real = s.summary.realisations[r]
             ids = s.summary.object_ids

@@ -9,7 +9,6 @@ surviving children by copying iSAM2 and adding the geometric and semantic factor
 
 from __future__ import annotations
 
-import itertools
 import logging
 import math
 from collections.abc import Mapping, Sequence
@@ -18,6 +17,7 @@ from dataclasses import dataclass, field
 import gtsam
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy.special import logsumexp
 
 from estimator.factors import (
     diagonal_noise,
@@ -26,13 +26,15 @@ from estimator.factors import (
     semantic_factor,
 )
 from estimator.models import ClassifierModel, Detection, GaussianNoise, SensorFrame, viewpoint
+from estimator.pruning import PRUNINGS, PruningRule, select
 from estimator.summary import Realisation
 from estimator.weights import (
     WEIGHT_ESTIMATORS,
     InvolvedGaussian,
+    SampledEvidence,
     SemanticTerms,
-    geo_conditioned,
-    paper_mc,
+    geo_conditioned_samples,
+    paper_mc_samples,
 )
 
 Array = NDArray[np.float64]
@@ -43,10 +45,14 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True, slots=True)
 class BeliefConfig:
-    """How a hybrid belief computes and prunes (design doc §2–3).
+    """How a hybrid belief computes and prunes (design doc §2–3, docs/estimator.md).
 
-    ``prune_ratio``: drop hypotheses whose weight is below ``w_max / prune_ratio``;
-    ``max_hypotheses``: hard cap, keeping the heaviest; ``weight_estimator``:
+    ``pruning``: ``"marginal"`` (default) or the paper's ``"ratio"`` (see ``estimator.pruning``);
+    ``prune_ratio``: keep hypotheses whose weight is within this ratio of the heaviest;
+    ``marginal_ratio``: (``"marginal"`` only) also keep a hypothesis that carries at least
+    1/``marginal_ratio`` of the marginal probability of one of its own object classes;
+    ``class_floor``: (``"marginal"`` only) a class of an object with at least this marginal
+    probability keeps its heaviest hypothesis; ``max_hypotheses``: hard cap; ``weight_estimator``:
     ``geo_conditioned`` (default) or ``paper_mc``; ``num_samples`` for the Monte Carlo part;
     ``object_prior_sigmas``: the weak prior on a newly seen object, centred on its first
     measurement; ``start_prior_sigmas``: the prior on a robot's known start; iSAM2's
@@ -55,7 +61,10 @@ class BeliefConfig:
 
     weight_estimator: str = "geo_conditioned"
     num_samples: int = 500
+    pruning: str = "marginal"
     prune_ratio: float = 150.0
+    marginal_ratio: float = 150.0
+    class_floor: float = 1e-4
     max_hypotheses: int = 300
     object_prior_sigmas: tuple[float, float, float] = (100.0, 100.0, math.pi)
     start_prior_sigmas: tuple[float, float, float] = (1e-3, 1e-3, 1e-3)
@@ -67,13 +76,33 @@ class BeliefConfig:
         if self.weight_estimator not in WEIGHT_ESTIMATORS:
             known = ", ".join(WEIGHT_ESTIMATORS)
             raise ValueError(f"weight_estimator {self.weight_estimator!r} (known: {known})")
+        if self.pruning not in PRUNINGS:
+            raise ValueError(f"pruning {self.pruning!r} (known: {', '.join(PRUNINGS)})")
         if self.num_samples < 1 or self.max_hypotheses < 1 or self.extra_updates < 0:
             raise ValueError("num_samples and max_hypotheses must be ≥ 1, extra_updates ≥ 0")
-        if not self.prune_ratio > 1.0:
-            raise ValueError(f"prune_ratio must be > 1, got {self.prune_ratio}")
+        if not (self.prune_ratio > 1.0 and self.marginal_ratio > 1.0):
+            raise ValueError("prune_ratio and marginal_ratio must be > 1")
+        if not 0.0 <= self.class_floor < 1.0:
+            raise ValueError(f"class_floor must be in [0, 1), got {self.class_floor}")
         sigmas = (*self.object_prior_sigmas, *self.start_prior_sigmas)
         if not all(math.isfinite(s) and s > 0 for s in sigmas):
             raise ValueError("prior sigmas must be finite and positive")
+
+    @classmethod
+    def paper(cls, **changes: object) -> BeliefConfig:
+        """The paper's hypothesis management: joint weight ratio 1/150, cap 300."""
+        return cls(**{"pruning": "ratio", "prune_ratio": 150.0, **changes})  # type: ignore[arg-type]
+
+    @classmethod
+    def exact(cls, **changes: object) -> BeliefConfig:
+        """No pruning (enumeration, up to 4096 hypotheses): the reference of small worlds."""
+        fields = {"prune_ratio": math.inf, "max_hypotheses": 4096, **changes}
+        return cls(**fields)  # type: ignore[arg-type]
+
+    def rule(self) -> PruningRule:
+        return PruningRule(
+            self.pruning, self.prune_ratio, self.marginal_ratio, self.class_floor, self.max_hypotheses
+        )
 
 
 @dataclass(frozen=True, slots=True)
@@ -142,6 +171,31 @@ class StepStats:
     parents: int
     children: int
     kept: int
+
+
+@dataclass(frozen=True, slots=True)
+class _Beam:
+    """Children of one step while the new objects' classes are assigned: parent index (K,),
+    classes of the new objects assigned so far (K, t), their log prior (K,), the per-sample log
+    evidence with the unassigned objects summed out (K, S), the log-weight (K,), and how many
+    candidates were weighed so far."""
+
+    parent: IntArray
+    classes: IntArray
+    log_prior: Array
+    acc: Array
+    log_weight: Array
+    weighed: int
+
+    def keep(self, kept: IntArray) -> _Beam:
+        return _Beam(
+            self.parent[kept],
+            self.classes[kept],
+            self.log_prior[kept],
+            self.acc[kept],
+            self.log_weight[kept],
+            self.weighed,
+        )
 
 
 @dataclass(frozen=True, slots=True)
@@ -275,36 +329,96 @@ class HybridBelief:
             self.step_of[f.robot] = f.k
         if not detections:
             return StepStats(len(parents), len(parents), len(parents))
-
-        m = self.model.num_classes
-        combos = list(itertools.product(range(m), repeat=len(new_ids)))
-        assignments = np.array(combos, dtype=np.int64).reshape(len(combos), len(new_ids))
-        log_prior_new = self._log_prior[assignments].sum(axis=1)
-        new_col = {j: i for i, j in enumerate(new_ids)}
-        candidates: list[tuple[int, int, float]] = []
-        for p, h in enumerate(parents):
-            det_classes = np.empty((len(assignments), len(detections)), dtype=np.int64)
-            for col, (_, det) in enumerate(detections):
-                j = det.object_id
-                if j in new_col:
-                    det_classes[:, col] = assignments[:, new_col[j]]
-                else:
-                    det_classes[:, col] = h.classes[self._object_index[j]]
-            delta = self._log_evidence(h, detections, det_classes, rng)
-            for a, lw in enumerate(h.log_weight + log_prior_new + delta):
-                if np.isfinite(lw):
-                    candidates.append((p, a, float(lw)))
-        if not candidates:
-            raise FloatingPointError(
-                "every hypothesis has zero likelihood for this step's measurements"
-            )
-        kept = self._select(candidates)
+        evidence = [self._log_evidence(h, detections, rng) for h in parents]
+        beam = self._branch(parents, evidence, detections, new_ids)
         for j in new_ids:
             self._object_index[j] = len(self.object_ids)
             self.object_ids.append(j)
-        self.hypotheses = self._materialise(parents, kept, assignments, detections)
+        self.hypotheses = self._materialise(parents, beam, detections)
         self._normalise()
-        return StepStats(len(parents), len(candidates), len(self.hypotheses))
+        return StepStats(len(parents), beam.weighed, len(self.hypotheses))
+
+    def _branch(
+        self,
+        parents: Sequence[Hypothesis],
+        evidence: Sequence[SampledEvidence],
+        detections: Sequence[tuple[SensorFrame, Detection]],
+        new_ids: Sequence[int],
+    ) -> _Beam:
+        """Children of every parent over the classes of the new objects (Eq. 6), assigned one
+        object at a time and pruned between objects, so that a step's cost grows linearly with the
+        number of new objects instead of as M^|new|.
+
+        A partial child's weight has the classes of the objects not yet assigned summed out under
+        their prior, with the same Monte Carlo samples as its completions: it is exactly the sum of
+        its completions' weights, so pruning a partial child prunes nothing it would have kept
+        for a reason the full children could reverse."""
+        log_prior = self._log_prior
+        new_col = {j: t for t, j in enumerate(new_ids)}
+        dets_of: list[list[int]] = [[] for _ in new_ids]
+        old_cols: list[int] = []
+        old_index: list[int] = []
+        for col, (_, d) in enumerate(detections):
+            if d.object_id in new_col:
+                dets_of[new_col[d.object_id]].append(col)
+            else:
+                old_cols.append(col)
+                old_index.append(self._object_index[d.object_id])
+        samples = len(evidence[0].base)
+        acc = np.empty((len(parents), samples))
+        # marg[p, t] (S,): log Σ_c P(c) Π_{d of new object t} P(z_d | c), per sample.
+        marg = np.empty((len(parents), len(new_ids), samples))
+        for p, (h, ev) in enumerate(zip(parents, evidence, strict=True)):
+            if len(ev.base) != samples:
+                raise ValueError("parents of one step must draw the same number of samples")
+            acc[p] = ev.base
+            if old_cols:
+                cls = np.array([h.classes[i] for i in old_index], dtype=np.int64)
+                acc[p] += ev.log_lik[:, old_cols, cls].sum(axis=1)
+            for t, cols in enumerate(dets_of):
+                marg[p, t] = logsumexp(log_prior + ev.log_lik[:, cols, :].sum(axis=1), axis=1)
+            acc[p] += marg[p].sum(axis=0)
+        parent_lw = np.array([h.log_weight for h in parents])
+        parent_cls = np.array([h.classes for h in parents], dtype=np.int64).reshape(
+            len(parents), len(self.object_ids)
+        )
+        beam = _Beam(
+            np.arange(len(parents)),
+            np.zeros((len(parents), 0), dtype=np.int64),
+            np.zeros(len(parents)),
+            acc,
+            parent_lw + logsumexp(acc, axis=1) - np.log(samples),
+            len(parents),
+        )
+        if not new_ids:
+            return beam.keep(self._select(beam.log_weight, parent_cls))
+        m = self.model.num_classes
+        for t, cols in enumerate(dets_of):
+            lt = np.stack([ev.log_lik[:, cols, :].sum(axis=1).T for ev in evidence])  # (P, M, S)
+            grown = beam.acc[:, None, :] - marg[beam.parent, t][:, None, :] + lt[beam.parent]
+            grown = np.where(np.isnan(grown), -np.inf, grown)  # −inf − (−inf): a dead sample
+            prior = beam.log_prior[:, None] + log_prior[None, :]
+            lw = parent_lw[beam.parent][:, None] + prior + logsumexp(grown, axis=2)
+            lw -= np.log(samples)
+            k = len(beam.parent)
+            classes = np.concatenate(
+                [np.repeat(beam.classes, m, axis=0), np.tile(np.arange(m), k)[:, None]], axis=1
+            )
+            beam = _Beam(
+                np.repeat(beam.parent, m),
+                classes,
+                prior.reshape(-1),
+                grown.reshape(k * m, samples),
+                lw.reshape(-1),
+                beam.weighed + k * m,
+            )
+            full = np.concatenate([parent_cls[beam.parent], beam.classes], axis=1)
+            beam = beam.keep(self._select(beam.log_weight, full))
+        if len(beam.parent) == 0:
+            raise FloatingPointError(
+                "every hypothesis has zero likelihood for this step's measurements"
+            )
+        return beam
 
     def _check_frames(self, frames: Sequence[SensorFrame]) -> None:
         seen = set()
@@ -353,10 +467,9 @@ class HybridBelief:
         self,
         h: Hypothesis,
         detections: Sequence[tuple[SensorFrame, Detection]],
-        det_classes: IntArray,
         rng: np.random.Generator,
-    ) -> Array:
-        """Δ log w for each class assignment of the detections (A, D) → (A,)."""
+    ) -> SampledEvidence:
+        """The per-sample pieces of Δ log w of ``h``'s children (see ``SampledEvidence``)."""
         keys: list[int] = []
         index: dict[int, int] = {}
 
@@ -392,41 +505,34 @@ class HybridBelief:
         )
         cfg = self.config
         if cfg.weight_estimator == "geo_conditioned":
-            return geo_conditioned(
-                g, terms, det_classes, self.model.classifier, cfg.num_samples, rng
-            )
+            return geo_conditioned_samples(g, terms, self.model.classifier, cfg.num_samples, rng)
         z_geo = np.array([d.z_geo for _, d in detections])
         geo_terms = (terms.robot_var, terms.object_var, z_geo, self._geo_cov)
-        return paper_mc(
-            g, terms, geo_terms, det_classes, self.model.classifier, cfg.num_samples, rng
+        return paper_mc_samples(
+            g, terms, geo_terms, self.model.classifier, cfg.num_samples, rng
         )
 
-    def _select(self, candidates: list[tuple[int, int, float]]) -> list[tuple[int, int, float]]:
-        """Prune by weight ratio, then cap; the heaviest candidate always survives."""
-        best = max(lw for _, _, lw in candidates)
-        floor = best - math.log(self.config.prune_ratio)
-        kept = [c for c in candidates if c[2] >= floor]
-        if len(kept) > self.config.max_hypotheses:
-            kept.sort(key=lambda c: -c[2])
-            kept = kept[: self.config.max_hypotheses]
-        return kept
+    def _select(self, log_weights: Array, classes: IntArray) -> IntArray:
+        """Indices of the candidates to keep (``estimator.pruning.select``): log-weights (K,) of
+        candidates with class realisations (K, n)."""
+        return select(log_weights, classes, self.model.num_classes, self.config.rule())
 
     def _materialise(
         self,
         parents: Sequence[Hypothesis],
-        kept: Sequence[tuple[int, int, float]],
-        assignments: IntArray,
+        beam: _Beam,
         detections: Sequence[tuple[SensorFrame, Detection]],
     ) -> list[Hypothesis]:
-        by_parent: dict[int, list[tuple[int, float]]] = {}
-        for p, a, lw in kept:
-            by_parent.setdefault(p, []).append((a, lw))
+        by_parent: dict[int, list[int]] = {}
+        for i, p in enumerate(beam.parent):
+            by_parent.setdefault(int(p), []).append(i)
         children = []
         for p, group in by_parent.items():
             parent = parents[p]
-            for i, (a, lw) in enumerate(group):
-                classes = parent.classes + tuple(int(c) for c in assignments[a])
-                child = parent.branch(classes, lw, copy_isam=i < len(group) - 1)
+            for n, i in enumerate(group):
+                classes = parent.classes + tuple(int(c) for c in beam.classes[i])
+                lw = float(beam.log_weight[i])
+                child = parent.branch(classes, lw, copy_isam=n < len(group) - 1)
                 self._measure(child, detections)
                 children.append(child)
         return children

@@ -86,16 +86,40 @@ def assignment_log_means(log_lik: Array, assignments: IntArray) -> Array:
     return np.asarray(logsumexp(total, axis=0) - np.log(s))
 
 
-def geo_conditioned(
+@dataclass(frozen=True, slots=True)
+class SampledEvidence:
+    """Δlog w of a parent's children, per Monte Carlo sample and before the class assignment.
+
+    For an assignment c of the detections, Δlog w(c) = log (1/S) Σ_s exp(``base[s]`` +
+    Σ_d ``log_lik[s, d, c_d]``): ``base`` (S,) holds the class-independent part (the closed-form
+    geometric evidence, or the sampled geometric likelihood of ``paper_mc``), ``log_lik``
+    (S, D, M) the semantic log-likelihoods. One set of samples serves every assignment, so sums over
+    the classes of some detections are exact marginals of the children's weights.
+    """
+
+    base: Array
+    log_lik: Array
+
+    def log_means(self, assignments: IntArray) -> Array:
+        """Δlog w per assignment: (A, D) class indices → (A,)."""
+        d_count = self.log_lik.shape[1]
+        if d_count == 0:
+            total = np.broadcast_to(self.base[:, None], (len(self.base), len(assignments)))
+        else:
+            picked = self.log_lik[:, np.arange(d_count)[None, :], assignments]  # (S, A, D)
+            total = self.base[:, None] + picked.sum(axis=2)
+        return np.asarray(logsumexp(total, axis=0) - np.log(len(self.base)))
+
+
+def geo_conditioned_samples(
     g: InvolvedGaussian,
     terms: SemanticTerms,
-    assignments: IntArray,
     model: ClassifierModel,
     num_samples: int,
     rng: np.random.Generator,
-) -> Array:
+) -> SampledEvidence:
     """Default estimator: closed-form geometric evidence × Monte Carlo of the semantic term over
-    the geometry-conditioned Gaussian (an exact rewrite of the integral). Returns Δlog w (A,)."""
+    the geometry-conditioned Gaussian (an exact rewrite of the integral)."""
     post_info = g.info + g.jac.T @ g.jac
     chol_post = _cholesky_lower(post_info)
     chol_prior = _cholesky_lower(g.info)
@@ -106,11 +130,23 @@ def geo_conditioned(
     log_det_s = _log_det_chol(chol_post) - _log_det_chol(chol_prior)
     log_geo = -0.5 * quad - 0.5 * log_det_s + g.geo_log_norm
     if len(terms.z) == 0:
-        return np.full(len(assignments), log_geo)
+        return SampledEvidence(np.array([log_geo]), np.zeros((1, 0, model.num_classes)))
     eps = rng.standard_normal((num_samples, len(mean)))
     delta = mean + solve_triangular(chol_post.T, eps.T, lower=False).T
     log_lik = semantic_log_likelihoods(model, _retract_samples(g.lin, delta), terms)
-    return log_geo + assignment_log_means(log_lik, assignments)
+    return SampledEvidence(np.full(num_samples, log_geo), log_lik)
+
+
+def geo_conditioned(
+    g: InvolvedGaussian,
+    terms: SemanticTerms,
+    assignments: IntArray,
+    model: ClassifierModel,
+    num_samples: int,
+    rng: np.random.Generator,
+) -> Array:
+    """:func:`geo_conditioned_samples` evaluated for every assignment: Δlog w (A,)."""
+    return geo_conditioned_samples(g, terms, model, num_samples, rng).log_means(assignments)
 
 
 def geometric_log_likelihoods(
@@ -125,6 +161,27 @@ def geometric_log_likelihoods(
     return np.asarray(np.sum(-0.5 * quad - 0.5 * log_det, axis=1))
 
 
+def paper_mc_samples(
+    g: InvolvedGaussian,
+    terms: SemanticTerms,
+    geo_terms: tuple[IntArray, IntArray, Array, Array],
+    model: ClassifierModel,
+    num_samples: int,
+    rng: np.random.Generator,
+) -> SampledEvidence:
+    """The paper's literal estimator: sample the involved variables from the propagated belief and
+    average L_geo · L_sem. Unbiased but noisy for newly seen objects."""
+    chol = _cholesky_lower(g.info)
+    eps = rng.standard_normal((num_samples, g.info.shape[0]))
+    delta = solve_triangular(chol.T, eps.T, lower=False).T
+    poses = _retract_samples(g.lin, delta)
+    robot_var, object_var, z_geo, geo_cov = geo_terms
+    log_geo = geometric_log_likelihoods(poses, robot_var, object_var, z_geo, geo_cov)  # (S,)
+    if len(terms.z) == 0:
+        return SampledEvidence(log_geo, np.zeros((num_samples, 0, model.num_classes)))
+    return SampledEvidence(log_geo, semantic_log_likelihoods(model, poses, terms))
+
+
 def paper_mc(
     g: InvolvedGaussian,
     terms: SemanticTerms,
@@ -134,19 +191,6 @@ def paper_mc(
     num_samples: int,
     rng: np.random.Generator,
 ) -> Array:
-    """The paper's literal estimator: sample the involved variables from the propagated belief and
-    average L_geo · L_sem. Unbiased but noisy for newly seen objects. Returns Δlog w (A,)."""
-    chol = _cholesky_lower(g.info)
-    eps = rng.standard_normal((num_samples, g.info.shape[0]))
-    delta = solve_triangular(chol.T, eps.T, lower=False).T
-    poses = _retract_samples(g.lin, delta)
-    robot_var, object_var, z_geo, geo_cov = geo_terms
-    log_geo = geometric_log_likelihoods(poses, robot_var, object_var, z_geo, geo_cov)  # (S,)
-    if len(terms.z) == 0:
-        total = log_geo[:, None] + np.zeros((1, len(assignments)))
-    else:
-        log_lik = semantic_log_likelihoods(model, poses, terms)
-        d_count = log_lik.shape[1]
-        picked = log_lik[:, np.arange(d_count)[None, :], assignments].sum(axis=2)  # (S, A)
-        total = log_geo[:, None] + picked
-    return np.asarray(logsumexp(total, axis=0) - np.log(num_samples))
+    """:func:`paper_mc_samples` evaluated for every assignment: Δlog w (A,)."""
+    samples = paper_mc_samples(g, terms, geo_terms, model, num_samples, rng)
+    return samples.log_means(assignments)
