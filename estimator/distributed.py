@@ -190,12 +190,14 @@ class DistributedBelief(HybridBelief):
         integration that follows is the one of a D that received all held slots at once.
         """
         if local.robots != [self.owner]:
-            raise ValueError(f"D of {self.owner} cannot be rebuilt from the belief of {local.robots}")
+            raise ValueError(f"D of {self.owner} cannot be rebuilt from a belief of {local.robots}")
         self.step_of = dict(local.step_of)
         self.object_ids = list(local.object_ids)
         self._object_index = {j: i for i, j in enumerate(self.object_ids)}
         self.hypotheses = [
-            Hypothesis(h.classes, gtsam.ISAM2(h.isam), h.log_weight, h.estimate, dict(h.object_priors))
+            Hypothesis(
+                h.classes, gtsam.ISAM2(h.isam), h.log_weight, h.estimate, dict(h.object_priors)
+            )
             for h in local.hypotheses
         ]
         self.stamps = {}
@@ -278,10 +280,7 @@ class DistributedBelief(HybridBelief):
     def _old_log_phi(self, owner: str) -> Array:
         """log φ of the version of ``owner``'s slot each hypothesis used before (0 if none)."""
         return np.array(
-            [
-                h.used[owner].realisation.log_phi if owner in h.used else 0.0
-                for h in self.hypotheses
-            ]
+            [h.used[owner].realisation.log_phi if owner in h.used else 0.0 for h in self.hypotheses]
         )
 
     def _fuse(

@@ -100,8 +100,9 @@ class BeliefConfig:
         return cls(**fields)  # type: ignore[arg-type]
 
     def rule(self) -> PruningRule:
+        c = self
         return PruningRule(
-            self.pruning, self.prune_ratio, self.marginal_ratio, self.class_floor, self.max_hypotheses
+            c.pruning, c.prune_ratio, c.marginal_ratio, c.class_floor, c.max_hypotheses
         )
 
 
@@ -508,9 +509,7 @@ class HybridBelief:
             return geo_conditioned_samples(g, terms, self.model.classifier, cfg.num_samples, rng)
         z_geo = np.array([d.z_geo for _, d in detections])
         geo_terms = (terms.robot_var, terms.object_var, z_geo, self._geo_cov)
-        return paper_mc_samples(
-            g, terms, geo_terms, self.model.classifier, cfg.num_samples, rng
-        )
+        return paper_mc_samples(g, terms, geo_terms, self.model.classifier, cfg.num_samples, rng)
 
     def _select(self, log_weights: Array, classes: IntArray) -> IntArray:
         """Indices of the candidates to keep (``estimator.pruning.select``): log-weights (K,) of
