@@ -1,0 +1,187 @@
+"""Hypothesis management: the pruning rules and object-by-object branching (issue 10)."""
+
+from __future__ import annotations
+
+import itertools
+import math
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from scipy.special import logsumexp
+
+from estimator.hybrid import BeliefConfig, BeliefModel, HybridBelief
+from estimator.models import GaussianNoise
+from estimator.models.classifier import AliasedClassifier
+from estimator.pruning import PruningRule, class_marginals, select
+from estimator.weights import SampledEvidence
+
+MARGINAL = PruningRule("marginal", 150.0, 150.0, 1e-4, 300)
+RATIO = PruningRule("ratio", 150.0, 150.0, 1e-4, 300)
+
+
+def _weights(lw: np.ndarray) -> np.ndarray:
+    w = np.exp(lw - lw.max())
+    return w / w.sum()
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_select_marginal_keeps_a_carrier_of_every_class_above_the_floor(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    lw = rng.normal(0.0, 6.0, 400)
+    classes = rng.integers(0, 3, (400, 6))
+    kept = select(lw, classes, 3, MARGINAL)
+    marg = class_marginals(_weights(lw), classes, 3)
+    for j in range(6):
+        for i in range(3):
+            if marg[j, i] >= 1e-4:
+                assert np.any(classes[kept, j] == i), (j, i, marg[j, i])
+
+
+def test_select_ratio_loses_a_class_the_marginal_rule_keeps() -> None:
+    # Object 0's class 1 is carried only by realisations that also hold an unlikely class of
+    # object 1: each is below w_max/150, together they make P(c_0 = 1) ≈ 0.17.
+    lw = np.log(np.array([1.0] + [0.005] * 40))
+    classes = np.zeros((41, 2), dtype=np.int64)
+    classes[1:, 0] = 1
+    classes[1:, 1] = np.arange(40) % 2
+    marg = class_marginals(_weights(lw), classes, 2)
+    assert marg[0, 1] > 0.15
+    assert not np.any(classes[select(lw, classes, 2, RATIO), 0] == 1)
+    kept = select(lw, classes, 2, MARGINAL)
+    kept_marg = class_marginals(_weights(lw[kept]), classes[kept], 2)
+    # every carrier holds 1/40 of the class marginal ≥ 1/150: all are kept, the marginal is exact
+    np.testing.assert_allclose(kept_marg, marg, atol=1e-12)
+
+
+def test_select_cap_keeps_support_first_then_marginal_contribution() -> None:
+    rng = np.random.default_rng(3)
+    lw = rng.normal(0.0, 1.0, 200)
+    classes = rng.integers(0, 2, (200, 5))
+    rule = PruningRule("marginal", 1e9, 1e9, 1e-4, 12)
+    kept = select(lw, classes, 2, rule)
+    assert len(kept) == 12
+    assert int(np.argmax(lw)) in kept
+    for j in range(5):
+        assert set(classes[kept, j]) == {0, 1}
+
+
+def test_select_drops_non_finite_and_keeps_the_heaviest() -> None:
+    lw = np.array([-np.inf, 0.0, np.nan, -1.0])
+    classes = np.array([[0], [1], [0], [0]])
+    kept = select(lw, classes, 2, MARGINAL)
+    assert list(kept) == [1, 3]
+    assert len(select(np.full(3, -np.inf), classes[:3], 2, MARGINAL)) == 0
+
+
+# -- branching -------------------------------------------------------------------------------
+
+
+def _belief(prior: tuple[float, ...], config: BeliefConfig) -> HybridBelief:
+    m = len(prior)
+    classifier = AliasedClassifier(tuple((c + 1) % m for c in range(m)), (0.0,) * m, np.eye(m))
+    model = BeliefModel(
+        m, prior, classifier, GaussianNoise((0.003, 0.003, 0.001)), GaussianNoise((0.1, 0.1, 0.01))
+    )
+    return HybridBelief(model, {"r1": (0.0, 0.0, 0.0)}, config)
+
+
+def _synthetic_step(
+    belief: HybridBelief, rng: np.random.Generator, parents: int, old: int, new: list[int]
+) -> tuple[list[SimpleNamespace], list[SampledEvidence], list, list[int]]:
+    """Fake parents (classes of ``old`` known objects), detections of the old objects and of the
+    new object ids ``new`` (object ids may repeat: several detections of one new object), and
+    random per-sample evidence."""
+    m = belief.model.num_classes
+    belief.object_ids = list(range(100, 100 + old))
+    belief._object_index = {j: i for i, j in enumerate(belief.object_ids)}
+    hyps = [
+        SimpleNamespace(
+            classes=tuple(int(c) for c in rng.integers(0, m, old)),
+            log_weight=float(rng.normal(0, 1)),
+        )
+        for _ in range(parents)
+    ]
+    ids = [*belief.object_ids, *new]
+    detections = [(None, SimpleNamespace(object_id=j)) for j in ids]
+    samples = 64
+    evidence = [
+        SampledEvidence(rng.normal(0, 0.3, samples), rng.normal(-1.0, 1.5, (samples, len(ids), m)))
+        for _ in hyps
+    ]
+    return hyps, evidence, detections, list(dict.fromkeys(new))
+
+
+@pytest.mark.parametrize(
+    ("prior", "new", "seed"),
+    [
+        ((0.8, 0.2), [1, 2, 3], 0),
+        ((0.6, 0.3, 0.1), [1, 2, 2, 3], 1),  # object 2 seen twice in the step
+        ((0.6, 0.3, 0.1), [5, 4], 2),
+    ],
+)
+def test_branch_without_pruning_equals_enumeration(
+    prior: tuple[float, ...], new: list[int], seed: int
+) -> None:
+    belief = _belief(prior, BeliefConfig.exact())
+    rng = np.random.default_rng(seed)
+    hyps, evidence, detections, new_ids = _synthetic_step(belief, rng, 3, 2, new)
+    beam = belief._branch(hyps, evidence, detections, new_ids)  # type: ignore[arg-type]
+    m = len(prior)
+    log_prior = np.log(prior)
+    expected = {}
+    for p, (h, ev) in enumerate(zip(hyps, evidence, strict=True)):
+        for combo in itertools.product(range(m), repeat=len(new_ids)):
+            cls = dict(zip(new_ids, combo, strict=True))
+            det_classes = [
+                h.classes[belief._object_index[d.object_id]]
+                if d.object_id in belief._object_index
+                else cls[d.object_id]
+                for _, d in detections
+            ]
+            lw = h.log_weight + sum(log_prior[c] for c in combo)
+            lw += float(ev.log_means(np.array([det_classes]))[0])
+            expected[(p, combo)] = lw
+    got = {
+        (int(p), tuple(int(c) for c in cls)): float(lw)
+        for p, cls, lw in zip(beam.parent, beam.classes, beam.log_weight, strict=True)
+    }
+    assert got.keys() == expected.keys()
+    for key, lw in expected.items():
+        assert math.isclose(got[key], lw, rel_tol=0, abs_tol=1e-9), key
+
+
+def test_branch_partial_weight_is_the_sum_of_its_completions() -> None:
+    belief = _belief((0.6, 0.3, 0.1), BeliefConfig.exact())
+    rng = np.random.default_rng(7)
+    hyps, evidence, detections, new_ids = _synthetic_step(belief, rng, 2, 1, [1, 2])
+    full = belief._branch(hyps, evidence, detections, new_ids)  # type: ignore[arg-type]
+    # Σ over object 2's classes of the children's weights = the weight with object 2 summed out
+    # under its prior, evaluated directly on the same samples.
+    for p, ev in enumerate(evidence):
+        for c1 in range(3):
+            rows = (full.parent == p) & (full.classes[:, 0] == c1)
+            total = logsumexp(full.log_weight[rows])
+            old = hyps[p].classes[0]
+            log_lik = ev.log_lik
+            per_sample = (
+                ev.base
+                + log_lik[:, 0, old]
+                + log_lik[:, 1, c1]
+                + logsumexp(np.log([0.6, 0.3, 0.1]) + log_lik[:, 2, :], axis=1)
+            )
+            direct = hyps[p].log_weight + np.log([0.6, 0.3, 0.1][c1])
+            direct += logsumexp(per_sample) - np.log(len(per_sample))
+            assert math.isclose(total, direct, abs_tol=1e-9)
+
+
+def test_branch_cost_grows_linearly_with_new_objects() -> None:
+    belief = _belief((0.1,) * 10, BeliefConfig())
+    rng = np.random.default_rng(0)
+    hyps, evidence, detections, new_ids = _synthetic_step(belief, rng, 1, 0, list(range(1, 21)))
+    beam = belief._branch(hyps, evidence, detections, new_ids)  # type: ignore[arg-type]
+    cap = belief.config.max_hypotheses
+    assert len(beam.parent) <= cap
+    # each of the 20 objects extends at most `cap` partial children by 10 classes
+    assert beam.weighed <= 1 + 20 * cap * 10
+    assert beam.classes.shape[1] == 20
