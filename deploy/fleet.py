@@ -55,10 +55,13 @@ def link_model_for(
 
 @dataclass(slots=True)
 class FleetStats:
-    """Per-run transport figures: bytes of every delivered stack, deliveries per step."""
+    """Per-run figures: bytes of every delivered stack, deliveries, and per robot step (in the
+    order ``on_step`` sees them) the empty joins and rebuilds of D's fusion (``FusionStats``)."""
 
     delivered_bytes: list[int] = field(default_factory=list)
     deliveries: int = 0
+    empty_joins: list[int] = field(default_factory=list)
+    rebuilds: list[int] = field(default_factory=list)
 
 
 def run_fleet(
@@ -94,7 +97,7 @@ def run_fleets(
         if before_step is not None:
             before_step(k)
         for i, nodes in enumerate(fleets):
-            _advance(nodes, frames, k, None if on_step is None else on_step[i])
+            _advance(nodes, frames, k, stats[i], None if on_step is None else on_step[i])
     return stats
 
 
@@ -130,14 +133,18 @@ def _advance(
     nodes: Mapping[str, RobotNode],
     frames: Mapping[str, Sequence[SensorFrame]],
     k: int,
+    stats: FleetStats,
     on_step: StepCallback | None,
 ) -> None:
     for r in nodes:
         t0 = time.perf_counter()
-        nodes[r].integrate_pending()
+        fused = nodes[r].integrate_pending()
         t1 = time.perf_counter()
-        nodes[r].on_frame(frames[r][k - 1])
+        # on_frame integrates again; nothing is left by then, but count whatever it reports.
+        again = nodes[r].on_frame(frames[r][k - 1]).fusion
         t2 = time.perf_counter()
+        stats.empty_joins.append(fused.empty_joins + again.empty_joins)
+        stats.rebuilds.append(fused.rebuilds + again.rebuilds)
         if on_step is not None:
             on_step(r, k, nodes[r], 1e3 * (t1 - t0), 1e3 * (t2 - t0))
 
