@@ -19,7 +19,7 @@ from numpy.typing import NDArray
 from agents.control import NeedFrames, StepOrder, Stop, decode_control, encode_control
 from agents.links import LinkModel
 from agents.transport.base import Inbox, Keys, Transport
-from estimator.metrics import METRICS, evaluate
+from estimator.metrics import ECE_BINS, METRICS, evaluate, evaluate_calibration
 from estimator.models import SensorFrame
 from protocol.codec import decode
 from protocol.errors import RemoteProtocolError
@@ -39,9 +39,11 @@ class ConductorError(RuntimeError):
 
 @dataclass(slots=True)
 class Collected:
-    """What came back: metrics per belief (robots, steps), step times and the agents' counters."""
+    """What came back: metrics per belief (robots, steps), class-ECE bin statistics per belief
+    (robots, steps, 3, bins), step times and the agents' counters."""
 
     metrics: dict[str, dict[str, Array]]
+    calibration: dict[str, Array] = field(default_factory=dict)
     step_ms: dict[str, list[float]] = field(default_factory=dict)
     counters: dict[str, dict[str, int]] = field(default_factory=dict)
     received: dict[str, int] = field(default_factory=dict)
@@ -105,7 +107,8 @@ class Conductor:
         self._truth = truth
         shape = (len(self.robots), scenario.steps)
         self.collected = Collected(
-            {b: {m: np.full(shape, np.nan) for m in METRICS} for b in BELIEFS}
+            {b: {m: np.full(shape, np.nan) for m in METRICS} for b in BELIEFS},
+            {b: np.zeros((*shape, 3, ECE_BINS)) for b in BELIEFS},
         )
         self._index = {r: i for i, r in enumerate(self.robots)}
         self._acked: dict[str, int] = {r: 0 for r in self.robots}
@@ -183,6 +186,8 @@ class Conductor:
             values = evaluate(snap, self.scenario.num_classes, true_pose, self._truth)
             for name, value in values.items():
                 c.metrics[belief][name][i, est.k - 1] = value
+            stats = evaluate_calibration(snap, self.scenario.num_classes, self._truth)
+            c.calibration[belief][i, est.k - 1] = stats
         for belief, key in (("local", "step_us_local"), ("distributed", "step_us_distributed")):
             if key in est.counters:
                 c.step_ms.setdefault(belief, []).append(est.counters[key] / 1e3)

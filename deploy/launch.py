@@ -327,6 +327,7 @@ class Launcher:
             metrics,
             {m: c.step_ms.get(m, []) for m in LAUNCH_METHODS},
             {m: wall for m in LAUNCH_METHODS},
+            calibration={m: c.calibration[m][:, : self.steps] for m in LAUNCH_METHODS},
         )
         return LaunchOutcome(result, c, wall, self.agents, self.events, self.garbage_sent)
 

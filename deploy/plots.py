@@ -117,6 +117,46 @@ def plot_curves(
     ax.legend(fontsize=8)
 
 
+def plot_reliability(ax: Axes, ax_counts: Axes, stats: dict[str, np.ndarray], title: str) -> None:
+    """Reliability diagram of the class marginals: per method, the mean predicted probability
+    against the observed frequency of the class in every non-empty bin, over the diagonal of
+    perfect calibration; ``ax_counts`` shows the marginals per bin (log scale). ``stats`` maps
+    method → pooled bin statistics (3, bins) (``estimator.metrics.calibration_stats``)."""
+    from estimator.metrics import ece_from_stats
+
+    bins = next(iter(stats.values())).shape[-1] if stats else 10
+    width = 1.0 / bins / max(1, len(stats))
+    ax.plot([0, 1], [0, 1], color="grey", lw=1, ls="--", label="calibrated")
+    for n, (method, st) in enumerate(stats.items()):
+        count, sum_p, hits = st
+        used = count > 0
+        style = _METHOD_STYLE.get(method, {})
+        ece = float(ece_from_stats(st))
+        ax.plot(
+            sum_p[used] / count[used],
+            hits[used] / count[used],
+            marker="o",
+            ms=4,
+            lw=1.4,
+            label=f"{method} (ECE {ece:.3g})",
+            **style,
+        )
+        left = np.arange(bins) / bins + n * width
+        ax_counts.bar(left, count, width=width, align="edge", color=style.get("color"))
+    # Most marginals sit at 0 or 1: a margin keeps their points inside the axes.
+    ax.set_xlim(-0.02, 1.02)
+    ax.set_ylim(-0.02, 1.02)
+    ax.set_ylabel("observed frequency of the class")
+    ax.set_title(title)
+    ax.grid(True, alpha=0.3)
+    ax.legend(fontsize=8, loc="upper left")
+    ax_counts.set_yscale("symlog", linthresh=1.0)
+    ax_counts.set_xticks(np.arange(bins + 1) / bins)
+    ax_counts.set_xlabel("predicted probability P(c_j = i)")
+    ax_counts.set_ylabel("marginals per bin")
+    ax_counts.grid(True, alpha=0.3)
+
+
 def covariance_ellipse(
     ax: Axes, mean: np.ndarray, cov: np.ndarray, nsigma: float = 2.0, **kw: object
 ) -> None:

@@ -15,9 +15,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from agents.node import LocalTrack, RobotNode
-from deploy.fleet import StepCallback, link_model_for, make_nodes, run_fleets
+from deploy.fleet import FleetStats, StepCallback, link_model_for, make_nodes, run_fleets
 from estimator.hybrid import BeliefConfig, BeliefModel, BeliefSnapshot, HybridBelief
-from estimator.metrics import METRICS, evaluate
+from estimator.metrics import ECE_BINS, METRICS, evaluate, evaluate_calibration
 from estimator.models import SensorFrame
 from sim.scenario import Scenario
 from sim.sensors import Simulator
@@ -31,7 +31,11 @@ FLEET_METHODS = {"distributed": "consistent", "double_count": "double_count"}
 @dataclass(frozen=True, slots=True)
 class RunResult:
     """One seeded run: ``metrics[method][metric]`` (robots, steps) arrays, the wall time of every
-    belief step in ms per method, and optional belief snapshots ``snapshots[method][robot]``."""
+    belief step in ms per method, and optional belief snapshots ``snapshots[method][robot]``.
+
+    ``calibration[method]`` (robots, steps, 3, ECE_BINS) holds the class-ECE bin statistics
+    (``estimator.metrics.calibration_stats``); the fleets' ``fusion_ms``, ``empty_joins`` and
+    ``rebuilds`` have one entry per robot step, in the order of ``step_ms``."""
 
     seed: int
     metrics: dict[str, dict[str, Array]]
@@ -40,6 +44,9 @@ class RunResult:
     snapshots: dict[str, dict[str, BeliefSnapshot]] = field(default_factory=dict)
     fusion_ms: dict[str, list[float]] = field(default_factory=dict)
     stack_bytes: dict[str, list[int]] = field(default_factory=dict)
+    calibration: dict[str, Array] = field(default_factory=dict)
+    empty_joins: dict[str, list[int]] = field(default_factory=dict)
+    rebuilds: dict[str, list[int]] = field(default_factory=dict)
 
 
 def belief_model(scenario: Scenario) -> BeliefModel:
@@ -86,15 +93,10 @@ def run_single(
     step_ms: dict[str, list[float]] = {}
     wall: dict[str, float] = {}
     snapshots: dict[str, dict[str, BeliefSnapshot]] = {}
-    fusion_ms: dict[str, list[float]] = {}
-    stack_bytes: dict[str, list[int]] = {}
     recorders = {m: _Recorder(scenario, frames, truth_objects, snapshot_step) for m in methods}
     fleet_methods = [m for m in methods if m in FLEET_METHODS]
     if "local" in methods or fleet_methods:
         _run_shared_local(scenario, model, config, seed, comm, frames, recorders, fleet_methods)
-        for m in fleet_methods:
-            fusion_ms[m] = recorders[m].fusion_ms
-            stack_bytes[m] = recorders[m].stack_bytes
     if "centralized" in methods:
         rec = recorders["centralized"]
         belief = HybridBelief(model, {r: scenario.robot(r).start for r in robots}, config)
@@ -114,7 +116,19 @@ def run_single(
         wall[method] = rec.wall_s
         if rec.snapshots:
             snapshots[method] = rec.snapshots
-    return RunResult(seed, metrics, step_ms, wall, snapshots, fusion_ms, stack_bytes)
+    fleet = {m: recorders[m].fleet for m in fleet_methods}
+    return RunResult(
+        seed,
+        metrics,
+        step_ms,
+        wall,
+        snapshots,
+        fusion_ms={m: recorders[m].fusion_ms for m in fleet_methods},
+        stack_bytes={m: st.delivered_bytes for m, st in fleet.items()},
+        calibration={m: recorders[m].calibration for m in methods},
+        empty_joins={m: st.empty_joins for m, st in fleet.items()},
+        rebuilds={m: st.rebuilds for m, st in fleet.items()},
+    )
 
 
 def _run_shared_local(
@@ -172,11 +186,12 @@ def _run_shared_local(
     links = link_model_for(scenario, comm)
     stats = run_fleets(fleets, frames, links, scenario.steps, callbacks, before_step=step_locals)
     for m, st in zip(fleet_methods, stats, strict=True):
-        recorders[m].stack_bytes = st.delivered_bytes
+        recorders[m].fleet = st
 
 
 class _Recorder:
-    """Collects one method's metrics (robots, steps), step times and the requested snapshots."""
+    """Collects one method's metrics (robots, steps), class-ECE bin statistics (robots, steps, 3,
+    bins), step times, the requested snapshots and, for a fleet, its :class:`FleetStats`."""
 
     def __init__(
         self,
@@ -189,9 +204,10 @@ class _Recorder:
         self.snapshot_step = snapshot_step
         shape = (len(scenario.robots), scenario.steps)
         self.arrays = {m: np.full(shape, np.nan) for m in METRICS}
+        self.calibration = np.zeros((*shape, 3, ECE_BINS))
         self.step_ms: list[float] = []
         self.fusion_ms: list[float] = []
-        self.stack_bytes: list[int] = []
+        self.fleet = FleetStats()
         self.snapshots: dict[str, BeliefSnapshot] = {}
         self.wall_s = 0.0
 
@@ -210,8 +226,10 @@ class _Recorder:
         if snap is None:
             snap = belief.snapshot(robot)
         true_pose = self.frames[robot][k - 1].true_pose
-        for name, value in evaluate(snap, self.scenario.num_classes, true_pose, self.truth).items():
+        num_classes = self.scenario.num_classes
+        for name, value in evaluate(snap, num_classes, true_pose, self.truth).items():
             self.arrays[name][i, k - 1] = value
+        self.calibration[i, k - 1] = evaluate_calibration(snap, num_classes, self.truth)
         if k == self.snapshot_step:
             self.snapshots[robot] = snap
         self.wall_s += step_ms / 1e3 + time.perf_counter() - t

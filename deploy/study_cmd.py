@@ -17,7 +17,7 @@ from rich.table import Table
 
 from deploy.args import MAX_SEED, positive_int, seed
 from deploy.fleet import COMM_MODES
-from deploy.results import summarise, write_results
+from deploy.results import pooled_calibration, summarise, write_results
 from deploy.scenario_cmd import scenario_from_args
 from deploy.study import METHODS, RunResult, run_single
 from estimator.hybrid import BeliefConfig
@@ -27,12 +27,15 @@ from sim.scenario import Scenario, ScenarioError
 from sim.world import World
 
 _THREAD_VARIABLES = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+# Rows of the comparison table per method: a curve of the method's results.json entry
+# (class_ece_pooled) or of its means.
 SUMMARY_METRICS = (
     "msde",
+    "class_log_loss",
+    "class_ece_pooled",
     "robot_error",
     "object_error",
     "robot_nees",
-    "class_log_loss",
     "hypotheses",
 )
 
@@ -117,9 +120,26 @@ def _methods(text: str) -> list[str]:
     return list(dict.fromkeys(methods))
 
 
-def render_summary(doc: dict[str, Any], console: Console, at_steps: list[int]) -> None:
+def table_steps(steps: int, count: int = 4) -> list[int]:
+    """``count`` evenly spaced steps ending at the last one, k = ⌈i·steps/count⌉: 15, 30, 45, 60
+    for the paper's 60 steps, 5, 10, 15, 20 for 20."""
+    return sorted({max(1, -(-i * steps // count)) for i in range(1, count + 1)})
+
+
+def _tail_cell(entry: dict[str, Any], name: str) -> str:
+    figures = [entry.get(f"{name}_{q}") for q in ("p50", "p95", "p99", "max")]
+    if any(v is None for v in figures):
+        return "—"
+    return " / ".join(f"{v:.2f}" for v in figures)
+
+
+def render_summary(
+    doc: dict[str, Any], console: Console, at_steps: list[int] | None = None
+) -> None:
+    """The comparison table at ``at_steps`` (default :func:`table_steps`), the cost table and the
+    robot NEES band."""
     steps = doc["steps"]
-    at = [k for k in at_steps if 1 <= k <= steps] or [steps]
+    at = [k for k in (at_steps or table_steps(steps)) if 1 <= k <= steps] or [steps]
     runs = f"{doc['runs']} run" + ("s" if doc["runs"] != 1 else "")
     table = Table(title=f"{doc['scenario']}: {runs}, mean over runs and robots")
     table.add_column("method")
@@ -128,25 +148,31 @@ def render_summary(doc: dict[str, Any], console: Console, at_steps: list[int]) -
         table.add_column(f"k = {k}", justify="right")
     for method, entry in doc["methods"].items():
         for i, metric in enumerate(SUMMARY_METRICS):
-            curve = entry["mean"][metric]
+            curve = entry[metric] if metric in entry else entry["mean"].get(metric)
+            if curve is None:
+                curve = [None] * steps
             cells = ["—" if curve[k - 1] is None else f"{curve[k - 1]:.4g}" for k in at]
             table.add_row(
                 method if i == 0 else "", metric, *cells, end_section=i == len(SUMMARY_METRICS) - 1
             )
     console.print(table)
-    timing = Table(title="cost")
-    columns = ("method", "wall s (all runs)", "median ms per belief step", "median fusion ms")
-    for col in (*columns, "stack bytes mean / max"):
+    timing = Table(title="cost (times in ms: p50 / p95 / p99 / max; stack bytes: mean / max)")
+    columns = ("method", "wall s (all runs)", "belief step ms", "fusion ms", "stack bytes")
+    for col in (*columns, "empty joins", "rebuilds"):
         timing.add_column(col, justify="right")
     for method, entry in doc["methods"].items():
-        fusion = f"{entry['fusion_ms_median']:.2f}" if "fusion_ms_median" in entry else "—"
         size = (
             f"{entry['stack_bytes_mean']:,.0f} / {entry['stack_bytes_max']:,}"
             if "stack_bytes_mean" in entry
             else "—"
         )
         timing.add_row(
-            method, f"{entry['wall_s']:.1f}", f"{entry['step_ms_median']:.2f}", fusion, size
+            method,
+            f"{entry['wall_s']:.1f}",
+            _tail_cell(entry, "step_ms"),
+            _tail_cell(entry, "fusion_ms"),
+            size,
+            *(f"{entry[key]:,}" if key in entry else "—" for key in ("empty_joins", "rebuilds")),
         )
     console.print(timing)
     lo, hi = chi2_bounds(3, doc["runs"])
@@ -168,7 +194,7 @@ def write_plots(
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from deploy.plots import plot_curves, plot_hypotheses
+    from deploy.plots import plot_curves, plot_hypotheses, plot_reliability
 
     written = []
     specs = [
@@ -196,6 +222,18 @@ def write_plots(
         curves = {m: e["mean"][metric] for m, e in doc["methods"].items()}
         plot_curves(ax, curves, ylabel, f"{doc['scenario']}: {title}", band)
         path = out / f"{metric}.png"
+        fig.savefig(path, dpi=110, bbox_inches="tight")
+        plt.close(fig)
+        written.append(path)
+    pooled = {m: pooled_calibration(results, m) for m in doc["methods"]}
+    at_step = {m: p[step - 1] for m, p in pooled.items() if p is not None}
+    if at_step:
+        fig, (ax, ax_counts) = plt.subplots(
+            2, 1, figsize=(6.5, 7), sharex=True, gridspec_kw={"height_ratios": [3, 1]}
+        )
+        title = f"{doc['scenario']}: class calibration at k = {step}"
+        plot_reliability(ax, ax_counts, at_step, title)
+        path = out / "reliability.png"
         fig.savefig(path, dpi=110, bbox_inches="tight")
         plt.close(fig)
         written.append(path)
@@ -249,7 +287,7 @@ def run(args: argparse.Namespace, console: Console) -> int:
     doc = summarise(scenario.name, results, args.methods, extra)
     out = Path(args.out)
     write_results(out, doc, results, args.methods)
-    render_summary(doc, console, [15, 30, 45, scenario.steps])
+    render_summary(doc, console)
     plots = write_plots(out, doc, scenario, results, step, robot)
     console.print(
         f"wrote {out / 'results.json'}, {out / 'results.npz'} and {len(plots)} plots in {out}"

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import subprocess
@@ -11,10 +12,15 @@ from typing import Any
 
 import numpy as np
 import pytest
+from rich.console import Console
 
+from agents.node import RobotNode
+from deploy.results import summarise
 from deploy.study import run_single
+from deploy.study_cmd import render_summary, table_steps
+from estimator.distributed import FusionStats
 from estimator.hybrid import BeliefConfig
-from estimator.metrics import METRICS
+from estimator.metrics import ECE_BINS, METRICS, ece_from_stats
 from sim.loader import parse_scenario
 from tests.estimator.scenarios import fleet_text
 from tests.tolerance import assert_close
@@ -100,8 +106,12 @@ def test_study_prints_summary_table(
     assert "Traceback" not in r.stderr
     for text in ("tiny: 2 runs", f"k = {STEPS}", *METHODS, "msde", "robot_error", "object_error"):
         assert text in r.stdout, text
-    for text in ("robot_nees", "class_log_loss", "hypotheses", "median ms per belief step"):
+    for text in ("robot_nees", "class_log_loss", "class_ece_pooled", "hypotheses"):
         assert text in r.stdout, text
+    for text in ("belief step ms", "p50 / p95 / p99 / max", "empty joins", "rebuilds"):
+        assert text in r.stdout, text
+    # 12 steps: four evenly spaced columns ending at the last step
+    assert all(f"k = {k} " in r.stdout for k in (3, 6, 9, 12))
     assert "seeds 5..6" in r.stdout
 
 
@@ -111,7 +121,7 @@ def test_study_writes_results_and_plots(
     _, out = two_runs
     assert (out / "results.json").stat().st_size > 0
     assert (out / "results.npz").read_bytes()[:2] == b"PK"
-    pngs = [f"{m}.png" for m in CURVE_PLOTS]
+    pngs = [f"{m}.png" for m in CURVE_PLOTS] + ["reliability.png"]
     pngs += [f"hypotheses_{m}_r1_k{STEPS}.png" for m in METHODS]
     for name in pngs:
         assert (out / name).read_bytes()[:8] == PNG_MAGIC, name
@@ -132,8 +142,15 @@ def test_study_results_json_schema(two_runs: tuple[subprocess.CompletedProcess[s
         for metric, curve in entry["mean"].items():
             assert isinstance(curve, list) and len(curve) == STEPS, (method, metric)
             assert all(v is None or isinstance(v, float) for v in curve), (method, metric)
-        for key in ("wall_s", "step_ms_median"):
-            assert isinstance(entry[key], float) and entry[key] > 0, (method, key)
+        tail = [entry[f"step_ms_{q}"] for q in ("p50", "p95", "p99", "max")]
+        for key, value in zip(("wall_s", "step_ms_p50"), (entry["wall_s"], tail[0]), strict=True):
+            assert isinstance(value, float) and value > 0, (method, key)
+        assert tail == sorted(tail), method
+        assert "step_ms_median" not in entry and "fusion_ms_p50" not in entry
+        assert "empty_joins" not in entry and "rebuilds" not in entry
+        pooled = entry["class_ece_pooled"]
+        assert len(pooled) == STEPS and pooled[:2] == [None, None], method
+        assert all(isinstance(v, float) and 0.0 <= v <= 1.0 for v in pooled[2:]), method
         # nothing is in range before k = 3: no object is known, so there is no class accuracy
         assert entry["mean"]["msde"][:2] == [None, None]
         assert all(v is not None for v in entry["mean"]["msde"][2:])
@@ -153,11 +170,17 @@ def test_study_results_json_is_strict(
 def test_study_results_npz_shapes(two_runs: tuple[subprocess.CompletedProcess[str], Path]) -> None:
     _, out = two_runs
     arrays = read_npz(out)
-    expected = {f"{m}/{k}" for m in METHODS for k in (*METRICS, "step_ms")} | {"seeds"}
+    keys = (*METRICS, "step_ms", "calibration")
+    expected = {f"{m}/{k}" for m in METHODS for k in keys} | {"seeds"}
     assert set(arrays) == expected
-    for key, values in metric_arrays(arrays).items():
-        assert values.shape == (2, ROBOTS, STEPS), key
-        assert values.dtype == np.float64, key
+    for method in METHODS:
+        for metric in METRICS:
+            values = arrays[f"{method}/{metric}"]
+            assert values.shape == (2, ROBOTS, STEPS), (method, metric)
+            assert values.dtype == np.float64, (method, metric)
+        calibration = arrays[f"{method}/calibration"]
+        assert calibration.shape == (2, ROBOTS, STEPS, 3, ECE_BINS), method
+        assert calibration.dtype == np.float64, method
     np.testing.assert_array_equal(arrays["seeds"], [5, 6])
     # local steps every robot's belief separately, centralized steps one belief for all
     assert arrays["local/step_ms"].shape == (2, ROBOTS * STEPS)
@@ -182,6 +205,44 @@ def test_study_json_means_are_npz_means(
             assert_close(got, mean, rtol=0.0, atol=1e-12, what=f"{method}/{metric}")
 
 
+def test_study_pooled_ece_is_the_ece_of_summed_bins(
+    two_runs: tuple[subprocess.CompletedProcess[str], Path],
+) -> None:
+    _, out = two_runs
+    doc, arrays = read_json(out), read_npz(out)
+    for method in METHODS:
+        calibration = arrays[f"{method}/calibration"]
+        # every known object contributes M = 2 marginals per robot, run and step
+        counts = calibration[..., 0, :].sum(axis=-1)
+        assert np.all(counts % 2 == 0) and np.all(counts[:, :, :2] == 0), method
+        # the per-robot class_ece is the ECE of that robot's own bins
+        own = ece_from_stats(calibration)
+        np.testing.assert_array_equal(
+            np.isnan(own), np.isnan(arrays[f"{method}/class_ece"]), err_msg=method
+        )
+        assert_close(
+            own[~np.isnan(own)], arrays[f"{method}/class_ece"][~np.isnan(own)], what=method
+        )
+        # the pooled curve sums bins over runs and robots before dividing
+        pooled = ece_from_stats(calibration.sum(axis=(0, 1)))
+        got = doc["methods"][method]["class_ece_pooled"]
+        assert [v is None for v in got] == np.isnan(pooled).tolist(), method
+        assert_close([v for v in got if v is not None], pooled[2:], what=method)
+
+
+def test_study_step_time_tails_are_npz_percentiles(
+    two_runs: tuple[subprocess.CompletedProcess[str], Path],
+) -> None:
+    _, out = two_runs
+    doc, arrays = read_json(out), read_npz(out)
+    for method in METHODS:
+        ms = arrays[f"{method}/step_ms"].ravel()
+        entry = doc["methods"][method]
+        expected = [*np.percentile(ms, [50, 95, 99]), ms.max()]
+        got = [entry[f"step_ms_{q}"] for q in ("p50", "p95", "p99", "max")]
+        assert_close(got, expected, what=method)
+
+
 def test_study_reruns_are_identical(
     world: Path, tmp_path: Path, two_runs: tuple[subprocess.CompletedProcess[str], Path]
 ) -> None:
@@ -189,7 +250,7 @@ def test_study_reruns_are_identical(
     study(world, tmp_path / "a", *args)
     study(world, tmp_path / "b", *args)
     a, b = metric_arrays(read_npz(tmp_path / "a")), metric_arrays(read_npz(tmp_path / "b"))
-    assert set(a) == {f"{m}/{k}" for m in METHODS for k in METRICS}
+    assert set(a) == {f"{m}/{k}" for m in METHODS for k in (*METRICS, "calibration")}
     both = metric_arrays(read_npz(two_runs[1]))
     for key in a:
         np.testing.assert_array_equal(a[key], b[key], err_msg=key)
@@ -233,6 +294,99 @@ def test_run_single_one_robot_local_equals_centralized() -> None:
         local, central = result.metrics["local"][metric], result.metrics["centralized"][metric]
         assert local.shape == (1, STEPS), metric
         np.testing.assert_array_equal(local, central, err_msg=metric)
+
+
+def test_run_single_sums_every_fusion_report_of_the_fleets(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # The fleets' empty joins and rebuilds are whatever RobotNode's FusionStats report: here a
+    # fake two empty joins and one rebuild per integration, tallied per fusion mode.
+    reported = {"consistent": [0, 0], "double_count": [0, 0]}
+    integrate = RobotNode.integrate_pending
+
+    def counting(node: RobotNode) -> FusionStats:
+        stats = integrate(node)
+        reported[node.distributed.fusion][0] += 2
+        reported[node.distributed.fusion][1] += 1
+        return dataclasses.replace(
+            stats, empty_joins=stats.empty_joins + 2, rebuilds=stats.rebuilds + 1
+        )
+
+    monkeypatch.setattr(RobotNode, "integrate_pending", counting)
+    scenario = parse_scenario(scenario_text(ROBOTS), "tiny.toml")
+    methods = ["local", "distributed", "double_count"]
+    result = run_single(scenario, methods, 5, BeliefConfig())
+    doc = summarise("tiny", [result, result], methods)
+    for method, fusion in (("distributed", "consistent"), ("double_count", "double_count")):
+        joins, rebuilds = result.empty_joins[method], result.rebuilds[method]
+        assert len(joins) == len(rebuilds) == ROBOTS * STEPS == len(result.step_ms[method])
+        assert [sum(joins), sum(rebuilds)] == reported[fusion] != [0, 0], method
+        entry = doc["methods"][method]
+        assert (entry["empty_joins"], entry["rebuilds"]) == (2 * sum(joins), 2 * sum(rebuilds))
+    assert "local" not in result.empty_joins and "empty_joins" not in doc["methods"]["local"]
+
+
+def test_table_steps_end_at_the_last_step() -> None:
+    assert table_steps(60) == [15, 30, 45, 60]
+    assert table_steps(20) == [5, 10, 15, 20]
+    assert table_steps(STEPS) == [3, 6, 9, 12]
+    assert table_steps(50) == [13, 25, 38, 50]
+    assert table_steps(2) == [1, 2]
+    assert table_steps(1) == [1]
+
+
+def _doc(steps: int) -> dict[str, Any]:
+    """A results.json document of a ``steps``-step world: local, and a fleet method with every
+    figure the cost table shows."""
+    curve: list[float | None] = [None] + [0.5] * (steps - 1)
+    entry: dict[str, Any] = {
+        "mean": {m: curve for m in METRICS},
+        "class_ece_pooled": [None] + [0.125] * (steps - 1),
+        "wall_s": 1.0,
+        **{f"step_ms_{q}": v for q, v in (("p50", 1.0), ("p95", 2.0), ("p99", 3.0), ("max", 4.0))},
+    }
+    fleet = {
+        **entry,
+        **{
+            f"fusion_ms_{q}": v for q, v in (("p50", 0.1), ("p95", 0.2), ("p99", 0.3), ("max", 0.4))
+        },
+        "stack_bytes_mean": 10.0,
+        "stack_bytes_max": 20,
+        "stacks_delivered": 2,
+        "empty_joins": 7,
+        "rebuilds": 1234,
+    }
+    return {
+        "scenario": "w",
+        "runs": 2,
+        "steps": steps,
+        "methods": {"local": entry, "distributed": fleet},
+    }
+
+
+def test_render_summary_on_a_20_step_world() -> None:
+    console = Console(record=True, width=250)
+    render_summary(_doc(20), console)
+    text = console.export_text()
+    assert [f"k = {k}" in text for k in (5, 10, 15, 20)] == [True] * 4
+    assert "k = 30" not in text and "k = 60" not in text
+    lines = text.splitlines()
+    ece_rows = [line for line in lines if "class_ece_pooled" in line]
+    assert len(ece_rows) == 2 and all(line.count("0.125") == 4 for line in ece_rows)
+    local = next(line for line in lines if "1.00 / 2.00" in line and "local" in line)
+    assert "1.00 / 2.00 / 3.00 / 4.00" in local and local.count("—") == 4
+    fleet = next(line for line in lines if "1,234" in line)
+    assert "0.10 / 0.20 / 0.30 / 0.40" in fleet and "10 / 20" in fleet
+    assert fleet.split("│")[-3].strip() == "7"
+
+
+def test_render_summary_without_pooled_ece_shows_dashes() -> None:
+    doc = _doc(8)
+    del doc["methods"]["local"]["class_ece_pooled"]
+    console = Console(record=True, width=250)
+    render_summary(doc, console, [4, 8])
+    row = next(line for line in console.export_text().splitlines() if "class_ece_pooled" in line)
+    assert row.count("—") == 2
 
 
 def test_run_single_rejects_unknown_method() -> None:
