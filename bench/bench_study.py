@@ -95,14 +95,17 @@ def run() -> list[Result]:
     )
     for method in ("distributed", "double_count"):
         entry = doc["methods"][method]
-        step = float(np.median(np.concatenate([r.step_ms[method] for r in results])))
+        step = entry["step_ms_p50"]
         met = "met" if step <= TARGET_STEP_MS else "NOT met"
         rows.append(
             Result(
                 f"{method} robot step (fusion + D)",
                 len(results) * s.steps * len(s.robots),
                 step,
-                note=f"median; fusion {entry['fusion_ms_median']:.1f} ms; stack bytes mean "
+                note=f"median; p95 / p99 / max {entry['step_ms_p95']:.1f} / "
+                f"{entry['step_ms_p99']:.1f} / {entry['step_ms_max']:.1f} ms; fusion p50 / p99 "
+                f"{entry['fusion_ms_p50']:.1f} / {entry['fusion_ms_p99']:.1f} ms; empty joins "
+                f"{entry['empty_joins']}, rebuilds {entry['rebuilds']}; stack bytes mean "
                 f"{entry['stack_bytes_mean']:,.0f}, max {entry['stack_bytes_max']:,}; "
                 f"target ≤ {TARGET_STEP_MS:g} ms {met}",
             )
@@ -114,7 +117,9 @@ def run() -> list[Result]:
         robot = np.nanmean([r.metrics[method]["robot_nees"][:, -1] for r in results], axis=0)
         objects = np.nanmean([r.metrics[method]["object_nees"][:, -1] for r in results], axis=0)
         _notes.append(
-            f"{method} at k = {s.steps}: MSDE {curves['msde'][-1]:.4f}, robot error "
+            f"{method} at k = {s.steps}: MSDE {curves['msde'][-1]:.4f}, class log-loss "
+            f"{curves['class_log_loss'][-1]:.4f}, pooled ECE "
+            f"{doc['methods'][method]['class_ece_pooled'][-1]:.4f}, robot error "
             f"{curves['robot_error'][-1]:.3f} m, object error {curves['object_error'][-1]:.3f} m, "
             f"√det robot {curves['robot_sqrt_det'][-1]:.4f}, objects "
             f"{curves['object_sqrt_det'][-1]:.4f}; ANEES robot per robot "
