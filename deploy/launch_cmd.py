@@ -85,8 +85,7 @@ def write_outputs(
     doc = summarise(s.name, [outcome.result], methods, extra)
     write_results(plan.out, doc, [outcome.result], methods)
     steps = min(s.steps, plan.steps or s.steps)
-    at = sorted({max(1, steps // 4), max(1, steps // 2), max(1, 3 * steps // 4), steps})
-    render_summary(doc, console, at)
+    render_summary(doc, console)
     plots = write_plots(plan.out, doc, s, [outcome.result], steps, plan.robots[0])
     console.print(f"wrote {plan.out / 'results.json'} and {len(plots)} plots in {plan.out}")
     return doc
