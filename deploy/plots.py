@@ -122,9 +122,9 @@ def plot_reliability(ax: Axes, ax_counts: Axes, stats: dict[str, np.ndarray], ti
     against the observed frequency of the class in every non-empty bin, over the diagonal of
     perfect calibration; ``ax_counts`` shows the marginals per bin (log scale). ``stats`` maps
     method → pooled bin statistics (3, bins) (``estimator.metrics.calibration_stats``)."""
-    from estimator.metrics import ece_from_stats
+    from estimator.metrics import ECE_BINS, ece_from_stats
 
-    bins = next(iter(stats.values())).shape[-1] if stats else 10
+    bins = next(iter(stats.values())).shape[-1] if stats else ECE_BINS
     width = 1.0 / bins / max(1, len(stats))
     ax.plot([0, 1], [0, 1], color="grey", lw=1, ls="--", label="calibrated")
     for n, (method, st) in enumerate(stats.items()):
