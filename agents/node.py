@@ -120,6 +120,7 @@ class RobotNode:
         self._rng_distributed = rng_distributed
         self._encoded: bytes | None = None
         self._own_slot_stale = False
+        self._rebuild_due = False
 
     @property
     def local(self) -> HybridBelief:
@@ -158,12 +159,18 @@ class RobotNode:
 
     def on_frame(self, frame: SensorFrame) -> StepReport:
         """One robot step: integrate changed slots into D, local step on L and on D, rebuild the
-        own slot from L (never from D)."""
+        own slot from L (never from D). If a slot could not be joined with D, D is rebuilt from L
+        and every held slot once both have taken the step."""
         if frame.robot != self.robot:
             raise ValueError(f"node {self.robot} got a frame of {frame.robot}")
         fusion = self.integrate_pending()
         self.track.advance(frame)
         self.distributed.step([frame], self._rng_distributed)
+        if self._rebuild_due:
+            rebuilt = self.rebuild()
+            fusion = replace(
+                fusion, empty_joins=fusion.empty_joins + rebuilt.empty_joins, rebuilds=1
+            )
         self.k = frame.k
         self.position = (float(frame.true_pose[0]), float(frame.true_pose[1]))
         # The own slot is rebuilt from L lazily, when a stack is next needed.
@@ -175,16 +182,23 @@ class RobotNode:
         """Integrate into D every slot of the stack newer than the version D used (also done by
         ``on_frame``; shells call it first to time the fusion on its own).
 
-        If a slot's join with D is empty (D pruned a class combination the slot needs), D is
-        rebuilt from L and every held slot, so no peer's information is lost; both are counted.
+        A slot whose join with D is empty (D pruned a class combination the slot needs) is counted
+        and makes the next ``on_frame`` rebuild D, so that no peer's information is lost.
         """
         incoming = self._checked(self.stack.newer_than(self.distributed.stamps, own=self.robot))
         # D is stepped right after (on_frame), which updates iSAM2 again: no settling here.
         stats = self.distributed.integrate(incoming, settle=False)
         if stats.empty_joins and self.distributed.fusion == "consistent":
-            held = self._checked(self.stack.newer_than({}, own=self.robot))
-            rebuilt = self.distributed.rebuild(self.local, held, settle=False)
-            stats = replace(rebuilt, empty_joins=stats.empty_joins + rebuilt.empty_joins)
+            self._rebuild_due = True
+        self.counters.empty_joins += stats.empty_joins
+        return stats
+
+    def rebuild(self) -> FusionStats:
+        """Make D anew from L and the newest held version of every other robot's slot (L and D
+        must be at the same step)."""
+        held = self._checked(self.stack.newer_than({}, own=self.robot))
+        stats = self.distributed.rebuild(self.local, held)
+        self._rebuild_due = False
         self.counters.empty_joins += stats.empty_joins
         self.counters.rebuilds += stats.rebuilds
         if stats.skipped:

@@ -9,10 +9,18 @@ import os
 import sys
 import time
 
-from bench import Result, bench_agents, bench_belief, bench_models, bench_study, bench_ufastslam
+from bench import (
+    Result,
+    bench_agents,
+    bench_belief,
+    bench_crowd,
+    bench_models,
+    bench_study,
+    bench_ufastslam,
+)
 
 # The study last: it takes the longest and wants a machine the other benchmarks left alone.
-MODULES = (bench_models, bench_belief, bench_ufastslam, bench_agents, bench_study)
+MODULES = (bench_models, bench_belief, bench_crowd, bench_ufastslam, bench_agents, bench_study)
 
 _HEADER = ("benchmark", "N", "ms", "baseline ms", "speed-up", "throughput /s", "note")
 

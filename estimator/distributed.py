@@ -189,9 +189,11 @@ class DistributedBelief(HybridBelief):
         (an empty join) can only come back from the undivided pieces, L and the slots. The
         integration that follows is the one of a D that received all held slots at once.
         """
-        if local.robots != [self.owner]:
-            raise ValueError(f"D of {self.owner} cannot be rebuilt from a belief of {local.robots}")
-        self.step_of = dict(local.step_of)
+        if local.robots != [self.owner] or local.step_of != self.step_of:
+            raise ValueError(
+                f"D of {self.owner} at {self.step_of} cannot be rebuilt from a belief of "
+                f"{local.robots} at {local.step_of}"
+            )
         self.object_ids = list(local.object_ids)
         self._object_index = {j: i for i, j in enumerate(self.object_ids)}
         self.hypotheses = [

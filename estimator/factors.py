@@ -6,6 +6,7 @@ hold several trajectories) and objects ``object_key(j)`` with the global object 
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable
 
@@ -73,9 +74,8 @@ def semantic_factor(
     Σ_c varies with ψ is linearised at the viewpoint of the first estimate.
     """
     z = np.asarray(z_sem, dtype=float).copy()
-    noise = gtsam.noiseModel.Gaussian.Covariance(model.cov(c, psi0))
-
     if isinstance(model, AliasedClassifier):
+        noise = _aliased_noise(model)
         # h_c(ψ) = blur + s(ψ)·sharp, s = ½(1 + cos(ψ − b)): constants bound once per factor.
         blur, sharp, best = model.components(c)
         blur_minus_z = blur - z
@@ -87,6 +87,7 @@ def semantic_factor(
             return (-0.5 * math.sin(psi - best)) * sharp
 
     else:
+        noise = gtsam.noiseModel.Gaussian.Covariance(model.cov(c, psi0))
 
         def residual(psi: float) -> Array:
             return np.asarray(model.mean(c, psi) - z)
@@ -96,6 +97,12 @@ def semantic_factor(
 
     callback = _semantic_callback(x_key, o_key, residual, slope)
     return gtsam.CustomFactor(noise, gtsam.KeyVector([x_key, o_key]), callback)
+
+
+@functools.lru_cache(maxsize=64)
+def _aliased_noise(model: AliasedClassifier) -> gtsam.noiseModel.Base:
+    """The aliased model's Σ is one matrix for every class and viewpoint: one noise model."""
+    return gtsam.noiseModel.Gaussian.SqrtInformation(np.array(model.sqrt_info))
 
 
 def _semantic_callback(

@@ -496,7 +496,7 @@ class HybridBelief:
             rows.append(row)
             rhs.append(b)
         joint = h.isam.jointMarginalInformation(gtsam.KeyVector(keys))
-        info = np.block([[joint.at(ki, kj) for kj in keys] for ki in keys])
+        info = np.asarray(joint.fullMatrix())  # blocks in the order of ``keys``
         lin = np.array([h.pose(key) for key in keys])
         g = InvolvedGaussian(
             lin, info, np.vstack(rows), np.concatenate(rhs), len(detections) * self._geo_log_norm

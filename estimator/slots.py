@@ -45,7 +45,7 @@ def _prior_divided_marginal(
 ) -> tuple[Array, Array, Array]:
     keys = [object_key(j) for j in ids]
     joint = h.isam.jointMarginalInformation(gtsam.KeyVector(keys))
-    info = np.block([[joint.at(ki, kj) for kj in keys] for ki in keys])
+    info = np.asarray(joint.fullMatrix())  # blocks in the order of ``keys``
     delta = h.isam.getDelta()
     mean = np.concatenate([delta.at(k) for k in keys])
     eta = info @ mean

@@ -17,6 +17,7 @@ from scipy.linalg import solve_triangular
 from scipy.special import logsumexp
 
 from estimator.models import ClassifierModel, se2, viewpoint
+from estimator.models.classifier import all_log_likelihoods
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -68,12 +69,7 @@ def _retract_samples(lin: Array, delta: Array) -> Array:
 def semantic_log_likelihoods(model: ClassifierModel, poses: Array, terms: SemanticTerms) -> Array:
     """log P(z_d | poses, c) for every sample, detection and class: poses (S, v, 3) → (S, D, M)."""
     psi = viewpoint(poses[:, terms.robot_var, :], poses[:, terms.object_var, :])  # (S, D)
-    m = model.num_classes
-    out = np.empty((*psi.shape, m))
-    for d in range(psi.shape[1]):
-        for c in range(m):
-            out[:, d, c] = model.log_likelihood(terms.z[d], c, psi[:, d])
-    return out
+    return all_log_likelihoods(model, np.asarray(terms.z, dtype=float), psi)
 
 
 def assignment_log_means(log_lik: Array, assignments: IntArray) -> Array:

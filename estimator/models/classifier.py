@@ -160,6 +160,18 @@ class AliasedClassifier:
         white = r @ self.sqrt_info.T
         return np.asarray(-0.5 * np.sum(white * white, axis=-1) + self._log_norm)
 
+    def log_likelihoods(self, z: Array, psi: Array) -> Array:
+        """log N(z_d; h_c(ψ), Σ) for every detection and class at once: z (D, dim), ψ (S, D) →
+        (S, D, M). With a = R(z − blur_c) and b = R·sharp_c the whitened residual is a − s_c(ψ)·b,
+        so ‖·‖² = a·a − 2 s a·b + s² b·b needs only the (S, D, M) sharpness per sample."""
+        a = (z[:, None, :] - self._blur[None, :, :]) @ self.sqrt_info.T  # (D, M, dim)
+        b = self._sharp @ self.sqrt_info.T  # (M, dim)
+        aa = np.einsum("dci,dci->dc", a, a)
+        ab = np.einsum("dci,ci->dc", a, b)
+        bb = np.einsum("ci,ci->c", b, b)
+        s = 0.5 * (1.0 + np.cos(psi[:, :, None] - np.asarray(self.best_view)[None, None, :]))
+        return np.asarray(-0.5 * (aa - 2.0 * s * ab + s * s * bb) + self._log_norm)
+
     @classmethod
     def random(
         cls, num_classes: int, rng: np.random.Generator, noise_std: float = 0.35
@@ -182,6 +194,18 @@ PAPER_SQRT_INFO = np.array([[1.5, -0.75], [0.0, 1.5]])
 def paper_classifier() -> AliasedClassifier:
     """The paper's crafted two-class model (design doc §1)."""
     return AliasedClassifier((1, 0), (math.pi / 2, math.pi / 2), PAPER_SQRT_INFO)
+
+
+def all_log_likelihoods(model: ClassifierModel, z: Array, psi: Array) -> Array:
+    """log P(z_d | c, ψ_sd) for every sample, detection and class: z (D, dim), ψ (S, D) →
+    (S, D, M); vectorised over classes where the model offers it (``log_likelihoods``)."""
+    if isinstance(model, AliasedClassifier):
+        return model.log_likelihoods(z, psi)
+    out = np.empty((*psi.shape, model.num_classes))
+    for d in range(psi.shape[1]):
+        for c in range(model.num_classes):
+            out[:, d, c] = model.log_likelihood(z[d], c, psi[:, d])
+    return out
 
 
 @dataclass(frozen=True)
