@@ -253,6 +253,14 @@ def write_plots(
     return written
 
 
+# Named hypothesis managements (docs/estimator.md): the default, the paper's, none.
+HYPOTHESIS_MANAGEMENT = {
+    "marginal": BeliefConfig,
+    "paper": BeliefConfig.paper,
+    "exact": BeliefConfig.exact,
+}
+
+
 def run(args: argparse.Namespace, console: Console) -> int:
     scenario = scenario_from_args(args)
     robot = args.snapshot_robot or scenario.robot_ids[0]
@@ -261,9 +269,10 @@ def run(args: argparse.Namespace, console: Console) -> int:
     step = scenario.steps if args.snapshot_step is None else args.snapshot_step
     if not 1 <= step <= scenario.steps:
         raise ScenarioError(f"--snapshot-step: {step} is outside 1..{scenario.steps}")
-    config = BeliefConfig(
-        weight_estimator=args.weights, num_samples=args.samples, max_hypotheses=args.max_hypotheses
-    )
+    changes = {"weight_estimator": args.weights, "num_samples": args.samples}
+    if args.max_hypotheses is not None:
+        changes["max_hypotheses"] = args.max_hypotheses
+    config = HYPOTHESIS_MANAGEMENT[args.hypotheses](**changes)
     if args.seed + args.runs - 1 > MAX_SEED:
         raise ValueError(f"--seed {args.seed} with --runs {args.runs} runs past the largest seed")
     seeds = [args.seed + i for i in range(args.runs)]
@@ -271,7 +280,7 @@ def run(args: argparse.Namespace, console: Console) -> int:
     console.print(
         f"study: {scenario.name}, methods {', '.join(args.methods)}, {args.runs} runs "
         f"(seeds {seeds[0]}..{seeds[-1]}), {args.jobs} jobs, weights {args.weights}, "
-        f"communication {comm}"
+        f"hypotheses {args.hypotheses}, communication {comm}"
     )
     columns = (
         TextColumn("{task.description}"),
@@ -283,7 +292,12 @@ def run(args: argparse.Namespace, console: Console) -> int:
         results = run_study(
             scenario, args.methods, seeds, config, args.jobs, step, progress, args.comm
         )
-    extra = {"weight_estimator": args.weights, "communication": comm}
+    extra = {
+        "weight_estimator": args.weights,
+        "hypotheses": args.hypotheses,
+        "max_hypotheses": config.max_hypotheses,
+        "communication": comm,
+    }
     doc = summarise(scenario.name, results, args.methods, extra)
     out = Path(args.out)
     write_results(out, doc, results, args.methods)
@@ -319,7 +333,20 @@ def add_parser(sub: Any) -> None:
         "(scenario's range, 10 m in paper) or both (default: the scenario's mode)",
     )
     p.add_argument("--samples", type=positive_int, default=BeliefConfig().num_samples)
-    p.add_argument("--max-hypotheses", type=positive_int, default=BeliefConfig().max_hypotheses)
+    p.add_argument(
+        "--hypotheses",
+        choices=tuple(HYPOTHESIS_MANAGEMENT),
+        default="marginal",
+        help="hypothesis management: marginal (default), paper (joint ratio 1/150, to replicate "
+        "the paper) or exact (no pruning, small worlds only)",
+    )
+    p.add_argument(
+        "--max-hypotheses",
+        type=positive_int,
+        default=None,
+        help=f"cap on hypotheses per belief (default {BeliefConfig().max_hypotheses}; "
+        f"{BeliefConfig.exact().max_hypotheses} with --hypotheses exact)",
+    )
     p.add_argument(
         "--snapshot-step",
         type=int,

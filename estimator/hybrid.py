@@ -31,9 +31,8 @@ from estimator.summary import Realisation
 from estimator.weights import (
     WEIGHT_ESTIMATORS,
     InvolvedGaussian,
-    SampledEvidence,
     SemanticTerms,
-    geo_conditioned_samples,
+    geo_conditioned_batch,
     paper_mc_samples,
 )
 
@@ -172,6 +171,20 @@ class StepStats:
     parents: int
     children: int
     kept: int
+
+
+# Parents whose weight integrals are vectorised together: at most this many (sample, detection,
+# class) log-likelihoods at once (8 bytes each), so that memory stays bounded whatever the step.
+_EVIDENCE_CHUNK = 2_000_000
+
+
+@dataclass(frozen=True, slots=True)
+class _Evidence:
+    """What branching needs of the parents' weight integrals (see ``HybridBelief._reduce``)."""
+
+    acc: Array
+    marg: Array
+    lt: Array
 
 
 @dataclass(frozen=True, slots=True)
@@ -330,8 +343,8 @@ class HybridBelief:
             self.step_of[f.robot] = f.k
         if not detections:
             return StepStats(len(parents), len(parents), len(parents))
-        evidence = [self._log_evidence(h, detections, rng) for h in parents]
-        beam = self._branch(parents, evidence, detections, new_ids)
+        evidence = self._evidence(parents, detections, new_ids, rng)
+        beam = self._branch(parents, evidence, new_ids)
         for j in new_ids:
             self._object_index[j] = len(self.object_ids)
             self.object_ids.append(j)
@@ -339,21 +352,52 @@ class HybridBelief:
         self._normalise()
         return StepStats(len(parents), beam.weighed, len(self.hypotheses))
 
-    def _branch(
+    def _evidence(
         self,
         parents: Sequence[Hypothesis],
-        evidence: Sequence[SampledEvidence],
         detections: Sequence[tuple[SensorFrame, Detection]],
         new_ids: Sequence[int],
-    ) -> _Beam:
-        """Children of every parent over the classes of the new objects (Eq. 6), assigned one
-        object at a time and pruned between objects, so that a step's cost grows linearly with the
-        number of new objects instead of as M^|new|.
+        rng: np.random.Generator,
+    ) -> _Evidence:
+        """The weight integral of every parent's children (Eq. 6), reduced to what branching
+        needs; the parents are evaluated in chunks, vectorised within a chunk."""
+        terms = self._semantic_terms(detections)
+        per_parent = len(detections) * self.config.num_samples * self.model.num_classes
+        size = max(1, _EVIDENCE_CHUNK // max(per_parent, 1))
+        parts = []
+        for start in range(0, len(parents), size):
+            chunk = parents[start : start + size]
+            gs = [self._involved(h, detections) for h in chunk]
+            if self.config.weight_estimator == "geo_conditioned":
+                base, log_lik = geo_conditioned_batch(
+                    gs, terms, self.model.classifier, self.config.num_samples, rng
+                )
+            else:
+                z_geo = np.array([d.z_geo for _, d in detections])
+                geo_terms = (terms.robot_var, terms.object_var, z_geo, self._geo_cov)
+                evs = [
+                    paper_mc_samples(
+                        g, terms, geo_terms, self.model.classifier, self.config.num_samples, rng
+                    )
+                    for g in gs
+                ]
+                base = np.stack([ev.base for ev in evs])
+                log_lik = np.stack([ev.log_lik for ev in evs])
+            parts.append(self._reduce(chunk, base, log_lik, detections, new_ids))
+        return _Evidence(*(np.concatenate(arrays) for arrays in zip(*parts, strict=True)))
 
-        A partial child's weight has the classes of the objects not yet assigned summed out under
-        their prior, with the same Monte Carlo samples as its completions: it is exactly the sum of
-        its completions' weights, so pruning a partial child prunes nothing it would have kept
-        for a reason the full children could reverse."""
+    def _reduce(
+        self,
+        parents: Sequence[Hypothesis],
+        base: Array,
+        log_lik: Array,
+        detections: Sequence[tuple[SensorFrame, Detection]],
+        new_ids: Sequence[int],
+    ) -> tuple[Array, Array, Array]:
+        """Per-sample evidence of each parent for :meth:`_branch`: base (P, S) and semantic
+        log-likelihoods (P, S, D, M) → ``acc`` (P, S) with every new object's class summed out
+        under its prior, ``marg`` (P, T, S) those sums per new object, and ``lt`` (P, T, M, S)
+        Σ log P(z_d | c) over each new object's detections."""
         log_prior = self._log_prior
         new_col = {j: t for t, j in enumerate(new_ids)}
         dets_of: list[list[int]] = [[] for _ in new_ids]
@@ -365,20 +409,36 @@ class HybridBelief:
             else:
                 old_cols.append(col)
                 old_index.append(self._object_index[d.object_id])
-        samples = len(evidence[0].base)
-        acc = np.empty((len(parents), samples))
-        # marg[p, t] (S,): log Σ_c P(c) Π_{d of new object t} P(z_d | c), per sample.
-        marg = np.empty((len(parents), len(new_ids), samples))
-        for p, (h, ev) in enumerate(zip(parents, evidence, strict=True)):
-            if len(ev.base) != samples:
-                raise ValueError("parents of one step must draw the same number of samples")
-            acc[p] = ev.base
-            if old_cols:
-                cls = np.array([h.classes[i] for i in old_index], dtype=np.int64)
-                acc[p] += ev.log_lik[:, old_cols, cls].sum(axis=1)
-            for t, cols in enumerate(dets_of):
-                marg[p, t] = logsumexp(log_prior + ev.log_lik[:, cols, :].sum(axis=1), axis=1)
-            acc[p] += marg[p].sum(axis=0)
+        p, samples = base.shape
+        acc = np.array(base, dtype=float)
+        if old_cols:
+            cls = np.array([[h.classes[i] for i in old_index] for h in parents], dtype=np.int64)
+            picked = np.take_along_axis(log_lik[:, :, old_cols, :], cls[:, None, :, None], axis=3)
+            acc += picked[..., 0].sum(axis=2)
+        m = self.model.num_classes
+        lt = np.empty((p, len(new_ids), m, samples))
+        marg = np.empty((p, len(new_ids), samples))
+        for t, cols in enumerate(dets_of):
+            summed = log_lik[:, :, cols, :].sum(axis=2)  # (P, S, M)
+            lt[:, t] = np.swapaxes(summed, 1, 2)
+            marg[:, t] = logsumexp(summed + log_prior, axis=2)
+        acc += marg.sum(axis=1)
+        return acc, marg, lt
+
+    def _branch(
+        self, parents: Sequence[Hypothesis], evidence: _Evidence, new_ids: Sequence[int]
+    ) -> _Beam:
+        """Children of every parent over the classes of the new objects (Eq. 6), assigned one
+        object at a time and pruned between objects, so that a step's cost grows linearly with the
+        number of new objects instead of as M^|new|.
+
+        A partial child's weight has the classes of the objects not yet assigned summed out under
+        their prior, with the same Monte Carlo samples as its completions: it is exactly the sum of
+        its completions' weights, so pruning a partial child prunes nothing it would have kept
+        for a reason the full children could reverse."""
+        log_prior = self._log_prior
+        acc, marg, lt_all = evidence.acc, evidence.marg, evidence.lt
+        samples = acc.shape[1]
         parent_lw = np.array([h.log_weight for h in parents])
         parent_cls = np.array([h.classes for h in parents], dtype=np.int64).reshape(
             len(parents), len(self.object_ids)
@@ -394,9 +454,9 @@ class HybridBelief:
         if not new_ids:
             return beam.keep(self._select(beam.log_weight, parent_cls))
         m = self.model.num_classes
-        for t, cols in enumerate(dets_of):
-            lt = np.stack([ev.log_lik[:, cols, :].sum(axis=1).T for ev in evidence])  # (P, M, S)
-            grown = beam.acc[:, None, :] - marg[beam.parent, t][:, None, :] + lt[beam.parent]
+        for t in range(len(new_ids)):
+            lt = lt_all[beam.parent, t]  # (K, M, S)
+            grown = beam.acc[:, None, :] - marg[beam.parent, t][:, None, :] + lt
             grown = np.where(np.isnan(grown), -np.inf, grown)  # −inf − (−inf): a dead sample
             prior = beam.log_prior[:, None] + log_prior[None, :]
             lw = parent_lw[beam.parent][:, None] + prior + logsumexp(grown, axis=2)
@@ -464,32 +524,37 @@ class HybridBelief:
         h.isam.update(graph, values)
         h.estimate = h.isam.calculateEstimate()
 
-    def _log_evidence(
-        self,
-        h: Hypothesis,
-        detections: Sequence[tuple[SensorFrame, Detection]],
-        rng: np.random.Generator,
-    ) -> SampledEvidence:
-        """The per-sample pieces of Δ log w of ``h``'s children (see ``SampledEvidence``)."""
-        keys: list[int] = []
+    def _semantic_terms(self, detections: Sequence[tuple[SensorFrame, Detection]]) -> SemanticTerms:
+        """The step's semantic measurements, indexed like :meth:`_involved`'s variables."""
         index: dict[int, int] = {}
+        robot_var: list[int] = []
+        object_var: list[int] = []
+        for f, d in detections:
+            for key, out in (
+                (self.pose_key(f.robot, f.k), robot_var),
+                (object_key(d.object_id), object_var),
+            ):
+                out.append(index.setdefault(key, len(index)))
+        z = np.array([d.z_sem for _, d in detections])
+        return SemanticTerms(np.array(robot_var), np.array(object_var), z)
 
-        def var(key: int) -> int:
-            if key not in index:
-                index[key] = len(keys)
-                keys.append(key)
-            return index[key]
-
-        robot_var, object_var, rows, rhs = [], [], [], []
+    def _involved(
+        self, h: Hypothesis, detections: Sequence[tuple[SensorFrame, Detection]]
+    ) -> InvolvedGaussian:
+        """``h``'s propagated belief over the involved variables (this step's robot poses and the
+        detected objects, in order of first appearance) and the linearised geometric factors."""
+        keys: list[int] = []
+        for f, d in detections:
+            for key in (self.pose_key(f.robot, f.k), object_key(d.object_id)):
+                if key not in keys:
+                    keys.append(key)
+        n = 3 * len(keys)
+        rows, rhs = [], []
         for f, d in detections:
             xk, oj = self.pose_key(f.robot, f.k), object_key(d.object_id)
-            robot_var.append(var(xk))
-            object_var.append(var(oj))
-        n = 3 * len(keys)
-        for (_, d), rv, ov in zip(detections, robot_var, object_var, strict=True):
-            xk, oj = keys[rv], keys[ov]
             factor = gtsam.BetweenFactorPose2(xk, oj, gtsam.Pose2(*d.z_geo), self._geometric_noise)
             a, b = factor.linearize(h.estimate).jacobian()
+            rv, ov = keys.index(xk), keys.index(oj)
             row = np.zeros((3, n))
             row[:, 3 * rv : 3 * rv + 3] = a[:, :3]
             row[:, 3 * ov : 3 * ov + 3] = a[:, 3:6]
@@ -498,18 +563,9 @@ class HybridBelief:
         joint = h.isam.jointMarginalInformation(gtsam.KeyVector(keys))
         info = np.asarray(joint.fullMatrix())  # blocks in the order of ``keys``
         lin = np.array([h.pose(key) for key in keys])
-        g = InvolvedGaussian(
+        return InvolvedGaussian(
             lin, info, np.vstack(rows), np.concatenate(rhs), len(detections) * self._geo_log_norm
         )
-        terms = SemanticTerms(
-            np.array(robot_var), np.array(object_var), np.array([d.z_sem for _, d in detections])
-        )
-        cfg = self.config
-        if cfg.weight_estimator == "geo_conditioned":
-            return geo_conditioned_samples(g, terms, self.model.classifier, cfg.num_samples, rng)
-        z_geo = np.array([d.z_geo for _, d in detections])
-        geo_terms = (terms.robot_var, terms.object_var, z_geo, self._geo_cov)
-        return paper_mc_samples(g, terms, geo_terms, self.model.classifier, cfg.num_samples, rng)
 
     def _select(self, log_weights: Array, classes: IntArray) -> IntArray:
         """Indices of the candidates to keep (``estimator.pruning.select``): log-weights (K,) of

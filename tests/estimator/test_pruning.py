@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from scipy.special import logsumexp
 
-from estimator.hybrid import BeliefConfig, BeliefModel, HybridBelief
+from estimator.hybrid import BeliefConfig, BeliefModel, HybridBelief, _Beam, _Evidence
 from estimator.models import GaussianNoise
 from estimator.models.classifier import AliasedClassifier
 from estimator.pruning import PruningRule, class_marginals, select
@@ -112,6 +112,19 @@ def _synthetic_step(
     return hyps, evidence, detections, list(dict.fromkeys(new))
 
 
+def _branch(
+    belief: HybridBelief,
+    hyps: list[SimpleNamespace],
+    evidence: list[SampledEvidence],
+    detections: list,
+    new_ids: list[int],
+) -> _Beam:
+    base = np.stack([ev.base for ev in evidence])
+    log_lik = np.stack([ev.log_lik for ev in evidence])
+    reduced = _Evidence(*belief._reduce(hyps, base, log_lik, detections, new_ids))  # type: ignore[arg-type]
+    return belief._branch(hyps, reduced, new_ids)  # type: ignore[arg-type]
+
+
 @pytest.mark.parametrize(
     ("prior", "new", "seed"),
     [
@@ -126,7 +139,7 @@ def test_branch_without_pruning_equals_enumeration(
     belief = _belief(prior, BeliefConfig.exact())
     rng = np.random.default_rng(seed)
     hyps, evidence, detections, new_ids = _synthetic_step(belief, rng, 3, 2, new)
-    beam = belief._branch(hyps, evidence, detections, new_ids)  # type: ignore[arg-type]
+    beam = _branch(belief, hyps, evidence, detections, new_ids)
     m = len(prior)
     log_prior = np.log(prior)
     expected = {}
@@ -155,7 +168,7 @@ def test_branch_partial_weight_is_the_sum_of_its_completions() -> None:
     belief = _belief((0.6, 0.3, 0.1), BeliefConfig.exact())
     rng = np.random.default_rng(7)
     hyps, evidence, detections, new_ids = _synthetic_step(belief, rng, 2, 1, [1, 2])
-    full = belief._branch(hyps, evidence, detections, new_ids)  # type: ignore[arg-type]
+    full = _branch(belief, hyps, evidence, detections, new_ids)
     # Σ over object 2's classes of the children's weights = the weight with object 2 summed out
     # under its prior, evaluated directly on the same samples.
     for p, ev in enumerate(evidence):
@@ -179,7 +192,7 @@ def test_branch_cost_grows_linearly_with_new_objects() -> None:
     belief = _belief((0.1,) * 10, BeliefConfig())
     rng = np.random.default_rng(0)
     hyps, evidence, detections, new_ids = _synthetic_step(belief, rng, 1, 0, list(range(1, 21)))
-    beam = belief._branch(hyps, evidence, detections, new_ids)  # type: ignore[arg-type]
+    beam = _branch(belief, hyps, evidence, detections, new_ids)
     cap = belief.config.max_hypotheses
     assert len(beam.parent) <= cap
     # each of the 20 objects extends at most `cap` partial children by 10 classes
