@@ -474,7 +474,10 @@ class HybridBelief:
                 beam.weighed + k * m,
             )
             full = np.concatenate([parent_cls[beam.parent], beam.classes], axis=1)
-            beam = beam.keep(self._select(beam.log_weight, full))
+            reference = None
+            if t < len(new_ids) - 1:
+                reference = self._greedy_completion(beam, evidence, parent_lw, t)
+            beam = beam.keep(self._select(beam.log_weight, full, reference))
         if len(beam.parent) == 0:
             raise FloatingPointError(
                 "every hypothesis has zero likelihood for this step's measurements"
@@ -567,10 +570,31 @@ class HybridBelief:
             lin, info, np.vstack(rows), np.concatenate(rhs), len(detections) * self._geo_log_norm
         )
 
-    def _select(self, log_weights: Array, classes: IntArray) -> IntArray:
+    def _select(
+        self, log_weights: Array, classes: IntArray, reference: float | None = None
+    ) -> IntArray:
         """Indices of the candidates to keep (``estimator.pruning.select``): log-weights (K,) of
         candidates with class realisations (K, n)."""
-        return select(log_weights, classes, self.model.num_classes, self.config.rule())
+        rule = self.config.rule()
+        return select(log_weights, classes, self.model.num_classes, rule, reference)
+
+    def _greedy_completion(
+        self, beam: _Beam, evidence: _Evidence, parent_lw: Array, t: int
+    ) -> float:
+        """The log-weight of one full child: the heaviest partial child after object ``t``,
+        completed with each remaining object's most probable class on its own. Every full child
+        the ratio rule keeps is within the ratio of the heaviest full child, hence of this one's
+        lower bound."""
+        b = int(np.argmax(beam.log_weight))
+        p = int(beam.parent[b])
+        rest = evidence.lt[p, t + 1 :]  # (T', M, S)
+        log_prior = self._log_prior
+        best = np.argmax(log_prior[None, :] + logsumexp(rest, axis=2), axis=1)  # (T',)
+        acc = beam.acc[b] - evidence.marg[p, t + 1 :].sum(axis=0)
+        acc = acc + rest[np.arange(len(best)), best].sum(axis=0)
+        samples = len(acc)
+        lw = parent_lw[p] + beam.log_prior[b] + log_prior[best].sum()
+        return float(lw + logsumexp(acc) - np.log(samples))
 
     def _materialise(
         self,

@@ -51,10 +51,19 @@ def class_marginals(weights: Array, classes: IntArray, num_classes: int) -> Arra
     return out
 
 
-def select(log_weights: Array, classes: IntArray, num_classes: int, rule: PruningRule) -> IntArray:
+def select(
+    log_weights: Array,
+    classes: IntArray,
+    num_classes: int,
+    rule: PruningRule,
+    reference: float | None = None,
+) -> IntArray:
     """Indices (ascending) of the candidates to keep: log-weights (K,), classes (K, n) → (k,).
 
-    The heaviest candidate always survives; non-finite log-weights never do.
+    The heaviest candidate always survives; non-finite log-weights never do. ``reference``, if
+    given, replaces the heaviest log-weight in the joint ratio rule: partial children (whose
+    weights are sums over their completions) are compared with the weight of a full child, so that
+    no partial child is dropped whose completions the final rule would keep.
     """
     finite = np.isfinite(log_weights)
     if not finite.any():
@@ -63,7 +72,8 @@ def select(log_weights: Array, classes: IntArray, num_classes: int, rule: Prunin
     best = float(lw.max())
     w = np.exp(lw - best)
     w /= w.sum()
-    keep = lw >= best - np.log(rule.prune_ratio)
+    top = best if reference is None else min(best, reference)
+    keep = lw >= top - np.log(rule.prune_ratio)
     protected = np.zeros(len(lw), dtype=bool)
     protected[int(np.argmax(lw))] = True
     score = w.copy()

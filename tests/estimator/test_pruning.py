@@ -198,3 +198,29 @@ def test_branch_cost_grows_linearly_with_new_objects() -> None:
     # each of the 20 objects extends at most `cap` partial children by 10 classes
     assert beam.weighed <= 1 + 20 * cap * 10
     assert beam.classes.shape[1] == 20
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_branch_with_the_ratio_rule_keeps_what_enumeration_then_pruning_keeps(seed: int) -> None:
+    # Pruning between objects compares partial children with a full child, so it never drops a
+    # completion the final ratio rule keeps: the result is that of enumerating every child first.
+    rng = np.random.default_rng(seed)
+    prior = (0.5, 0.3, 0.2)
+    exact = _belief(prior, BeliefConfig.exact())
+    hyps, evidence, detections, new_ids = _synthetic_step(exact, rng, 2, 1, [1, 2, 3, 4, 5])
+    full = _branch(exact, hyps, evidence, detections, new_ids)
+    best = full.log_weight.max()
+    expected = {
+        (int(p), tuple(int(c) for c in cls))
+        for p, cls, lw in zip(full.parent, full.classes, full.log_weight, strict=True)
+        if lw >= best - np.log(150.0)
+    }
+    paper = _belief(prior, BeliefConfig.paper(max_hypotheses=10_000))
+    paper.object_ids, paper._object_index = exact.object_ids, exact._object_index
+    beam = _branch(paper, hyps, evidence, detections, new_ids)
+    got = {
+        (int(p), tuple(int(c) for c in cls))
+        for p, cls in zip(beam.parent, beam.classes, strict=True)
+    }
+    assert got == expected
+    assert beam.weighed <= full.weighed
