@@ -74,12 +74,12 @@ class _Join:
     log_weight: Array
     order: list[int]
 
-    def keep(self, kept: IntArray) -> _Join:
+    def keep(self, kept: IntArray, log_weight: Array | None = None) -> _Join:
         return _Join(
             self.parent[kept],
             self.classes[kept],
             self.picks[kept],
-            self.log_weight[kept],
+            self.log_weight[kept] if log_weight is None else log_weight,
             self.order,
         )
 
@@ -157,7 +157,7 @@ class DistributedBelief(HybridBelief):
         if not used:
             return FusionStats((), tuple(sorted(skipped)), 0, len(self.hypotheses), len(skipped))
         candidates = len(join.parent)
-        join = join.keep(self._select(join.log_weight, join.classes))
+        join = join.keep(*self._prune(join.log_weight, join.classes))
         parents = self.hypotheses
         for j in join.order:
             self._object_index[j] = len(self.object_ids)

@@ -26,7 +26,7 @@ from estimator.factors import (
     semantic_factor,
 )
 from estimator.models import ClassifierModel, Detection, GaussianNoise, SensorFrame, viewpoint
-from estimator.pruning import PRUNINGS, PruningRule, select
+from estimator.pruning import PRUNINGS, PruningRule, class_marginals, match_marginals, select
 from estimator.summary import Realisation
 from estimator.weights import (
     WEIGHT_ESTIMATORS,
@@ -48,10 +48,9 @@ class BeliefConfig:
 
     ``pruning``: ``"marginal"`` (default) or the paper's ``"ratio"`` (see ``estimator.pruning``);
     ``prune_ratio``: keep hypotheses whose weight is within this ratio of the heaviest;
-    ``marginal_ratio``: (``"marginal"`` only) also keep a hypothesis that carries at least
-    1/``marginal_ratio`` of the marginal probability of one of its own object classes;
     ``class_floor``: (``"marginal"`` only) a class of an object with at least this marginal
-    probability keeps its heaviest hypothesis; ``max_hypotheses``: hard cap; ``weight_estimator``:
+    probability keeps its heaviest hypothesis, and the kept hypotheses are reweighted to the
+    class marginals before pruning; ``max_hypotheses``: hard cap; ``weight_estimator``:
     ``geo_conditioned`` (default) or ``paper_mc``; ``num_samples`` for the Monte Carlo part;
     ``object_prior_sigmas``: the weak prior on a newly seen object, centred on its first
     measurement; ``start_prior_sigmas``: the prior on a robot's known start; iSAM2's
@@ -62,7 +61,6 @@ class BeliefConfig:
     num_samples: int = 500
     pruning: str = "marginal"
     prune_ratio: float = 150.0
-    marginal_ratio: float = 150.0
     class_floor: float = 1e-4
     max_hypotheses: int = 300
     object_prior_sigmas: tuple[float, float, float] = (100.0, 100.0, math.pi)
@@ -79,8 +77,8 @@ class BeliefConfig:
             raise ValueError(f"pruning {self.pruning!r} (known: {', '.join(PRUNINGS)})")
         if self.num_samples < 1 or self.max_hypotheses < 1 or self.extra_updates < 0:
             raise ValueError("num_samples and max_hypotheses must be ≥ 1, extra_updates ≥ 0")
-        if not (self.prune_ratio > 1.0 and self.marginal_ratio > 1.0):
-            raise ValueError("prune_ratio and marginal_ratio must be > 1")
+        if not self.prune_ratio > 1.0:
+            raise ValueError(f"prune_ratio must be > 1, got {self.prune_ratio}")
         if not 0.0 <= self.class_floor < 1.0:
             raise ValueError(f"class_floor must be in [0, 1), got {self.class_floor}")
         sigmas = (*self.object_prior_sigmas, *self.start_prior_sigmas)
@@ -100,9 +98,7 @@ class BeliefConfig:
 
     def rule(self) -> PruningRule:
         c = self
-        return PruningRule(
-            c.pruning, c.prune_ratio, c.marginal_ratio, c.class_floor, c.max_hypotheses
-        )
+        return PruningRule(c.pruning, c.prune_ratio, c.class_floor, c.max_hypotheses)
 
 
 @dataclass(frozen=True, slots=True)
@@ -201,13 +197,13 @@ class _Beam:
     log_weight: Array
     weighed: int
 
-    def keep(self, kept: IntArray) -> _Beam:
+    def keep(self, kept: IntArray, log_weight: Array | None = None) -> _Beam:
         return _Beam(
             self.parent[kept],
             self.classes[kept],
             self.log_prior[kept],
             self.acc[kept],
-            self.log_weight[kept],
+            self.log_weight[kept] if log_weight is None else log_weight,
             self.weighed,
         )
 
@@ -452,7 +448,8 @@ class HybridBelief:
             len(parents),
         )
         if not new_ids:
-            return beam.keep(self._select(beam.log_weight, parent_cls))
+            kept, lw = self._prune(beam.log_weight, parent_cls)
+            return beam.keep(kept, lw)
         m = self.model.num_classes
         for t in range(len(new_ids)):
             lt = lt_all[beam.parent, t]  # (K, M, S)
@@ -474,10 +471,11 @@ class HybridBelief:
                 beam.weighed + k * m,
             )
             full = np.concatenate([parent_cls[beam.parent], beam.classes], axis=1)
-            reference = None
             if t < len(new_ids) - 1:
                 reference = self._greedy_completion(beam, evidence, parent_lw, t)
-            beam = beam.keep(self._select(beam.log_weight, full, reference))
+                beam = beam.keep(self._select(beam.log_weight, full, reference))
+            else:
+                beam = beam.keep(*self._prune(beam.log_weight, full))
         if len(beam.parent) == 0:
             raise FloatingPointError(
                 "every hypothesis has zero likelihood for this step's measurements"
@@ -577,6 +575,18 @@ class HybridBelief:
         candidates with class realisations (K, n)."""
         rule = self.config.rule()
         return select(log_weights, classes, self.model.num_classes, rule, reference)
+
+    def _prune(self, log_weights: Array, classes: IntArray) -> tuple[IntArray, Array]:
+        """The final pruning of a step or fusion: the kept indices and their log-weights, which the
+        ``"marginal"`` rule adjusts so that the kept realisations keep every object's class
+        marginals of the candidates (``estimator.pruning.match_marginals``)."""
+        kept = self._select(log_weights, classes)
+        if self.config.pruning != "marginal" or len(kept) == len(log_weights):
+            return kept, log_weights[kept]
+        w = np.exp(log_weights - np.max(log_weights))
+        target = class_marginals(w / w.sum(), classes, self.model.num_classes)
+        lw = match_marginals(log_weights[kept], classes[kept], target)
+        return kept, lw + float(logsumexp(log_weights[kept]))
 
     def _greedy_completion(
         self, beam: _Beam, evidence: _Evidence, parent_lw: Array, t: int

@@ -4,19 +4,15 @@ A belief's class posterior is a weighted set of joint class realisations. Prunin
 weight ratio alone (the paper's rule, ``"ratio"``) is irreversible for the classes it removes: a
 class of one object that dips below ``w_max / ratio`` once, because the realisations carrying it
 are combined with unlikely classes of *other* objects, is gone for good, however strongly later
-evidence favours it. The default ``"marginal"`` rule judges a realisation by what it contributes
-to the per-object class marginals P(c_j = i) as well:
+evidence favours it. The default ``"marginal"`` rule keeps what the ratio rule keeps and
 
-- kept if its joint weight is within ``prune_ratio`` of the heaviest (the paper's rule), or
-- kept if, for one of its objects j, it carries at least ``1 / marginal_ratio`` of the marginal
-  P(c_j = c_hj) of its own class for that object — the realisations that make up a class marginal
-  survive even when that class is combined with unlikely classes elsewhere, and
-- the heaviest realisation carrying class i of object j is always kept while P(c_j = i) ≥
-  ``class_floor`` (support: no class with non-negligible probability loses its last carrier).
+- the heaviest realisation carrying class i of object j while P(c_j = i) ≥ ``class_floor``
+  (support: no class with non-negligible probability loses its last carrier), and then
+- reweights the kept realisations so that every object's class marginals are those of all the
+  candidates (:func:`match_marginals`): pruning then changes the joint, never a marginal.
 
-The cap ``max_hypotheses`` keeps the support representatives first, then cuts by marginal
-contribution (the largest share of one of its class marginals a realisation carries), not by joint
-weight. Pure numpy: the caller passes log-weights and the class matrix of the candidates.
+The cap ``max_hypotheses`` keeps the support carriers first, then the heaviest. Pure numpy: the
+caller passes log-weights and the class matrix of the candidates.
 """
 
 from __future__ import annotations
@@ -38,7 +34,6 @@ class PruningRule:
 
     strategy: str
     prune_ratio: float
-    marginal_ratio: float
     class_floor: float
     max_hypotheses: int
 
@@ -75,19 +70,16 @@ def select(
     top = best if reference is None else min(best, reference)
     keep = lw >= top - np.log(rule.prune_ratio)
     protected = np.zeros(len(lw), dtype=bool)
-    protected[int(np.argmax(lw))] = True
-    score = w.copy()
     if rule.strategy == "marginal" and classes.shape[1] > 0:
         marg = class_marginals(w, classes, num_classes)
-        own = marg[np.arange(classes.shape[1])[None, :], classes]  # (K, n): P(c_j = c_hj)
-        score = w / np.maximum(own.min(axis=1), 1e-300)
-        keep |= score >= 1.0 / rule.marginal_ratio
         protected |= _support(w, classes, marg, rule.class_floor)
     keep &= finite
     keep |= protected
-    score[int(np.argmax(lw))] = np.inf
+    heaviest = np.zeros(len(lw), dtype=bool)
+    heaviest[int(np.argmax(lw))] = True
+    keep |= heaviest
     if keep.sum() > rule.max_hypotheses:
-        keep = _cap(keep, protected, score, w, rule.max_hypotheses)
+        keep = _cap(keep, protected | heaviest, heaviest, w, rule.max_hypotheses)
     return np.flatnonzero(keep).astype(np.int64)
 
 
@@ -105,14 +97,47 @@ def _support(w: Array, classes: IntArray, marg: Array, floor: float) -> NDArray[
 def _cap(
     keep: NDArray[np.bool_],
     protected: NDArray[np.bool_],
-    score: Array,
+    heaviest: NDArray[np.bool_],
     w: Array,
     cap: int,
 ) -> NDArray[np.bool_]:
-    """At most ``cap`` of ``keep``: protected candidates first (heaviest first), then by score."""
-    # lexsort: last key is primary — protected first, then higher score, then heavier.
+    """At most ``cap`` of ``keep``: the heaviest, then the protected, then by weight."""
+    # lexsort: the last key is primary.
     candidates = np.flatnonzero(keep)
-    order = np.lexsort((-w[candidates], -score[candidates], ~protected[candidates]))
+    order = np.lexsort((-w[candidates], ~protected[candidates], ~heaviest[candidates]))
     out = np.zeros_like(keep)
     out[candidates[order[:cap]]] = True
     return out
+
+
+def match_marginals(
+    log_weights: Array, classes: IntArray, target: Array, sweeps: int = 200, tol: float = 1e-7
+) -> Array:
+    """Reweight kept realisations so that their per-object class marginals equal ``target``
+    (n, M), the marginals before pruning: iterative proportional fitting, i.e. the I-projection
+    (least KL change of the kept weights) onto the distributions with those marginals. Classes
+    with no kept carrier keep a zero marginal; the others are renormalised among themselves.
+    log-weights (K,), classes (K, n) → log-weights (K,), normalised.
+    """
+    lw = log_weights - float(np.max(log_weights))
+    w = np.exp(lw)
+    w /= w.sum()
+    n = classes.shape[1]
+    if n == 0 or len(w) < 2:
+        return np.log(w)
+    m = target.shape[1]
+    onehot = classes[:, :, None] == np.arange(m)[None, None, :]  # (K, n, M)
+    supported = onehot.any(axis=0)  # (n, M)
+    goal = np.where(supported, target, 0.0)
+    goal /= goal.sum(axis=1, keepdims=True)
+    for _ in range(sweeps):
+        worst = 0.0
+        for j in range(n):
+            cur = w @ onehot[:, j, :]  # (M,)
+            ratio = np.divide(goal[j], cur, out=np.ones(m), where=cur > 0)
+            worst = max(worst, float(np.max(np.abs(cur - goal[j]))))
+            w = w * ratio[classes[:, j]]
+        w /= w.sum()
+        if worst < tol:
+            break
+    return np.log(np.maximum(w, 1e-300))

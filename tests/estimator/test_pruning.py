@@ -13,11 +13,11 @@ from scipy.special import logsumexp
 from estimator.hybrid import BeliefConfig, BeliefModel, HybridBelief, _Beam, _Evidence
 from estimator.models import GaussianNoise
 from estimator.models.classifier import AliasedClassifier
-from estimator.pruning import PruningRule, class_marginals, select
+from estimator.pruning import PruningRule, class_marginals, match_marginals, select
 from estimator.weights import SampledEvidence
 
-MARGINAL = PruningRule("marginal", 150.0, 150.0, 1e-4, 300)
-RATIO = PruningRule("ratio", 150.0, 150.0, 1e-4, 300)
+MARGINAL = PruningRule("marginal", 150.0, 1e-4, 300)
+RATIO = PruningRule("ratio", 150.0, 1e-4, 300)
 
 
 def _weights(lw: np.ndarray) -> np.ndarray:
@@ -38,7 +38,7 @@ def test_select_marginal_keeps_a_carrier_of_every_class_above_the_floor(seed: in
                 assert np.any(classes[kept, j] == i), (j, i, marg[j, i])
 
 
-def test_select_ratio_loses_a_class_the_marginal_rule_keeps() -> None:
+def test_select_ratio_loses_a_class_the_marginal_rule_keeps_with_its_marginal() -> None:
     # Object 0's class 1 is carried only by realisations that also hold an unlikely class of
     # object 1: each is below w_max/150, together they make P(c_0 = 1) ≈ 0.17.
     lw = np.log(np.array([1.0] + [0.005] * 40))
@@ -49,21 +49,44 @@ def test_select_ratio_loses_a_class_the_marginal_rule_keeps() -> None:
     assert marg[0, 1] > 0.15
     assert not np.any(classes[select(lw, classes, 2, RATIO), 0] == 1)
     kept = select(lw, classes, 2, MARGINAL)
-    kept_marg = class_marginals(_weights(lw[kept]), classes[kept], 2)
-    # every carrier holds 1/40 of the class marginal ≥ 1/150: all are kept, the marginal is exact
-    np.testing.assert_allclose(kept_marg, marg, atol=1e-12)
+    assert np.any(classes[kept, 0] == 1)
+    matched = match_marginals(lw[kept], classes[kept], marg)
+    np.testing.assert_allclose(class_marginals(np.exp(matched), classes[kept], 2), marg, atol=1e-9)
 
 
-def test_select_cap_keeps_support_first_then_marginal_contribution() -> None:
-    rng = np.random.default_rng(3)
-    lw = rng.normal(0.0, 1.0, 200)
-    classes = rng.integers(0, 2, (200, 5))
-    rule = PruningRule("marginal", 1e9, 1e9, 1e-4, 12)
-    kept = select(lw, classes, 2, rule)
-    assert len(kept) == 12
-    assert int(np.argmax(lw)) in kept
-    for j in range(5):
-        assert set(classes[kept, j]) == {0, 1}
+@pytest.mark.parametrize("seed", range(4))
+def test_match_marginals_is_the_least_change_that_restores_every_marginal(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    m, n = 3, 4
+    classes = np.array(list(itertools.product(range(m), repeat=n)), dtype=np.int64)
+    lw = rng.normal(0.0, 2.0, len(classes))
+    target = class_marginals(_weights(lw), classes, m)
+    kept = rng.choice(len(classes), 30, replace=False)
+    kept = np.union1d(kept, [int(np.argmax(lw))])
+    got = np.exp(match_marginals(lw[kept], classes[kept], target))
+    assert abs(got.sum() - 1.0) < 1e-12
+    np.testing.assert_allclose(class_marginals(got, classes[kept], m), target, atol=1e-6)
+    # the I-projection multiplies the weights by a product of per-(object, class) factors:
+    # log(got / w) is additive over the objects' classes
+    ratio = np.log(got) - np.log(_weights(lw[kept]))
+    design = np.concatenate([classes[kept] == i for i in range(m)], axis=1).astype(float)
+    fit, *_ = np.linalg.lstsq(np.c_[design, np.ones(len(kept))], ratio, rcond=None)
+    np.testing.assert_allclose(np.c_[design, np.ones(len(kept))] @ fit, ratio, atol=1e-6)
+    # already matching marginals: nothing changes
+    again = np.exp(match_marginals(np.log(got), classes[kept], target))
+    np.testing.assert_allclose(again, got, atol=1e-6)
+
+
+def test_match_marginals_leaves_unsupported_classes_at_zero() -> None:
+    classes = np.array([[0, 0], [0, 1], [1, 0]])
+    target = np.array([[0.5, 0.5], [0.6, 0.4]])
+    got = np.exp(match_marginals(np.log([0.5, 0.3, 0.2]), classes, target))
+    np.testing.assert_allclose(class_marginals(got, classes, 2), target, atol=1e-6)
+    np.testing.assert_allclose(got, [0.1, 0.4, 0.5], atol=1e-6)
+    only_zero = np.exp(match_marginals(np.log([0.6, 0.4]), classes[:2], target))
+    np.testing.assert_allclose(
+        class_marginals(only_zero, classes[:2], 2), [[1, 0], [0.6, 0.4]], atol=1e-6
+    )
 
 
 def test_select_drops_non_finite_and_keeps_the_heaviest() -> None:
