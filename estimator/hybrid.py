@@ -48,6 +48,8 @@ class BeliefConfig:
 
     ``pruning``: ``"marginal"`` (default) or the paper's ``"ratio"`` (see ``estimator.pruning``);
     ``prune_ratio``: keep hypotheses whose weight is within this ratio of the heaviest;
+    ``marginal_ratio``: (``"marginal"`` only) also keep a hypothesis that carries at least
+    1/``marginal_ratio`` of the marginal probability of one of its own classes;
     ``class_floor``: (``"marginal"`` only) a class of an object with at least this marginal
     probability keeps its heaviest hypothesis, and the kept hypotheses are reweighted to the
     class marginals before pruning; ``max_hypotheses``: hard cap; ``weight_estimator``:
@@ -62,6 +64,7 @@ class BeliefConfig:
     pruning: str = "marginal"
     prune_ratio: float = 150.0
     class_floor: float = 1e-4
+    marginal_ratio: float = 150.0
     max_hypotheses: int = 300
     object_prior_sigmas: tuple[float, float, float] = (100.0, 100.0, math.pi)
     start_prior_sigmas: tuple[float, float, float] = (1e-3, 1e-3, 1e-3)
@@ -98,7 +101,9 @@ class BeliefConfig:
 
     def rule(self) -> PruningRule:
         c = self
-        return PruningRule(c.pruning, c.prune_ratio, c.class_floor, c.max_hypotheses)
+        return PruningRule(
+            c.pruning, c.prune_ratio, c.class_floor, c.max_hypotheses, c.marginal_ratio
+        )
 
 
 @dataclass(frozen=True, slots=True)

@@ -6,13 +6,17 @@ class of one object that dips below ``w_max / ratio`` once, because the realisat
 are combined with unlikely classes of *other* objects, is gone for good, however strongly later
 evidence favours it. The default ``"marginal"`` rule keeps what the ratio rule keeps and
 
+- every realisation that carries at least 1/``marginal_ratio`` of the marginal P(c_j = c_hj) of
+  one of its own classes (the realisations that make up a class marginal survive even when that
+  class is combined with unlikely classes elsewhere, so later evidence on other objects cannot
+  take the class down with a lone carrier),
 - the heaviest realisation carrying class i of object j while P(c_j = i) ≥ ``class_floor``
   (support: no class with non-negligible probability loses its last carrier), and then
-- reweights the kept realisations so that every object's class marginals are those of all the
-  candidates (:func:`match_marginals`): pruning then changes the joint, never a marginal.
+- the caller reweights the kept realisations so that every object's class marginals are those of
+  all the candidates (:func:`match_marginals`): pruning changes the joint, never a marginal.
 
-The cap ``max_hypotheses`` keeps the support carriers first, then the heaviest. Pure numpy: the
-caller passes log-weights and the class matrix of the candidates.
+The cap ``max_hypotheses`` keeps the heaviest, then the support carriers, then by weight. Pure
+numpy: the caller passes log-weights and the class matrix of the candidates.
 """
 
 from __future__ import annotations
@@ -36,6 +40,7 @@ class PruningRule:
     prune_ratio: float
     class_floor: float
     max_hypotheses: int
+    marginal_ratio: float = 150.0
 
 
 def class_marginals(weights: Array, classes: IntArray, num_classes: int) -> Array:
@@ -72,6 +77,8 @@ def select(
     protected = np.zeros(len(lw), dtype=bool)
     if rule.strategy == "marginal" and classes.shape[1] > 0:
         marg = class_marginals(w, classes, num_classes)
+        own = marg[np.arange(classes.shape[1])[None, :], classes]  # (K, n): P(c_j = c_hj)
+        keep |= w >= own.min(axis=1) / rule.marginal_ratio
         protected |= _support(w, classes, marg, rule.class_floor)
     keep &= finite
     keep |= protected
