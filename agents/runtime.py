@@ -373,6 +373,8 @@ class Agent:
             "stacks_unchanged": c.stacks_unchanged,
             "stacks_invalid": c.invalid,
             "slots_rejected": c.rejected_slots,
+            "empty_joins": c.empty_joins,
+            "rebuilds": c.rebuilds,
             "ignored_out_of_range": a.ignored_out_of_range,
             "bytes_sent": c.bytes_sent,
             "bytes_received": c.bytes_received,

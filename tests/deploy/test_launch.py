@@ -142,6 +142,7 @@ def test_launch_lockstep_paper_equals_the_in_process_runner(
     assert_all_agents_finished(outcome, STEPS)
     for r, c in outcome.collected.counters.items():
         assert c["frames_processed"] == STEPS and c["stacks_invalid"] == 0, (r, c)
+        assert c["empty_joins"] == c["rebuilds"] == 0, (r, c)
     # The run exercised fusion: by the end D holds more objects than L for every robot.
     for r in ROBOTS:
         final = outcome.collected.estimates[(r, STEPS)].beliefs
