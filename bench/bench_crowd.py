@@ -25,16 +25,14 @@ CROWD_SIZES = (1, 5, 10, 20)
 CROWD_CLASSES = 10
 
 
-def crowd_text(objects: int, classes: int, seed: int = 0) -> str:
-    """One robot at the origin facing +x and ``objects`` objects in its 50° / 5 m view."""
-    rng = np.random.default_rng(seed)
-    alias = [(c + 1) % classes + 1 for c in range(classes)]
-    views = [round(360.0 * c / classes - 180.0, 3) for c in range(classes)]
-    text = f"""format = 1
-name = "crowd-{objects}"
-steps = 3
+def _header(name: str, steps: int, alias: list[int], views: list[float]) -> str:
+    """A scenario's fields up to its robots: M = len(alias) aliased classes, paper noise, a
+    50° / 5 m sensor, range communication."""
+    return f"""format = 1
+name = "{name}"
+steps = {steps}
 [classes]
-count = {classes}
+count = {len(alias)}
 [classifier]
 model = "aliased"
 alias = {alias}
@@ -49,45 +47,33 @@ range = 5.0
 [communication]
 mode = "range"
 range = 10.0
-[[robots]]
-id = "r1"
-start = [0.0, 0.0, 0.0]
-speed = 0.1
-turns = [[3, 0.0]]
 """
+
+
+def _object(j: int, x: float, y: float, yaw: float, c: int) -> str:
+    return f"\n[[objects]]\nid = {j}\npose = [{x:.4f}, {y:.4f}, {yaw:.4f}]\nclass = {c}\n"
+
+
+def crowd_text(objects: int, classes: int, seed: int = 0) -> str:
+    """One robot at the origin facing +x and ``objects`` objects in its 50° / 5 m view."""
+    rng = np.random.default_rng(seed)
+    alias = [(c + 1) % classes + 1 for c in range(classes)]
+    views = [round(360.0 * c / classes - 180.0, 3) for c in range(classes)]
+    text = _header(f"crowd-{objects}", 3, alias, views)
+    text += '\n[[robots]]\nid = "r1"\nstart = [0.0, 0.0, 0.0]\nspeed = 0.1\nturns = [[3, 0.0]]\n'
     for j in range(objects):
         r = 1.5 + 3.0 * rng.random()
         a = math.radians(-35.0 + 70.0 * rng.random())
         yaw = float(rng.uniform(-math.pi, math.pi))
         c = int(rng.integers(1, classes + 1))
-        text += f"\n[[objects]]\nid = {j + 1}\npose = [{r * math.cos(a):.4f}, "
-        text += f"{r * math.sin(a):.4f}, {yaw:.4f}]\nclass = {c}\n"
+        text += _object(j + 1, r * math.cos(a), r * math.sin(a), yaw, c)
     return text
 
 
 def meeting_text(seed: int = 0) -> str:
     """Four robots, 4 classes, 9 objects first seen at step 1 (3 + 2 + 2 + 2)."""
     rng = np.random.default_rng(seed)
-    text = """format = 1
-name = "four-at-once"
-steps = 10
-[classes]
-count = 4
-[classifier]
-model = "aliased"
-alias = [2, 1, 4, 3]
-best_view_deg = [90.0, 90.0, 0.0, 180.0]
-noise_std = 0.35
-[noise]
-odometry_var = [0.003, 0.003, 0.001]
-geometric_var = [0.1, 0.1, 0.01]
-[sensor]
-half_angle_deg = 50.0
-range = 5.0
-[communication]
-mode = "range"
-range = 10.0
-"""
+    text = _header("four-at-once", 10, [2, 1, 4, 3], [90.0, 90.0, 0.0, 180.0])
     j = 0
     for i, (y, count) in enumerate(((0.0, 3), (8.0, 2), (16.0, 2), (24.0, 2))):
         text += f'\n[[robots]]\nid = "r{i + 1}"\nstart = [0.0, {y}, 0.0]\n'
@@ -96,8 +82,7 @@ range = 10.0
             j += 1
             x, dy = 2.0 + 2.0 * rng.random(), rng.uniform(-1.0, 1.0)
             yaw, c = float(rng.uniform(-math.pi, math.pi)), int(rng.integers(1, 5))
-            text += f"\n[[objects]]\nid = {j}\npose = [{x:.4f}, {y + dy:.4f}, {yaw:.4f}]\n"
-            text += f"class = {c}\n"
+            text += _object(j, x, y + dy, yaw, c)
     return text
 
 
