@@ -281,14 +281,9 @@ class HybridBelief:
 
     def class_marginals(self) -> Array:
         """P(c_j = i) (n, M) for the known objects in ``object_ids`` order."""
-        w = self.weights()
-        out = np.zeros((len(self.object_ids), self.model.num_classes))
-        if not self.object_ids:
-            return out
-        classes = np.array([h.classes for h in self.hypotheses])
-        for i in range(self.model.num_classes):
-            out[:, i] = w @ (classes == i)
-        return out
+        classes = np.array([h.classes for h in self.hypotheses], dtype=np.int64)
+        classes = classes.reshape(len(self.hypotheses), len(self.object_ids))
+        return class_marginals(self.weights(), classes, self.model.num_classes)
 
     def map_hypothesis(self) -> Hypothesis:
         return max(self.hypotheses, key=lambda h: h.log_weight)

@@ -9,6 +9,7 @@ from numpy.typing import NDArray
 
 from estimator.hybrid import BeliefSnapshot
 from estimator.models import se2
+from estimator.pruning import class_marginals
 
 Array = NDArray[np.float64]
 
@@ -34,12 +35,6 @@ ECE_BINS = 10
 # A probability below this is clipped before the log-loss, so a pruned true class costs a large
 # but finite amount.
 _MIN_PROBABILITY = 1e-12
-
-
-def class_marginals(weights: Array, classes: NDArray[np.int64], num_classes: int) -> Array:
-    """P(c_j = i) (n, M) from normalised weights (H,) and realisations (H, n)."""
-    onehot = classes[:, :, None] == np.arange(num_classes)[None, None, :]
-    return np.asarray(np.einsum("h,hni->ni", weights, onehot))
 
 
 def msde(prob: Array, true_classes: NDArray[np.int64]) -> float:
