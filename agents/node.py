@@ -172,7 +172,7 @@ class RobotNode:
                 fusion, empty_joins=fusion.empty_joins + rebuilt.empty_joins, rebuilds=1
             )
         self.k = frame.k
-        self.position = (float(frame.true_pose[0]), float(frame.true_pose[1]))
+        self.position = self.distributed.position(self.robot)
         # The own slot is rebuilt from L lazily, when a stack is next needed.
         self._own_slot_stale = True
         self._encoded = None

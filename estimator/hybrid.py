@@ -288,6 +288,12 @@ class HybridBelief:
     def map_hypothesis(self) -> Hypothesis:
         return max(self.hypotheses, key=lambda h: h.log_weight)
 
+    def position(self, robot: str) -> tuple[float, float]:
+        """``robot``'s estimated (x, y) at its latest step, in the most probable hypothesis: what
+        a robot may tell others about where it is (it never knows its true pose)."""
+        pose = self.map_hypothesis().pose(self.pose_key(robot))
+        return float(pose[0]), float(pose[1])
+
     def snapshot(self, robot: str) -> BeliefSnapshot:
         """The belief as arrays (see :class:`BeliefSnapshot`) with ``robot``'s latest pose."""
         return self.snapshots([robot])[robot]
