@@ -27,6 +27,7 @@ from estimator.factors import (
 )
 from estimator.models import ClassifierModel, Detection, GaussianNoise, SensorFrame, viewpoint
 from estimator.pruning import PRUNINGS, PruningRule, class_marginals, match_marginals, select
+from estimator.snapshot import BeliefSnapshot  # re-exported: it used to live here
 from estimator.summary import Realisation
 from estimator.weights import (
     WEIGHT_ESTIMATORS,
@@ -211,24 +212,6 @@ class _Beam:
             self.log_weight[kept] if log_weight is None else log_weight,
             self.weighed,
         )
-
-
-@dataclass(frozen=True, slots=True)
-class BeliefSnapshot:
-    """A belief as plain arrays, for metrics and plots.
-
-    ``object_ids`` (n,); ``weights`` (H,) normalised; ``classes`` (H, n); ``robot_pose`` (H, 3) and
-    ``robot_cov`` (H, 3, 3) of the robot's latest pose (body-frame tangent covariance);
-    ``object_pose`` (H, n, 3) and ``object_cov`` (H, n, 3, 3).
-    """
-
-    object_ids: tuple[int, ...]
-    weights: Array
-    classes: IntArray
-    robot_pose: Array
-    robot_cov: Array
-    object_pose: Array
-    object_cov: Array
 
 
 class HybridBelief:

@@ -23,7 +23,7 @@ from typing import Any
 import msgpack
 import numpy as np
 
-from estimator.hybrid import BeliefSnapshot
+from estimator.snapshot import BeliefSnapshot
 from protocol.errors import (
     InvalidValue,
     LimitExceeded,

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import ast
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -86,3 +88,42 @@ def test_imports_point_downwards(package: str) -> None:
 def test_import_guard_catches_a_forbidden_import(tmp_path: Path) -> None:
     tree = ast.parse("import time\nfrom asyncio import sleep\n")
     assert [n for n, _ in _imports(tree)] == ["time", "asyncio"]
+
+
+def _modules(package: str) -> list[str]:
+    return [
+        ".".join(path.relative_to(ROOT).with_suffix("").parts).removesuffix(".__init__")
+        for path in _sources(package)
+    ]
+
+
+def _loads_gtsam(modules: list[str]) -> list[str]:
+    """The modules among ``modules`` that load gtsam, each imported in a fresh interpreter (an
+    earlier import in this process would hide it)."""
+    probe = (
+        "import importlib, sys; importlib.import_module(sys.argv[1]); print('gtsam' in sys.modules)"
+    )
+    bad = []
+    for name in modules:
+        done = subprocess.run(
+            [sys.executable, "-c", probe, name],
+            cwd=ROOT,
+            capture_output=True,
+            text=True,
+            check=True,
+        )
+        if done.stdout.strip() != "False":
+            bad.append(name)
+    return bad
+
+
+def test_protocol_imports_no_gtsam() -> None:
+    """protocol/ depends on estimator/ for plain data types only (ARCHITECTURE.md): a peer that
+    merely decodes stacks, frames or estimates needs no GTSAM."""
+    modules = _modules("protocol")
+    assert "protocol.estimate" in modules
+    assert _loads_gtsam(modules) == []
+
+
+def test_gtsam_probe_sees_a_gtsam_import() -> None:
+    assert _loads_gtsam(["estimator.summary", "estimator.hybrid"]) == ["estimator.hybrid"]
