@@ -9,15 +9,36 @@ by another robot or run.
 
 Why a log and not SQLite: a step is one sequential ``write`` and one ``fsync``, with no page
 cache, B-tree or WAL checkpoint in between; the records are opaque bytes that only get replayed
-in order, so a query engine buys nothing; and crash recovery is one rule — keep the longest
-prefix of intact records (length, crc32 and payload all check out) and truncate the rest —
-tested at every byte offset of a torn tail. An intact record after a corrupt one is dropped too:
-order matters in a replay, and a gap would rebuild a belief the agent never had.
+in order, so a query engine buys nothing; and crash recovery is one rule — replay the longest
+prefix of intact records (length, crc32 and payload all check out) and cut the rest off —
+tested at every byte offset of a torn tail. An intact record after a corrupt one is not
+replayed either: order matters in a replay, and a gap would rebuild a belief the agent never had.
 
-Durability: a record is on disk once :meth:`Journal.commit` returned (``fsync``); the file is
-created under a temporary name with its header, fsynced, linked into place (never replacing an
-existing journal) and its directory fsynced, so a journal is never seen without its header.
-One process at a time may hold a journal (``flock``).
+Nothing is cut off unread, though: every byte after the intact prefix is first copied to a side
+file ``<journal name>.corrupt-<offset>`` next to the journal (``offset``: the decimal byte offset
+in the journal where the dropped bytes began, i.e. the journal's size after the cut; if that name
+is taken by an earlier recovery, ``.2``, ``.3``… is appended). The side file is written under a
+temporary name, fsynced, hard-linked into place (never replacing a file) and its directory
+fsynced before the journal is truncated; :attr:`Journal.set_aside` names it and
+:attr:`Journal.truncated_bytes` counts its bytes. A torn tail (the last step cut short by a
+crash) is set aside too: it cannot be told apart from a corrupt length field, which looks exactly
+like a record running past the end of the file, and one small file per crash costs nothing next
+to deleting intact records. The side file starts at the first bad record; the records after it
+are whole, in the same framing, for an operator to inspect or salvage.
+
+Quarantine: a record the agent cannot use — the frame of a step that raised, a journal record
+whose body fails to decode during replay — goes to ``<journal name>.quarantine`` with
+:meth:`Journal.quarantine`, in the same framing with payload = msgpack ``[kind, body, reason,
+index]`` (``index``: the caller's position of the record — its 0-based index among the replayed
+records, or the step of a frame — or nil). Each record is fsynced on its own. An I/O error of
+the quarantine file is logged and counted (:attr:`Journal.quarantine_failures`), never raised:
+losing evidence must not stop the agent. :func:`read_quarantine` reads it back.
+
+Durability: a record is on disk once :meth:`Journal.commit` returned (``fsync``); a commit that
+fails cuts the file back to its last committed size, so no half-written step is left behind. The
+file is created under a temporary name with its header, fsynced, linked into place (never
+replacing an existing journal) and its directory fsynced, so a journal is never seen without its
+header. One process at a time may hold a journal (``flock``).
 """
 
 from __future__ import annotations
@@ -41,13 +62,17 @@ log = logging.getLogger(__name__)
 FORMAT = 1
 HEADER = "header"
 KIND = re.compile(r"^[a-z_]{1,16}$")
+QUARANTINE_SUFFIX = ".quarantine"
+MAX_REASON = 2000  # characters of a quarantine reason kept (an exception text can be huge)
 _PREFIX = struct.Struct("<II")  # payload length, crc32 of payload
 _MAX_PAYLOAD = 2**32 - 1
+_MAX_INDEX = 2**63 - 1
 
 
 class JournalError(Exception):
-    """A journal that may not be used: not a journal, another identity, already in use.
-    ``key`` names the mismatching identity key, when that is the reason."""
+    """A journal that may not be used: not a journal, another identity, already in use, or its
+    bad tail could not be set aside. ``key`` names the mismatching identity key, when that is
+    the reason."""
 
     def __init__(self, message: str, key: str = "") -> None:
         super().__init__(message)
@@ -62,15 +87,31 @@ class Record:
     body: bytes
 
 
-def _frame(kind: str, body: bytes) -> bytes:
-    payload = msgpack.packb([kind, body], use_bin_type=True)
+@dataclass(frozen=True, slots=True)
+class QuarantinedRecord:
+    """A record the agent could not use, as :meth:`Journal.quarantine` stored it."""
+
+    kind: str
+    body: bytes
+    reason: str
+    index: int | None
+
+
+def quarantine_path(journal: Path) -> Path:
+    """The quarantine file of the journal at ``journal``: ``<journal name>.quarantine``."""
+    return journal.with_name(journal.name + QUARANTINE_SUFFIX)
+
+
+def _frame(doc: list[Any]) -> bytes:
+    payload = msgpack.packb(doc, use_bin_type=True)
     if len(payload) > _MAX_PAYLOAD:
         raise ValueError(f"record of {len(payload)} bytes is too large for a journal")
     return _PREFIX.pack(len(payload), zlib.crc32(payload)) + payload
 
 
-def _parse(data: bytes, offset: int) -> tuple[Record, int] | None:
-    """The intact record at ``offset`` and the offset after it, or None if torn or corrupt."""
+def _unframe(data: bytes, offset: int) -> tuple[Any, int] | None:
+    """The msgpack document of the intact record at ``offset`` and the offset after it, or None
+    if torn or corrupt."""
     if len(data) - offset < _PREFIX.size:
         return None
     length, crc = _PREFIX.unpack_from(data, offset)
@@ -79,15 +120,47 @@ def _parse(data: bytes, offset: int) -> tuple[Record, int] | None:
     if len(payload) != length or zlib.crc32(payload) != crc:
         return None
     try:
-        doc = msgpack.unpackb(payload, raw=False)
+        return msgpack.unpackb(payload, raw=False), start + length
     except Exception:  # any undecodable payload (msgpack raises many types) ends the intact prefix
         return None
-    if not (isinstance(doc, list) and len(doc) == 2):
+
+
+def _is_kind(kind: object) -> bool:
+    return isinstance(kind, str) and KIND.fullmatch(kind) is not None
+
+
+def _parse(data: bytes, offset: int) -> tuple[Record, int] | None:
+    """The intact journal record at ``offset`` and the offset after it, or None."""
+    parsed = _unframe(data, offset)
+    if parsed is None or not (isinstance(parsed[0], list) and len(parsed[0]) == 2):
         return None
-    kind, body = doc
-    if not (isinstance(kind, str) and KIND.fullmatch(kind) and isinstance(body, bytes)):
+    (kind, body), end = parsed
+    if not (_is_kind(kind) and isinstance(body, bytes)):
         return None
-    return Record(kind, body), start + length
+    return Record(kind, body), end
+
+
+def _parse_quarantined(data: bytes, offset: int) -> tuple[QuarantinedRecord, int] | None:
+    """The intact quarantine record at ``offset`` and the offset after it, or None."""
+    parsed = _unframe(data, offset)
+    if parsed is None or not (isinstance(parsed[0], list) and len(parsed[0]) == 4):
+        return None
+    (kind, body, reason, index), end = parsed
+    ok = _is_kind(kind) and isinstance(body, bytes) and isinstance(reason, str)
+    if not (ok and (index is None or _is_index(index))):
+        return None
+    return QuarantinedRecord(kind, body, reason, index), end
+
+
+def _is_index(index: object) -> bool:
+    return type(index) is int and 0 <= index <= _MAX_INDEX
+
+
+def _check_record(kind: object, body: object) -> None:
+    if not _is_kind(kind) or kind == HEADER:
+        raise ValueError(f"invalid record kind {kind!r}")
+    if not isinstance(body, bytes | bytearray | memoryview):
+        raise TypeError(f"record body must be bytes, got {type(body).__name__}")
 
 
 def _check_identity(identity: Mapping[str, str | int]) -> dict[str, str | int]:
@@ -106,16 +179,49 @@ def _fsync_dir(path: Path) -> None:
         os.close(fd)
 
 
+def _write_synced(path: Path, data: bytes) -> None:
+    with open(path, "wb") as f:
+        f.write(data)
+        f.flush()
+        os.fsync(f.fileno())
+
+
+def _write_all(fd: int, data: bytes) -> None:
+    written = 0
+    while written < len(data):
+        written += os.write(fd, data[written:])
+    os.fsync(fd)
+
+
+def _cut_back(fd: int, size: int, path: Path) -> bool:
+    """Truncate ``fd`` to ``size`` after a failed write; False (logged) if even that failed."""
+    try:
+        os.ftruncate(fd, size)
+    except OSError as exc:
+        log.error("%s: could not cut a failed write back to %d bytes: %s", path, size, exc)
+        return False
+    return True
+
+
+def _link_unique(src: Path, name: Path) -> Path:
+    """Hard-link ``src`` as ``name``, else ``name.2``, ``name.3``…: the first that is free."""
+    candidate, n = name, 1
+    while True:
+        try:
+            os.link(src, candidate)  # unlike a rename, never replaces a file
+            return candidate
+        except FileExistsError:
+            n += 1
+            candidate = name.with_name(f"{name.name}.{n}")
+
+
 def _create(path: Path, identity: dict[str, str | int]) -> None:
     """Make ``path`` a journal holding only its header, unless a journal is already there."""
     missing = [p for p in (path.parent, *path.parent.parents) if not p.exists()]
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     header = msgpack.packb({"format": FORMAT, "identity": identity}, use_bin_type=True)
-    with open(tmp, "wb") as f:
-        f.write(_frame(HEADER, header))
-        f.flush()
-        os.fsync(f.fileno())
+    _write_synced(tmp, _frame([HEADER, header]))
     try:
         os.link(tmp, path)  # unlike a rename, never replaces a journal created meanwhile
     except FileExistsError:
@@ -126,12 +232,34 @@ def _create(path: Path, identity: dict[str, str | int]) -> None:
         _fsync_dir(directory)
 
 
-class Journal:
-    """An open journal; see the module docstring. Use :meth:`open`, not the constructor."""
+def _set_aside(path: Path, dropped: bytes, offset: int) -> Path:
+    """Copy ``dropped``, the journal's bytes from ``offset`` on, to a new side file, durably."""
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.corrupt.tmp")
+    try:
+        _write_synced(tmp, dropped)
+        side = _link_unique(tmp, path.with_name(f"{path.name}.corrupt-{offset}"))
+    finally:
+        tmp.unlink(missing_ok=True)
+    _fsync_dir(path.parent)
+    return side
 
-    def __init__(self, path: Path, fd: int, size: int, truncated_bytes: int) -> None:
+
+class Journal:
+    """An open journal; see the module docstring. Use :meth:`open`, not the constructor.
+
+    ``truncated_bytes``: the bytes open cut off after the intact prefix, all of them copied to
+    the side file ``set_aside`` (None when nothing was cut). ``quarantined`` and
+    ``quarantine_failures`` count this session's :meth:`quarantine` calls that reached the disk
+    and that did not."""
+
+    def __init__(
+        self, path: Path, fd: int, size: int, truncated_bytes: int, set_aside: Path | None
+    ) -> None:
         self.path = path
-        self.truncated_bytes = truncated_bytes  # torn or corrupt tail dropped by open
+        self.truncated_bytes = truncated_bytes
+        self.set_aside = set_aside
+        self.quarantined = 0
+        self.quarantine_failures = 0
         self._fd: int | None = fd
         self._size = size  # bytes on disk, all of them committed
         self._pending = bytearray()
@@ -140,8 +268,10 @@ class Journal:
     def open(cls, path: Path, identity: Mapping[str, str | int]) -> tuple[Journal, list[Record]]:
         """Open (or create) the journal of ``identity`` at ``path`` and read its records.
 
-        Raises :class:`JournalError` if ``path`` is not a journal, belongs to another identity
-        (``key`` names the first differing key) or is open in another process.
+        Bytes after the intact prefix are copied to a side file before they are cut off (see the
+        module docstring). Raises :class:`JournalError` if ``path`` is not a journal, belongs to
+        another identity (``key`` names the first differing key), is open in another process, or
+        its bad tail cannot be set aside (then the journal is left untouched).
         """
         ident = _check_identity(identity)
         path = Path(path)
@@ -154,43 +284,71 @@ class Journal:
             os.close(fd)
             raise JournalError(f"{path} is in use by another process") from None
         try:
-            records, end, size = _read(path, ident)
-            if end < size:
-                log.warning(
-                    "journal %s: dropped %d bytes of torn or corrupt tail", path, size - end
-                )
-                os.ftruncate(fd, end)
-                os.fsync(fd)
+            records, end, data = _read(path, ident)
+            side = _recover(path, fd, data, end) if end < len(data) else None
         except BaseException:
             os.close(fd)
             raise
-        return cls(path, fd, end, size - end), records
+        return cls(path, fd, end, len(data) - end, side), records
 
     def append(self, kind: str, body: bytes | bytearray | memoryview) -> None:
         """Queue a record; it reaches the disk with the next :meth:`commit`."""
-        if not (isinstance(kind, str) and KIND.fullmatch(kind)) or kind == HEADER:
-            raise ValueError(f"invalid record kind {kind!r}")
-        if not isinstance(body, bytes | bytearray | memoryview):
-            raise TypeError(f"record body must be bytes, got {type(body).__name__}")
+        _check_record(kind, body)
         self._open_fd()
-        self._pending += _frame(kind, bytes(body))
+        self._pending += _frame([kind, bytes(body)])
 
     def commit(self) -> None:
-        """Write the queued records and fsync: once this returns they survive a crash."""
+        """Write the queued records and fsync: once this returns they survive a crash.
+
+        If the write fails, the file is cut back to its committed size and the error raised; the
+        records stay queued, so the next commit retries them (the belief in memory already holds
+        that step: dropping them would let a replay skip it). If even the cut fails, the journal
+        closes: no record may follow a half-written one (the next open sets it aside)."""
         fd = self._open_fd()
         if not self._pending:
             return
         data = bytes(self._pending)
         try:
-            written = 0
-            while written < len(data):
-                written += os.write(fd, data[written:])
-            os.fsync(fd)
+            _write_all(fd, data)
         except OSError:
-            os.ftruncate(fd, self._size)  # leave no half-written step behind
+            if not _cut_back(fd, self._size, self.path):
+                self._release()
             raise
         self._size += len(data)
         self._pending.clear()
+
+    @property
+    def quarantine_path(self) -> Path:
+        return quarantine_path(self.path)
+
+    def quarantine(
+        self,
+        kind: str,
+        body: bytes | bytearray | memoryview,
+        reason: str,
+        index: int | None = None,
+    ) -> bool:
+        """Append a record the agent could not use to :attr:`quarantine_path` and fsync it;
+        ``reason`` is kept up to :data:`MAX_REASON` characters, ``index`` as in the module
+        docstring. Returns whether it reached the disk: an I/O error is logged and counted, never
+        raised. Bad arguments raise like :meth:`append`; so does a closed journal."""
+        _check_record(kind, body)
+        if not isinstance(reason, str):
+            raise TypeError(f"quarantine reason must be a string, got {type(reason).__name__}")
+        if not (index is None or _is_index(index)):
+            raise ValueError(f"quarantine index must be None or in 0..2^63-1, got {index!r}")
+        self._open_fd()
+        data = _frame([kind, bytes(body), reason[:MAX_REASON], index])
+        path = self.quarantine_path
+        try:
+            _append_synced(path, data)
+        except OSError as exc:
+            self.quarantine_failures += 1
+            log.error("%s: could not quarantine a %s record (index %s): %s", path, kind, index, exc)
+            return False
+        self.quarantined += 1
+        log.info("%s: quarantined a %s record (index %s): %s", path, kind, index, reason)
+        return True
 
     def close(self) -> None:
         """Commit what is queued and close. Closing twice is harmless."""
@@ -228,8 +386,59 @@ class Journal:
         self._release()
 
 
-def _read(path: Path, identity: dict[str, str | int]) -> tuple[list[Record], int, int]:
-    """Records after the header, the offset after the last intact one, and the file size."""
+def _recover(path: Path, fd: int, data: bytes, end: int) -> Path:
+    """Copy ``data[end:]`` to a new side file, then cut the journal ``fd`` back to ``end``."""
+    try:
+        side = _set_aside(path, data[end:], end)
+    except OSError as exc:
+        raise JournalError(
+            f"{path}: {len(data) - end} bytes from offset {end} are torn or corrupt and could "
+            f"not be copied aside ({exc}); the journal is left untouched"
+        ) from exc
+    log.warning(
+        "journal %s: %d bytes from offset %d are torn or corrupt: copied to %s and cut off",
+        path,
+        len(data) - end,
+        end,
+        side,
+    )
+    os.ftruncate(fd, end)
+    os.fsync(fd)
+    return side
+
+
+def _append_synced(path: Path, data: bytes) -> None:
+    """Append ``data`` to ``path`` (created if missing) and fsync; a failed write is cut back."""
+    fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+    try:
+        size = os.fstat(fd).st_size
+        try:
+            _write_all(fd, data)
+        except OSError:
+            _cut_back(fd, size, path)
+            raise
+    finally:
+        os.close(fd)
+    if size == 0:
+        _fsync_dir(path.parent)
+
+
+def read_quarantine(path: Path) -> list[QuarantinedRecord]:
+    """The records of the quarantine file ``path``, oldest first. Like a journal, only the intact
+    prefix is read (a torn last record, from a crash while quarantining, is skipped and logged);
+    the file is never changed."""
+    data = Path(path).read_bytes()
+    records, end = [], 0
+    while (parsed := _parse_quarantined(data, end)) is not None:
+        records.append(parsed[0])
+        end = parsed[1]
+    if end < len(data):
+        log.warning("%s: %d bytes from offset %d are torn or corrupt", path, len(data) - end, end)
+    return records
+
+
+def _read(path: Path, identity: dict[str, str | int]) -> tuple[list[Record], int, bytes]:
+    """Records after the header, the offset after the last intact one, and the file's bytes."""
     data = path.read_bytes()
     first = _parse(data, 0)
     header = _header(first[0]) if first else None
@@ -251,7 +460,7 @@ def _read(path: Path, identity: dict[str, str | int]) -> tuple[list[Record], int
     while (parsed := _parse(data, end)) is not None and parsed[0].kind != HEADER:
         records.append(parsed[0])
         end = parsed[1]
-    return records, end, len(data)
+    return records, end, data
 
 
 def _header(record: Record) -> dict[str, Any] | None:

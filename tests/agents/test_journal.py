@@ -1,10 +1,13 @@
 """The durable journal: records round trip, reopening appends, another identity is refused, a torn
-or corrupt tail is cut back to the last intact record, and committed records survive SIGKILL of a
-real process. (SIGKILL proves the process-crash case; what the fsync adds, surviving a power cut,
-cannot be shown without pulling the plug.)"""
+or corrupt tail is copied aside and cut back to the last intact record, a failed commit leaves the
+file as it was, the quarantine file round trips and never raises for its own I/O errors, and
+committed records survive SIGKILL of a real process. (SIGKILL proves the process-crash case; what
+the fsync adds, surviving a power cut, cannot be shown without pulling the plug. A full disk is
+shown with a monkeypatched ``os.write``.)"""
 
 from __future__ import annotations
 
+import errno
 import itertools
 import os
 import signal
@@ -12,12 +15,22 @@ import subprocess
 import sys
 import textwrap
 import zlib
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import msgpack
 import pytest
 
-from agents.journal import Journal, JournalError, Record
+from agents.journal import (
+    MAX_REASON,
+    Journal,
+    JournalError,
+    QuarantinedRecord,
+    Record,
+    quarantine_path,
+    read_quarantine,
+)
 
 ROOT = Path(__file__).resolve().parents[2]
 IDENTITY: dict[str, str | int] = {"robot": "r1", "seed": 7, "scenario": "a3f9"}
@@ -49,6 +62,48 @@ def _offsets(path: Path) -> list[int]:
 
 def _reopen(path: Path) -> tuple[Journal, list[Record]]:
     return Journal.open(path, IDENTITY)
+
+
+def _documents(data: bytes) -> list[Any]:
+    """The msgpack payloads of ``data``, a sequence of whole records, read as the docs say."""
+    docs, offset = [], 0
+    while offset < len(data):
+        length = int.from_bytes(data[offset : offset + 4], "little")
+        crc = int.from_bytes(data[offset + 4 : offset + 8], "little")
+        payload = data[offset + 8 : offset + 8 + length]
+        assert len(payload) == length and zlib.crc32(payload) == crc
+        docs.append(msgpack.unpackb(payload, raw=False))
+        offset += 8 + length
+    return docs
+
+
+def _same_file(fd: int, path: Path) -> bool:
+    return os.fstat(fd).st_ino == path.stat().st_ino
+
+
+def _torn_write(path: Path, keep: int) -> Callable[[int, bytes], int]:
+    """An ``os.write`` under which writes to ``path`` put ``keep`` bytes on disk, then fail as a
+    full disk does; writes to other files go through."""
+    real = os.write
+
+    def write(fd: int, data: bytes) -> int:
+        if not _same_file(fd, path):
+            return real(fd, data)
+        assert real(fd, bytes(data[:keep])) == keep
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    return write
+
+
+def _failing_fsync(path: Path) -> Callable[[int], None]:
+    real = os.fsync
+
+    def fsync(fd: int) -> None:
+        if _same_file(fd, path):
+            raise OSError(errno.EIO, "Input/output error")
+        real(fd)
+
+    return fsync
 
 
 def test_journal_records_round_trip(tmp_path: Path) -> None:
@@ -222,6 +277,12 @@ def test_journal_torn_tail_is_cut_back_at_every_offset(tmp_path: Path) -> None:
         assert got == records[:-1], cut
         assert journal.truncated_bytes == cut - last, cut
         assert path.stat().st_size == last, cut
+        if cut == last:
+            assert journal.set_aside is None
+        else:  # every torn tail is kept, each in a file of its own: the same offset each time
+            suffix = "" if cut == last + 1 else f".{cut - last}"
+            assert journal.set_aside == path.with_name(f"r1.journal.corrupt-{last}{suffix}"), cut
+            assert journal.set_aside.read_bytes() == full[last:cut], cut
         journal.append("frame", b"again")
         journal.close()
         journal, got = _reopen(path)
@@ -230,11 +291,12 @@ def test_journal_torn_tail_is_cut_back_at_every_offset(tmp_path: Path) -> None:
 
 
 @pytest.mark.parametrize("where", ["length", "crc", "payload", "kind"])
-def test_journal_corrupt_record_in_the_middle_drops_it_and_all_later_ones(
+def test_journal_corrupt_record_in_the_middle_is_copied_aside_with_all_later_ones(
     tmp_path: Path, where: str
 ) -> None:
     """Replay order matters: a record after a corrupt one would rebuild a belief the agent never
-    had, so the journal keeps only the intact prefix."""
+    had, so the journal keeps only the intact prefix; but the bytes it cuts off, the intact later
+    records among them, are first copied to a side file."""
     path = tmp_path / "r1.journal"
     _write(path, RECORDS)
     data = bytearray(path.read_bytes())
@@ -251,8 +313,221 @@ def test_journal_corrupt_record_in_the_middle_drops_it_and_all_later_ones(
     journal, records = _reopen(path)
     assert records == RECORDS[:1]
     assert journal.truncated_bytes == len(data) - second
+    journal.append("frame", b"after the recovery")
     journal.close()
-    assert path.stat().st_size == second
+    assert path.stat().st_size > second
+    side = path.with_name(f"r1.journal.corrupt-{second}")
+    assert journal.set_aside == side
+    assert side.read_bytes() == bytes(data[second:])
+    later = bytes(data[len(data) - (starts[-1] - starts[3]) :])  # RECORDS[2:], whole
+    assert side.read_bytes().endswith(later)
+    assert [Record(*doc) for doc in _documents(later)] == RECORDS[2:]  # recoverable
+    journal, records = _reopen(path)
+    journal.close()
+    assert records == [RECORDS[0], Record("frame", b"after the recovery")]
+    assert journal.set_aside is None and side.read_bytes() == bytes(data[second:])
+
+
+def test_journal_set_aside_never_replaces_an_earlier_side_file(tmp_path: Path) -> None:
+    path = tmp_path / "r1.journal"
+    _write(path, RECORDS[:1])
+    end = path.stat().st_size
+    for garbage in (b"\xff" * 9, b"\x00\x01" * 20):
+        with path.open("ab") as f:
+            f.write(garbage)
+        journal, records = _reopen(path)
+        journal.close()
+        assert records == RECORDS[:1] and journal.set_aside is not None
+        assert journal.set_aside.read_bytes() == garbage
+    first = path.with_name(f"r1.journal.corrupt-{end}")
+    assert first.read_bytes() == b"\xff" * 9
+    assert first.with_name(first.name + ".2").read_bytes() == b"\x00\x01" * 20
+
+
+def test_journal_that_cannot_set_its_tail_aside_is_left_untouched(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    path = tmp_path / "r1.journal"
+    _write(path, RECORDS[:2])
+    with path.open("ab") as f:
+        f.write(b"\xff" * 20)
+    before = path.read_bytes()
+
+    def link(src: Path, dst: Path) -> None:
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    with monkeypatch.context() as m:
+        m.setattr("agents.journal.os.link", link)
+        with pytest.raises(JournalError, match=r"20 bytes from offset \d+ .* left untouched"):
+            _reopen(path)
+    assert path.read_bytes() == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["r1.journal"]  # no temporary left
+    journal, records = _reopen(path)  # not held: the failed open released its lock
+    journal.close()
+    assert records == RECORDS[:2] and journal.set_aside is not None
+
+
+# --------------------------------------------------------------------------- failed commits
+
+
+@pytest.mark.parametrize("failure", ["write", "fsync"])
+def test_journal_failed_commit_leaves_the_file_unchanged_and_the_journal_usable(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, failure: str
+) -> None:
+    """A full disk mid-commit (part of the step written) or a failed fsync (all of it written):
+    commit raises, the file is cut back to its committed size, and the step stays queued, so the
+    next commit writes it with the records queued since."""
+    path = tmp_path / "r1.journal"
+    journal, _ = _reopen(path)
+    journal.append("frame", b"1")
+    journal.commit()
+    size = path.stat().st_size
+    journal.append("frame", b"2" * 1000)
+    with monkeypatch.context() as m:
+        if failure == "write":
+            m.setattr("agents.journal.os.write", _torn_write(path, 100))
+        else:
+            m.setattr("agents.journal.os.fsync", _failing_fsync(path))
+        with pytest.raises(OSError):
+            journal.commit()
+    assert path.stat().st_size == size
+    journal.append("stack", b"3")
+    journal.commit()
+    journal.close()
+    journal, records = _reopen(path)
+    journal.close()
+    assert records == [Record("frame", b"1"), Record("frame", b"2" * 1000), Record("stack", b"3")]
+    assert journal.truncated_bytes == 0 and journal.set_aside is None
+
+
+def test_journal_failed_rollback_closes_the_journal_and_open_sets_the_torn_step_aside(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """If even cutting the half-written step back fails, nothing may follow it: the journal
+    closes, and the next open copies the torn bytes aside."""
+    path = tmp_path / "r1.journal"
+    journal, _ = _reopen(path)
+    journal.append("frame", b"1")
+    journal.commit()
+    size = path.stat().st_size
+    journal.append("frame", b"2" * 1000)
+
+    def ftruncate(fd: int, length: int) -> None:
+        raise OSError(errno.EIO, "Input/output error")
+
+    with monkeypatch.context() as m:
+        m.setattr("agents.journal.os.write", _torn_write(path, 100))
+        m.setattr("agents.journal.os.ftruncate", ftruncate)
+        with pytest.raises(OSError, match="No space left"):
+            journal.commit()
+    torn = path.read_bytes()[size:]
+    assert len(torn) == 100
+    with pytest.raises(JournalError, match="closed"):
+        journal.append("frame", b"3")
+    journal, records = _reopen(path)
+    journal.close()
+    assert records == [Record("frame", b"1")]
+    assert journal.set_aside is not None and journal.set_aside.read_bytes() == torn
+
+
+# --------------------------------------------------------------------------- quarantine
+
+QUARANTINED = [
+    QuarantinedRecord("frame", b"\x00\x01", "step 3 raised FloatingPointError: overflow", 3),
+    QuarantinedRecord("stack", bytes(range(256)) * 300, "replay: MalformedMessage: objects", 17),
+    QuarantinedRecord("frame", b"", "no position known", None),
+]
+
+
+def test_journal_quarantine_round_trips_and_never_enters_the_replay(tmp_path: Path) -> None:
+    path = tmp_path / "r1.journal"
+    journal, _ = _reopen(path)
+    for q in QUARANTINED[:2]:
+        assert journal.quarantine(q.kind, q.body, q.reason, q.index)
+    journal.close()
+    journal, records = _reopen(path)  # a restarted agent adds to the same file
+    q = QUARANTINED[2]
+    assert journal.quarantine(q.kind, memoryview(q.body), q.reason, q.index)
+    assert journal.quarantine("frame", bytearray(b"x"), "y" * (MAX_REASON + 5), 2**63 - 1)
+    journal.close()
+    assert records == []
+    assert (journal.quarantined, journal.quarantine_failures) == (2, 0)
+    assert journal.quarantine_path == quarantine_path(path) == tmp_path / "r1.journal.quarantine"
+    expected = [*QUARANTINED, QuarantinedRecord("frame", b"x", "y" * MAX_REASON, 2**63 - 1)]
+    assert read_quarantine(journal.quarantine_path) == expected
+    docs = _documents(journal.quarantine_path.read_bytes())  # the journal's framing
+    assert docs[0] == ["frame", b"\x00\x01", "step 3 raised FloatingPointError: overflow", 3]
+    assert _reopen(path)[1] == []
+
+
+def test_read_quarantine_skips_a_torn_last_record(tmp_path: Path) -> None:
+    path = tmp_path / "r1.journal"
+    with _reopen(path)[0] as journal:
+        for q in QUARANTINED:
+            journal.quarantine(q.kind, q.body, q.reason, q.index)
+    qpath = quarantine_path(path)
+    full = qpath.read_bytes()
+    qpath.write_bytes(full[:-1])
+    assert read_quarantine(qpath) == QUARANTINED[:2]
+    assert qpath.read_bytes() == full[:-1]  # read only
+
+
+@pytest.mark.parametrize("failure", ["write", "fsync", "open"])
+def test_journal_quarantine_io_error_is_counted_not_raised(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, failure: str
+) -> None:
+    path = tmp_path / "r1.journal"
+    journal, _ = _reopen(path)
+    qpath = journal.quarantine_path
+    q = QUARANTINED[1]
+    if failure == "open":
+        qpath.mkdir()  # not a file: opening it fails
+    else:
+        assert journal.quarantine(q.kind, q.body, q.reason, q.index)
+    size = qpath.stat().st_size
+    with monkeypatch.context() as m:
+        if failure == "write":
+            m.setattr("agents.journal.os.write", _torn_write(qpath, 10))
+        elif failure == "fsync":
+            m.setattr("agents.journal.os.fsync", _failing_fsync(qpath))
+        assert not journal.quarantine("frame", b"lost", "disk full", 4)
+    assert journal.quarantine_failures == 1
+    journal.append("frame", b"the agent goes on")
+    journal.commit()
+    journal.close()
+    if failure == "open":
+        return
+    assert qpath.stat().st_size == size  # no half-written record left behind
+    assert read_quarantine(qpath) == [q]
+    assert journal.quarantined == 1
+
+
+@pytest.mark.parametrize(
+    ("kind", "body", "reason", "index", "error"),
+    [
+        ("Frame", b"", "r", None, ValueError),
+        ("header", b"", "r", None, ValueError),
+        ("frame", "text", "r", None, TypeError),
+        ("frame", b"", b"reason", None, TypeError),
+        ("frame", b"", "r", -1, ValueError),
+        ("frame", b"", "r", 2**63, ValueError),
+        ("frame", b"", "r", True, ValueError),
+        ("frame", b"", "r", 1.0, ValueError),
+    ],
+)
+def test_journal_quarantine_rejects_bad_arguments(
+    tmp_path: Path, kind: str, body: bytes, reason: str, index: int, error: type[Exception]
+) -> None:
+    with _reopen(tmp_path / "r1.journal")[0] as journal, pytest.raises(error):
+        journal.quarantine(kind, body, reason, index)
+    assert not quarantine_path(tmp_path / "r1.journal").exists()
+
+
+def test_journal_closed_journal_refuses_to_quarantine(tmp_path: Path) -> None:
+    journal, _ = _reopen(tmp_path / "r1.journal")
+    journal.close()
+    with pytest.raises(JournalError, match="closed"):
+        journal.quarantine("frame", b"", "r", None)
 
 
 # --------------------------------------------------------------------------- SIGKILL
