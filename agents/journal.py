@@ -317,6 +317,39 @@ class Journal:
         self._size += len(data)
         self._pending.clear()
 
+    def records(self) -> list[Record]:
+        """The committed records, read back from disk (what a replay would see now)."""
+        self._open_fd()
+        return [record for record, _ in self._committed()]
+
+    def cut(self, index: int) -> Path | None:
+        """Cut the journal before its committed record ``index``: the records from there on are
+        copied to a side file (returned; None if there was nothing to cut) before the file is
+        truncated. Queued records are dropped (they followed the cut ones)."""
+        fd = self._open_fd()
+        if not (isinstance(index, int) and index >= 0):
+            raise ValueError(f"cut index must be a non-negative integer, got {index!r}")
+        offsets = [start for _, start in self._committed()]
+        self._pending.clear()
+        if index >= len(offsets):
+            return None
+        start = offsets[index]
+        data = self.path.read_bytes()[: self._size]
+        side = _recover(self.path, fd, data, start)
+        self._size = start
+        return side
+
+    def _committed(self) -> list[tuple[Record, int]]:
+        """The committed records after the header, each with its offset in the file."""
+        data = self.path.read_bytes()[: self._size]
+        first = _parse(data, 0)
+        out: list[tuple[Record, int]] = []
+        end = first[1] if first is not None else len(data)
+        while (parsed := _parse(data, end)) is not None:
+            out.append((parsed[0], end))
+            end = parsed[1]
+        return out
+
     @property
     def quarantine_path(self) -> Path:
         return quarantine_path(self.path)

@@ -29,7 +29,9 @@ log = logging.getLogger(__name__)
 @dataclass(slots=True)
 class NodeCounters:
     """What a node has seen. ``invalid`` counts messages rejected by the protocol layer,
-    ``rejected_slots`` slots that decoded but contradict the belief's model, ``empty_joins`` slots
+    ``rejected_slots`` slots that decoded but contradict the belief's model, ``foreign_slots``
+    slots refused because their owner is outside the roster (or the stack is full),
+    ``empty_joins`` slots
     whose join with D was empty and ``rebuilds`` the times D was rebuilt from L and the held slots
     because of one."""
 
@@ -38,6 +40,7 @@ class NodeCounters:
     stacks_unchanged: int = 0
     invalid: int = 0
     rejected_slots: int = 0
+    foreign_slots: int = 0
     empty_joins: int = 0
     rebuilds: int = 0
     bytes_received: int = 0
@@ -45,6 +48,11 @@ class NodeCounters:
     bytes_sent: int = 0
     last_error: str = ""
     errors_by_type: dict[str, int] = field(default_factory=dict)
+
+
+class BeliefError(RuntimeError):
+    """A belief that is no longer a distribution after a step (non-finite weights or poses): the
+    step failed, and its shell must roll the node back."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -104,6 +112,7 @@ class RobotNode:
         downdate: str = "remove",
         limits: Limits | None = None,
         local: LocalTrack | None = None,
+        roster: frozenset[str] | None = None,
     ) -> None:
         self.robot = robot
         if local is None:
@@ -113,6 +122,9 @@ class RobotNode:
         self.track = local
         self.distributed = DistributedBelief(model, robot, start, config, fusion, downdate)
         self.limits = limits or Limits(num_classes=model.num_classes)
+        if roster is not None and robot not in roster:
+            raise ValueError(f"robot {robot} is not in its own roster {sorted(roster)}")
+        self.roster = roster
         self.stack = Stack()
         self.counters = NodeCounters()
         self.position: tuple[float, float] | None = None
@@ -148,7 +160,7 @@ class RobotNode:
     def merge(self, message: StackMessage) -> bool:
         """Merge a decoded stack (newest version per owner, never the own slot); True if it
         brought a newer slot."""
-        merged = self.stack.merge(message.stack, own=self.robot)
+        merged = self.stack.merge(self._admitted(message.stack), own=self.robot)
         if merged.stamps() == self.stack.stamps():
             self.counters.stacks_unchanged += 1
             return False
@@ -156,6 +168,26 @@ class RobotNode:
         self._encoded = None
         self.counters.stacks_merged += 1
         return True
+
+    def _admitted(self, stack: Stack) -> list[Slot]:
+        """The slots of a received stack this node may hold: owners in the roster, and no more
+        owners in all than a stack may carry (so that the own stack always encodes)."""
+        held = self.stack.stamps()
+        room = self.limits.max_slots - len(held | {self.robot: 0})
+        out = []
+        for s in stack:
+            if s.owner == self.robot:
+                continue
+            if self.roster is not None and s.owner not in self.roster:
+                self.counters.foreign_slots += 1
+                continue
+            if s.owner not in held:
+                if room <= 0:
+                    self.counters.foreign_slots += 1
+                    continue
+                room -= 1
+            out.append(s)
+        return out
 
     def on_frame(self, frame: SensorFrame) -> StepReport:
         """One robot step: integrate changed slots into D, local step on L and on D, rebuild the
@@ -172,11 +204,22 @@ class RobotNode:
                 fusion, empty_joins=fusion.empty_joins + rebuilt.empty_joins, rebuilds=1
             )
         self.k = frame.k
-        self.position = self.distributed.position(self.robot)
+        self.position = self._checked_position()
         # The own slot is rebuilt from L lazily, when a stack is next needed.
         self._own_slot_stale = True
         self._encoded = None
         return StepReport(frame.k, fusion)
+
+    def _checked_position(self) -> tuple[float, float]:
+        """D's estimated position, once L and D are checked to be distributions still."""
+        for name, belief in (("L", self.local), ("D", self.distributed)):
+            log_w = np.array([h.log_weight for h in belief.hypotheses])
+            if not (len(log_w) and np.isfinite(log_w).all()):
+                raise BeliefError(f"{self.robot}: {name} has non-finite hypothesis weights")
+            position = belief.position(self.robot)
+            if not all(np.isfinite(position)):
+                raise BeliefError(f"{self.robot}: {name} has a non-finite robot pose")
+        return position
 
     def integrate_pending(self) -> FusionStats:
         """Integrate into D every slot of the stack newer than the version D used (also done by

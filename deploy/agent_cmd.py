@@ -1,8 +1,10 @@
 """`semfleet agent --robot ID --config FILE`: one robot of the fleet as an asyncio process.
 
-The config file (TOML, docs/agents.md) names the fleet, the scenario that provides the belief model
-and the link model, the seed, the run mode, the journal and the Zenoh endpoints. The process runs
-until SIGINT/SIGTERM or a ``ctl/stop`` and then closes its Zenoh session and journal within 2 s.
+The config file (TOML, docs/agents.md) names the fleet, the robot model file (classes, classifier,
+noise, sensor: what the robot knows of itself), the start pose, the fleet roster, the seed, the run
+mode, the journal and the Zenoh endpoints. No world, no scenario and no ground truth: exactly what
+a robot has. The process runs until SIGINT/SIGTERM or a ``ctl/stop`` and then closes its Zenoh
+session and journal within 2 s.
 """
 
 from __future__ import annotations
@@ -16,28 +18,29 @@ import os
 import signal
 import sys
 import tomllib
+import zlib
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from rich.console import Console
 
-from agents.journal import Journal, JournalError, Record
-from agents.links import Partition
+from agents.core import AgentCore, CoreSettings
+from agents.journal import Journal, Record
 from agents.node import RobotNode
-from agents.runtime import MODES, Agent, RuntimeSettings
-from agents.transport.base import Keys, Message
+from agents.runtime import Agent
+from agents.transport.base import Keys
 from agents.transport.zenoh_transport import ZenohSettings, ZenohTransport
-from deploy.fleet import COMM_MODES, link_model_for
-from deploy.study import belief_model, belief_rng
+from deploy.build import belief_model, make_node
 from estimator.hybrid import BeliefConfig
-from protocol.frames import encode_frame
 from protocol.validate import valid_id
-from sim.loader import load_scenario
-from sim.scenario import Scenario
-from sim.sensors import Simulator
+from sim.robot_model import RobotModel, dump_robot_model, load_robot_model
+from sim.scenario import ScenarioError
 
 log = logging.getLogger("semfleet.agent")
+
+MODES = ("lockstep", "realtime")
 
 
 class AgentConfigError(ValueError):
@@ -52,16 +55,14 @@ class AgentConfigError(ValueError):
 class AgentConfig:
     robot: str
     fleet: str
-    scenario: str
-    variants: tuple[str, ...]
+    model_path: Path
+    model: RobotModel
+    start: tuple[float, float, float]
+    roster: frozenset[str]
     seed: int
-    runtime: RuntimeSettings
+    runtime: CoreSettings
     journal: Path | None
-    comm: str | None
-    drop: float
-    partitions: tuple[Partition, ...]
     zenoh: ZenohSettings
-    replay_period: float | None = None
 
 
 def _get(
@@ -83,10 +84,11 @@ def _name(kind: type | tuple[type, ...]) -> str:
 
 
 _AGENT_KEYS = {
-    "fleet", "scenario", "variants", "seed", "mode", "gossip_period", "journal", "comm", "drop",
-    "partitions", "publish_local", "replay_period",
+    "fleet", "model", "start", "roster", "seed", "mode", "gossip_period", "journal",
+    "publish_local", "simulation", "window",
 }  # fmt: skip
 _ZENOH_KEYS = {"listen", "connect", "gossip", "shared_memory", "lease_ms", "config_file"}
+MAX_START = 1e6  # metres: a start pose farther out is a typo, not a robot
 
 
 def load_agent_config(path: Path, robot: str) -> AgentConfig:
@@ -108,9 +110,28 @@ def load_agent_config(path: Path, robot: str) -> AgentConfig:
         extra = set(table) - keys
         if extra:
             raise AgentConfigError(path, f"{name}.{sorted(extra)[0]}", "unknown key")
-    if "scenario" not in a:
-        raise AgentConfigError(path, "agent.scenario", "missing")
+    for key in ("model", "start", "roster"):
+        if key not in a:
+            raise AgentConfigError(path, f"agent.{key}", "missing")
     base = path.parent
+    model_path = base / _get(a, "model", str, path, "agent")
+    try:
+        model = load_robot_model(model_path)
+    except ScenarioError as exc:
+        raise AgentConfigError(path, "agent.model", str(exc)) from None
+    start = _get(a, "start", list, path, "agent")
+    if not (
+        len(start) == 3
+        and all(isinstance(v, int | float) and not isinstance(v, bool) for v in start)
+        and all(math.isfinite(v) and abs(v) <= MAX_START for v in start)
+    ):
+        reason = f"expected [x, y, theta]: three finite numbers within ±{MAX_START:g}"
+        raise AgentConfigError(path, "agent.start", reason)
+    roster = _get(a, "roster", list, path, "agent")
+    if not all(valid_id(r) for r in roster) or len(set(roster)) != len(roster):
+        raise AgentConfigError(path, "agent.roster", "expected distinct robot ids")
+    if robot not in roster:
+        raise AgentConfigError(path, "agent.roster", f"does not list this robot ({robot})")
     fleet = _get(a, "fleet", str, path, "agent") if "fleet" in a else "default"
     if not valid_id(fleet):
         raise AgentConfigError(path, "agent.fleet", f"invalid fleet name {fleet!r}")
@@ -127,44 +148,20 @@ def load_agent_config(path: Path, robot: str) -> AgentConfig:
     )
     if not (math.isfinite(period) and 0.01 <= period <= 3600):
         raise AgentConfigError(path, "agent.gossip_period", "must be in 0.01..3600 s")
-    comm = _get(a, "comm", str, path, "agent") if "comm" in a else None
-    if comm is not None and comm not in COMM_MODES:
-        raise AgentConfigError(path, "agent.comm", f"{comm!r} (known: {', '.join(COMM_MODES)})")
-    drop = float(_get(a, "drop", (int, float), path, "agent")) if "drop" in a else 0.0
-    if not 0.0 <= drop <= 1.0:
-        raise AgentConfigError(path, "agent.drop", "must be in [0, 1]")
-    partitions = []
-    for i, p in enumerate(_get(a, "partitions", list, path, "agent") if "partitions" in a else []):
-        where = f"agent.partitions[{i}]"
-        if not (
-            isinstance(p, list)
-            and len(p) == 3
-            and isinstance(p[0], list)
-            and all(isinstance(r, str) and valid_id(r) for r in p[0])
-            and all(isinstance(v, int) and not isinstance(v, bool) for v in p[1:])
-        ):
-            raise AgentConfigError(path, where, "expected [[robot ids], first step, last step]")
-        try:
-            partitions.append(Partition(frozenset(map(str, p[0])), int(p[1]), int(p[2])))
-        except (TypeError, ValueError) as exc:
-            raise AgentConfigError(path, where, str(exc)) from None
-    replay_period = None
-    if "replay_period" in a:
-        replay_period = float(_get(a, "replay_period", (int, float), path, "agent"))
-        if not (math.isfinite(replay_period) and 0.001 <= replay_period <= 3600):
-            raise AgentConfigError(path, "agent.replay_period", "must be in 0.001..3600 s")
-        if mode != "realtime":
-            raise AgentConfigError(path, "agent.replay_period", 'needs mode = "realtime"')
+    window = _get(a, "window", int, path, "agent") if "window" in a else 64
+    if not 1 <= window <= 100_000:
+        raise AgentConfigError(path, "agent.window", "must be in 1..100000 steps")
     journal = None
     if "journal" in a:
         journal = base / _get(a, "journal", str, path, "agent")
-    variants = tuple(_get(a, "variants", list, path, "agent")) if "variants" in a else ()
-    runtime = RuntimeSettings(
+    runtime = CoreSettings(
         mode=mode,
         gossip_period=period,
+        window=window,
         publish_local=_get(a, "publish_local", bool, path, "agent")
         if "publish_local" in a
         else True,
+        simulation=_get(a, "simulation", bool, path, "agent") if "simulation" in a else False,
     )
     listen = tuple(_get(z, "listen", list, path, "zenoh")) if "listen" in z else ()
     connect = tuple(_get(z, "connect", list, path, "zenoh")) if "connect" in z else ()
@@ -188,38 +185,47 @@ def load_agent_config(path: Path, robot: str) -> AgentConfig:
         lease_ms=lease_ms,
         config_file=config_file,
     )
-    scenario = _get(a, "scenario", str, path, "agent")
-    if scenario.endswith(".toml") and not Path(scenario).is_absolute():
-        scenario = str(base / scenario)
     return AgentConfig(
-        robot, fleet, scenario, tuple(map(str, variants)), seed, runtime, journal, comm, drop,
-        tuple(partitions), zenoh_settings, replay_period,
+        robot, fleet, model_path, model, (float(start[0]), float(start[1]), float(start[2])),
+        frozenset(roster), seed, runtime, journal, zenoh_settings,
     )  # fmt: skip
 
 
-def build_agent(config: AgentConfig, scenario: Scenario, transport: ZenohTransport) -> Agent:
-    """The node (L and D seeded exactly like the in-process runner's), its journal, the agent."""
-    if config.robot not in scenario.robot_ids:
-        raise AgentConfigError(
-            Path(config.scenario), "--robot", f"{config.robot} is not in the scenario"
-        )
-    model = belief_model(scenario)
-    start = scenario.robot(config.robot).start
-    rng = lambda: belief_rng(config.seed, [config.robot])  # noqa: E731
-    node = RobotNode(config.robot, start, model, rng(), rng(), BeliefConfig())
-    links = link_model_for(scenario, config.comm, config.drop, config.seed, config.partitions)
+def node_factory(config: AgentConfig) -> Callable[[], RobotNode]:
+    """Builds the agent's node at step 0: L and D seeded exactly like the in-process runner's,
+    holding the slots of the roster's robots only."""
+    model = belief_model(config.model)
+
+    def make() -> RobotNode:
+        node = make_node(config.robot, config.start, model, config.seed, BeliefConfig())
+        node.roster = config.roster
+        return node
+
+    return make
+
+
+def journal_identity(config: AgentConfig) -> dict[str, str | int]:
+    """What a journal must have been written by: this robot, fleet, model, start, seed, mode."""
+    model = zlib.crc32(dump_robot_model(config.model).encode())
+    start = zlib.crc32(repr(config.start).encode())
+    return {
+        "robot": config.robot,
+        "fleet": config.fleet,
+        "model": f"{model:08x}",
+        "start": f"{start:08x}",
+        "seed": config.seed,
+        "mode": config.runtime.mode,
+    }
+
+
+def build_agent(config: AgentConfig, transport: ZenohTransport) -> Agent:
+    """The core (its node from the robot model), its journal replayed, the agent."""
     journal = None
     records: list[Record] = []
     if config.journal is not None:
-        identity: dict[str, str | int] = {
-            "robot": config.robot,
-            "fleet": config.fleet,
-            "scenario": scenario.name,
-            "seed": config.seed,
-            "mode": config.runtime.mode,
-        }
-        journal, records = Journal.open(config.journal, identity)
-    agent = Agent(node, transport, Keys(config.fleet), links, config.runtime, journal)
+        journal, records = Journal.open(config.journal, journal_identity(config))
+    core = AgentCore(node_factory(config), Keys(config.fleet), config.runtime)
+    agent = Agent(core, transport, journal)
     agent.replay(records)
     return agent
 
@@ -247,15 +253,6 @@ class JsonLines(logging.Formatter):
         return json.dumps(doc, default=str)
 
 
-async def _replay_frames(agent: Agent, scenario: Scenario, seed: int, period: float) -> None:
-    """The simulation source without a conductor: the robot's own frames, one per period."""
-    frames = Simulator(scenario, seed).all_frames()[agent.robot]
-    key = agent.keys.frames(agent.robot)
-    for frame in frames[agent.node.k :]:
-        agent.frames.put(Message(key, encode_frame(frame)))
-        await asyncio.sleep(period)
-
-
 async def _log_counters(agent: Agent, every: float) -> None:
     while True:
         await asyncio.sleep(every)
@@ -263,9 +260,8 @@ async def _log_counters(agent: Agent, every: float) -> None:
 
 
 async def serve(config: AgentConfig) -> int:
-    scenario = load_scenario(config.scenario, config.variants)
     transport = ZenohTransport(config.zenoh)
-    agent = build_agent(config, scenario, transport)
+    agent = build_agent(config, transport)
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, agent.stop, signal.Signals(sig).name)
@@ -276,16 +272,11 @@ async def serve(config: AgentConfig) -> int:
         config.runtime.mode,
         extra={"event": "start", "step": agent.node.k, "mode": config.runtime.mode},
     )
-    helpers = [asyncio.create_task(_log_counters(agent, 10.0))]
-    if config.replay_period is not None:
-        helpers.append(
-            asyncio.create_task(_replay_frames(agent, scenario, config.seed, config.replay_period))
-        )
+    counters = asyncio.create_task(_log_counters(agent, 10.0))
     try:
         await agent.run()
     finally:
-        for task in helpers:
-            task.cancel()
+        counters.cancel()
     log.info(
         "%s: stopped (%s)",
         config.robot,
@@ -302,10 +293,7 @@ def run(args: argparse.Namespace, console: Console) -> int:
     root = logging.getLogger()
     root.handlers[:] = [handler]
     root.setLevel(logging.INFO if not args.verbose else logging.DEBUG)
-    try:
-        code = asyncio.run(serve(config))
-    except JournalError as exc:
-        raise ValueError(f"journal: {exc}") from None
+    code = asyncio.run(serve(config))
     # The Zenoh session and the journal are closed and flushed by now; tearing down the
     # interpreter (tokio's threads, GTSAM's statics) can take seconds on a loaded machine, which
     # would break the 2 s shutdown promise. Leave at once.
@@ -317,6 +305,6 @@ def run(args: argparse.Namespace, console: Console) -> int:
 
 def add_parser(sub: Any) -> None:
     p = sub.add_parser("agent", help="run one robot of the fleet (asyncio, Zenoh)")
-    p.add_argument("--robot", required=True, help="the robot id (as in the scenario)")
+    p.add_argument("--robot", required=True, help="the robot id (listed in the roster)")
     p.add_argument("--config", required=True, help="agent config TOML (docs/agents.md)")
     p.set_defaults(run=run)

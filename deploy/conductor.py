@@ -11,7 +11,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -52,6 +52,11 @@ class Collected:
     final: dict[str, EstimateMessage] = field(default_factory=dict)
     estimates: dict[tuple[str, int], EstimateMessage] = field(default_factory=dict)
     stack_log: list[tuple[float, str, dict[str, int]]] = field(default_factory=list)
+
+
+def without_truth(frame: SensorFrame) -> SensorFrame:
+    """The frame an agent gets: the simulator keeps the true pose for its metrics."""
+    return replace(frame, true_pose=np.full(3, np.nan))
 
 
 def links_at(
@@ -124,13 +129,21 @@ class Conductor:
     # -- helpers -----------------------------------------------------------------------------
 
     def _publish_frames(self, robot: str, first: int, last: int) -> None:
+        """Frames as a robot's perception would send them: without ground truth."""
         for k in range(max(first, 1), last + 1):
-            self.transport.publish(self.keys.frames(robot), encode_frame(self.frames[robot][k - 1]))
+            frame = without_truth(self.frames[robot][k - 1])
+            self.transport.publish(self.keys.frames(robot), encode_frame(frame))
         self.published_up_to[robot] = max(self.published_up_to[robot], last)
 
     def _order(self, k: int) -> None:
         order = StepOrder(k, links_at(self.links, self.frames, self.robots, k))
         self.transport.publish(self.keys.ctl("step"), encode_control(order))
+
+    def _publish_links(self, k: int) -> None:
+        """Realtime simulations: who hears whom at step k, decided here on the true poses and
+        obeyed only by agents configured as simulated (``simulation = true``)."""
+        links = StepOrder(k, links_at(self.links, self.frames, self.robots, k))
+        self.transport.publish(self.keys.sim_links(), encode_control(links))
 
     def pump(self) -> None:
         """Handle everything that arrived: liveliness, frame requests, estimates."""
@@ -255,6 +268,7 @@ class Conductor:
         start = time.monotonic()
         for k in range(1, steps + 1):
             self.k = k
+            self._publish_links(k)
             for r in self.robots:
                 self._publish_frames(r, k, k)
             if on_step is not None:

@@ -36,6 +36,7 @@ from agents.transport.zenoh_transport import ZenohSettings, ZenohTransport, loop
 from deploy.conductor import Collected, Conductor, ConductorError
 from deploy.fleet import link_model_for
 from deploy.study import RunResult
+from sim.robot_model import dump_robot_model
 from sim.scenario import Scenario
 from sim.sensors import Simulator
 
@@ -158,6 +159,9 @@ class Launcher:
         plan = self.plan
         ports = free_ports(len(plan.robots) + 1)
         conductor_port, agent_ports = ports[0], dict(zip(plan.robots, ports[1:], strict=True))
+        model = plan.out / "agents" / "model.toml"
+        model.parent.mkdir(parents=True, exist_ok=True)
+        model.write_text(dump_robot_model(plan.scenario.robot_model()), encoding="utf-8")
         journal_dir = plan.out / "journal"
         journal_dir.mkdir(parents=True, exist_ok=True)
         for r in plan.robots:
@@ -175,20 +179,21 @@ class Launcher:
                 ]
                 gossip = False
             cfg = plan.out / "agents" / f"{r}.toml"
-            f = plan.faults
             write_agent_config(
                 cfg,
                 {
                     "fleet": plan.fleet,
-                    "scenario": self.scenario_source,
+                    "model": "model.toml",
+                    "start": [float(v) for v in plan.scenario.robot(r).start],
+                    "roster": list(plan.robots),
                     "seed": plan.seed,
                     "mode": plan.mode,
                     "gossip_period": plan.gossip_period,
                     "journal": f"../journal/{r}.log",
-                    "comm": plan.comm,
-                    "drop": f.drop,
-                    "partitions": [[sorted(p.group), p.first, p.last] for p in f.partitions],
                     "publish_local": plan.publish_local,
+                    # Loss, partitions and range are the simulator's: it publishes who hears
+                    # whom (sim/links), which only a simulated agent obeys.
+                    "simulation": True,
                 },
                 {
                     "listen": [loopback_endpoint(agent_ports[r])],

@@ -32,6 +32,7 @@ DOWNDATES = ("remove", "anti")
 # Between two slots of one batch the join keeps at most this many times max_hypotheses candidates;
 # ratio pruning and the cap proper apply once, after the whole batch.
 _JOIN_GUARD = 20
+_FITS_CELLS = 4_000_000  # booleans compared at once when matching hypotheses with realisations
 
 
 class SlotError(ValueError):
@@ -82,6 +83,22 @@ class _Join:
             self.log_weight[kept] if log_weight is None else log_weight,
             self.order,
         )
+
+
+def _fits(parent: IntArray, real: IntArray) -> tuple[IntArray, IntArray]:
+    """(row, realisation) pairs whose classes agree on every shared column: ``parent`` (J, s)
+    against ``real`` (R, s), in chunks of rows so that no temporary exceeds _FITS_CELLS."""
+    j, r = parent.shape[0], real.shape[0]
+    step = max(1, _FITS_CELLS // max(1, r * max(1, parent.shape[1])))
+    rows, cols = [], []
+    for first in range(0, j, step):
+        block = np.all(parent[first : first + step, None, :] == real[None, :, :], axis=2)
+        b_rows, b_cols = np.nonzero(block)
+        rows.append(b_rows + first)
+        cols.append(b_cols)
+    if not rows:
+        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+    return np.concatenate(rows), np.concatenate(cols)
 
 
 def xi_factor(
@@ -217,6 +234,12 @@ class DistributedBelief(HybridBelief):
         """Raise :class:`SlotError` if a slot contradicts this belief's model."""
         m = self.model.num_classes
         n = len(s.summary.object_ids)
+        fusion_bytes = self.config.max_hypotheses * (3 * n) ** 2 * 8
+        if fusion_bytes > self.config.max_fusion_bytes:
+            raise SlotError(
+                f"slot of {s.owner}: {n} objects would take {fusion_bytes / 2**20:.0f} MiB of "
+                f"information matrices (max_fusion_bytes {self.config.max_fusion_bytes / 2**20:.0f})"
+            )
         if len(set(s.summary.object_ids)) != n:
             raise SlotError(f"slot of {s.owner}: duplicate object ids")
         for r in s.summary.realisations:
@@ -248,10 +271,13 @@ class DistributedBelief(HybridBelief):
             real_cls = real_cls.reshape(len(s.summary.realisations), len(ids))
             d_cols = np.array([a for a, _ in shared], dtype=np.int64)
             s_cols = np.array([i for _, i in shared], dtype=np.int64)
-            fits = np.all(
-                join.classes[:, None, d_cols] == real_cls[None, :, s_cols], axis=2
-            )  # (J, R)
-            rows, cols = np.nonzero(fits)
+            # Bounded before anything is built: at most max_join (row, realisation) pairs (the
+            # heaviest rows of the join so far), compared in chunks of at most _FITS_CELLS cells.
+            width = max(1, len(real_cls))
+            if len(join.parent) * width > self.config.max_join:
+                heaviest = np.argsort(-join.log_weight, kind="stable")
+                join = join.keep(np.sort(heaviest[: max(1, self.config.max_join // width)]))
+            rows, cols = _fits(join.classes[:, d_cols], real_cls[:, s_cols])
             if len(rows) == 0:
                 # Expected under double counting (D becomes overconfident and prunes what the
                 # owner keeps); under consistent fusion the RobotNode rebuilds D.

@@ -53,7 +53,12 @@ class BeliefConfig:
     1/``marginal_ratio`` of the marginal probability of one of its own classes;
     ``class_floor``: (``"marginal"`` only) a class of an object with at least this marginal
     probability keeps its heaviest hypothesis, and the kept hypotheses are reweighted to the
-    class marginals before pruning; ``max_hypotheses``: hard cap; ``weight_estimator``:
+    class marginals before pruning; ``max_hypotheses``: hard cap; ``max_join``: the most
+    (hypothesis, realisation) pairs a fusion builds for one slot (the lightest hypotheses are
+    left out first; bounds the work of a received slot before anything is built);
+    ``max_fusion_bytes``: a slot whose information matrices, one per kept hypothesis, would
+    take more is refused (``max_hypotheses`` × (3n)² float64 for a slot of n objects);
+    ``weight_estimator``:
     ``geo_conditioned`` (default) or ``paper_mc``; ``num_samples`` for the Monte Carlo part;
     ``object_prior_sigmas``: the weak prior on a newly seen object, centred on its first
     measurement; ``start_prior_sigmas``: the prior on a robot's known start; iSAM2's
@@ -67,6 +72,8 @@ class BeliefConfig:
     class_floor: float = 1e-4
     marginal_ratio: float = 150.0
     max_hypotheses: int = 300
+    max_join: int = 250_000
+    max_fusion_bytes: int = 2**30
     object_prior_sigmas: tuple[float, float, float] = (100.0, 100.0, math.pi)
     start_prior_sigmas: tuple[float, float, float] = (1e-3, 1e-3, 1e-3)
     relinearize_threshold: float = 1e-3
@@ -79,6 +86,8 @@ class BeliefConfig:
             raise ValueError(f"weight_estimator {self.weight_estimator!r} (known: {known})")
         if self.pruning not in PRUNINGS:
             raise ValueError(f"pruning {self.pruning!r} (known: {', '.join(PRUNINGS)})")
+        if self.max_join < 1 or self.max_fusion_bytes < 1:
+            raise ValueError("max_join and max_fusion_bytes must be ≥ 1")
         if self.num_samples < 1 or self.max_hypotheses < 1 or self.extra_updates < 0:
             raise ValueError("num_samples and max_hypotheses must be ≥ 1, extra_updates ≥ 0")
         if not self.prune_ratio > 1.0:

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import contextlib
+import threading
 from dataclasses import dataclass
 from typing import Literal, Protocol
 
@@ -28,51 +30,117 @@ class Message:
 
 
 class Inbox:
-    """A bounded FIFO of :class:`Message` used from the event loop only; full → drop the oldest."""
+    """A bounded FIFO of :class:`Message`, filled from any thread and drained by the event loop.
 
-    def __init__(self, capacity: int) -> None:
-        if capacity < 1:
-            raise ValueError(f"inbox capacity must be ≥ 1, got {capacity}")
+    Bounded in count (``capacity``) and in payload bytes (``max_bytes``). When a message does not
+    fit, older messages *on the same key* go first (stacks are latest-wins: the newest copy is the
+    one worth keeping), then the oldest of all; every drop is counted. A message larger than
+    ``max_bytes`` on its own is dropped at once. :meth:`put` may be called from a transport's own
+    threads: it never waits for the loop, and it wakes the loop at most once per batch, so a busy
+    loop cannot make the hand-off grow without bound.
+    """
+
+    def __init__(self, capacity: int, max_bytes: int = 256 * 1024 * 1024) -> None:
+        if capacity < 1 or max_bytes < 1:
+            raise ValueError(f"inbox capacity and bytes must be ≥ 1, got {capacity}, {max_bytes}")
         self._items: collections.deque[Message] = collections.deque()
         self.capacity = capacity
+        self.max_bytes = max_bytes
+        self.bytes = 0
         self.dropped = 0
         self.received = 0
+        self._lock = threading.Lock()
         self._event = asyncio.Event()
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._wake_pending = False
 
     def __len__(self) -> int:
         return len(self._items)
 
+    def bind(self, loop: asyncio.AbstractEventLoop) -> None:
+        """The loop to wake when a message is put from another thread."""
+        self._loop = loop
+
     def put(self, message: Message) -> None:
-        """Enqueue (event-loop thread only)."""
-        if len(self._items) >= self.capacity:
-            self._items.popleft()
+        """Enqueue, from the loop or from any other thread (after :meth:`bind`)."""
+        size = len(message.payload)
+        with self._lock:
+            self.received += 1
+            if size > self.max_bytes:
+                self.dropped += 1
+                return
+            self._make_room(message.key, size)
+            self._items.append(message)
+            self.bytes += size
+            wake = not self._wake_pending
+            self._wake_pending = True
+        if wake:
+            self._wake()
+
+    def _make_room(self, key: str, size: int) -> None:
+        """Drop until ``size`` more bytes and one more message fit (lock held)."""
+
+        def full() -> bool:
+            return len(self._items) >= self.capacity or self.bytes + size > self.max_bytes
+
+        if not full():
+            return
+        same = [m for m in self._items if m.key == key]
+        for m in same:
+            if not full():
+                break
+            self._items.remove(m)
+            self.bytes -= len(m.payload)
             self.dropped += 1
-        self._items.append(message)
-        self.received += 1
-        self._event.set()
+        while full() and self._items:
+            m = self._items.popleft()
+            self.bytes -= len(m.payload)
+            self.dropped += 1
+
+    def _wake(self) -> None:
+        loop = self._loop
+        try:
+            running = asyncio.get_running_loop()
+        except RuntimeError:
+            running = None
+        if loop is None or running is loop:
+            self._event.set()
+        else:
+            with contextlib.suppress(RuntimeError):  # a closed loop: shutting down
+                loop.call_soon_threadsafe(self._event.set)
 
     def drain(self) -> list[Message]:
         """Everything queued, oldest first, without waiting."""
-        items = list(self._items)
-        self._items.clear()
-        self._event.clear()
+        with self._lock:
+            items = list(self._items)
+            self._items.clear()
+            self.bytes = 0
+            self._wake_pending = False
+            self._event.clear()
         return items
 
     async def get(self) -> Message:
         """The oldest message, waiting for one."""
-        while not self._items:
-            self._event.clear()
+        while True:
+            with self._lock:
+                if self._items:
+                    message = self._items.popleft()
+                    self.bytes -= len(message.payload)
+                    if not self._items:
+                        self._wake_pending = False
+                        self._event.clear()
+                    return message
+                self._wake_pending = False
+                self._event.clear()
             await self._event.wait()
-        message = self._items.popleft()
-        if not self._items:
-            self._event.clear()
-        return message
 
     async def wait(self, timeout: float | None = None) -> bool:
         """Wait until something is queued; False on timeout."""
-        if self._items:
-            return True
-        self._event.clear()
+        with self._lock:
+            if self._items:
+                return True
+            self._wake_pending = False
+            self._event.clear()
         try:
             await asyncio.wait_for(self._event.wait(), timeout)
         except TimeoutError:
@@ -131,6 +199,10 @@ class Keys:
 
     def estimate(self, robot: str) -> str:
         return f"{self.prefix}/estimate/{_robot(robot)}"
+
+    def sim_links(self) -> str:
+        """Simulations only: who hears whom at step k, as decided by the simulator."""
+        return f"{self.prefix}/sim/links"
 
     def ctl(self, *parts: str) -> str:
         return "/".join((self.prefix, "ctl", *parts))

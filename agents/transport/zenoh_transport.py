@@ -11,7 +11,6 @@ seconds. Zenoh peers never forward for each other, so multi-hop relay is the sta
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import json
 import logging
 from collections.abc import Callable, Sequence
@@ -154,11 +153,11 @@ class ZenohTransport:
         loop = self._loop
         assert loop is not None
 
+        inbox.bind(loop)
+
         def on_sample(sample: zenoh.Sample) -> None:
-            # A Zenoh thread: copy the bytes, hand them to the loop, nothing else.
-            message = Message(str(sample.key_expr), sample.payload.to_bytes())
-            with contextlib.suppress(RuntimeError):  # a closed loop: the process is shutting down
-                loop.call_soon_threadsafe(inbox.put, message)
+            # A Zenoh thread: copy the bytes into the bounded inbox, which wakes the loop once.
+            inbox.put(Message(str(sample.key_expr), sample.payload.to_bytes()))
 
         return on_sample
 
@@ -175,10 +174,11 @@ class ZenohTransport:
         loop = self._loop
         assert loop is not None
 
+        inbox.bind(loop)
+
         def on_change(sample: zenoh.Sample) -> None:
             kind: Kind = "alive" if sample.kind == zenoh.SampleKind.PUT else "gone"
-            with contextlib.suppress(RuntimeError):
-                loop.call_soon_threadsafe(inbox.put, Message(str(sample.key_expr), b"", kind))
+            inbox.put(Message(str(sample.key_expr), b"", kind))
 
         self._handles.append(
             self._session.liveliness().declare_subscriber(key_expr, on_change, history=True)

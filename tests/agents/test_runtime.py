@@ -1,6 +1,6 @@
 """The asyncio agent over the in-memory transport, in one event loop: lock-step rounds merge exactly
 the peers the conductor ordered (and so repeat the in-process runner), the realtime proximity
-filter refuses and counts out-of-range stacks, invalid input is counted and logged rate-limited
+agent obeys the simulator's links (and only a simulated agent does), invalid input is counted and logged rate-limited
 while the agent lives on, and a journal replay rebuilds the very belief the agent had.
 
 The world: three robots 10 m apart driving along +x, each with two objects just ahead of it (seen
@@ -21,13 +21,14 @@ import pytest
 
 from agents.control import Status, StepOrder, encode_control
 from agents.journal import Journal
-from agents.links import LinkModel, Proximity, Schedule
+from agents.core import AgentCore, CoreSettings
+from agents.links import Schedule
 from agents.node import RobotNode
-from agents.runtime import Agent, RuntimeSettings
+from agents.runtime import Agent
 from agents.transport import Inbox, Keys, MemoryBus, MemoryTransport
 from deploy.conductor import Conductor
-from deploy.fleet import make_nodes, run_fleet
-from deploy.study import belief_model, belief_rng
+from deploy.build import belief_model, belief_rng, make_node, make_nodes
+from deploy.fleet import run_fleet
 from estimator.hybrid import BeliefConfig, BeliefSnapshot
 from estimator.models import SensorFrame
 from protocol.codec import StackMessage, encode
@@ -71,18 +72,28 @@ def _nodes() -> dict[str, RobotNode]:
     return make_nodes(SCENARIO, model, BeliefConfig(), lambda r: belief_rng(SEED, [r]))
 
 
+def _factory(robot: str) -> Callable[[], RobotNode]:
+    """The node of ``robot`` at step 0, as `semfleet agent` builds it."""
+    model = belief_model(SCENARIO)
+    start = SCENARIO.robot(robot).start
+    return lambda: make_node(robot, start, model, SEED, BeliefConfig())
+
+
 def _agent(
-    node: RobotNode,
+    robot: str,
     bus: MemoryBus,
     mode: str,
-    links: LinkModel = CHAIN,
     journal: Journal | None = None,
     gossip_period: float = QUIET,
     clock: Callable[[], float] | None = None,
+    simulation: bool = False,
 ) -> Agent:
-    settings = RuntimeSettings(mode=mode, gossip_period=gossip_period, retry_period=0.05)
+    settings = CoreSettings(
+        mode=mode, gossip_period=gossip_period, retry_period=0.05, simulation=simulation
+    )
     extra = {} if clock is None else {"clock": clock}
-    return Agent(node, MemoryTransport(bus), KEYS, links, settings, journal, **extra)
+    core = AgentCore(_factory(robot), KEYS, settings)
+    return Agent(core, MemoryTransport(bus), journal, **extra)
 
 
 @contextlib.asynccontextmanager
@@ -135,11 +146,11 @@ async def _lockstep_fleet(
     )
     await conductor.open()
     agents = []
-    for r, node in _nodes().items():
+    for r in ROBOTS:
         journal, records = Journal.open(journals / f"{r}.log", {"robot": r, "seed": SEED})
         assert records == []
         # The timer re-sends stacks an agent that opened later missed (as over Zenoh).
-        agents.append(_agent(node, bus, "lockstep", journal=journal, gossip_period=0.05))
+        agents.append(_agent(r, bus, "lockstep", journal=journal, gossip_period=0.05))
     async with _running(*agents) as tasks:
         await conductor.wait_alive(10)
         await conductor.run_lockstep(STEPS, step_timeout=30)
@@ -203,7 +214,8 @@ async def test_agent_lockstep_round_merges_exactly_the_ordered_peers(
     world = MemoryTransport(bus)
     await world.open()
     peers = _nodes()
-    agent = _agent(peers.pop("r3"), bus, "lockstep")
+    del peers["r3"]
+    agent = _agent("r3", bus, "lockstep")
 
     def order(k: int, senders: tuple[str, ...]) -> None:
         world.publish(KEYS.ctl("step"), encode_control(StepOrder(k, {"r3": senders})))
@@ -239,41 +251,63 @@ async def test_agent_lockstep_round_merges_exactly_the_ordered_peers(
 # --------------------------------------------------------------------------- realtime
 
 
-def _stack_from(node: RobotNode, position: tuple[float, float] | None) -> bytes:
-    """``node``'s stack as sent from ``position`` (the proximity filter reads it)."""
-    return encode(StackMessage(node.robot, position, node.current_stack(), node.k))
+def _stack_from(node: RobotNode) -> bytes:
+    return encode(StackMessage(node.robot, None, node.current_stack(), node.k))
+
+
+def _links(k: int, links: dict[str, tuple[str, ...]]) -> bytes:
+    return encode_control(StepOrder(k, links))
 
 
 @pytest.mark.asyncio
-async def test_agent_realtime_proximity_filter_counts_ignored_out_of_range(
+async def test_simulated_agent_hears_whom_the_simulator_says_and_counts_the_rest(
     frames: dict[str, list[SensorFrame]],
 ) -> None:
     bus = MemoryBus()
     world = MemoryTransport(bus)
     await world.open()
-    nodes = _nodes()
-    peer = nodes["r2"]
+    peer = _nodes()["r2"]
     peer.on_frame(frames["r2"][0])
-    agent = _agent(nodes["r1"], bus, "realtime", links=Proximity(10.0))
+    agent = _agent("r1", bus, "realtime", simulation=True)
     async with _running(agent) as (task,):
-        # Before its first step the agent has no position: refused, but not "out of range".
-        world.publish(KEYS.stack("r2"), _stack_from(peer, (0.0, 5.0)))
+        world.publish(KEYS.stack("r2"), _stack_from(peer))  # no links yet: nobody is heard
         await _until(lambda: agent.node.counters.stacks_received == 1)
+        world.publish(KEYS.sim_links(), _links(1, {"r1": (), "r2": ("r1",)}))
         world.publish(KEYS.frames("r1"), encode_frame(frames["r1"][0]))
         await _until(lambda: agent.node.k == 1)
-        world.publish(KEYS.stack("r2"), _stack_from(peer, None))  # a sender without a position
-        far = [(40.0, 0.0), (0.25, 10.5), (-9.0, -5.0)]  # 39.75, 10.5 and 10.3 m from r1
-        for position in far:
-            world.publish(KEYS.stack("r2"), _stack_from(peer, position))
-        await _until(lambda: agent.node.counters.stacks_received == 5)
-        assert agent.counters.ignored_out_of_range == len(far)
+        world.publish(KEYS.stack("r2"), _stack_from(peer))  # step 1's links: r2 → r1 is cut
+        await _until(lambda: agent.node.counters.stacks_received == 2)
+        assert agent.counters.ignored_out_of_range == 2
         assert agent.node.stack.stamps() == {"r1": 1}
-        world.publish(KEYS.stack("r2"), _stack_from(peer, (0.25, 9.9)))  # 9.9 m: in range
-        await _until(lambda: agent.node.counters.stacks_received == 6)
+        world.publish(KEYS.sim_links(), _links(2, {"r1": ("r2",)}))
+        world.publish(KEYS.sim_links(), b"\xff")  # counted, never fatal
+        await asyncio.sleep(0.05)
+        world.publish(KEYS.stack("r2"), _stack_from(peer))
+        await _until(lambda: agent.node.counters.stacks_received == 3)
         assert agent.node.stack.stamps() == {"r1": 1, "r2": 1}
-        assert agent.counters.ignored_out_of_range == len(far)
-        assert agent.counter_values()["ignored_out_of_range"] == len(far)
+        assert agent.counter_values()["ignored_out_of_range"] == 2
+        assert agent.counter_values()["links_invalid"] == 1
         assert not task.done()
+
+
+@pytest.mark.asyncio
+async def test_a_real_robots_agent_ignores_simulated_links(
+    frames: dict[str, list[SensorFrame]],
+) -> None:
+    bus = MemoryBus()
+    world = MemoryTransport(bus)
+    await world.open()
+    peer = _nodes()["r2"]
+    peer.on_frame(frames["r2"][0])
+    agent = _agent("r1", bus, "realtime", simulation=False)
+    async with _running(agent):
+        world.publish(KEYS.sim_links(), _links(1, {"r1": ()}))
+        world.publish(KEYS.frames("r1"), encode_frame(frames["r1"][0]))
+        await _until(lambda: agent.node.k == 1)
+        world.publish(KEYS.stack("r2"), _stack_from(peer))
+        await _until(lambda: agent.node.counters.stacks_received == 1)
+        assert agent.node.stack.stamps() == {"r1": 1, "r2": 1}
+        assert agent.counter_values()["ignored_out_of_range"] == 0
 
 
 @pytest.mark.asyncio
@@ -285,9 +319,9 @@ async def test_agent_counts_invalid_stacks_frames_and_control_and_keeps_running(
     estimates = Inbox(64)
     world.subscribe(KEYS.estimate("r1"), estimates)
     await world.open()
-    agent = _agent(_nodes()["r1"], bus, "realtime", links=Proximity(10.0), clock=lambda: 100.0)
+    agent = _agent("r1", bus, "realtime", clock=lambda: 100.0)
     garbage = [b"", b"\xc1", b"\x81\xa1v\x02", bytes(range(200)), b"\x93\x01\x02"] * 10
-    caplog.set_level(logging.WARNING, logger="agents.runtime")
+    caplog.set_level(logging.WARNING, logger="agents.core")
     async with _running(agent) as (task,):
         for data in garbage:
             world.publish(KEYS.stack("r2"), data)
@@ -319,7 +353,7 @@ async def test_agent_answers_a_status_request_with_its_counters(
     estimates = Inbox(64)
     world.subscribe(KEYS.estimate("r1"), estimates)
     await world.open()
-    agent = _agent(_nodes()["r1"], bus, "realtime", links=Proximity(10.0))
+    agent = _agent("r1", bus, "realtime")
     async with _running(agent):
         world.publish(KEYS.frames("r1"), encode_frame(frames["r1"][0]))
         await _until(lambda: agent.node.k == 1 and len(estimates) == 1)
@@ -344,7 +378,7 @@ def test_agent_journal_replay_rebuilds_the_identical_belief(
         lockstep_run.journals / f"{robot}.log", {"robot": robot, "seed": SEED}
     )
     with journal:
-        agent = _agent(_nodes()[robot], MemoryBus(), "lockstep", journal=journal)
+        agent = _agent(robot, MemoryBus(), "lockstep", journal=journal)
         agent.replay(records)
     kinds = [r.kind for r in records]
     assert agent.counters.replayed_frames == kinds.count("frame") == STEPS

@@ -1,0 +1,638 @@
+"""AgentCore: one agent of the fleet without any I/O (the aioquic pattern).
+
+The core takes events — a message that arrived on a key (frame, stack, control, simulated links),
+a timer tick — each with the current time ``now``, and returns *actions*: publish these bytes on
+that key, append a record to the journal, commit it, quarantine an input, log. It owns the
+:class:`~agents.node.RobotNode` and every bounded buffer around it; it never touches a socket, a
+clock, a thread or a file. ``agents/runtime.py`` is the asyncio shell that feeds it.
+
+Threading contract (what lets gossip go on during a long step): :meth:`on_message`,
+:meth:`replay` and :meth:`start` may take as long as an estimator step and are called from one
+thread at a time (the shell's worker). :meth:`on_timer` is cheap and may be called from another
+thread meanwhile: it only reads values the worker publishes whole (the encoded stack, the next
+missing step), never the node.
+
+Fail-soft. A step that raises is never committed: the node is rebuilt from the committed records
+(``committed()``, the journal), the slots merged since the last commit are refused for good, and
+the step is tried again without them; if it fails again the frame is quarantined (a side file
+next to the journal) and the step is taken with its odometry only, so the robot's trajectory goes
+on. Every buffer is bounded: frames, orders, lock-step rounds and simulated links only within
+``window`` steps ahead, control messages by size, refused slot versions by count.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from agents.control import NeedFrames, Status, StepOrder, Stop, decode_control, encode_control
+from agents.journal import Record
+from agents.node import RobotNode
+from agents.transport.base import Keys
+from estimator.models import SensorFrame
+from protocol.codec import StackMessage
+from protocol.errors import LimitExceeded, RemoteProtocolError
+from protocol.estimate import EstimateMessage, encode_estimate
+from protocol.frames import decode_frame, encode_frame
+from protocol.stack import Stack
+
+log = logging.getLogger(__name__)
+
+MODES = ("lockstep", "realtime")
+MAX_REFUSED = 4096  # slot versions remembered as refused (oldest forgotten first)
+
+
+@dataclass(frozen=True, slots=True)
+class CoreSettings:
+    """``gossip_period`` (s) of the stack timer; ``retry_period`` (s) between requests for missing
+    frames; ``window``: frames, orders, rounds and simulated links are kept only up to this many
+    steps ahead of the node; ``max_control_bytes``: larger control messages are refused unread;
+    ``invalid_log_period`` (s) between two log lines about invalid input from one source;
+    ``simulation``: this agent runs in a simulation and obeys the simulator's links
+    (``sim/links``), which no real robot ever does."""
+
+    mode: str = "realtime"
+    gossip_period: float = 0.5
+    retry_period: float = 0.25
+    window: int = 64
+    max_control_bytes: int = 64 * 1024
+    invalid_log_period: float = 5.0
+    publish_local: bool = True
+    simulation: bool = False
+
+    def __post_init__(self) -> None:
+        if self.mode not in MODES:
+            raise ValueError(f"mode {self.mode!r} (known: {', '.join(MODES)})")
+        if not (self.gossip_period > 0 and self.retry_period > 0):
+            raise ValueError("gossip and retry periods must be positive")
+        if self.window < 1 or self.max_control_bytes < 64:
+            raise ValueError("window must be ≥ 1 and max_control_bytes ≥ 64")
+
+
+# -- actions ---------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, slots=True)
+class Publish:
+    key: str
+    payload: bytes
+
+
+@dataclass(frozen=True, slots=True)
+class Append:
+    """A journal record; on disk once the :class:`Commit` that follows it returned."""
+
+    kind: str
+    body: bytes
+
+
+@dataclass(frozen=True, slots=True)
+class Commit:
+    """Commit the appended records (fsync) before any action after it is carried out."""
+
+
+@dataclass(frozen=True, slots=True)
+class Quarantine:
+    """Set an input aside (``index``: its position in the journal, for a replayed record)."""
+
+    kind: str
+    body: bytes
+    reason: str
+    index: int | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class CutJournal:
+    """Cut the journal before its record ``index`` (the records from there on are set aside)."""
+
+    index: int
+
+
+@dataclass(frozen=True, slots=True)
+class Halt:
+    """The agent is told to stop."""
+
+    reason: str
+
+
+Action = Publish | Append | Commit | Quarantine | CutJournal | Halt
+
+
+@dataclass(slots=True)
+class CoreCounters:
+    """What the core adds to the node's counters."""
+
+    ignored_out_of_range: int = 0
+    invalid_frames: int = 0
+    invalid_control: int = 0
+    invalid_links: int = 0
+    frames_processed: int = 0
+    frames_duplicate: int = 0
+    frames_ahead: int = 0
+    orders_ahead: int = 0
+    rounds_dropped: int = 0
+    steps_failed: int = 0
+    frames_quarantined: int = 0
+    frames_degraded: int = 0
+    slots_refused: int = 0
+    restores: int = 0
+    estimates_sent: int = 0
+    need_requests: int = 0
+    status_requests: int = 0
+    replayed_frames: int = 0
+    replayed_stacks: int = 0
+    records_quarantined: int = 0
+    last_invalid: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass(frozen=True, slots=True)
+class _Outgoing:
+    """What the timer may send without touching the node: published whole by the worker."""
+
+    stack: bytes | None = None
+    previous: bytes | None = None
+    need_from: int | None = None
+
+
+class AgentCore:
+    """One robot's agent logic. ``make_node()`` builds a fresh node (at step 0) exactly as the
+    first one was built; ``committed()`` returns the records committed so far (the journal), from
+    which a failed step is rolled back."""
+
+    def __init__(
+        self,
+        make_node: Callable[[], RobotNode],
+        keys: Keys,
+        settings: CoreSettings | None = None,
+        committed: Callable[[], Sequence[Record]] | None = None,
+    ) -> None:
+        self.make_node = make_node
+        self.node = make_node()
+        self.robot = self.node.robot
+        self.keys = keys
+        self.settings = settings or CoreSettings()
+        self.committed = committed
+        self.extra_counters: Callable[[], dict[str, int]] | None = None
+        self.counters = CoreCounters()
+        self.stop_reason = ""
+        self._frames: dict[int, tuple[SensorFrame, bytes]] = {}
+        self._orders: dict[int, StepOrder] = {}
+        self._rounds: dict[tuple[str, int], tuple[StackMessage, bytes]] = {}
+        self._links: dict[int, dict[str, tuple[str, ...]]] = {}
+        self._refused: collections.OrderedDict[tuple[str, int], None] = collections.OrderedDict()
+        self._uncommitted: list[Append] = []
+        self._merged_since_commit: list[tuple[str, int]] = []
+        self._last_estimate: bytes | None = None
+        self._last_need = -math.inf
+        self._step_us = (0, 0)
+        self._out = _Outgoing()
+        self._now = 0.0
+
+    # -- lifecycle ---------------------------------------------------------------------------
+
+    def replay(self, records: Sequence[Record]) -> list[Action]:
+        """Rebuild the belief from committed records (before :meth:`start`); never aborts.
+
+        A stack record that does not decode or merge is quarantined with its index and skipped
+        (its owner gossips again). A frame record that fails is quarantined and ends the replay:
+        every later record depends on it, so the journal is cut there (:class:`CutJournal`, the
+        cut records are set aside by the journal) and the agent asks for its frames again.
+        """
+        actions: list[Action] = []
+        for index, record in enumerate(records):
+            try:
+                self._apply(record)
+            except Exception as exc:
+                self.counters.records_quarantined += 1
+                reason = f"replay of record {index} ({record.kind}): {type(exc).__name__}: {exc}"
+                log.error("%s: %s", self.robot, reason)
+                actions.append(Quarantine(record.kind, record.body, reason, index))
+                self._restore(records[:index])
+                if record.kind != "frame":
+                    continue
+                actions.append(CutJournal(index))
+                break
+        if records:
+            log.info(
+                "%s: replayed %d frames and %d stacks (now at step %d)",
+                self.robot,
+                self.counters.replayed_frames,
+                self.counters.replayed_stacks,
+                self.node.k,
+            )
+        self._refresh()
+        return actions
+
+    def _apply(self, record: Record) -> None:
+        if record.kind == "stack":
+            message = self.node.decode_stack(record.body)
+            if message is None:
+                raise ValueError(self.node.counters.last_error)
+            self.node.merge(message)
+            self.counters.replayed_stacks += 1
+        elif record.kind == "frame":
+            frame = decode_frame(record.body)
+            if frame.robot != self.robot or frame.k != self.node.k + 1:
+                raise ValueError(f"frame of {frame.robot} at step {frame.k} after {self.node.k}")
+            self.node.on_frame(frame)
+            self.counters.replayed_frames += 1
+
+    def _restore(self, records: Sequence[Record]) -> None:
+        """A fresh node, replayed from ``records``, which were replayed before: a stack record
+        that failed then (quarantined) is skipped again."""
+        self.node = self.make_node()
+        replayed = (self.counters.replayed_frames, self.counters.replayed_stacks)
+        for record in records:
+            try:
+                self._apply(record)
+            except Exception:
+                if record.kind == "frame":
+                    raise
+                log.debug("%s: skipped a quarantined stack record", self.robot)
+        self.counters.replayed_frames, self.counters.replayed_stacks = replayed
+
+    def start(self, now: float) -> list[Action]:
+        """After start or restart: tell the fleet where this agent is."""
+        actions = self._publish_stack()
+        if self.node.k > 0:
+            actions += self._publish_estimate()
+        return actions + self._ask_for_frames(now, force=True)
+
+    # -- events ------------------------------------------------------------------------------
+
+    def on_message(self, key: str, payload: bytes, now: float) -> list[Action]:
+        """One message that arrived on ``key``; then every step that became possible."""
+        keys = self.keys
+        self._now = now
+        actions: list[Action] = []
+        if key.startswith(keys.ctl("")):
+            actions += self._on_control(payload)
+        elif key == keys.frames(self.robot):
+            actions += self._on_frame(payload)
+        elif key.startswith(f"{keys.prefix}/stack/"):
+            actions += self._on_stack(key, payload)
+        elif key == keys.sim_links():
+            self._on_links(payload)
+        actions += self._step_all()
+        self._refresh()
+        return actions
+
+    def on_timer(self, now: float) -> list[Action]:
+        """The gossip tick: re-send the stack (and, in lock-step, the previous round's, which a
+        slower peer may still need) and ask for missing frames. Safe during a running step."""
+        out = self._out
+        self._now = now
+        actions: list[Action] = []
+        if self.settings.mode == "lockstep" and out.previous is not None:
+            actions.append(Publish(self.keys.stack(self.robot), out.previous))
+        if out.stack is not None:
+            actions.append(Publish(self.keys.stack(self.robot), out.stack))
+        if out.need_from is not None:
+            actions += self._need(out.need_from, now)
+        return actions
+
+    def next_timer(self, now: float) -> float:
+        return now + self.settings.gossip_period
+
+    # -- input -------------------------------------------------------------------------------
+
+    def _on_control(self, payload: bytes) -> list[Action]:
+        try:
+            if len(payload) > self.settings.max_control_bytes:
+                raise LimitExceeded(
+                    f"{len(payload)} bytes > {self.settings.max_control_bytes}", "ctl"
+                )
+            order = decode_control(payload)
+        except RemoteProtocolError as exc:
+            self.counters.invalid_control += 1
+            self._log_invalid("ctl", exc)
+            return []
+        if isinstance(order, StepOrder):
+            k = self.node.k
+            if k < order.k <= k + self.settings.window:
+                self._orders[order.k] = order
+            elif order.k > k:
+                self.counters.orders_ahead += 1
+            elif order.k == k and self._last_estimate is not None:
+                return self._publish_estimate(self._last_estimate)  # the conductor missed our ack
+        elif isinstance(order, Status):
+            self.counters.status_requests += 1
+            return self._publish_estimate()
+        elif isinstance(order, Stop):
+            self.stop_reason = self.stop_reason or order.reason or "stopped by the conductor"
+            return [Halt(self.stop_reason)]
+        elif isinstance(order, NeedFrames):
+            pass  # for whoever publishes frames
+        return []
+
+    def _on_links(self, payload: bytes) -> None:
+        """The simulator's verdict of who hears whom at step k (simulations only)."""
+        if not self.settings.simulation:
+            return
+        try:
+            if len(payload) > self.settings.max_control_bytes:
+                raise LimitExceeded(f"{len(payload)} bytes", "sim")
+            order = decode_control(payload)
+            if not isinstance(order, StepOrder):
+                raise ValueError(f"expected links, got {type(order).__name__}")
+        except (RemoteProtocolError, ValueError) as exc:
+            self.counters.invalid_links += 1
+            self._log_invalid("sim", exc)
+            return
+        k = self.node.k
+        if k <= order.k <= k + self.settings.window:
+            self._links[order.k] = order.links
+
+    def _on_frame(self, data: bytes) -> list[Action]:
+        try:
+            frame = decode_frame(data)
+            if frame.robot != self.robot:
+                raise ValueError(f"frame of robot {frame.robot}")
+        except (RemoteProtocolError, ValueError) as exc:
+            self.counters.invalid_frames += 1
+            self._log_invalid("frames", exc)
+            return []
+        k = self.node.k
+        if frame.k <= k:
+            self.counters.frames_duplicate += 1
+            if frame.k == k and self._last_estimate is not None:
+                return self._publish_estimate(self._last_estimate)
+            return []
+        if frame.k > k + self.settings.window:
+            self.counters.frames_ahead += 1
+            return []
+        self._frames.setdefault(frame.k, (frame, data))
+        return []
+
+    def _on_stack(self, key: str, payload: bytes) -> list[Action]:
+        sender_key = self.keys.robot_of(key)
+        if sender_key == self.robot:
+            return []  # our own publication, echoed by the session
+        message = self.node.decode_stack(payload)
+        if message is None:
+            self._log_invalid(sender_key or key, ValueError(self.node.counters.last_error))
+            return []
+        if message.sender == self.robot:
+            return []
+        message = self._without_refused(message)
+        if self.settings.mode == "lockstep":
+            k = self.node.k
+            if not k <= message.step <= k + self.settings.window:
+                return []
+            if len(self._rounds) >= self._max_rounds():
+                self.counters.rounds_dropped += 1
+                return []
+            self._rounds.setdefault((message.sender, message.step), (message, payload))
+            return []
+        if self.settings.simulation and not self._heard(message.sender):
+            self.counters.ignored_out_of_range += 1
+            return []
+        return self._merge(message, payload)
+
+    def _heard(self, sender: str) -> bool:
+        """In a simulation: whether the latest links published for the coming step let
+        ``sender`` through to this robot (no links yet: nobody is heard)."""
+        due = [k for k in self._links if k <= self.node.k + 1]
+        if not due:
+            return False
+        return sender in self._links[max(due)].get(self.robot, ())
+
+    def _max_rounds(self) -> int:
+        roster = self.node.roster
+        peers = len(roster) if roster is not None else self.node.limits.max_slots
+        return max(1, peers) * (self.settings.window + 1)
+
+    def _without_refused(self, message: StackMessage) -> StackMessage:
+        if not self._refused:
+            return message
+        kept = [s for s in message.stack if (s.owner, s.stamp) not in self._refused]
+        if len(kept) == len(message.stack):
+            return message
+        self.counters.slots_refused += len(message.stack) - len(kept)
+        return StackMessage(message.sender, message.position, Stack(tuple(kept)), message.step)
+
+    def _merge(self, message: StackMessage, payload: bytes) -> list[Action]:
+        before = self.node.stack.stamps()
+        if self.node.merge(message):
+            after = self.node.stack.stamps()
+            self._merged_since_commit += [(o, s) for o, s in after.items() if before.get(o) != s]
+            self._uncommitted.append(Append("stack", payload))
+        return []
+
+    # -- stepping ----------------------------------------------------------------------------
+
+    def _step_all(self) -> list[Action]:
+        actions: list[Action] = []
+        while True:
+            step = self._try_step()
+            if step is None:
+                break
+            actions += step
+        return actions
+
+    def _try_step(self) -> list[Action] | None:
+        k = self.node.k + 1
+        if k not in self._frames:
+            return None
+        if self.settings.mode == "lockstep":
+            order = self._orders.get(k)
+            if order is None:
+                return None
+            senders = order.links.get(self.robot, ())
+            if any((s, k - 1) not in self._rounds for s in senders):
+                return None
+            for s in sorted(senders):
+                message, data = self._rounds[(s, k - 1)]
+                self._merge(self._without_refused(message), data)
+        frame, data = self._frames.pop(k)
+        actions = self._step(frame, data)
+        self._forget_before(self.node.k)
+        return actions
+
+    def _step(self, frame: SensorFrame, data: bytes) -> list[Action]:
+        """Step with ``frame`` and commit; on failure roll back and go on (module docstring)."""
+        try:
+            self._run(frame)
+        except Exception as exc:
+            return self._recover(frame, data, exc)
+        return self._committed_step(Append("frame", data))
+
+    def _run(self, frame: SensorFrame) -> None:
+        # on_frame alone does the same; split to time the fusion + D and the L step separately.
+        node = self.node
+        t0 = time.perf_counter()
+        with np.errstate(over="raise", invalid="raise", divide="ignore"):
+            node.integrate_pending()
+            t1 = time.perf_counter()
+            node.track.advance(frame)
+            t2 = time.perf_counter()
+            node.on_frame(frame)
+        t3 = time.perf_counter()
+        self._step_us = (round(1e6 * (t2 - t1)), round(1e6 * ((t1 - t0) + (t3 - t2))))
+
+    def _committed_step(self, frame_record: Append) -> list[Action]:
+        actions: list[Action] = [*self._uncommitted, frame_record, Commit()]
+        self._uncommitted = []
+        self._merged_since_commit = []
+        self.counters.frames_processed += 1
+        return actions + self._publish_stack(previous=self._out.stack) + self._publish_estimate()
+
+    def _recover(self, frame: SensorFrame, data: bytes, exc: Exception) -> list[Action]:
+        self.counters.steps_failed += 1
+        reason = f"step {frame.k}: {type(exc).__name__}: {exc}"
+        log.error("%s: %s; rolling back", self.robot, reason, exc_info=exc)
+        suspects = list(self._merged_since_commit)
+        for version in suspects:
+            self._refuse(version)
+        if self.committed is None:
+            # Nothing to roll back to: stop stepping rather than go on from a broken belief.
+            self.stop_reason = f"step failed with no journal to roll back to ({reason})"
+            return [Quarantine("frame", data, reason), Halt(self.stop_reason)]
+        self._rollback()
+        if suspects:
+            try:
+                self._run(frame)
+                log.warning(
+                    "%s: step %d succeeded without the slots %s, which are refused",
+                    self.robot,
+                    frame.k,
+                    suspects,
+                )
+                return self._committed_step(Append("frame", data))
+            except Exception as again:
+                reason = f"step {frame.k}: {type(again).__name__}: {again}"
+                self._rollback()
+        self.counters.frames_quarantined += 1
+        actions: list[Action] = [Quarantine("frame", data, reason)]
+        odometry_only = SensorFrame(frame.robot, frame.k, frame.odometry, (), frame.true_pose)
+        try:
+            self._run(odometry_only)
+        except Exception as last:
+            self._rollback()
+            self.stop_reason = f"step {frame.k} fails even with odometry only ({last})"
+            log.error("%s: %s: stopping", self.robot, self.stop_reason)
+            return [*actions, Halt(self.stop_reason)]
+        self.counters.frames_degraded += 1
+        log.warning("%s: frame %d quarantined, stepped on its odometry only", self.robot, frame.k)
+        return actions + self._committed_step(Append("frame", encode_frame(odometry_only)))
+
+    def _rollback(self) -> None:
+        assert self.committed is not None
+        self.counters.restores += 1
+        self._uncommitted = []
+        self._merged_since_commit = []
+        self._restore(self.committed())
+
+    def _refuse(self, version: tuple[str, int]) -> None:
+        self._refused[version] = None
+        self.counters.slots_refused += 1
+        while len(self._refused) > MAX_REFUSED:
+            self._refused.popitem(last=False)
+
+    def _forget_before(self, k: int) -> None:
+        self._orders = {j: o for j, o in self._orders.items() if j > k}
+        self._rounds = {key: v for key, v in self._rounds.items() if key[1] >= k}
+        self._frames = {j: f for j, f in self._frames.items() if j > k}
+        latest = max((j for j in self._links if j <= k + 1), default=None)
+        self._links = {j: v for j, v in self._links.items() if j > k or j == latest}
+
+    def _frames_missing(self) -> int | None:
+        nxt = self.node.k + 1
+        if self.settings.mode == "lockstep":
+            missing = nxt in self._orders and nxt not in self._frames
+        else:
+            missing = bool(self._frames) and nxt not in self._frames
+        return nxt if missing else None
+
+    def _refresh(self) -> None:
+        """Publish, whole, what the timer may read."""
+        stack = self.node.encoded_stack() if self.node.k > 0 or len(self.node.stack) else None
+        self._out = _Outgoing(stack, self._out.previous, self._frames_missing())
+
+    # -- output ------------------------------------------------------------------------------
+
+    def _ask_for_frames(self, now: float, force: bool = False) -> list[Action]:
+        return self._need(self.node.k + 1, now, force)
+
+    def _need(self, k: int, now: float, force: bool = False) -> list[Action]:
+        if not force and now - self._last_need < self.settings.retry_period:
+            return []
+        self._last_need = now
+        self.counters.need_requests += 1
+        payload = encode_control(NeedFrames(self.robot, k))
+        return [Publish(self.keys.ctl("need", self.robot), payload)]
+
+    def _publish_stack(self, previous: bytes | None = None) -> list[Action]:
+        data = self.node.encoded_stack()
+        self._out = _Outgoing(data, previous, self._out.need_from)
+        self.node.mark_sent(len(data))
+        return [Publish(self.keys.stack(self.robot), data)]
+
+    def _publish_estimate(self, data: bytes | None = None) -> list[Action]:
+        if data is None:
+            beliefs = {"distributed": self.node.distributed.snapshot(self.robot)}
+            if self.settings.publish_local:
+                beliefs["local"] = self.node.local.snapshot(self.robot)
+            data = encode_estimate(
+                EstimateMessage(self.robot, self.node.k, beliefs, self.counter_values())
+            )
+            self._last_estimate = data
+        self.counters.estimates_sent += 1
+        return [Publish(self.keys.estimate(self.robot), data)]
+
+    def counter_values(self) -> dict[str, int]:
+        """Every counter of the node and the core, by name."""
+        c, a = self.node.counters, self.counters
+        return {
+            "step": self.node.k,
+            "stacks_sent": c.stacks_sent,
+            "stacks_received": c.stacks_received,
+            "stacks_merged": c.stacks_merged,
+            "stacks_unchanged": c.stacks_unchanged,
+            "stacks_invalid": c.invalid,
+            "slots_rejected": c.rejected_slots,
+            "slots_foreign": c.foreign_slots,
+            "slots_refused": a.slots_refused,
+            "empty_joins": c.empty_joins,
+            "rebuilds": c.rebuilds,
+            "ignored_out_of_range": a.ignored_out_of_range,
+            "bytes_sent": c.bytes_sent,
+            "bytes_received": c.bytes_received,
+            "frames_processed": a.frames_processed,
+            "frames_invalid": a.invalid_frames,
+            "frames_duplicate": a.frames_duplicate,
+            "frames_ahead": a.frames_ahead,
+            "frames_quarantined": a.frames_quarantined,
+            "frames_degraded": a.frames_degraded,
+            "steps_failed": a.steps_failed,
+            "restores": a.restores,
+            "control_invalid": a.invalid_control,
+            "orders_ahead": a.orders_ahead,
+            "rounds_dropped": a.rounds_dropped,
+            "links_invalid": a.invalid_links,
+            "estimates_sent": a.estimates_sent,
+            "need_requests": a.need_requests,
+            "status_requests": a.status_requests,
+            "replayed_frames": a.replayed_frames,
+            "replayed_stacks": a.replayed_stacks,
+            "records_quarantined": a.records_quarantined,
+            "step_us_local": self._step_us[0],
+            "step_us_distributed": self._step_us[1],
+            "hypotheses_local": len(self.node.local.hypotheses),
+            "hypotheses_distributed": len(self.node.distributed.hypotheses),
+            **(self.extra_counters() if self.extra_counters is not None else {}),
+        }
+
+    def _log_invalid(self, source: str, exc: Exception) -> None:
+        """At most one line per source and ``invalid_log_period`` (at the time of the event)."""
+        now = self._now
+        last = self.counters.last_invalid.get(source, -math.inf)
+        if now - last >= self.settings.invalid_log_period:
+            self.counters.last_invalid[source] = now
+            log.warning("%s: invalid input from %s: %s", self.robot, source, exc)
