@@ -510,7 +510,7 @@ class AgentCore:
                 self._rollback()
         self.counters.frames_quarantined += 1
         actions: list[Action] = [Quarantine("frame", data, reason)]
-        odometry_only = SensorFrame(frame.robot, frame.k, frame.odometry, (), frame.true_pose)
+        odometry_only = SensorFrame(frame.robot, frame.k, frame.odometry, (), np.full(3, np.nan))
         try:
             self._run(odometry_only)
         except Exception as last:
