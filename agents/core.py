@@ -16,8 +16,10 @@ Fail-soft. A step that raises is never committed: the node is rebuilt from the c
 (``committed()``, the journal), the slots merged since the last commit are refused for good, and
 the step is tried again without them; if it fails again the frame is quarantined (a side file
 next to the journal) and the step is taken with its odometry only, so the robot's trajectory goes
-on. Every buffer is bounded: frames, orders, lock-step rounds and simulated links only within
-``window`` steps ahead, control messages by size, refused slot versions by count.
+on. If even the odometry fails, the agent stays at its last good step, alive, until another frame
+arrives for that step (the failing bytes are never tried again). Every buffer is bounded: frames,
+orders, lock-step rounds and simulated links only within ``window`` steps ahead, control
+messages by size, refused slot versions and failed frames by count.
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ import collections
 import logging
 import math
 import time
+import zlib
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
@@ -140,6 +143,7 @@ class CoreCounters:
     steps_failed: int = 0
     frames_quarantined: int = 0
     frames_degraded: int = 0
+    steps_stuck: int = 0
     slots_refused: int = 0
     restores: int = 0
     estimates_sent: int = 0
@@ -186,6 +190,7 @@ class AgentCore:
         self._rounds: dict[tuple[str, int], tuple[StackMessage, bytes]] = {}
         self._links: dict[int, dict[str, tuple[str, ...]]] = {}
         self._refused: collections.OrderedDict[tuple[str, int], None] = collections.OrderedDict()
+        self._bad_frames: collections.OrderedDict[int, None] = collections.OrderedDict()
         self._uncommitted: list[Append] = []
         self._merged_since_commit: list[tuple[str, int]] = []
         self._last_estimate: bytes | None = None
@@ -367,6 +372,9 @@ class AgentCore:
         if frame.k > k + self.settings.window:
             self.counters.frames_ahead += 1
             return []
+        if zlib.crc32(data) in self._bad_frames:
+            self.counters.frames_duplicate += 1  # these very bytes failed a step before
+            return []
         self._frames.setdefault(frame.k, (frame, data))
         return []
 
@@ -485,6 +493,9 @@ class AgentCore:
 
     def _recover(self, frame: SensorFrame, data: bytes, exc: Exception) -> list[Action]:
         self.counters.steps_failed += 1
+        self._bad_frames[zlib.crc32(data)] = None
+        while len(self._bad_frames) > MAX_REFUSED:
+            self._bad_frames.popitem(last=False)
         reason = f"step {frame.k}: {type(exc).__name__}: {exc}"
         log.error("%s: %s; rolling back", self.robot, reason, exc_info=exc)
         suspects = list(self._merged_since_commit)
@@ -514,10 +525,18 @@ class AgentCore:
         try:
             self._run(odometry_only)
         except Exception as last:
+            # The odometry itself is unusable: stay at the last good step, alive, until a
+            # different frame k arrives (these bytes are never tried again).
             self._rollback()
-            self.stop_reason = f"step {frame.k} fails even with odometry only ({last})"
-            log.error("%s: %s: stopping", self.robot, self.stop_reason)
-            return [*actions, Halt(self.stop_reason)]
+            self.counters.steps_stuck += 1
+            log.error(
+                "%s: step %d fails even on its odometry alone (%s): waiting for another frame %d",
+                self.robot,
+                frame.k,
+                last,
+                frame.k,
+            )
+            return actions
         self.counters.frames_degraded += 1
         log.warning("%s: frame %d quarantined, stepped on its odometry only", self.robot, frame.k)
         return actions + self._committed_step(Append("frame", encode_frame(odometry_only)))
@@ -611,6 +630,7 @@ class AgentCore:
             "frames_quarantined": a.frames_quarantined,
             "frames_degraded": a.frames_degraded,
             "steps_failed": a.steps_failed,
+            "steps_stuck": a.steps_stuck,
             "restores": a.restores,
             "control_invalid": a.invalid_control,
             "orders_ahead": a.orders_ahead,

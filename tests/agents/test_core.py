@@ -1,0 +1,257 @@
+"""AgentCore, the sans-I/O agent, under bad input: every failure is counted and never fatal, a
+failed step is never committed (the node is rolled back from the committed records), and every
+buffer stays bounded. Real estimator, real codecs; the journal is the in-memory log of the shell
+(tests/agents/test_runtime.py and tests/deploy/test_agent_process.py use real files)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import msgpack
+import numpy as np
+import pytest
+
+from agents.control import StepOrder, encode_control
+from agents.core import (
+    Action,
+    AgentCore,
+    Append,
+    Commit,
+    CoreSettings,
+    CutJournal,
+    Publish,
+    Quarantine,
+)
+from agents.journal import Record
+from agents.node import RobotNode
+from agents.runtime import MemoryLog
+from agents.transport.base import Keys
+from deploy.build import belief_model, make_node
+from estimator.distributed import DistributedBelief
+from estimator.hybrid import BeliefConfig
+from estimator.models import Detection, SensorFrame
+from protocol.codec import StackMessage, encode
+from protocol.frames import encode_frame
+from sim.loader import load_scenario
+from sim.sensors import Simulator
+
+SCENARIO = load_scenario("paper")
+KEYS = Keys("t")
+SEED = 3
+
+
+@pytest.fixture(scope="module")
+def frames() -> dict[str, list[SensorFrame]]:
+    return Simulator(SCENARIO, SEED).all_frames()
+
+
+def _factory(robot: str, roster: Sequence[str] | None = None):  # type: ignore[no-untyped-def]
+    model = belief_model(SCENARIO)
+
+    def make() -> RobotNode:
+        node = make_node(robot, SCENARIO.robot(robot).start, model, SEED, BeliefConfig())
+        node.roster = None if roster is None else frozenset(roster)
+        return node
+
+    return make
+
+
+class Driver:
+    """Feeds a core and carries out its journal actions on an in-memory log, like the shell."""
+
+    def __init__(self, robot: str = "r1", mode: str = "realtime", **settings: object) -> None:
+        self.log = MemoryLog()
+        roster = settings.pop("roster", None)
+        self.core = AgentCore(
+            _factory(robot, roster),  # type: ignore[arg-type]
+            KEYS,
+            CoreSettings(mode=mode, **settings),  # type: ignore[arg-type]
+            self.log.records,
+        )
+        self.quarantined: list[Quarantine] = []
+        self.published: list[Publish] = []
+
+    def run(self, actions: Sequence[Action]) -> None:
+        for a in actions:
+            if isinstance(a, Append):
+                self.log.append(a.kind, a.body)
+            elif isinstance(a, Commit):
+                self.log.commit()
+            elif isinstance(a, Quarantine):
+                self.quarantined.append(a)
+            elif isinstance(a, CutJournal):
+                self.log.cut(a.index)
+            elif isinstance(a, Publish):
+                self.published.append(a)
+
+    def send(self, key: str, payload: bytes) -> None:
+        self.run(self.core.on_message(key, payload, 0.0))
+
+    def frame(self, frame: SensorFrame) -> None:
+        self.send(KEYS.frames(frame.robot), encode_frame(frame))
+
+
+def _replayed(driver: Driver, robot: str = "r1") -> AgentCore:
+    fresh = AgentCore(_factory(robot), KEYS, driver.core.settings, driver.log.records)
+    assert fresh.replay(driver.log.records()) == []
+    return fresh
+
+
+def _same_belief(a: RobotNode, b: RobotNode) -> None:
+    for x, y in ((a.distributed, b.distributed), (a.local, b.local)):
+        sx, sy = x.snapshot(a.robot), y.snapshot(b.robot)
+        assert sx.object_ids == sy.object_ids
+        np.testing.assert_array_equal(sx.classes, sy.classes)
+        np.testing.assert_array_equal(sx.weights, sy.weights)
+        np.testing.assert_array_equal(sx.object_pose, sy.object_pose)
+
+
+def _poisoned(frame: SensorFrame) -> SensorFrame:
+    """Finite on the wire, but the classifier's likelihood overflows: the step raises."""
+    m = SCENARIO.num_classes
+    det = Detection(999, np.array([1.0, 0.0, 0.0]), -1e300 * np.ones(m))
+    return SensorFrame(
+        frame.robot, frame.k, frame.odometry, (*frame.detections, det), frame.true_pose
+    )
+
+
+def test_a_step_that_raises_is_rolled_back_quarantined_and_taken_on_odometry(frames) -> None:  # type: ignore[no-untyped-def]
+    d = Driver()
+    d.frame(frames["r1"][0])
+    bad = _poisoned(frames["r1"][1])
+    d.frame(bad)
+    c = d.core.counter_values()
+    assert (c["steps_failed"], c["frames_quarantined"], c["frames_degraded"]) == (1, 1, 1)
+    assert c["restores"] >= 1 and d.core.node.k == 2
+    assert [q.kind for q in d.quarantined] == ["frame"]
+    assert d.quarantined[0].body == encode_frame(bad)
+    assert "FloatingPointError" in d.quarantined[0].reason
+    d.frame(frames["r1"][2])  # and it goes on
+    assert d.core.node.k == 3
+    # The committed records hold the odometry-only step: a replay rebuilds the same belief.
+    assert [r.kind for r in d.log.records()] == ["frame"] * 3
+    _same_belief(_replayed(d).node, d.core.node)
+    # The same failing bytes again (a re-sent frame) are not tried a second time.
+    d.frame(bad)
+    assert d.core.counter_values()["steps_failed"] == 1
+
+
+def _seen_something(robot: str, frames: dict[str, list[SensorFrame]]) -> RobotNode:
+    """A peer stepped until its own slot exists."""
+    node = _factory(robot)()
+    for f in frames[robot]:
+        node.on_frame(f)
+        if len(node.current_stack()):
+            return node
+    raise AssertionError(f"{robot} never sees an object")
+
+
+def test_a_slot_whose_fusion_raises_is_refused_and_the_step_goes_on(frames, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    peer = _seen_something("r2", frames)
+    d = Driver()
+    d.frame(frames["r1"][0])
+    original = DistributedBelief.integrate
+
+    def integrate(self, slots, settle=True):  # type: ignore[no-untyped-def]
+        if any(s.owner == "r2" for s in slots):
+            self.hypotheses[0].log_weight = float("nan")  # half-fused, then raise
+            raise RuntimeError("Indeterminate linear system (forged slot)")
+        return original(self, slots, settle)
+
+    monkeypatch.setattr(DistributedBelief, "integrate", integrate)
+    stack = peer.encoded_stack()
+    d.send(KEYS.stack("r2"), stack)
+    d.frame(frames["r1"][1])
+    c = d.core.counter_values()
+    assert c["steps_failed"] == 1 and c["frames_quarantined"] == 0 and d.core.node.k == 2
+    assert c["slots_refused"] == 1
+    assert "r2" not in d.core.node.distributed.stamps
+    assert np.isfinite([h.log_weight for h in d.core.node.distributed.hypotheses]).all()
+    d.send(KEYS.stack("r2"), stack)  # relayed again: refused before it is merged
+    assert d.core.counter_values()["slots_refused"] == 2
+    assert d.core.node.stack.stamps() == {"r1": 2}
+
+
+def test_frames_orders_and_rounds_stay_within_the_window(frames) -> None:  # type: ignore[no-untyped-def]
+    d = Driver(mode="lockstep", window=8)
+    for k in range(1, 5001):
+        d.send(KEYS.ctl("step"), encode_control(StepOrder(k, {"r1": ("r2",)})))
+    assert len(d.core._orders) == 8
+    assert d.core.counters.orders_ahead == 5000 - 8
+    far = SensorFrame("r1", 500, frames["r1"][0].odometry, (), frames["r1"][0].true_pose)
+    d.frame(far)
+    assert d.core.counters.frames_ahead == 1 and not d.core._frames
+    peer = _factory("r2")()
+    for k in range(1, 40):
+        peer.on_frame(frames["r2"][k - 1])
+        d.send(KEYS.stack("r2"), peer.encoded_stack())
+    assert max(step for _, step in d.core._rounds) <= 8
+    assert d.core.counter_values()["rounds_dropped"] == 0
+
+
+def test_oversized_and_malformed_control_is_counted_unread() -> None:
+    d = Driver(max_control_bytes=4096)
+    huge = encode_control(
+        StepOrder(1, {f"r{i}": tuple(f"s{j}" for j in range(50)) for i in range(500)})
+    )
+    assert len(huge) > 4096
+    d.send(KEYS.ctl("step"), huge)
+    d.send(KEYS.ctl("step"), b"\xc1")
+    d.send(KEYS.ctl("step"), msgpack.packb({"type": "step", "k": -1, "links": {}}))
+    assert d.core.counters.invalid_control == 3
+    assert not d.core._orders
+
+
+def test_slots_of_owners_outside_the_roster_are_refused(frames) -> None:  # type: ignore[no-untyped-def]
+    d = Driver(roster=("r1", "r2"))
+    stranger = _seen_something("r3", frames)
+    d.send(KEYS.stack("r3"), stranger.encoded_stack())
+    assert d.core.node.counters.foreign_slots == 1
+    assert "r3" not in d.core.node.stack.stamps()
+
+
+def test_replay_quarantines_a_bad_record_and_cuts_the_journal_there(frames) -> None:  # type: ignore[no-untyped-def]
+    d = Driver()
+    for f in frames["r1"][:3]:
+        d.frame(f)
+    records = d.log.records()
+    broken = [
+        records[0],
+        Record("stack", b"\x93not a stack"),
+        records[1],
+        Record("frame", b"\x00"),
+        records[2],
+    ]
+    log = MemoryLog()
+    for r in broken:
+        log.append(r.kind, r.body)
+    log.commit()
+    core = AgentCore(_factory("r1"), KEYS, CoreSettings(), log.records)
+    actions = core.replay(broken)
+    quarantined = [a for a in actions if isinstance(a, Quarantine)]
+    assert [(q.kind, q.index) for q in quarantined] == [("stack", 1), ("frame", 3)]
+    assert CutJournal(3) in actions
+    assert core.node.k == 2 and core.counters.records_quarantined == 2
+    _same_belief(core.node, _replayed_prefix(records[:2]))
+
+
+def _replayed_prefix(records: list[Record]) -> RobotNode:
+    core = AgentCore(_factory("r1"), KEYS, CoreSettings())
+    core.replay(records)
+    return core.node
+
+
+def test_a_stack_that_would_overflow_the_own_stack_is_refused(frames) -> None:  # type: ignore[no-untyped-def]
+    """Held slots stay within what a stack may carry, so the own gossip always encodes."""
+    d = Driver()
+    node = d.core.node
+    limits = node.limits
+    peer = _seen_something("r2", frames)
+    slot = peer.current_stack().by_owner()["r2"]
+    from protocol.stack import Slot, Stack
+
+    forged = Stack(tuple(Slot(f"x{i}", 1, slot.summary) for i in range(limits.max_slots)))
+    d.send(KEYS.stack("r2"), encode(StackMessage("r2", None, forged, 1)))
+    assert len(node.stack) <= limits.max_slots - 1
+    d.frame(frames["r1"][0])
+    assert any(p.key == KEYS.stack("r1") for p in d.published)  # own stack still encodes
