@@ -1,4 +1,9 @@
-"""The ``semfleet`` command: one parser, one launcher that maps errors to exit codes."""
+"""The ``semfleet`` command: one parser, one launcher that maps errors to exit codes.
+
+The launcher prints the project's own errors as one line, ``semfleet: error: <message>``, and
+exits 2 for a usage or configuration mistake, 1 for a failure at run time (see
+:data:`KNOWN_ERRORS`). Any other exception is a bug: it keeps its traceback (exit 1, from Python).
+"""
 
 from __future__ import annotations
 
@@ -16,6 +21,7 @@ from collections.abc import Sequence  # noqa: E402
 
 from rich.console import Console  # noqa: E402
 
+from agents.journal import JournalError  # noqa: E402
 from deploy import (  # noqa: E402
     agent_cmd,
     demo,
@@ -24,14 +30,48 @@ from deploy import (  # noqa: E402
     study_cmd,
     ufastslam_cmd,
 )
+from deploy.agent_cmd import AgentConfigError  # noqa: E402
+from deploy.conductor import ConductorError  # noqa: E402
+from deploy.errors import (  # noqa: E402
+    EXIT_FAILURE,
+    EXIT_INTERRUPTED,
+    EXIT_USAGE,
+    CommandError,
+)
 from deploy.launch import LaunchError  # noqa: E402
-from deploy.study_cmd import StudyError  # noqa: E402
+from protocol.errors import ProtocolError  # noqa: E402
 from sim.scenario import ScenarioError  # noqa: E402
 
-EXIT_OK = 0
-EXIT_FAILURE = 1
-EXIT_USAGE = 2
-EXIT_INTERRUPTED = 130
+# The project's error types raised outside deploy.errors' hierarchy, and their exit codes; an
+# exception maps by the first of its classes (most specific first) found here. deploy's own
+# command errors are CommandErrors and carry their exit code (UsageError 2, RunFailure 1).
+KNOWN_ERRORS: dict[type[Exception], int] = {
+    ScenarioError: EXIT_USAGE,  # a bad scenario or world file, variant or override
+    AgentConfigError: EXIT_USAGE,  # a bad agent config file
+    # A path the user named is missing, already there, the wrong kind or not accessible.
+    FileNotFoundError: EXIT_USAGE,
+    FileExistsError: EXIT_USAGE,
+    IsADirectoryError: EXIT_USAGE,
+    NotADirectoryError: EXIT_USAGE,
+    PermissionError: EXIT_USAGE,
+    OSError: EXIT_FAILURE,  # the machine failed the run: disk full, I/O error, port taken
+    LaunchError: EXIT_FAILURE,  # an agent died or did not start, the run stalled
+    ConductorError: EXIT_FAILURE,
+    # Runtime state the run found: another run's journal, one in use, a tail it could not set
+    # aside. Even an identity mismatch is not a configuration mistake: the config may be right
+    # and the journal a leftover, and the fix (move it, stop the other agent) is operational.
+    JournalError: EXIT_FAILURE,
+    # A message that broke the protocol reached the command instead of being counted and
+    # dropped (RemoteProtocolError) or refused before sending (LocalProtocolError).
+    ProtocolError: EXIT_FAILURE,
+}
+
+
+def exit_code(exc: Exception) -> int | None:
+    """The exit code of a known error, None for anything else (a bug: keep its traceback)."""
+    if isinstance(exc, CommandError):
+        return exc.exit_code
+    return next((KNOWN_ERRORS[c] for c in type(exc).__mro__ if c in KNOWN_ERRORS), None)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -61,15 +101,21 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         code: int = args.run(args, console)
         return code
-    except ScenarioError as exc:
-        _error(str(exc))
-        return EXIT_USAGE
-    except (OSError, ValueError, StudyError, LaunchError) as exc:
-        _error(str(exc))
-        return EXIT_FAILURE
     except KeyboardInterrupt:
         _error("interrupted")
         return EXIT_INTERRUPTED
+    except Exception as exc:
+        known = exit_code(exc)
+        if known is None:
+            raise
+        _error(_message(exc))
+        return known
+
+
+def _message(exc: Exception) -> str:
+    if isinstance(exc, OSError) and exc.strerror and exc.filename is not None:
+        return f"{exc.filename}: {exc.strerror}"  # not "[Errno 2] No such file...: 'x'"
+    return str(exc) or type(exc).__name__
 
 
 def _error(message: str) -> None:

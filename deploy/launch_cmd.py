@@ -14,6 +14,7 @@ from rich.table import Table
 
 from agents.links import Partition
 from deploy.args import positive_int, seed
+from deploy.errors import UsageError
 from deploy.fleet import COMM_MODES
 from deploy.launch import LAUNCH_METHODS, Faults, LaunchOutcome, LaunchPlan, launch
 from deploy.results import summarise, write_results
@@ -72,8 +73,14 @@ def _robots(scenario: Scenario, text: str) -> list[str]:
     unknown = [r for r in robots if r not in scenario.robot_ids]
     if unknown or not robots:
         known = ", ".join(scenario.robot_ids)
-        raise ValueError(f"--robots: unknown robots {unknown} (scenario has {known})")
+        raise UsageError(f"--robots: unknown robots {unknown} (scenario has {known})")
     return robots
+
+
+def _steps(scenario: Scenario, steps: int | None) -> int | None:
+    if steps is not None and steps > scenario.steps:
+        raise UsageError(f"--steps: {steps} outside 1..{scenario.steps} (scenario {scenario.name})")
+    return steps
 
 
 def write_outputs(
@@ -115,7 +122,7 @@ def run_launch(args: argparse.Namespace, console: Console) -> int:
         mode=args.mode,
         period=args.period,
         comm=args.comm,
-        steps=args.steps,
+        steps=_steps(scenario, args.steps),
     )
     console.print(
         f"launching {len(plan.robots)} agents of {scenario.name} ({plan.mode}, seed {plan.seed}) "
@@ -133,7 +140,7 @@ def run_chaos(args: argparse.Namespace, console: Console) -> int:
     kills, restarts = tuple(args.kill), tuple(args.restart)
     for r, _ in (*kills, *restarts):
         if r not in scenario.robot_ids:
-            raise ValueError(f"--kill/--restart: unknown robot {r!r}")
+            raise UsageError(f"--kill/--restart: unknown robot {r!r}")
     faults = Faults(args.drop, tuple(args.partition), kills, restarts, args.garbage)
     plan = LaunchPlan(
         scenario,
@@ -144,7 +151,7 @@ def run_chaos(args: argparse.Namespace, console: Console) -> int:
         period=args.period,
         comm=args.comm,
         faults=faults,
-        steps=args.steps,
+        steps=_steps(scenario, args.steps),
     )
     console.print(
         f"chaos on {scenario.name}, seed {plan.seed}: drop {faults.drop}, partitions "

@@ -8,6 +8,7 @@ import multiprocessing
 import os
 from collections.abc import Callable, Iterator
 from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 from typing import Any
 
@@ -16,6 +17,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from rich.table import Table
 
 from deploy.args import MAX_SEED, positive_int, seed
+from deploy.errors import RunFailure, UsageError
 from deploy.fleet import COMM_MODES
 from deploy.results import pooled_calibration, summarise, write_results
 from deploy.scenario_cmd import scenario_from_args
@@ -23,7 +25,7 @@ from deploy.study import METHODS, RunResult, run_single
 from estimator.hybrid import BeliefConfig
 from estimator.metrics import chi2_bounds
 from estimator.weights import WEIGHT_ESTIMATORS
-from sim.scenario import Scenario, ScenarioError
+from sim.scenario import Scenario
 from sim.world import World
 
 _THREAD_VARIABLES = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
@@ -40,8 +42,8 @@ SUMMARY_METRICS = (
 )
 
 
-class StudyError(RuntimeError):
-    """A run failed; the message names the seed."""
+class StudyError(RunFailure):
+    """A worker process of a run died (killed, out of memory); the message names the seed."""
 
 
 def run_study(
@@ -72,8 +74,10 @@ def run_seeded(
     calls: dict[int, tuple[Any, ...]], jobs: int, advance: Callable[[], None] = lambda: None
 ) -> list[Any]:
     """``calls[seed] = (function, *args)``, each in a spawned single-threaded process (at most
-    ``jobs`` at once); results in the order of ``calls``. The first failure cancels the rest and
-    raises a :class:`StudyError` naming its seed; ``advance()`` after every finished run."""
+    ``jobs`` at once); results in the order of ``calls``. The first failure cancels the rest: a
+    worker that died becomes a :class:`StudyError` naming its seed, an exception raised by a run
+    is re-raised as it is (a bug keeps its traceback, the remote one included), with a note naming
+    the seed. ``advance()`` after every finished run."""
     done: dict[int, Any] = {}
     ctx = multiprocessing.get_context("spawn")
     with single_threaded_children(), ProcessPoolExecutor(max_workers=jobs, mp_context=ctx) as pool:
@@ -85,9 +89,10 @@ def run_seeded(
             except Exception as exc:
                 for other in futures:
                     other.cancel()
-                raise StudyError(
-                    f"run with seed {seed} failed: {type(exc).__name__}: {exc}"
-                ) from exc
+                if isinstance(exc, BrokenProcessPool):
+                    raise StudyError(f"run with seed {seed} failed: {exc}") from exc
+                exc.add_note(f"in the run with seed {seed}")
+                raise
             advance()
     return [done[s] for s in calls]
 
@@ -265,16 +270,16 @@ def run(args: argparse.Namespace, console: Console) -> int:
     scenario = scenario_from_args(args)
     robot = args.snapshot_robot or scenario.robot_ids[0]
     if robot not in scenario.robot_ids:
-        raise ScenarioError(f"--snapshot-robot: no robot {robot!r} in {scenario.name}")
+        raise UsageError(f"--snapshot-robot: no robot {robot!r} in {scenario.name}")
     step = scenario.steps if args.snapshot_step is None else args.snapshot_step
     if not 1 <= step <= scenario.steps:
-        raise ScenarioError(f"--snapshot-step: {step} is outside 1..{scenario.steps}")
+        raise UsageError(f"--snapshot-step: {step} is outside 1..{scenario.steps}")
     changes = {"weight_estimator": args.weights, "num_samples": args.samples}
     if args.max_hypotheses is not None:
         changes["max_hypotheses"] = args.max_hypotheses
     config = HYPOTHESIS_MANAGEMENT[args.hypotheses](**changes)
     if args.seed + args.runs - 1 > MAX_SEED:
-        raise ValueError(f"--seed {args.seed} with --runs {args.runs} runs past the largest seed")
+        raise UsageError(f"--seed {args.seed} with --runs {args.runs} runs past the largest seed")
     seeds = [args.seed + i for i in range(args.runs)]
     comm = args.comm or scenario.communication.mode
     console.print(

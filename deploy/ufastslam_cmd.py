@@ -20,6 +20,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from rich.table import Table
 
 from deploy.args import MAX_SEED, positive_int, seed
+from deploy.errors import UsageError
 from deploy.study_cmd import run_seeded
 from estimator.ufastslam import (
     AcceptedRelation,
@@ -439,7 +440,7 @@ def _save(fig: Any, path: Path, plt: Any) -> Path:
 def run(args: argparse.Namespace, console: Console) -> int:
     world = load_world(args.scenario)
     if args.seed + args.runs - 1 > MAX_SEED:
-        raise ValueError(f"--seed {args.seed} with --runs {args.runs} runs past the largest seed")
+        raise UsageError(f"--seed {args.seed} with --runs {args.runs} runs past the largest seed")
     seeds = [args.seed + i for i in range(args.runs)]
     console.print(
         f"ufastslam: {world.name} ({world.steps} steps of {world.dt} s, "

@@ -1,14 +1,34 @@
-"""The `semfleet` command, run as a real process: outputs, files written and exit codes."""
+"""The `semfleet` command, run as a real process: outputs, files written and exit codes; and its
+launcher in process: the project's own errors are one line with exit 2 (usage, configuration) or 1
+(run time), anything else keeps its traceback."""
 
 from __future__ import annotations
 
+import argparse
+import errno
 import json
+import os
 import subprocess
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
+from rich.console import Console
 
+from agents.journal import JournalError
+from deploy import demo as demo_cmd
+from deploy.agent_cmd import AgentConfigError
+from deploy.cli import exit_code, main
+from deploy.conductor import ConductorError
+from deploy.errors import RunFailure, UsageError
+from deploy.launch import LaunchError
+from deploy.study_cmd import StudyError, run_seeded
+from estimator.distributed import SlotError
+from protocol.errors import LocalProtocolError, MalformedMessage
+from sim.scenario import ScenarioError
+
+ROOT = Path(__file__).resolve().parents[2]
 SEMFLEET = Path(sys.executable).with_name("semfleet")
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
@@ -165,3 +185,143 @@ def test_demo_launches_three_agents_over_zenoh_and_prints_the_final_table(tmp_pa
     assert final["distributed"] < final["local"]  # the paper's result, seed 0
     for robot in ("r1", "r2", "r3"):  # every agent really ran as its own process, with a log
         assert "up at step 0" in (demo / "logs" / f"{robot}.log").read_text()
+
+
+# --------------------------------------------------------------------------- errors → exit codes
+
+
+@pytest.mark.parametrize(
+    ("args", "fragment"),
+    [
+        (["study", "--scenario", "paper", "--seed", str(2**63 - 1), "--runs", "2"], "largest seed"),
+        (["ufastslam", "--scenario", "rectangle", "--seed", str(2**63 - 1)], "largest seed"),
+        (["launch", "--scenario", "paper", "--robots", "r1,r9"], "--robots: unknown robots"),
+        (["launch", "--scenario", "paper", "--steps", "61"], "--steps: 61 outside 1..60"),
+        (["chaos", "--scenario", "paper", "--kill", "r9@3"], "--kill/--restart: unknown robot"),
+    ],
+)
+def test_cli_usage_errors_exit_2_with_one_line(
+    tmp_path: Path, args: list[str], fragment: str
+) -> None:
+    r = semfleet(*args, "--out", "out", cwd=tmp_path)
+    assert r.returncode == 2, (r.stdout, r.stderr)
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("semfleet: error: "), r.stderr
+    assert fragment in lines[0], lines[0]
+    assert not (tmp_path / "out").exists()
+
+
+def test_cli_output_path_under_a_file_is_a_usage_error(tmp_path: Path) -> None:
+    (tmp_path / "a-file").write_text("not a directory")
+    r = semfleet("scenario", "plot", "paper", "-o", "a-file/x.png", cwd=tmp_path)
+    assert r.returncode == 2, (r.stdout, r.stderr)
+    assert r.stderr == "semfleet: error: a-file: File exists\n", r.stderr
+
+
+def _raising(exc: BaseException) -> Callable[[argparse.Namespace, Console], int]:
+    def run(args: argparse.Namespace, console: Console) -> int:
+        raise exc
+
+    return run
+
+
+KNOWN = [
+    (UsageError("--x: must be positive"), 2),
+    (RunFailure("agent r2 died"), 1),
+    (RunFailure(), 1),
+    (StudyError("run with seed 3 failed: a worker died"), 1),
+    (LaunchError("agent r2 exited unexpectedly\n  with code -9"), 1),
+    (ConductorError("agents ['r1'] did not come up within 90 s"), 1),
+    (ScenarioError("x.toml: sensor.range: -1 must be > 0"), 2),
+    (AgentConfigError(Path("a.toml"), "agent.mode", "'fast'"), 2),
+    (JournalError("r1.log belongs to another run: identity 'seed' is 3", "seed"), 1),
+    (LocalProtocolError("must be two finite numbers", "pos"), 1),
+    (MalformedMessage("not msgpack"), 1),
+    (FileNotFoundError(errno.ENOENT, "No such file or directory", "frames.jsonl"), 2),
+    (PermissionError(errno.EACCES, "Permission denied", "out/results.json"), 2),
+    (FileExistsError("out/model.toml: already exists (--force overwrites it)"), 2),
+    (IsADirectoryError(errno.EISDIR, "Is a directory", "out"), 2),
+    (NotADirectoryError(errno.ENOTDIR, "Not a directory", "a-file/x.png"), 2),
+    (OSError(errno.ENOSPC, "No space left on device"), 1),
+    (TimeoutError("no subscriber within 10 s"), 1),
+]
+
+
+@pytest.mark.parametrize(("exc", "code"), KNOWN, ids=[type(e).__name__ for e, _ in KNOWN])
+def test_cli_known_errors_are_one_line_with_their_exit_code(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str], exc: Exception, code: int
+) -> None:
+    monkeypatch.setattr(demo_cmd, "run", _raising(exc))
+    assert main(["demo"]) == code
+    message = " ".join(str(exc).split()) or type(exc).__name__
+    if isinstance(exc, OSError) and exc.filename:  # the path first, without the errno
+        message = f"{exc.filename}: {exc.strerror}"
+    assert capsys.readouterr().err == f"semfleet: error: {message}\n"
+
+
+def test_cli_interrupt_is_one_line_exit_130(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    monkeypatch.setattr(demo_cmd, "run", _raising(KeyboardInterrupt()))
+    assert main(["demo"]) == 130
+    assert capsys.readouterr().err == "semfleet: error: interrupted\n"
+
+
+UNEXPECTED = [
+    ValueError("a bug"),
+    RuntimeError("a bug"),
+    FloatingPointError("overflow encountered in exp"),
+    KeyError("r9"),
+    TypeError("a bug"),
+    SlotError("a ValueError of the project that must never reach the CLI"),
+]
+
+
+@pytest.mark.parametrize("exc", UNEXPECTED, ids=[type(e).__name__ for e in UNEXPECTED])
+def test_cli_unexpected_errors_keep_their_traceback(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str], exc: Exception
+) -> None:
+    monkeypatch.setattr(demo_cmd, "run", _raising(exc))
+    with pytest.raises(type(exc)) as caught:
+        main(["demo"])
+    assert caught.value is exc
+    assert caught.traceback[-1].name == "run"  # re-raised as it was, from where it happened
+    assert "semfleet: error" not in capsys.readouterr().err
+
+
+def test_cli_unexpected_error_prints_its_traceback_from_a_real_process() -> None:
+    script = (
+        "import sys\n"
+        "from deploy import cli, demo\n"
+        "def run(args, console):\n"
+        "    raise ValueError('a bug in a command')\n"
+        "demo.run = run\n"
+        "sys.exit(cli.main(['demo']))\n"
+    )
+    r = subprocess.run(
+        [sys.executable, "-c", script],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=ROOT,
+        env={"PATH": "/usr/bin:/bin", "PYTHONPATH": str(ROOT)},
+    )
+    assert r.returncode == 1, (r.stdout, r.stderr)
+    assert r.stderr.startswith("Traceback (most recent call last):"), r.stderr
+    assert r.stderr.strip().splitlines()[-1] == "ValueError: a bug in a command"
+    assert "semfleet: error" not in r.stderr
+
+
+def test_study_worker_bug_keeps_its_traceback_and_names_the_seed() -> None:
+    with pytest.raises(ValueError, match="invalid literal") as caught:
+        run_seeded({3: (int, "not a number")}, jobs=1)
+    assert caught.value.__notes__ == ["in the run with seed 3"]
+    remote = str(caught.value.__cause__)  # the worker's own traceback, printed with it
+    assert "Traceback" in remote and "ValueError: invalid literal" in remote
+    assert exit_code(caught.value) is None
+
+
+def test_study_dead_worker_is_a_one_line_run_failure() -> None:
+    with pytest.raises(StudyError, match="run with seed 7 failed: ") as caught:
+        run_seeded({7: (os._exit, 3)}, jobs=1)
+    assert exit_code(caught.value) == 1
