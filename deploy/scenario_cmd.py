@@ -13,6 +13,7 @@ from rich.console import Console
 from rich.table import Table
 
 from deploy.args import class_count, positive_int, seed
+from deploy.errors import UsageError
 from sim.generate import dump_scenario, generate_scenario
 from sim.loader import load_scenario
 from sim.scenario import Scenario, ScenarioError
@@ -185,6 +186,9 @@ def run_plot(args: argparse.Namespace, console: Console) -> int:
 
 
 def run_generate(args: argparse.Namespace, console: Console) -> int:
+    for option, value in (("--area", args.area), ("--comm-range", args.comm_range)):
+        if value is not None and not 0 < value < math.inf:
+            raise UsageError(f"{option} {value}: must be a positive number of metres")
     scenario = generate_scenario(
         robots=args.robots,
         objects=args.objects,

@@ -190,11 +190,15 @@ def test_demo_launches_three_agents_over_zenoh_and_prints_the_final_table(tmp_pa
 # --------------------------------------------------------------------------- errors → exit codes
 
 
+MAX = str(2**63 - 1)
+GENERATE = ["scenario", "generate", "--robots", "1", "--objects", "2", "--classes", "2"]
+
+
 @pytest.mark.parametrize(
     ("args", "fragment"),
     [
-        (["study", "--scenario", "paper", "--seed", str(2**63 - 1), "--runs", "2"], "largest seed"),
-        (["ufastslam", "--scenario", "rectangle", "--seed", str(2**63 - 1)], "largest seed"),
+        (["study", "--scenario", "paper", "--seed", MAX, "--runs", "2"], "largest seed"),
+        (["ufastslam", "--scenario", "rectangle", "--seed", MAX], "largest seed"),
         (["launch", "--scenario", "paper", "--robots", "r1,r9"], "--robots: unknown robots"),
         (["launch", "--scenario", "paper", "--steps", "61"], "--steps: 61 outside 1..60"),
         (["chaos", "--scenario", "paper", "--kill", "r9@3"], "--kill/--restart: unknown robot"),
@@ -203,12 +207,32 @@ def test_demo_launches_three_agents_over_zenoh_and_prints_the_final_table(tmp_pa
 def test_cli_usage_errors_exit_2_with_one_line(
     tmp_path: Path, args: list[str], fragment: str
 ) -> None:
-    r = semfleet(*args, "--out", "out", cwd=tmp_path)
+    _usage_error(semfleet(*args, "--out", "out", cwd=tmp_path), fragment)
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize(
+    ("args", "fragment"),
+    [
+        (["--area", "-5"], "--area -5.0: must be a positive number of metres"),
+        (["--area", "nan"], "--area nan: must be"),
+        (["--comm-range", "0"], "--comm-range 0.0: must be"),
+        (["--comm-range", "inf"], "--comm-range inf: must be"),
+    ],
+)
+def test_scenario_generate_bad_sizes_are_usage_errors(
+    tmp_path: Path, args: list[str], fragment: str
+) -> None:
+    r = semfleet(*GENERATE, "--seed", "1", *args, "-o", "out/g.toml", cwd=tmp_path)
+    _usage_error(r, fragment)
+    assert not (tmp_path / "out").exists()
+
+
+def _usage_error(r: subprocess.CompletedProcess[str], fragment: str) -> None:
     assert r.returncode == 2, (r.stdout, r.stderr)
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("semfleet: error: "), r.stderr
     assert fragment in lines[0], lines[0]
-    assert not (tmp_path / "out").exists()
 
 
 def test_cli_output_path_under_a_file_is_a_usage_error(tmp_path: Path) -> None:
