@@ -26,6 +26,7 @@ from deploy import (  # noqa: E402
     agent_cmd,
     demo,
     launch_cmd,
+    operator_cmd,
     scenario_cmd,
     study_cmd,
     ufastslam_cmd,
@@ -87,6 +88,7 @@ def build_parser() -> argparse.ArgumentParser:
     ufastslam_cmd.add_parser(sub)
     launch_cmd.add_parser(sub)
     agent_cmd.add_parser(sub)
+    operator_cmd.add_parser(sub)
     return parser
 
 
