@@ -21,18 +21,22 @@ def valid_id(value: object) -> bool:
     return isinstance(value, str) and ID_PATTERN.fullmatch(value) is not None
 
 
-def decode_document(data: bytes, max_bytes: int, parse: Callable[[Any], T]) -> T:
-    """Unpack ``data`` (at most ``max_bytes``) as msgpack and ``parse`` the document. Raises only
+def decode_document(
+    data: bytes, max_bytes: int, parse: Callable[[Any], T], field: str = "message"
+) -> T:
+    """Unpack ``data`` (at most ``max_bytes``, checked before anything is read) as msgpack and
+    ``parse`` the document; ``field`` names the document as a whole in errors. Raises only
     :class:`~protocol.errors.RemoteProtocolError` subclasses."""
     if not isinstance(data, bytes | bytearray | memoryview):
-        raise MalformedMessage(f"expected bytes, got {type(data).__name__}", "message")
-    if len(data) > max_bytes:
-        raise LimitExceeded(f"{len(data)} bytes > {max_bytes}", "message")
+        raise MalformedMessage(f"expected bytes, got {type(data).__name__}", field)
+    size = memoryview(data).nbytes
+    if size > max_bytes:
+        raise LimitExceeded(f"{size} bytes > {max_bytes}", field)
     try:
         doc = msgpack.unpackb(bytes(data), raw=False, strict_map_key=True, use_list=True)
     except Exception as exc:  # msgpack raises a dozen types for bad input; all mean "malformed"
         raise MalformedMessage(
-            f"not a msgpack document ({type(exc).__name__}: {exc})", "message"
+            f"not a msgpack document ({type(exc).__name__}: {exc})", field
         ) from None
     try:
         return parse(doc)
@@ -47,7 +51,7 @@ def decode_document(data: bytes, max_bytes: int, parse: Callable[[Any], T]) -> T
         np.linalg.LinAlgError,
     ) as exc:
         # Defence in depth: a validation gap must still surface as a remote error, never a crash.
-        raise MalformedMessage(f"{type(exc).__name__}: {exc}", "message") from None
+        raise MalformedMessage(f"{type(exc).__name__}: {exc}", field) from None
 
 
 def need(

@@ -7,11 +7,14 @@ from __future__ import annotations
 from typing import Any
 
 import msgpack
+import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from agents.control import (
+    MAX_CONTROL_BYTES,
+    MAX_LINKS,
     MAX_STEP,
     Control,
     NeedFrames,
@@ -21,7 +24,13 @@ from agents.control import (
     decode_control,
     encode_control,
 )
-from protocol.errors import InvalidValue, MalformedMessage, RemoteProtocolError
+from protocol.errors import (
+    InvalidValue,
+    LimitExceeded,
+    LocalProtocolError,
+    MalformedMessage,
+    RemoteProtocolError,
+)
 
 FUZZ = settings(derandomize=True, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 BAD_IDS = ("", "x" * 33, "r 1", "r/1", "rö", 7, None, b"r1")
@@ -178,3 +187,162 @@ def test_control_fuzz_mutated_documents_raise_only_remote_errors(
 @given(_docs)
 def test_control_fuzz_random_documents_raise_only_remote_errors(doc: Any) -> None:
     _only_remote_errors(_pack(doc))
+
+
+# --------------------------------------------------------------------------- size caps
+
+
+def _ids(count: int, prefix: str = "r") -> list[str]:
+    return [f"{prefix}{i}" for i in range(count)]
+
+
+def _stop_of_size(size: int) -> bytes:
+    """A valid stop document of exactly ``size`` bytes (≥ 64), its reason padded."""
+    base = _pack({"type": "stop", "reason": ""})
+    for pad in range(size - len(base), size - len(base) - 6, -1):
+        data = _pack({"type": "stop", "reason": "x" * pad})
+        if len(data) == size:
+            return data
+    raise AssertionError(size)
+
+
+def test_control_message_over_max_bytes_is_refused_unread() -> None:
+    assert isinstance(decode_control(_stop_of_size(MAX_CONTROL_BYTES)), Stop)
+    with pytest.raises(LimitExceeded) as caught:
+        decode_control(_stop_of_size(MAX_CONTROL_BYTES + 1))
+    assert caught.value.field == "ctl"
+    # Refused before unpacking: garbage over the cap is a LimitExceeded, not a MalformedMessage.
+    with pytest.raises(LimitExceeded):
+        decode_control(b"\xc1" * (MAX_CONTROL_BYTES + 1))
+    with pytest.raises(LimitExceeded):
+        decode_control(_pack(STEP), max_bytes=len(_pack(STEP)) - 1)
+    assert isinstance(decode_control(_pack(STEP), max_bytes=len(_pack(STEP))), StepOrder)
+
+
+def test_control_the_issues_ten_megabyte_step_order_is_refused() -> None:
+    # Issue 11: a 9.8 MB ctl/step was accepted. 1024 robots hearing 1024 peers each.
+    peers = _ids(MAX_LINKS, "peer_")
+    data = _pack({"type": "step", "k": 1, "links": {r: peers for r in _ids(MAX_LINKS)}})
+    assert len(data) > 9e6
+    with pytest.raises(LimitExceeded) as caught:
+        decode_control(data)
+    assert caught.value.field == "ctl"
+
+
+@pytest.mark.parametrize(
+    ("links", "field"),
+    [
+        ({r: [] for r in _ids(MAX_LINKS + 1)}, "ctl.links"),
+        ({"r1": _ids(MAX_LINKS + 1)}, "ctl.links.r1"),
+    ],
+)
+def test_control_step_order_links_are_capped_in_entries(
+    links: dict[str, list[str]], field: str
+) -> None:
+    data = _pack({"type": "step", "k": 1, "links": links})
+    with pytest.raises(LimitExceeded) as caught:
+        decode_control(data, max_bytes=len(data))
+    assert caught.value.field == field
+    order = StepOrder(1, {r: tuple(s) for r, s in links.items()})
+    with pytest.raises(LocalProtocolError) as refused:
+        encode_control(order, max_bytes=len(data))
+    assert refused.value.field == field
+
+
+def test_control_step_order_at_the_link_caps_is_accepted() -> None:
+    links = {r: () for r in _ids(MAX_LINKS - 1)} | {"r_all": tuple(_ids(MAX_LINKS))}
+    order = StepOrder(5, links)
+    data = encode_control(order, max_bytes=2**20)
+    assert decode_control(data, max_bytes=2**20) == order
+
+
+@pytest.mark.parametrize(
+    ("message", "field"),
+    [
+        (StepOrder(-1), "ctl.k"),
+        (StepOrder(MAX_STEP + 1), "ctl.k"),
+        (StepOrder(True), "ctl.k"),  # type: ignore[arg-type]
+        (StepOrder(1, {"r 1": ()}), "ctl.links"),
+        (StepOrder(1, {"r1": ("r/2",)}), "ctl.links.r1"),
+        (NeedFrames("", 1), "ctl.robot"),
+        (NeedFrames("r1", -1), "ctl.k"),
+        (Stop(3), "ctl.reason"),  # type: ignore[arg-type]
+        (Stop("x" * MAX_CONTROL_BYTES), "ctl"),
+        ("stop", "ctl"),  # type: ignore[arg-type]
+    ],
+)
+def test_control_encode_refuses_what_decode_refuses(message: Control, field: str) -> None:
+    with pytest.raises(LocalProtocolError) as caught:
+        encode_control(message)
+    assert caught.value.field == field
+
+
+# --------------------------------------------------------------------------- seeded fuzz
+
+
+def _random_doc(rng: np.random.Generator, depth: int = 0) -> Any:
+    """A random msgpack document, biased towards the control vocabulary and its edges."""
+    kind = int(rng.integers(0, 10 if depth < 4 else 7))
+    if kind == 0:
+        return None
+    if kind == 1:
+        return bool(rng.integers(0, 2))
+    if kind == 2:
+        edges = [-(2**63), -1, 0, 1, 3, MAX_STEP, MAX_STEP + 1, 2**64 - 1]
+        return edges[int(rng.integers(0, len(edges)))]
+    if kind == 3:
+        return float(rng.choice([0.0, -0.0, 1.5, np.nan, np.inf, 1e308]))
+    if kind == 4:
+        words = ["step", "need", "stop", "status", "type", "k", "links", "robot", "r1", "", "é"]
+        return str(rng.choice(words)) * int(rng.integers(1, 3))
+    if kind == 5:
+        return rng.bytes(int(rng.integers(0, 9)))
+    if kind == 6:
+        return msgpack.ExtType(int(rng.integers(0, 128)), rng.bytes(int(rng.integers(0, 5))))
+    if kind == 7:
+        return [_random_doc(rng, depth + 1) for _ in range(int(rng.integers(0, 5)))]
+    keys = ["type", "k", "links", "robot", "reason", "r1", "r2", "x"]
+    doc = {str(rng.choice(keys)): _random_doc(rng, depth + 1) for _ in range(rng.integers(0, 5))}
+    if rng.random() < 0.6:
+        doc["type"] = str(rng.choice(["step", "need", "stop", "status"]))
+    return doc
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_control_seeded_fuzz_raises_only_remote_errors(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    valid = [encode_control(m) for m in (StepOrder(3, {"r1": ("r2",)}), NeedFrames("r2", 4))]
+    for _ in range(500):
+        _only_remote_errors(rng.bytes(int(rng.integers(0, 300))))
+        _only_remote_errors(_pack(_random_doc(rng)))
+        blob = bytearray(valid[int(rng.integers(0, len(valid)))])
+        for _ in range(int(rng.integers(1, 4))):
+            blob[int(rng.integers(0, len(blob)))] = int(rng.integers(0, 256))
+        _only_remote_errors(bytes(blob))
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_control_seeded_step_orders_round_trip_or_are_refused_by_both(seed: int) -> None:
+    """Whatever encode_control accepts decodes to the same order; whatever it refuses, a
+    receiver refuses too (the document packed by hand)."""
+    rng = np.random.default_rng(seed)
+    pool = [*_ids(6), "r 1", ""]
+    for _ in range(200):
+        robots = rng.choice(pool, size=int(rng.integers(0, 5)), replace=False)
+        links = {
+            str(r): tuple(str(s) for s in rng.choice(pool, size=rng.integers(0, 4))) for r in robots
+        }
+        k = [-1, 0, 7, MAX_STEP, MAX_STEP + 1][int(rng.integers(0, 5))]
+        cap = int(rng.integers(10, 120))
+        order = StepOrder(k, links)
+        doc = {"type": "step", "k": k, "links": {r: list(s) for r, s in links.items()}}
+        try:
+            data = encode_control(order, max_bytes=cap)
+        except LocalProtocolError as exc:
+            with pytest.raises(RemoteProtocolError) as caught:
+                decode_control(_pack(doc), max_bytes=cap)
+            if len(_pack(doc)) <= cap:  # both read in the same order once the size fits
+                assert caught.value.field == exc.field
+        else:
+            assert data == _pack(doc)
+            assert decode_control(data, max_bytes=cap) == order
