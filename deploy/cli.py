@@ -27,6 +27,7 @@ from deploy import (  # noqa: E402
     demo,
     launch_cmd,
     operator_cmd,
+    replay_cmd,
     scenario_cmd,
     study_cmd,
     ufastslam_cmd,
@@ -89,6 +90,7 @@ def build_parser() -> argparse.ArgumentParser:
     launch_cmd.add_parser(sub)
     agent_cmd.add_parser(sub)
     operator_cmd.add_parser(sub)
+    replay_cmd.add_parser(sub)
     return parser
 
 
