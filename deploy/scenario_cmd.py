@@ -1,4 +1,4 @@
-"""`semfleet scenario show | plot | generate`."""
+"""`semfleet scenario show | plot | generate | model`."""
 
 from __future__ import annotations
 
@@ -16,6 +16,7 @@ from deploy.args import class_count, positive_int, seed
 from deploy.errors import UsageError
 from sim.generate import dump_scenario, generate_scenario
 from sim.loader import load_scenario
+from sim.robot_model import dump_robot_model
 from sim.scenario import Scenario, ScenarioError
 from sim.world import World
 
@@ -205,9 +206,44 @@ def run_generate(args: argparse.Namespace, console: Console) -> int:
     return 0
 
 
+def model_text(scenario: Scenario, robot: str | None = None) -> str:
+    """The robot model file of ``scenario`` (with ``robot``'s own sensor if given), headed by a
+    comment that says where it comes from."""
+    if robot is not None and robot not in scenario.robot_ids:
+        known = ", ".join(scenario.robot_ids)
+        raise ScenarioError(f"--robot: {robot!r} is not a robot of {scenario.name} ({known})")
+    variants = ", ".join(scenario.applied_variants) or "none"
+    sensor = "the default [sensor]" if robot is None else f"robot {robot}'s own"
+    origin = f"robot model of scenario {scenario.name} ({scenario.source}, variants: {variants})"
+    # A name or path with a line break must not end the comment early.
+    header = f"# {' '.join(origin.split())}\n# sensor: {sensor}\n"
+    return header + dump_robot_model(scenario.robot_model(robot))
+
+
+def write_new_file(out: Path, text: str, force: bool) -> None:
+    """Write ``text`` to ``out``; an existing file is an error unless ``force``."""
+    out.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        with out.open("w" if force else "x", encoding="utf-8") as f:
+            f.write(text)
+    except FileExistsError:
+        raise FileExistsError(f"{out}: already exists (--force overwrites it)") from None
+
+
+def run_model(args: argparse.Namespace, console: Console) -> int:
+    text = model_text(scenario_from_args(args), args.robot)
+    out = Path(args.output)
+    write_new_file(out, text, args.force)
+    console.print(f"wrote {out}:", markup=False, highlight=False, soft_wrap=True)
+    console.print(text, markup=False, highlight=False, soft_wrap=True, end="")
+    return 0
+
+
 def add_parser(sub: Any) -> None:
     p = sub.add_parser("scenario", help="inspect, plot and generate scenario files")
-    ssub = p.add_subparsers(dest="scenario_command", required=True, metavar="show|plot|generate")
+    ssub = p.add_subparsers(
+        dest="scenario_command", required=True, metavar="show|plot|generate|model"
+    )
     show = ssub.add_parser("show", help="tables: robots, objects, first sightings, comm edges")
     add_scenario_arguments(show)
     show.set_defaults(run=run_show)
@@ -234,3 +270,14 @@ def add_parser(sub: Any) -> None:
     gen.add_argument("--comm-range", type=float, default=10.0, help="communication range [m]")
     gen.add_argument("-o", "--output", required=True, help="TOML file to write")
     gen.set_defaults(run=run_generate)
+    model = ssub.add_parser("model", help="write a scenario's robot model (for semfleet agent)")
+    add_scenario_arguments(model)
+    model.add_argument(
+        "--robot",
+        default=None,
+        metavar="ID",
+        help="take this robot's own sensor (default: [sensor])",
+    )
+    model.add_argument("-o", "--output", required=True, help="TOML file to write")
+    model.add_argument("--force", action="store_true", help="overwrite an existing file")
+    model.set_defaults(run=run_model)

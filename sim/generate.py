@@ -14,6 +14,7 @@ from sim.scenario import (
     Communication,
     Object,
     Robot,
+    RobotModel,
     Scenario,
     Sensor,
 )
@@ -49,7 +50,10 @@ def generate_scenario(
         Object(j + 1, (float(x), float(y), float(t)), int(c))
         for j, ((x, y), t, c) in enumerate(zip(obj_xy, obj_yaw, obj_cls, strict=True))
     )
-    robot_specs = tuple(_wandering_robot(f"r{i + 1}", rng, half, steps) for i in range(robots))
+    sensor = Sensor(math.radians(50.0), 5.0)
+    robot_specs = tuple(
+        _wandering_robot(f"r{i + 1}", rng, half, steps, sensor) for i in range(robots)
+    )
     alias, best = [], []
     for c in range(classes):
         others = [a for a in range(classes) if a != c]
@@ -67,11 +71,14 @@ def generate_scenario(
         odometry_noise=PAPER_ODOMETRY,
         geometric_noise=PAPER_GEOMETRIC,
         classifier=ClassifierSpec("aliased", tuple(alias), tuple(best), 0.35),
+        sensor=sensor,
         communication=Communication("range", comm_range, ()),
     )
 
 
-def _wandering_robot(rid: str, rng: np.random.Generator, half: float, steps: int) -> Robot:
+def _wandering_robot(
+    rid: str, rng: np.random.Generator, half: float, steps: int, sensor: Sensor
+) -> Robot:
     """A robot that turns at random but steers back towards the centre near the border."""
     start = np.array([*rng.uniform(-0.8 * half, 0.8 * half, 2), rng.uniform(-np.pi, np.pi)])
     pose = start.copy()
@@ -93,7 +100,7 @@ def _wandering_robot(rid: str, rng: np.random.Generator, half: float, steps: int
         rid,
         (float(start[0]), float(start[1]), float(start[2])),
         tuple(actions),
-        Sensor(math.radians(50.0), 5.0),
+        sensor,
     )
 
 
@@ -105,23 +112,9 @@ def dump_scenario(s: Scenario) -> str:
         f"description = {_q(s.description)}",
         f"steps = {s.steps}",
         "",
-        "[classes]",
-        f"count = {s.num_classes}",
-        f"prior = {_nums(s.class_prior)}",
+        *model_tables(s.robot_model()),
         "",
-        "[classifier]",
-        f"model = {_q(s.classifier.model)}",
     ]
-    if s.classifier.model == "aliased":
-        out += [
-            f"alias = [{', '.join(str(a + 1) for a in s.classifier.alias)}]",
-            f"best_view_deg = {_nums(s.classifier.best_view_deg)}",
-            f"noise_std = {_num(s.classifier.noise_std)}",
-        ]
-    out += ["", "[noise]", f"odometry_var = {_noise(s.odometry_noise)}"]
-    out += [f"geometric_var = {_noise(s.geometric_noise)}", ""]
-    default = s.robots[0].sensor
-    out += ["[sensor]", *_sensor_lines(default), ""]
     comm = s.communication
     out += ["[communication]", f"mode = {_q(comm.mode)}"]
     if comm.range is not None:
@@ -132,7 +125,7 @@ def dump_scenario(s: Scenario) -> str:
     for r in s.robots:
         out += ["", "[[robots]]", f"id = {_q(r.id)}", f"start = {_nums(r.start)}"]
         out += _motion_lines(r)
-        if r.sensor != default:
+        if r.sensor != s.sensor:
             out += ["[robots.sensor]", *_sensor_lines(r.sensor)]
     for o in s.objects:
         out += ["", "[[objects]]", f"id = {o.id}", f"pose = {_nums(o.pose)}"]
@@ -142,6 +135,23 @@ def dump_scenario(s: Scenario) -> str:
         out += ["", f"[variants.{_q(v.name)}]", f"description = {_q(v.description)}"]
         out.append(f"set = {{ {settings} }}")
     return "\n".join(out) + "\n"
+
+
+def model_tables(model: RobotModel) -> list[str]:
+    """The lines of the ``[classes]``, ``[classifier]``, ``[noise]`` and ``[sensor]`` tables,
+    written alike in a scenario and a robot model file."""
+    c = model.classifier
+    out = ["[classes]", f"count = {model.num_classes}", f"prior = {_nums(model.class_prior)}"]
+    out += ["", "[classifier]", f"model = {_q(c.model)}"]
+    if c.model == "aliased":
+        out += [
+            f"alias = [{', '.join(str(a + 1) for a in c.alias)}]",
+            f"best_view_deg = {_nums(c.best_view_deg)}",
+            f"noise_std = {_num(c.noise_std)}",
+        ]
+    out += ["", "[noise]", f"odometry_var = {_noise(model.odometry_noise)}"]
+    out += [f"geometric_var = {_noise(model.geometric_noise)}"]
+    return [*out, "", "[sensor]", *_sensor_lines(model.sensor)]
 
 
 def _value(value: Any) -> str:
@@ -177,9 +187,22 @@ def _motion_lines(r: Robot) -> list[str]:
 
 def _sensor_lines(sensor: Sensor) -> list[str]:
     return [
-        f"half_angle_deg = {_num(math.degrees(sensor.half_angle))}",
+        f"half_angle_deg = {_num(_degrees_read_back(sensor.half_angle))}",
         f"range = {_num(sensor.range)}",
     ]
+
+
+def _degrees_read_back(angle: float) -> float:
+    """``angle`` in degrees, chosen among the nearest floats so that the loader's conversion
+    back to radians gives ``angle`` itself (math.degrees alone misses it for ~5 % of angles)."""
+    first = math.degrees(angle)
+    for direction in (math.inf, -math.inf):
+        d = first
+        for _ in range(4):
+            if math.radians(d) == angle:
+                return d
+            d = math.nextafter(d, direction)
+    return first
 
 
 def _noise(noise: GaussianNoise) -> str:

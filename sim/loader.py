@@ -23,6 +23,7 @@ from sim.scenario import (
     Communication,
     Object,
     Robot,
+    RobotModel,
     Scenario,
     ScenarioError,
     ScheduleEdge,
@@ -31,13 +32,15 @@ from sim.scenario import (
 )
 
 _ID_PATTERN = re.compile(r"^[A-Za-z0-9_-]{1,32}$")
-_COMM_MODES = ("schedule", "range", "both")
+COMM_MODES = ("schedule", "range", "both")
 _CLASSIFIER_MODELS = ("paper", "aliased")
 _PRIOR_TOLERANCE = 1e-6
 _MAX_INT = 2**32 - 1  # ids, steps and counts; ids travel as unsigned 32-bit integers on the wire
 _MAX_FLOAT_INT = 2**53
 _MAX_CLASSES = 64
 _MAX_STEPS = 1_000_000
+# The tables of a robot model file, which a scenario file has too.
+MODEL_TABLES = ("classes", "classifier", "noise", "sensor")
 
 
 def bundled_names() -> list[str]:
@@ -50,18 +53,32 @@ def read_source(source: str | Path) -> tuple[str, str]:
     """(label, text) of a scenario given as a file path or a bundled name."""
     path = Path(source)
     if path.suffix == ".toml" or path.exists():
-        try:
-            return str(path), path.read_text(encoding="utf-8")
-        except FileNotFoundError:
-            raise ScenarioError(f"{path}: no such scenario file") from None
-        except (OSError, UnicodeDecodeError) as exc:
-            raise ScenarioError(f"{path}: cannot read: {exc}") from None
+        return str(path), read_file(path, "scenario file")
     name = str(source)
     if name not in bundled_names():
         known = ", ".join(bundled_names())
         raise ScenarioError(f"{name}: not a file and not a bundled scenario (bundled: {known})")
     text = (resources.files("sim") / "scenarios" / f"{name}.toml").read_text(encoding="utf-8")
     return f"{name}.toml", text
+
+
+def read_file(path: Path, what: str) -> str:
+    """The text of the file ``path``; a :class:`ScenarioError` naming it (and ``what`` it should
+    be) when it cannot be read."""
+    try:
+        return path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise ScenarioError(f"{path}: no such {what}") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ScenarioError(f"{path}: cannot read: {exc}") from None
+
+
+def parse_toml(text: str, label: str) -> dict[str, Any]:
+    """The TOML ``text`` as a dict; a :class:`ScenarioError` naming ``label`` if it is not TOML."""
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ScenarioError(f"{label}: not valid TOML: {exc}") from None
 
 
 def load_scenario(
@@ -93,12 +110,9 @@ def parse_scenario(
 
     Every variant defined in the file is validated, whether applied or not.
     """
-    try:
-        raw = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise ScenarioError(f"{label}: not valid TOML: {exc}") from None
+    raw = parse_toml(text, label)
     top = FieldReader(label, raw, "")
-    _check_format(top)
+    check_format(top)
     defined = _variants(top)
     by_name = {v.name: v for v in defined}
     origins: dict[str, str] = {}
@@ -145,7 +159,7 @@ def _build_attributed(raw: dict[str, Any], label: str, origins: Mapping[str, str
         raise
 
 
-def _check_format(top: FieldReader) -> None:
+def check_format(top: FieldReader) -> None:
     """Checked first, so a file of a newer format is reported as such and not as unknown keys."""
     version = top.integer("format")
     if version != FORMAT_VERSION:
@@ -292,23 +306,17 @@ def _type_name(value: Any) -> str:
 
 def _build(raw: dict[str, Any], label: str) -> Scenario:
     top = FieldReader(label, raw, "")
-    _check_format(top)
+    check_format(top)
     top.check_keys(
-        {"format", "name", "description", "steps", "classes", "classifier", "noise", "sensor"}
+        {"format", "name", "description", "steps", *MODEL_TABLES}
         | {"communication", "robots", "objects", "variants"}
     )
     name = top.string("name")
     description = top.string("description") if top.has("description") else ""
     steps = top.integer("steps", minimum=1, maximum=_MAX_STEPS)
-    num_classes, prior = _classes(top.table("classes"))
-    classifier = _classifier(top.table("classifier"), num_classes)
-    noise = top.table("noise")
-    noise.check_keys({"odometry_var", "geometric_var"})
-    odometry = GaussianNoise(tuple(noise.vector("odometry_var", 3, positive=True)))  # type: ignore[arg-type]
-    geometric = GaussianNoise(tuple(noise.vector("geometric_var", 3, positive=True)))  # type: ignore[arg-type]
-    default_sensor = _sensor(top.table("sensor"))
-    robots = _robots(top, steps, default_sensor)
-    objects = _objects(top, num_classes)
+    model = robot_model_tables(top, "scenario")
+    robots = _robots(top, steps, model.sensor)
+    objects = _objects(top, model.num_classes)
     robot_ids = [r.id for r in robots]
     communication = _communication(top.table("communication"), steps, robot_ids)
     return Scenario(
@@ -316,15 +324,26 @@ def _build(raw: dict[str, Any], label: str) -> Scenario:
         description=description,
         source=label,
         steps=steps,
-        num_classes=num_classes,
-        class_prior=prior,
+        num_classes=model.num_classes,
+        class_prior=model.class_prior,
         robots=robots,
         objects=objects,
-        odometry_noise=odometry,
-        geometric_noise=geometric,
-        classifier=classifier,
+        odometry_noise=model.odometry_noise,
+        geometric_noise=model.geometric_noise,
+        classifier=model.classifier,
+        sensor=model.sensor,
         communication=communication,
     )
+
+
+def robot_model_tables(top: FieldReader, owner: str) -> RobotModel:
+    """The tables a scenario and a robot model file share (``MODEL_TABLES``), in this order;
+    ``owner`` ("scenario", "model") names the whole file in errors."""
+    num_classes, prior = _classes(top.table("classes"))
+    classifier = _classifier(top.table("classifier"), num_classes, owner)
+    odometry, geometric = _noise(top.table("noise"))
+    sensor = _sensor(top.table("sensor"))
+    return RobotModel(num_classes, prior, classifier, odometry, geometric, sensor)
 
 
 def _classes(f: FieldReader) -> tuple[int, tuple[float, ...]]:
@@ -338,14 +357,14 @@ def _classes(f: FieldReader) -> tuple[int, tuple[float, ...]]:
     return m, tuple(prior)
 
 
-def _classifier(f: FieldReader, m: int) -> ClassifierSpec:
+def _classifier(f: FieldReader, m: int, owner: str) -> ClassifierSpec:
     model = f.string("model")
     if model not in _CLASSIFIER_MODELS:
         raise f.fail("model", f"unknown model {model!r} (known: {', '.join(_CLASSIFIER_MODELS)})")
     if model == "paper":
         f.check_keys({"model"})
         if m != 2:
-            raise f.fail("model", f"the paper model has 2 classes, the scenario has {m}")
+            raise f.fail("model", f"the paper model has 2 classes, the {owner} has {m}")
         return ClassifierSpec("paper")
     f.check_keys({"model", "alias", "best_view_deg", "noise_std"})
     alias_arr = f.array("alias")
@@ -362,6 +381,13 @@ def _classifier(f: FieldReader, m: int) -> ClassifierSpec:
     best = f.vector("best_view_deg", m)
     noise_std = f.number("noise_std", positive=True)
     return ClassifierSpec("aliased", tuple(alias), tuple(best), noise_std)
+
+
+def _noise(f: FieldReader) -> tuple[GaussianNoise, GaussianNoise]:
+    f.check_keys({"odometry_var", "geometric_var"})
+    odometry = GaussianNoise(tuple(f.vector("odometry_var", 3, positive=True)))  # type: ignore[arg-type]
+    geometric = GaussianNoise(tuple(f.vector("geometric_var", 3, positive=True)))  # type: ignore[arg-type]
+    return odometry, geometric
 
 
 def _sensor(f: FieldReader) -> Sensor:
@@ -460,8 +486,8 @@ def _communication(f: FieldReader, steps: int, robot_ids: list[str]) -> Communic
             schedule.append(ScheduleEdge(first, last, a, b))
     default = "schedule" if f.has("schedule") else "range"
     mode = f.string("mode") if f.has("mode") else default
-    if mode not in _COMM_MODES:
-        raise f.fail("mode", f"unknown mode {mode!r} (known: {', '.join(_COMM_MODES)})")
+    if mode not in COMM_MODES:
+        raise f.fail("mode", f"unknown mode {mode!r} (known: {', '.join(COMM_MODES)})")
     if mode in ("range", "both") and comm_range is None:
         raise f.fail("range", f"missing required field (mode {mode!r} needs it)")
     if mode in ("schedule", "both") and not f.has("schedule"):

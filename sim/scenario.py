@@ -101,8 +101,23 @@ class ClassifierSpec:
 
 
 @dataclass(frozen=True, slots=True)
+class RobotModel:
+    """What a robot knows of itself and of the objects it may meet, without any world: the
+    classes and their prior, the classifier model, the odometry and geometric noise and the
+    sensor (a scenario's ``[classes]``, ``[classifier]``, ``[noise]`` and ``[sensor]``)."""
+
+    num_classes: int
+    class_prior: tuple[float, ...]
+    classifier: ClassifierSpec
+    odometry_noise: GaussianNoise
+    geometric_noise: GaussianNoise
+    sensor: Sensor
+
+
+@dataclass(frozen=True, slots=True)
 class Scenario:
-    """A validated scenario (see docs/scenarios.md). Steps are k = 1..steps."""
+    """A validated scenario (see docs/scenarios.md). Steps are k = 1..steps. ``sensor`` is the
+    default sensor (``[sensor]``); each robot carries the one it uses."""
 
     name: str
     description: str
@@ -115,6 +130,7 @@ class Scenario:
     odometry_noise: GaussianNoise
     geometric_noise: GaussianNoise
     classifier: ClassifierSpec
+    sensor: Sensor
     communication: Communication
     variants: tuple[Variant, ...] = ()
     applied_variants: tuple[str, ...] = ()
@@ -132,6 +148,19 @@ class Scenario:
             if r.id == robot_id:
                 return r
         raise KeyError(robot_id)
+
+    def robot_model(self, robot_id: str | None = None) -> RobotModel:
+        """The robot model of this world's robots: the one of ``robot_id`` (with its own sensor),
+        or with the default ``[sensor]`` when None."""
+        sensor = self.sensor if robot_id is None else self.robot(robot_id).sensor
+        return RobotModel(
+            self.num_classes,
+            self.class_prior,
+            self.classifier,
+            self.odometry_noise,
+            self.geometric_noise,
+            sensor,
+        )
 
     def object_poses(self) -> Array:
         """(n, 3) object poses in file order."""
