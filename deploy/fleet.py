@@ -11,46 +11,23 @@ import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 
-import numpy as np
-
-from agents.links import AllOf, LinkModel, Partition, Proximity, RandomDrop, Schedule
-from agents.node import LocalTrack, RobotNode
-from estimator.hybrid import BeliefConfig, BeliefModel
+from agents.links import LinkModel
+from agents.node import RobotNode
+from deploy.build import COMM_MODES, link_model_for, make_nodes
 from estimator.models import SensorFrame
-from sim.scenario import Scenario
 
-COMM_MODES = ("schedule", "range", "both")
+# Built in deploy.build; kept importable from here for the callers written before it.
+__all__ = [
+    "COMM_MODES",
+    "FleetStats",
+    "StepCallback",
+    "link_model_for",
+    "make_nodes",
+    "run_fleet",
+    "run_fleets",
+]
 
 StepCallback = Callable[[str, int, RobotNode, float, float], None]
-
-
-def link_model_for(
-    scenario: Scenario,
-    comm: str | None = None,
-    drop: float = 0.0,
-    seed: int = 0,
-    partitions: Sequence[Partition] = (),
-) -> LinkModel:
-    """The scenario's communication as a link model; ``comm`` overrides its mode, ``drop`` adds
-    seeded random loss, ``partitions`` cut the fleet for a while."""
-    c = scenario.communication
-    mode = comm or c.mode
-    if mode not in COMM_MODES:
-        raise ValueError(f"communication mode {mode!r} (known: {', '.join(COMM_MODES)})")
-    schedule = Schedule(tuple((e.first, e.last, e.a, e.b) for e in c.schedule))
-    proximity = Proximity(c.range if c.range is not None else 10.0)
-    model: LinkModel
-    if mode == "schedule":
-        model = schedule
-    elif mode == "range":
-        model = proximity
-    else:
-        model = AllOf((schedule, proximity))
-    if drop > 0.0:
-        model = AllOf((model, RandomDrop(drop, seed)))
-    if partitions:
-        model = AllOf((model, *partitions))
-    return model
 
 
 @dataclass(slots=True)
@@ -147,30 +124,3 @@ def _advance(
         stats.rebuilds.append(fused.rebuilds + again.rebuilds)
         if on_step is not None:
             on_step(r, k, nodes[r], 1e3 * (t1 - t0), 1e3 * (t2 - t0))
-
-
-def make_nodes(
-    scenario: Scenario,
-    model: BeliefModel,
-    config: BeliefConfig,
-    rng_for: Callable[[str], np.random.Generator],
-    fusion: str = "consistent",
-    downdate: str = "remove",
-    tracks: Mapping[str, LocalTrack] | None = None,
-) -> dict[str, RobotNode]:
-    """One node per robot of the scenario; ``rng_for(robot)`` builds a fresh generator, called
-    twice per robot so that L and D draw identical streams. ``tracks`` shares local beliefs."""
-    return {
-        r.id: RobotNode(
-            r.id,
-            r.start,
-            model,
-            rng_for(r.id),
-            rng_for(r.id),
-            config,
-            fusion,
-            downdate,
-            local=None if tracks is None else tracks[r.id],
-        )
-        for r in scenario.robots
-    }

@@ -7,7 +7,6 @@ that simulates the scenario's frames once and feeds the very same frames to ever
 from __future__ import annotations
 
 import time
-import zlib
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -15,7 +14,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from agents.node import LocalTrack, RobotNode
-from deploy.fleet import FleetStats, StepCallback, link_model_for, make_nodes, run_fleets
+from deploy.build import belief_model, belief_rng, link_model_for, make_nodes
+from deploy.fleet import FleetStats, StepCallback, run_fleets
 from estimator.hybrid import BeliefConfig, BeliefModel, BeliefSnapshot, HybridBelief
 from estimator.metrics import ECE_BINS, METRICS, evaluate, evaluate_calibration
 from estimator.models import SensorFrame
@@ -47,28 +47,6 @@ class RunResult:
     calibration: dict[str, Array] = field(default_factory=dict)
     empty_joins: dict[str, list[int]] = field(default_factory=dict)
     rebuilds: dict[str, list[int]] = field(default_factory=dict)
-
-
-def belief_model(scenario: Scenario) -> BeliefModel:
-    """The estimators' model of a scenario's world (the generating model, as in the paper)."""
-    return BeliefModel(
-        scenario.num_classes,
-        scenario.class_prior,
-        scenario.classifier.build(),
-        scenario.odometry_noise,
-        scenario.geometric_noise,
-    )
-
-
-def belief_rng(seed: int, robots: Sequence[str]) -> np.random.Generator:
-    """The weight estimator's randomness for a belief over ``robots`` in run ``seed``.
-
-    It depends on the robots, not the method: beliefs over the same robots draw the same Monte
-    Carlo samples in every method (common random numbers for the estimator too), so a one-robot
-    centralized belief is exactly that robot's local belief. Independent of the sensor noise.
-    """
-    tags = [zlib.crc32(r.encode()) for r in robots]
-    return np.random.default_rng(np.random.SeedSequence([seed, 0xBE11EF, *tags]))
 
 
 def run_single(

@@ -1,0 +1,145 @@
+"""What every runner builds from a robot model: beliefs, random streams, links and nodes.
+
+The Monte Carlo study, the in-process fleet and the agent process build them here, so a robot
+is seeded and configured the same way in each, and lock-step runs can agree bit for bit.
+"""
+
+from __future__ import annotations
+
+import zlib
+from collections.abc import Callable, Mapping, Sequence
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from agents.links import AllOf, LinkModel, Partition, Proximity, RandomDrop, Schedule
+from agents.node import LocalTrack, RobotNode
+from estimator.hybrid import BeliefConfig, BeliefModel
+from sim.loader import COMM_MODES
+from sim.scenario import RobotModel, Scenario
+
+__all__ = [
+    "COMM_MODES",
+    "belief_model",
+    "belief_rng",
+    "link_model_for",
+    "make_node",
+    "make_nodes",
+]
+
+
+def belief_model(model: RobotModel | Scenario) -> BeliefModel:
+    """The estimators' model: a robot model's, or a scenario's robot model's (the generating
+    model, as in the paper)."""
+    if isinstance(model, Scenario):
+        model = model.robot_model()
+    return BeliefModel(
+        model.num_classes,
+        model.class_prior,
+        model.classifier.build(),
+        model.odometry_noise,
+        model.geometric_noise,
+    )
+
+
+def belief_rng(seed: int, robots: Sequence[str]) -> np.random.Generator:
+    """The weight estimator's randomness for a belief over ``robots`` in run ``seed``.
+
+    It depends on the robots, not the method: beliefs over the same robots draw the same Monte
+    Carlo samples in every method (common random numbers for the estimator too), so a one-robot
+    centralized belief is exactly that robot's local belief. Independent of the sensor noise.
+    """
+    tags = [zlib.crc32(r.encode()) for r in robots]
+    return np.random.default_rng(np.random.SeedSequence([seed, 0xBE11EF, *tags]))
+
+
+def link_model_for(
+    scenario: Scenario,
+    comm: str | None = None,
+    drop: float = 0.0,
+    seed: int = 0,
+    partitions: Sequence[Partition] = (),
+) -> LinkModel:
+    """The scenario's communication as a link model; ``comm`` overrides its mode, ``drop`` adds
+    seeded random loss, ``partitions`` cut the fleet for a while."""
+    c = scenario.communication
+    mode = comm or c.mode
+    if mode not in COMM_MODES:
+        raise ValueError(f"communication mode {mode!r} (known: {', '.join(COMM_MODES)})")
+    schedule = Schedule(tuple((e.first, e.last, e.a, e.b) for e in c.schedule))
+    proximity = Proximity(c.range if c.range is not None else 10.0)
+    model: LinkModel
+    if mode == "schedule":
+        model = schedule
+    elif mode == "range":
+        model = proximity
+    else:
+        model = AllOf((schedule, proximity))
+    if drop > 0.0:
+        model = AllOf((model, RandomDrop(drop, seed)))
+    if partitions:
+        model = AllOf((model, *partitions))
+    return model
+
+
+def make_node(
+    robot: str,
+    start: ArrayLike,
+    model: BeliefModel,
+    seed: int,
+    config: BeliefConfig,
+    fusion: str = "consistent",
+    downdate: str = "remove",
+) -> RobotNode:
+    """The node of ``robot`` starting at ``start`` (3,) in run ``seed``, exactly as
+    :func:`make_nodes` builds it with ``rng_for = lambda r: belief_rng(seed, [r])``."""
+    return _node(robot, start, model, lambda r: belief_rng(seed, [r]), config, fusion, downdate)
+
+
+def make_nodes(
+    scenario: Scenario,
+    model: BeliefModel,
+    config: BeliefConfig,
+    rng_for: Callable[[str], np.random.Generator],
+    fusion: str = "consistent",
+    downdate: str = "remove",
+    tracks: Mapping[str, LocalTrack] | None = None,
+) -> dict[str, RobotNode]:
+    """One node per robot of the scenario; ``rng_for(robot)`` builds a fresh generator, called
+    twice per robot so that L and D draw identical streams. ``tracks`` shares local beliefs."""
+    return {
+        r.id: _node(
+            r.id,
+            r.start,
+            model,
+            rng_for,
+            config,
+            fusion,
+            downdate,
+            None if tracks is None else tracks[r.id],
+        )
+        for r in scenario.robots
+    }
+
+
+def _node(
+    robot: str,
+    start: ArrayLike,
+    model: BeliefModel,
+    rng_for: Callable[[str], np.random.Generator],
+    config: BeliefConfig,
+    fusion: str,
+    downdate: str,
+    local: LocalTrack | None = None,
+) -> RobotNode:
+    return RobotNode(
+        robot,
+        start,
+        model,
+        rng_for(robot),
+        rng_for(robot),
+        config,
+        fusion,
+        downdate,
+        local=local,
+    )
