@@ -94,7 +94,7 @@ class Agent:
         self.journal = journal
         self.log: Journal | MemoryLog = journal if journal is not None else MemoryLog()
         core.committed = self.log.records
-        core.extra_counters = lambda: {"inbox_dropped": sum(i.dropped for i in self.inboxes)}
+        core.extra_counters = self._shell_counters
         self.clock = clock
         self.control = Inbox(1024, CONTROL_INBOX_BYTES)
         self.frames = Inbox(4096, FRAME_INBOX_BYTES)
@@ -102,6 +102,8 @@ class Agent:
         self.inboxes = (self.control, self.frames, self.stacks)
         self.stop_reason = ""
         self.worker_busy_s = 0.0
+        self.loop_lag_max_s = 0.0  # the longest the loop was held beyond a 10 ms tick
+        self.gossip_gap_max_s = 0.0  # the longest time between two gossip ticks
         self._worker = concurrent.futures.ThreadPoolExecutor(1, f"agent-{self.robot}")
         self._stop = asyncio.Event()
 
@@ -138,6 +140,7 @@ class Agent:
             tasks = [
                 asyncio.create_task(self._gossip_timer()),
                 asyncio.create_task(self._main()),
+                asyncio.create_task(self._watch_loop()),
             ]
             stop_wait = asyncio.create_task(self._stop.wait())
             done, _ = await asyncio.wait([stop_wait, *tasks], return_when=asyncio.FIRST_COMPLETED)
@@ -158,10 +161,34 @@ class Agent:
     # -- loops -------------------------------------------------------------------------------
 
     async def _gossip_timer(self) -> None:
-        """On the loop, whatever the worker is doing."""
+        """On the loop, whatever the worker is doing; ticks on a fixed grid (no drift): a late
+        tick does not delay the next ones."""
+        period = self.settings.gossip_period
+        last = due = time.perf_counter()
         while True:
-            await asyncio.sleep(self.settings.gossip_period)
+            due += period
+            now = time.perf_counter()
+            if due < now - period:
+                due = now  # the loop was held for more than a period: skip the missed ticks
+            await asyncio.sleep(max(0.0, due - now))
+            now = time.perf_counter()
+            self.gossip_gap_max_s = max(self.gossip_gap_max_s, now - last)
+            last = now
             self._carry_out(self.core.on_timer(self.clock()))
+
+    async def _watch_loop(self, tick: float = 0.01) -> None:
+        """Measures how long the loop is ever held: a 10 ms sleep that wakes late was held."""
+        while True:
+            t0 = time.perf_counter()
+            await asyncio.sleep(tick)
+            self.loop_lag_max_s = max(self.loop_lag_max_s, time.perf_counter() - t0 - tick)
+
+    def _shell_counters(self) -> dict[str, int]:
+        return {
+            "inbox_dropped": sum(i.dropped for i in self.inboxes),
+            "loop_lag_max_us": round(1e6 * self.loop_lag_max_s),
+            "gossip_gap_max_us": round(1e6 * self.gossip_gap_max_s),
+        }
 
     async def _main(self) -> None:
         while not self._stop.is_set():
