@@ -21,6 +21,7 @@ import tomllib
 import zlib
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -196,12 +197,15 @@ def node_factory(config: AgentConfig) -> Callable[[], RobotNode]:
     holding the slots of the roster's robots only."""
     model = belief_model(config.model)
 
-    def make() -> RobotNode:
-        node = make_node(config.robot, config.start, model, config.seed, BeliefConfig())
-        node.roster = config.roster
-        return node
-
-    return make
+    return partial(
+        make_node,
+        config.robot,
+        config.start,
+        model,
+        config.seed,
+        BeliefConfig(),
+        roster=config.roster,
+    )
 
 
 def journal_identity(config: AgentConfig) -> dict[str, str | int]:

@@ -90,10 +90,13 @@ def make_node(
     config: BeliefConfig,
     fusion: str = "consistent",
     downdate: str = "remove",
+    roster: frozenset[str] | None = None,
 ) -> RobotNode:
     """The node of ``robot`` starting at ``start`` (3,) in run ``seed``, exactly as
-    :func:`make_nodes` builds it with ``rng_for = lambda r: belief_rng(seed, [r])``."""
-    return _node(robot, start, model, lambda r: belief_rng(seed, [r]), config, fusion, downdate)
+    :func:`make_nodes` builds it with ``rng_for = lambda r: belief_rng(seed, [r])``; ``roster``
+    limits the slots it holds to those robots' (None: any owner)."""
+    rng_for = lambda r: belief_rng(seed, [r])  # noqa: E731
+    return _node(robot, start, model, rng_for, config, fusion, downdate, roster=roster)
 
 
 def make_nodes(
@@ -131,6 +134,7 @@ def _node(
     fusion: str,
     downdate: str,
     local: LocalTrack | None = None,
+    roster: frozenset[str] | None = None,
 ) -> RobotNode:
     return RobotNode(
         robot,
@@ -142,4 +146,5 @@ def _node(
         fusion,
         downdate,
         local=local,
+        roster=roster,
     )

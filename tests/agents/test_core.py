@@ -49,9 +49,9 @@ def _factory(robot: str, roster: Sequence[str] | None = None):  # type: ignore[n
     model = belief_model(SCENARIO)
 
     def make() -> RobotNode:
-        node = make_node(robot, SCENARIO.robot(robot).start, model, SEED, BeliefConfig())
-        node.roster = None if roster is None else frozenset(roster)
-        return node
+        members = None if roster is None else frozenset(roster)
+        start = SCENARIO.robot(robot).start
+        return make_node(robot, start, model, SEED, BeliefConfig(), roster=members)
 
     return make
 
