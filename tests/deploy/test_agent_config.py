@@ -13,22 +13,24 @@ import pytest
 
 from agents.journal import Journal
 from deploy.agent_cmd import AgentConfigError, load_agent_config
+from sim.loader import load_scenario
+from sim.robot_model import dump_robot_model
 
 ROOT = Path(__file__).resolve().parents[2]
 
 VALID = """\
 [agent]
 fleet = "f1"
-scenario = "world.toml"
-variants = ["comm10"]
+model = "model.toml"
+start = [1.0, -2.5, 0.3]
+roster = ["r1", "r2", "r3"]
 seed = 3
 mode = "lockstep"
 gossip_period = 0.2
 journal = "journal/r1.log"
-comm = "range"
-drop = 0.1
-partitions = [[["r1", "r2"], 3, 5]]
 publish_local = false
+simulation = true
+window = 16
 
 [zenoh]
 listen = ["tcp/127.0.0.1:7447"]
@@ -36,10 +38,13 @@ connect = ["tcp/127.0.0.1:7448", "tcp/127.0.0.1:7449"]
 gossip = false
 lease_ms = 2000
 """
-MINIMAL = '[agent]\nscenario = "paper"\n'
+MINIMAL = '[agent]\nmodel = "model.toml"\nstart = [0, 0, 0]\nroster = ["r1", "r2"]\n'
 
 
 def _write(tmp_path: Path, text: str) -> Path:
+    model = tmp_path / "model.toml"
+    if not model.exists():
+        model.write_text(dump_robot_model(load_scenario("paper").robot_model()), encoding="utf-8")
     path = tmp_path / "agent.toml"
     path.write_text(text, encoding="utf-8")
     return path
@@ -64,16 +69,20 @@ def _set(key: str, value: str, text: str = VALID) -> str:
 def test_agent_config_valid_file_loads_with_relative_paths_resolved(tmp_path: Path) -> None:
     path = _write(tmp_path, VALID)
     c = load_agent_config(path, "r1")
-    assert (c.robot, c.fleet, c.seed, c.comm, c.drop) == ("r1", "f1", 3, "range", 0.1)
-    assert c.scenario == str(tmp_path / "world.toml")
-    assert c.variants == ("comm10",)
+    assert (c.robot, c.fleet, c.seed) == ("r1", "f1", 3)
+    assert c.model_path == tmp_path / "model.toml"
+    assert c.model == load_scenario("paper").robot_model()
+    assert c.start == (1.0, -2.5, 0.3)
+    assert c.roster == frozenset({"r1", "r2", "r3"})
     assert c.journal == tmp_path / "journal" / "r1.log"
-    assert (c.runtime.mode, c.runtime.gossip_period, c.runtime.publish_local) == (
+    r = c.runtime
+    assert (r.mode, r.gossip_period, r.publish_local, r.simulation, r.window) == (
         "lockstep",
         0.2,
         False,
+        True,
+        16,
     )
-    assert [(sorted(p.group), p.first, p.last) for p in c.partitions] == [(["r1", "r2"], 3, 5)]
     z = c.zenoh
     assert z.listen == ("tcp/127.0.0.1:7447",)
     assert z.connect == ("tcp/127.0.0.1:7448", "tcp/127.0.0.1:7449")
@@ -82,24 +91,32 @@ def test_agent_config_valid_file_loads_with_relative_paths_resolved(tmp_path: Pa
 
 def test_agent_config_defaults(tmp_path: Path) -> None:
     c = load_agent_config(_write(tmp_path, MINIMAL), "r2")
-    assert (c.fleet, c.scenario, c.seed, c.runtime.mode, c.journal) == (
-        "default",
-        "paper",
-        0,
-        "realtime",
-        None,
-    )
-    assert (c.drop, c.partitions, c.zenoh.gossip) == (0.0, (), True)
+    assert (c.fleet, c.seed, c.runtime.mode, c.journal) == ("default", 0, "realtime", None)
+    assert (c.runtime.simulation, c.runtime.window, c.zenoh.gossip) == (False, 64, True)
 
 
 BAD = [
-    ("[agent\nscenario = 1\n", "toml"),
+    ("[agent\nmodel = 1\n", "toml"),
     ("agent = 3\n", "agent"),
-    ("[zenoh]\nlisten = []\n", "agent.scenario"),
+    ("[zenoh]\nlisten = []\n", "agent.model"),
     (MINIMAL + "[radio]\npower = 1\n", "radio"),
     (_set("agent.bogus", "1"), "agent.bogus"),
+    (_set("agent.scenario", '"paper"'), "agent.scenario"),  # an agent has no world
     (_set("zenoh.port", "7447"), "zenoh.port"),
-    (_set("agent.scenario", "3"), "agent.scenario"),
+    (_set("agent.model", "3"), "agent.model"),
+    (_set("agent.model", '"missing.toml"'), "agent.model"),
+    (_set("agent.model", '"agent.toml"'), "agent.model"),  # not a robot model
+    ('[agent]\nmodel = "model.toml"\nroster = ["r1"]\n', "agent.start"),
+    ('[agent]\nmodel = "model.toml"\nstart = [0, 0, 0]\n', "agent.roster"),
+    (_set("agent.start", "[0, 0]"), "agent.start"),
+    (_set("agent.start", '[0, 0, "a"]'), "agent.start"),
+    (_set("agent.start", "[0, nan, 0]"), "agent.start"),
+    (_set("agent.start", "[1e300, 0, 0]"), "agent.start"),
+    (_set("agent.start", "[true, 0, 0]"), "agent.start"),
+    (_set("agent.roster", '["r2", "r3"]'), "agent.roster"),  # not this robot's fleet
+    (_set("agent.roster", '["r1", "r1"]'), "agent.roster"),
+    (_set("agent.roster", '["r1", "r 2"]'), "agent.roster"),
+    (_set("agent.roster", '"r1"'), "agent.roster"),
     (_set("agent.fleet", "3"), "agent.fleet"),
     (_set("agent.fleet", '"two words"'), "agent.fleet"),
     (_set("agent.seed", "true"), "agent.seed"),
@@ -109,24 +126,13 @@ BAD = [
     (_set("agent.gossip_period", "0"), "agent.gossip_period"),
     (_set("agent.gossip_period", "nan"), "agent.gossip_period"),
     (_set("agent.gossip_period", '"1"'), "agent.gossip_period"),
-    (_set("agent.comm", '"radio"'), "agent.comm"),
-    (_set("agent.drop", "1.5"), "agent.drop"),
-    (_set("agent.drop", "true"), "agent.drop"),
-    (_set("agent.partitions", '"r1:3-5"'), "agent.partitions"),
-    (_set("agent.partitions", '[["r1", 3, 5]]'), "agent.partitions[0]"),
-    (_set("agent.partitions", '[[["r1"], 3]]'), "agent.partitions[0]"),
-    (_set("agent.partitions", '[[["r1"], 5, 3]]'), "agent.partitions[0]"),
-    (_set("agent.partitions", "[[[], 3, 5]]"), "agent.partitions[0]"),
-    (_set("agent.partitions", '[[["r1"], "a", 5]]'), "agent.partitions[0]"),
+    (_set("agent.window", "0"), "agent.window"),
+    (_set("agent.window", '"8"'), "agent.window"),
+    (_set("agent.simulation", '"yes"'), "agent.simulation"),
     (_set("agent.journal", "3"), "agent.journal"),
-    (_set("agent.variants", '"comm10"'), "agent.variants"),
-    (_set("agent.replay_period", "0.5"), "agent.replay_period"),  # needs realtime mode
-    (_set("agent.replay_period", "0", MINIMAL), "agent.replay_period"),
     (_set("zenoh.listen", '"tcp/127.0.0.1:7447"'), "zenoh.listen"),
     (_set("zenoh.listen", '["127.0.0.1:7447"]'), "zenoh.listen"),
     (_set("zenoh.connect", "[7448]"), "zenoh.connect"),
-    (_set("agent.partitions", '[[["r1"], 2.5, 5]]'), "agent.partitions[0]"),
-    (_set("agent.partitions", '[[["r 1"], 2, 5]]'), "agent.partitions[0]"),
     (_set("zenoh.lease_ms", "5"), "zenoh.lease_ms"),
     (_set("zenoh.gossip", '"false"'), "zenoh.gossip"),
     (_set("zenoh.shared_memory", '"no"'), "zenoh.shared_memory"),
@@ -186,12 +192,12 @@ def test_agent_command_missing_config_file_is_one_line_error(tmp_path: Path) -> 
     _one_line_error(_agent(tmp_path, tmp_path / "nope.toml"), "nope.toml")
 
 
-def test_agent_command_robot_not_in_scenario_is_one_line_error(tmp_path: Path) -> None:
-    _one_line_error(_agent(tmp_path, _write(tmp_path, MINIMAL), "r9"), "r9 is not in the scenario")
+def test_agent_command_robot_not_in_roster_is_one_line_error(tmp_path: Path) -> None:
+    _one_line_error(_agent(tmp_path, _write(tmp_path, MINIMAL), "r9"), "does not list this robot")
 
 
 def test_agent_command_journal_of_another_robot_is_one_line_error(tmp_path: Path) -> None:
     journal, _ = Journal.open(tmp_path / "r1.log", {"robot": "r2"})
     journal.close()
     path = _write(tmp_path, MINIMAL + 'journal = "r1.log"\n')
-    _one_line_error(_agent(tmp_path, path), "journal: ")
+    _one_line_error(_agent(tmp_path, path), "belongs to another run")
