@@ -21,6 +21,7 @@ from protocol.errors import (
     InvalidValue,
     LimitExceeded,
     LocalProtocolError,
+    RemoteProtocolError,
     UnsupportedVersion,
 )
 from protocol.stack import Slot, Stack
@@ -40,8 +41,16 @@ _REAL_KEYS = frozenset({"c", "phi", "lin", "info", "eta"})
 
 @dataclass(frozen=True, slots=True)
 class Limits:
-    """What a receiver accepts. ``num_classes`` bounds class indices; ``symmetry_tol`` and
-    ``psd_tol`` are relative to the largest |eigenvalue| of Λ."""
+    """What a receiver accepts, and a sender may send (docs/wire.md, "Limits": principle and
+    measured ranges behind every default).
+
+    Counts: ``num_classes`` bounds class indices; bytes, slots, objects per slot, realisations
+    per slot. Numbers, absolute: every eigenvalue of Λ in [−``psd_tol``·max|λ|,
+    ``max_information``] and κ(Λ) ≤ ``max_condition``, with κ(Λ) = (λmax + f)/(λmin + f) and
+    f = 1/``world_extent``² (the information of "somewhere in the world"), infinite when
+    λmin + f ≤ 0; |log φ| ≤ ``max_abs_log_phi``; |x|, |y| ≤ ``world_extent`` (metres) for every
+    position (``lin``, ``pos``) and |θ| ≤ 2π; ‖η‖₂ ≤ max(λmax, 0)·δmax(n) (:func:`eta_bound`).
+    """
 
     num_classes: int = 64
     max_message_bytes: int = 32 * 1024 * 1024
@@ -49,6 +58,36 @@ class Limits:
     max_objects: int = 512
     max_realisations: int = 1024
     psd_tol: float = 1e-9
+    max_information: float = 1e9
+    max_condition: float = 1e12
+    max_abs_log_phi: float = 1e6
+    world_extent: float = 1e4
+
+    def __post_init__(self) -> None:
+        counts = (self.num_classes, self.max_message_bytes, self.max_slots)
+        if min(*counts, self.max_objects, self.max_realisations) < 1 or self.num_classes > 256:
+            raise ValueError(f"limits: counts must be ≥ 1 and num_classes ≤ 256, got {self}")
+        bounds = (self.max_information, self.max_abs_log_phi, self.world_extent)
+        if not all(0.0 < b < math.inf for b in bounds) or not 1.0 <= self.max_condition < math.inf:
+            raise ValueError(f"limits: bounds must be finite, > 0, max_condition ≥ 1: {self}")
+        if not 0.0 <= self.psd_tol < 1.0:
+            raise ValueError(f"limits: psd_tol must be in [0, 1), got {self.psd_tol}")
+
+
+# Angles are accepted in any of the usual wraps, (−π, π] or [0, 2π): anything beyond is not an
+# angle a pose estimator produces, and cos/sin of a huge θ has no digits left.
+MAX_ABS_THETA = 2.0 * math.pi
+
+
+def eta_bound(n: int, lim: Limits) -> float:
+    """δmax(n): the longest tangent offset ‖δ‖₂ between two poses of n objects in the world.
+
+    η = Λδ, with δ the offset of ξ's mean from ``lin`` (both in the world), so ‖η‖₂ ≤ λmax·‖δ‖₂.
+    Per object, |δθ| ≤ π, and the Pose2 logarithm maps a translation t to V(θ)⁻¹t with
+    ‖V⁻¹‖ ≤ (π/2)/sin(π/2) = π/2 for |θ| ≤ π, while ‖t‖₂ ≤ 2√2·W in the world box [−W, W]²;
+    so ‖δ_i‖₂² ≤ (π/2)²·8W² + π² = π²(2W² + 1).
+    """
+    return math.pi * math.sqrt(n * (2.0 * lim.world_extent**2 + 1.0))
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -66,9 +105,94 @@ def _tri(n: int) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
     return np.triu_indices(3 * n)
 
 
-def encode(message: StackMessage) -> bytes:
-    """Bytes of a stack message. Raises :class:`LocalProtocolError` for anything ``decode`` would
-    reject: sending it would only make every receiver count an error."""
+def _mirror(upper: Array, n: int) -> Array:
+    """(R, 3n, 3n) symmetric matrices from their upper triangles (R, 3n(3n+1)/2), row by row."""
+    iu = _tri(n)
+    out = np.zeros((len(upper), 3 * n, 3 * n))
+    out[:, iu[0], iu[1]] = upper
+    out[:, iu[1], iu[0]] = upper
+    return out
+
+
+# --------------------------------------------------------------------------- shared rules
+
+# A broken rule: the remote error class decode raises, the field and the message; encode raises
+# LocalProtocolError with the same field and message instead.
+Problem = tuple[type[RemoteProtocolError], str, str]
+
+
+def _position_problem(pos: tuple[float, float], lim: Limits) -> Problem | None:
+    if not all(math.isfinite(v) for v in pos):
+        return InvalidValue, "pos", "non-finite number"
+    if max(abs(v) for v in pos) > lim.world_extent:
+        return LimitExceeded, "pos", f"{pos} outside ±world_extent = {lim.world_extent:g} m"
+    return None
+
+
+def numbers_problem(
+    where: str, log_phi: Array, lin: Array, info: Array, eta: Array, lim: Limits
+) -> Problem | None:
+    """The first broken number rule of a slot's realisations, or None; ``where`` is the slot's
+    field (``slots[i]``). ``log_phi`` (R,), ``lin`` (R, n, 3), ``info`` (R, 3n, 3n) symmetric,
+    ``eta`` (R, 3n). Checked field by field over all R at once, in wire order: φ, lin, Λ, η;
+    one batched ``eigvalsh`` per slot."""
+    r = len(log_phi)
+
+    def at(bad: Any, name: str) -> str:
+        return f"{where}.real[{int(np.argmax(bad))}].{name}"
+
+    for name, arr in (("phi", log_phi), ("lin", lin), ("info", info), ("eta", eta)):
+        bad = ~np.isfinite(arr.reshape(r, -1)).all(axis=1)
+        if bad.any():
+            return InvalidValue, at(bad, name), "non-finite number"
+    bad = np.abs(log_phi) > lim.max_abs_log_phi
+    if bad.any():
+        value = float(log_phi[np.argmax(bad)])
+        return LimitExceeded, at(bad, "phi"), f"|{value:g}| > max_abs_log_phi"
+    if info.shape[1] == 0:
+        return None
+    xy = np.abs(lin[..., :2]).max(axis=(1, 2))
+    bad = xy > lim.world_extent
+    if bad.any():
+        return LimitExceeded, at(bad, "lin"), f"a position outside ±{lim.world_extent:g} m"
+    bad = np.abs(lin[..., 2]).max(axis=1) > MAX_ABS_THETA
+    if bad.any():
+        return InvalidValue, at(bad, "lin"), "an angle outside ±2π"
+    # Every test is written "not within": a NaN that eigvalsh may return for matrices near the
+    # float64 range fails it, as does inf.
+    lam = np.linalg.eigvalsh(info)
+    lo, hi = lam[:, 0], lam[:, -1]
+    bad = ~(hi <= lim.max_information)
+    if bad.any():
+        value = float(hi[np.argmax(bad)])
+        return LimitExceeded, at(bad, "info"), f"λmax = {value:.3g} > max_information"
+    bad = ~(lo >= -lim.psd_tol * np.maximum(hi, -lo))
+    if bad.any():
+        return InvalidValue, at(bad, "info"), f"Λ is indefinite (λmin = {lo[np.argmax(bad)]:.3g})"
+    floor = lim.world_extent**-2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        kappa = np.where(lo + floor > 0.0, (hi + floor) / (lo + floor), np.inf)
+    bad = ~(kappa <= lim.max_condition)
+    if bad.any():
+        value = float(kappa[np.argmax(bad)])
+        return LimitExceeded, at(bad, "info"), f"condition number {value:.3g} > max_condition"
+    # ‖η‖₂ scaled by max|ηᵢ| first: squares of tiny or huge entries would under- or overflow.
+    scale = np.abs(eta).max(axis=1)
+    norm = scale * np.linalg.norm(eta / np.where(scale > 0.0, scale, 1.0)[:, None], axis=1)
+    bad = ~(norm <= np.maximum(hi, 0.0) * eta_bound(info.shape[1] // 3, lim))
+    if bad.any():
+        return LimitExceeded, at(bad, "eta"), "‖η‖ > λmax·δmax: ξ's mean lies outside the world"
+    return None
+
+
+# --------------------------------------------------------------------------- encode
+
+
+def encode(message: StackMessage, limits: Limits | None = None) -> bytes:
+    """Bytes of a stack message. Raises :class:`LocalProtocolError`, naming the field as decode
+    would, for anything ``decode`` would reject under the same ``limits``: sending it would only
+    make every receiver count an error."""
+    lim = limits or Limits()
     if not valid_id(message.sender):
         raise LocalProtocolError(f"invalid robot id {message.sender!r}", "sender")
     pos = None
@@ -77,24 +201,28 @@ def encode(message: StackMessage) -> bytes:
             pos = [float(v) for v in message.position]
         except (TypeError, ValueError):
             raise LocalProtocolError("must be two numbers", "pos") from None
-        if len(pos) != 2 or not all(math.isfinite(v) for v in pos):
-            raise LocalProtocolError("must be two finite numbers", "pos")
+        _local(len(pos) == 2, "pos", "must be two numbers")
+        _raise_local(_position_problem((pos[0], pos[1]), lim))
     step = message.step
     _local(
         isinstance(step, int) and not isinstance(step, bool) and 0 <= step <= _MAX_STAMP,
         "k",
         f"step must be an integer in 0..{_MAX_STAMP}, got {step!r}",
     )
-    slots = [_encode_slot(s) for s in message.stack]
+    slots = message.stack.slots
+    _local(len(slots) <= lim.max_slots, "slots", f"{len(slots)} > {lim.max_slots}")
     doc = {
         "v": VERSION,
         "type": STACK,
         "sender": message.sender,
         "k": step,
         "pos": pos,
-        "slots": slots,
+        "slots": [_encode_slot(s, f"slots[{i}]", lim) for i, s in enumerate(slots)],
     }
-    return bytes(msgpack.packb(doc, use_bin_type=True))
+    blob = bytes(msgpack.packb(doc, use_bin_type=True))
+    size_ok = len(blob) <= lim.max_message_bytes
+    _local(size_ok, "message", f"{len(blob)} bytes > {lim.max_message_bytes}")
+    return blob
 
 
 def _local(cond: bool, field: str, message: str) -> None:
@@ -102,48 +230,78 @@ def _local(cond: bool, field: str, message: str) -> None:
         raise LocalProtocolError(message, field)
 
 
-def _encode_slot(slot: Slot) -> dict[str, Any]:
-    where = f"slots[{slot.owner}]"
+def _raise_local(problem: Problem | None) -> None:
+    if problem is not None:
+        raise LocalProtocolError(problem[2], problem[1])
+
+
+def _is_int(value: Any) -> bool:
+    return isinstance(value, int | np.integer) and not isinstance(value, bool | np.bool_)
+
+
+def _encode_slot(slot: Slot, where: str, lim: Limits) -> dict[str, Any]:
     _local(valid_id(slot.owner), f"{where}.owner", f"invalid robot id {slot.owner!r}")
-    stamp_ok = isinstance(slot.stamp, int | np.integer) and 0 <= slot.stamp <= _MAX_STAMP
+    stamp_ok = _is_int(slot.stamp) and 0 <= slot.stamp <= _MAX_STAMP
     _local(stamp_ok, f"{where}.stamp", f"{slot.stamp!r} outside 0..{_MAX_STAMP}")
-    ids = [int(j) for j in slot.summary.object_ids]
-    _local(all(0 <= j <= _MAX_OBJECT_ID for j in ids), f"{where}.objects", "ids outside 0..2³²−1")
-    _local(len(set(ids)) == len(ids), f"{where}.objects", "duplicate object ids")
-    _local(len(slot.summary.realisations) >= 1, f"{where}.real", "no realisation")
-    n = len(ids)
+    raw_ids = slot.summary.object_ids
+    n = len(raw_ids)
+    _local(n <= lim.max_objects, f"{where}.objects", f"{n} > {lim.max_objects}")
+    ids_ok = all(_is_int(j) and 0 <= j <= _MAX_OBJECT_ID for j in raw_ids)
+    _local(ids_ok, f"{where}.objects", "ids must be integers in 0..2³²−1")
+    ids = [int(j) for j in raw_ids]
+    _local(len(set(ids)) == n, f"{where}.objects", "duplicate object ids")
     rs = slot.summary.realisations
+    _local(len(rs) >= 1, f"{where}.real", "no realisation")
+    _local(len(rs) <= lim.max_realisations, f"{where}.real", f"{len(rs)} > {lim.max_realisations}")
     for i, r in enumerate(rs):
         field = f"{where}.real[{i}]"
         shapes = (
-            r.lin.shape == (n, 3) and r.info.shape == (3 * n, 3 * n) and r.eta.shape == (3 * n,)
+            np.shape(r.lin) == (n, 3)
+            and np.shape(r.info) == (3 * n, 3 * n)
+            and np.shape(r.eta) == (3 * n,)
         )
         _local(shapes, field, "shapes do not match the object count")
-        classes_ok = len(r.classes) == n and all(0 <= c < 256 for c in r.classes)
-        _local(classes_ok, f"{field}.c", "classes must be n indices in 0..255")
-        _local(math.isfinite(r.log_phi), f"{field}.phi", "non-finite number")
+        _local(len(r.classes) == n, f"{field}.c", f"expected {n} classes")
+        phi_ok = isinstance(r.log_phi, float | int | np.floating | np.integer)
+        _local(
+            phi_ok and not isinstance(r.log_phi, bool | np.bool_),
+            f"{field}.phi",
+            "expected a number",
+        )
+    classes = np.array([r.classes for r in rs]).reshape(len(rs), n)
+    if n:
+        _local(classes.dtype.kind in "iu", f"{where}.real", "classes must be integers")
+        bad_rows = ((classes < 0) | (classes >= lim.num_classes)).any(axis=1)
+        _local(
+            not bad_rows.any(),
+            f"{where}.real[{int(np.argmax(bad_rows))}].c",
+            f"classes must be in 0..{lim.num_classes - 1}",
+        )
     # One array per field for the whole slot: the checks and conversions run once, not per
     # realisation.
+    phi = np.array([float(r.log_phi) for r in rs])
     lin = np.ascontiguousarray(np.stack([r.lin for r in rs]), dtype=_F64)
     info = np.ascontiguousarray(np.stack([r.info for r in rs]), dtype=_F64)
     eta = np.ascontiguousarray(np.stack([r.eta for r in rs]), dtype=_F64)
-    for name, arr in (("lin", lin), ("info", info), ("eta", eta)):
-        bad_rows = ~np.isfinite(arr.reshape(len(rs), -1)).all(axis=1)
-        _local(not bad_rows.any(), f"{where}.real[{int(np.argmax(bad_rows))}].{name}", "non-finite")
-    if n:
-        scale = np.abs(info).max(axis=(1, 2))
-        asymmetry = np.abs(info - info.transpose(0, 2, 1)).max(axis=(1, 2))
-        bad_rows = asymmetry > 1e-12 * scale
-        _local(
-            not bad_rows.any(), f"{where}.real[{int(np.argmax(bad_rows))}].info", "Λ not symmetric"
-        )
-    bad = first_indefinite(list(info), Limits().psd_tol)
-    _local(bad is None, f"{where}.real[{bad}].info", "Λ is indefinite")
     iu = _tri(n)
     upper = info[:, iu[0], iu[1]]
+    sent = _mirror(upper, n)  # what decode rebuilds: validate exactly that
+    if n:
+        with np.errstate(over="ignore", invalid="ignore"):  # inf or nan fail the test below
+            scale = np.abs(info).max(axis=(1, 2))
+            asymmetry = np.abs(info - info.transpose(0, 2, 1)).max(axis=(1, 2))
+            bad_rows = ~(asymmetry <= 1e-12 * scale)
+        # A non-finite number that is sent is reported as such, in wire order, below.
+        bad_rows &= np.isfinite(sent).all(axis=(1, 2))
+        _local(
+            not bad_rows.any(),
+            f"{where}.real[{int(np.argmax(bad_rows))}].info",
+            "Λ not symmetric (or not finite below its diagonal)",
+        )
+    _raise_local(numbers_problem(where, phi, lin, sent, eta, lim))
     reals = [
         {
-            "c": bytes(bytearray(r.classes)),
+            "c": classes[i].astype(np.uint8).tobytes(),
             "phi": float(r.log_phi),
             "lin": lin[i].tobytes(),
             "info": upper[i].tobytes(),
@@ -154,28 +312,7 @@ def _encode_slot(slot: Slot) -> dict[str, Any]:
     return {"owner": slot.owner, "stamp": int(slot.stamp), "objects": ids, "real": reals}
 
 
-def first_indefinite(infos: list[Array], tol: float) -> int | None:
-    """Index of the first Λ with an eigenvalue below −tol·max|Λ|, or None.
-
-    Λ + tol·max|Λ|·I is positive definite exactly when no eigenvalue is below that bound; one
-    batched Cholesky checks every realisation of a slot at once (an eigendecomposition each was
-    the codec's bottleneck).
-    """
-    if not infos or infos[0].size == 0:
-        return None
-    stack = np.stack(infos)
-    scale = np.maximum(np.abs(stack).max(axis=(1, 2)), 1e-300)
-    shifted = stack + (tol * scale)[:, None, None] * np.eye(stack.shape[1])
-    try:
-        np.linalg.cholesky(shifted)
-        return None
-    except np.linalg.LinAlgError:
-        for i, m in enumerate(shifted):
-            try:
-                np.linalg.cholesky(m)
-            except np.linalg.LinAlgError:
-                return i
-    return None
+# --------------------------------------------------------------------------- decode
 
 
 def decode(data: bytes, limits: Limits | None = None) -> StackMessage:
@@ -190,10 +327,7 @@ def _floats(blobs: list[Any], where: str, name: str, count: int) -> Array:
         field = f"{where}[{i}].{name}"
         need(isinstance(value, bytes), field, "expected binary float64 data")
         need(len(value) == 8 * count, field, f"expected {8 * count} bytes, got {len(value)}")
-    arr = np.frombuffer(b"".join(blobs), dtype=_F64).astype(float).reshape(len(blobs), count)
-    bad = ~np.isfinite(arr).all(axis=1)
-    need(not bad.any(), f"{where}[{int(np.argmax(bad))}].{name}", "non-finite number", InvalidValue)
-    return arr
+    return np.frombuffer(b"".join(blobs), dtype=_F64).astype(float).reshape(len(blobs), count)
 
 
 def _decode_doc(doc: Any, lim: Limits) -> StackMessage:
@@ -215,8 +349,8 @@ def _decode_doc(doc: Any, lim: Limits) -> StackMessage:
             "pos",
             "expected numbers",
         )
-        need(all(math.isfinite(v) for v in pos), "pos", "non-finite number", InvalidValue)
         position = (float(pos[0]), float(pos[1]))
+        _raise_remote(_position_problem(position, lim))
     raw_slots = top["slots"]
     need(isinstance(raw_slots, list), "slots", "expected an array")
     need(
@@ -259,12 +393,10 @@ def _decode_slot(raw: Any, where: str, lim: Limits) -> Slot:
         name: _floats([h[2][name] for h in heads], f"{where}.real", name, count)
         for name, count in sizes.items()
     }
-    info = np.zeros((len(heads), 3 * n, 3 * n))
-    info[:, iu[0], iu[1]] = arrays["info"]
-    info[:, iu[1], iu[0]] = arrays["info"]
-    bad = first_indefinite(list(info), lim.psd_tol)
-    need(bad is None, f"{where}.real[{bad}].info", "Λ is indefinite", InvalidValue)
+    info = _mirror(arrays["info"], n)
     lin = arrays["lin"].reshape(len(heads), n, 3)
+    phi = np.array([h[1] for h in heads])
+    _raise_remote(numbers_problem(where, phi, lin, info, arrays["eta"], lim))
     out = tuple(
         Realisation(classes, phi, lin[i], info[i], arrays["eta"][i])
         for i, (classes, phi, _) in enumerate(heads)
@@ -292,5 +424,10 @@ def _decode_head(
         f"{where}.phi",
         "expected a number",
     )
-    need(math.isfinite(phi), f"{where}.phi", "non-finite number", InvalidValue)
     return classes, float(phi), r
+
+
+def _raise_remote(problem: Problem | None) -> None:
+    if problem is not None:
+        error, field, message = problem
+        raise error(message, field)

@@ -28,8 +28,10 @@ class UnsupportedVersion(RemoteProtocolError):
 
 
 class LimitExceeded(RemoteProtocolError):
-    """Sizes or counts over the configured limits."""
+    """Over a configured limit: sizes, counts, or a number beyond its configured bound (what a
+    different configuration could accept)."""
 
 
 class InvalidValue(RemoteProtocolError):
-    """Well-formed but meaningless: non-finite numbers, asymmetric or indefinite Λ, bad ids."""
+    """Well-formed but meaningless under any configuration: non-finite numbers, asymmetric or
+    indefinite matrices, angles beyond ±2π, bad ids."""

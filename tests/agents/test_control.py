@@ -261,14 +261,14 @@ def test_control_step_order_at_the_link_caps_is_accepted() -> None:
     [
         (StepOrder(-1), "ctl.k"),
         (StepOrder(MAX_STEP + 1), "ctl.k"),
-        (StepOrder(True), "ctl.k"),  # type: ignore[arg-type]
+        (StepOrder(True), "ctl.k"),
         (StepOrder(1, {"r 1": ()}), "ctl.links"),
         (StepOrder(1, {"r1": ("r/2",)}), "ctl.links.r1"),
         (NeedFrames("", 1), "ctl.robot"),
         (NeedFrames("r1", -1), "ctl.k"),
         (Stop(3), "ctl.reason"),  # type: ignore[arg-type]
         (Stop("x" * MAX_CONTROL_BYTES), "ctl"),
-        ("stop", "ctl"),  # type: ignore[arg-type]
+        ("stop", "ctl"),
     ],
 )
 def test_control_encode_refuses_what_decode_refuses(message: Control, field: str) -> None:

@@ -37,26 +37,35 @@ SPECIAL_FLOATS = (
     *(1.7976931348623157e308, -1.7976931348623157e308, 1.0, -1.0, 1e-300, 1e300),
 )
 BAD_ROBOT_IDS = ("", "x" * 33, "r 1", " r1", "r1 ", "r/1", "r.1", "rö", "r1\x00", "r1\n1")
+DEFAULT = Limits()
 
 
 # --------------------------------------------------------------------------- valid messages
 
 
+def bounded(rng: np.random.Generator, shape: tuple[int, ...], bound: float) -> np.ndarray:
+    """``fuzz.finite`` values (±0, subnormals, arbitrary bit patterns) with every one beyond
+    ±``bound`` replaced by a uniform draw in [−bound, bound], ±``bound`` itself sprinkled in."""
+    values = fuzz.finite(rng, shape, (*SPECIAL_FLOATS, bound, -bound))
+    return np.where(np.abs(values) <= bound, values, rng.uniform(-bound, bound, shape))
+
+
 def make_realisation(rng: np.random.Generator, n: int, num_classes: int) -> Realisation:
-    """A valid realisation over n objects: classes in 0..num_classes−1, Λ = s·(A Aᵀ + I) exactly
-    symmetric positive definite with s a power of two in 2^−500..2^500."""
+    """A realisation over n objects valid under the default ``Limits``: classes in
+    0..num_classes−1, Λ = s·(A Aᵀ + I) exactly symmetric positive definite with s a power of two in
+    2^−20..2^20 (λmax ≤ 2^20·(1 + 4·3n) < 1e9, κ < 1 + 4·3n), positions within ±world_extent,
+    angles within ±2π, |log φ| within its bound, and |ηᵢ| ≤ λmin (a mean within 1 m per
+    coordinate of ``lin``)."""
     a = rng.standard_normal((3 * n, 3 * n))
     b = a @ a.T + np.eye(3 * n)
-    info = (b + b.T) / 2.0 * 2.0 ** int(rng.integers(-500, 501))
+    info = (b + b.T) / 2.0 * 2.0 ** int(rng.integers(-20, 21))
     classes = tuple(int(c) for c in rng.integers(0, num_classes, n))
-    log_phi = float(fuzz.finite(rng, (1,), SPECIAL_FLOATS)[0])
-    return Realisation(
-        classes,
-        log_phi,
-        fuzz.finite(rng, (n, 3), SPECIAL_FLOATS),
-        info,
-        fuzz.finite(rng, (3 * n,), SPECIAL_FLOATS),
+    log_phi = float(bounded(rng, (1,), DEFAULT.max_abs_log_phi)[0])
+    lin = np.concatenate(
+        [bounded(rng, (n, 2), DEFAULT.world_extent), bounded(rng, (n, 1), 2.0 * math.pi)], axis=1
     )
+    lam_min = float(np.linalg.eigvalsh(info)[0]) if n else 0.0
+    return Realisation(classes, log_phi, lin, info, bounded(rng, (3 * n,), lam_min))
 
 
 def make_summary(
@@ -121,6 +130,26 @@ def assert_same_message(got: StackMessage, want: StackMessage) -> None:
                 assert _bits(ga) == _bits(wa), f"{where}.{name}"
 
 
+def assert_within_limits(msg: StackMessage, lim: Limits) -> None:
+    """The absolute bounds of docs/wire.md ("Limits"), recomputed here from their definitions."""
+    w = lim.world_extent
+    assert msg.position is None or max(abs(v) for v in msg.position) <= w
+    for slot in msg.stack:
+        n = len(slot.summary.object_ids)
+        for r in slot.summary.realisations:
+            assert abs(r.log_phi) <= lim.max_abs_log_phi
+            assert np.all(np.abs(r.lin[:, :2]) <= w) and np.all(np.abs(r.lin[:, 2]) <= 2 * math.pi)
+            if n == 0:
+                continue
+            lam = np.linalg.eigvalsh(r.info)
+            assert lam[-1] <= lim.max_information
+            assert lam[0] >= -lim.psd_tol * np.abs(lam).max()
+            floor = 1.0 / w**2
+            assert lam[0] + floor > 0 and (lam[-1] + floor) / (lam[0] + floor) <= lim.max_condition
+            delta_max = math.pi * math.sqrt(n * (2 * w * w + 1))  # docs: longest tangent offset
+            assert np.linalg.norm(r.eta) <= max(lam[-1], 0.0) * delta_max
+
+
 def _check_valid(msg: StackMessage, lim: Limits) -> None:
     """What a successful decode promises, and that it survives another round trip."""
     assert msg.position is None or all(math.isfinite(v) for v in msg.position)
@@ -138,7 +167,8 @@ def _check_valid(msg: StackMessage, lim: Limits) -> None:
             assert np.array_equal(r.info, r.info.T)
             for a in (r.lin, r.info, r.eta):
                 assert np.all(np.isfinite(a))
-    again = decode(encode(msg), lim)
+    assert_within_limits(msg, lim)
+    again = decode(encode(msg, lim), lim)
     assert_same_message(again, msg)
 
 
@@ -193,7 +223,7 @@ def test_codec_round_trip_is_bit_exact(index: int) -> None:
     assert encode(got) == blob
 
 
-@pytest.mark.parametrize("position", [None, (0.0, -0.0), (5e-324, -1.7976931348623157e308)])
+@pytest.mark.parametrize("position", [None, (0.0, -0.0), (5e-324, -1e4), (1e4, -5e-324)])
 def test_codec_round_trip_keeps_position(position: tuple[float, float] | None) -> None:
     msg = dataclasses.replace(REF, position=position)
     assert_same_message(decode(encode(msg)), msg)
@@ -253,11 +283,7 @@ def test_codec_realisation_size_at_fifteen_objects() -> None:
 @given(
     seed=st.integers(0, 2**32 - 1),
     sender=fuzz.ROBOT_IDS,
-    position=st.none()
-    | st.tuples(
-        st.floats(allow_nan=False, allow_infinity=False),
-        st.floats(allow_nan=False, allow_infinity=False),
-    ),
+    position=st.none() | st.tuples(st.floats(-1e4, 1e4), st.floats(-1e4, 1e4)),
     versions=st.dictionaries(
         fuzz.ROBOT_IDS,
         st.integers(0, 2**63 - 1),
@@ -762,3 +788,273 @@ def test_codec_encode_rejects_what_decode_rejects(msg: StackMessage) -> None:
 def test_codec_encode_rejects_asymmetric_info_at_any_scale(scale: float) -> None:
     with pytest.raises(LocalProtocolError):
         encode(_replace_real(0, info=ASYMMETRIC * scale))
+
+
+# --------------------------------------------------------------------------- absolute limits
+
+
+def raw_pack(msg: StackMessage) -> bytes:
+    """``msg`` laid out as docs/wire.md says, with no check at all: what a faulty peer sends."""
+
+    def real(r: Realisation, n: int) -> dict[str, Any]:
+        iu = np.triu_indices(3 * n)
+        return {
+            "c": bytes(r.classes),
+            "phi": float(r.log_phi),
+            "lin": np.asarray(r.lin, "<f8").tobytes(),
+            "info": np.asarray(r.info, "<f8")[iu].tobytes(),
+            "eta": np.asarray(r.eta, "<f8").tobytes(),
+        }
+
+    slots = [
+        {
+            "owner": s.owner,
+            "stamp": s.stamp,
+            "objects": list(s.summary.object_ids),
+            "real": [real(r, len(s.summary.object_ids)) for r in s.summary.realisations],
+        }
+        for s in msg.stack
+    ]
+    pos = None if msg.position is None else [float(v) for v in msg.position]
+    doc = {"v": 1, "type": "stack", "sender": msg.sender, "k": msg.step, "pos": pos}
+    return pack({**doc, "slots": slots})
+
+
+def with_eigenvalues(eig: list[float], seed: int = 5) -> np.ndarray:
+    """An exactly symmetric matrix Q diag(eig) Qᵀ, Q a seeded random rotation."""
+    q, _ = np.linalg.qr(np.random.default_rng(seed).standard_normal((len(eig), len(eig))))
+    m = q @ np.diag(eig) @ q.T
+    return (m + m.T) / 2.0
+
+
+R1B = R1_REALS[1]  # slots[0].real[1]: 3 objects
+R1B_FIELD = "slots[0].real[1]"
+ONES = [1.0] * 8
+ISSUE_INFO = np.diag([1e12, 1e12, -500.0, *([1.0] * 6)])  # passed the relative check, broke GTSAM
+W = DEFAULT.world_extent
+
+
+def _lin(x: float = 0.0, y: float = 0.0, theta: float = 0.0) -> np.ndarray:
+    lin = np.zeros((3, 3))
+    lin[1] = (x, y, theta)
+    return lin
+
+
+def _eta_at_bound(info: np.ndarray, factor: float) -> np.ndarray:
+    """η along Λ's top eigenvector with ‖η‖ = ``factor``·λmax·δmax (docs/wire.md, "Limits")."""
+    lam, vec = np.linalg.eigh(info)
+    delta_max = math.pi * math.sqrt(3 * (2 * W * W + 1))
+    return np.asarray(vec[:, -1] * lam[-1] * delta_max * factor)
+
+
+# (changes to slots[0].real[1], error decode raises or None for accepted, field suffix, limits)
+NUMBER_CASES: list[tuple[str, dict[str, Any], type[RemoteProtocolError] | None, str, Limits]] = [
+    ("issue-info", {"info": ISSUE_INFO}, LimitExceeded, "info", DEFAULT),
+    # With room for its 1e12, the issue's Λ is still refused: κ is infinite (λmin + 1/W² < 0).
+    ("issue-info-kappa", {"info": ISSUE_INFO}, LimitExceeded, "info", Limits(max_information=1e13)),
+    ("lam-max-over", {"info": with_eigenvalues([2e9, *ONES])}, LimitExceeded, "info", DEFAULT),
+    ("lam-max-at", {"info": np.diag([1e9] * 9)}, None, "", DEFAULT),
+    ("entries-near-float-max", {"info": np.full((9, 9), 1.7e308)}, LimitExceeded, "info", DEFAULT),
+    ("indefinite", {"info": with_eigenvalues([-1e-3, *ONES])}, InvalidValue, "info", DEFAULT),
+    (
+        "ill-conditioned",
+        {"info": with_eigenvalues([1e-5, *[1e8] * 8])},
+        LimitExceeded,
+        "info",
+        DEFAULT,
+    ),
+    ("well-conditioned", {"info": with_eigenvalues([1e-3, *[1e8] * 8])}, None, "", DEFAULT),
+    # Negative within psd_tol·λmax = 1e-6, but below −1/W² = −1e-8: κ infinite.
+    (
+        "negative-kappa",
+        {"info": with_eigenvalues([-1e-7, *[1e3] * 8])},
+        LimitExceeded,
+        "info",
+        DEFAULT,
+    ),
+    # Semidefinite, no information at all in one direction: κ = (λmax + f)/f.
+    ("semidefinite", {"info": with_eigenvalues([0.0, *[1e3] * 8])}, None, "", DEFAULT),
+    (
+        "semidefinite-strong",
+        {"info": with_eigenvalues([0.0, *[1e5] * 8])},
+        LimitExceeded,
+        "info",
+        DEFAULT,
+    ),
+    ("phi-huge", {"log_phi": 1.7e308}, LimitExceeded, "phi", DEFAULT),
+    ("phi-over", {"log_phi": -1e6 - 1.0}, LimitExceeded, "phi", DEFAULT),
+    ("phi-at", {"log_phi": -1e6}, None, "", DEFAULT),
+    ("x-over", {"lin": _lin(x=W * (1 + 1e-12))}, LimitExceeded, "lin", DEFAULT),
+    ("y-over", {"lin": _lin(y=-2 * W)}, LimitExceeded, "lin", DEFAULT),
+    ("xy-at", {"lin": _lin(x=W, y=-W, theta=-2 * math.pi)}, None, "", DEFAULT),
+    ("theta-over", {"lin": _lin(theta=7.0)}, InvalidValue, "lin", DEFAULT),
+    ("eta-over", {"eta": _eta_at_bound(R1B.info, 1.001)}, LimitExceeded, "eta", DEFAULT),
+    ("eta-under", {"eta": _eta_at_bound(R1B.info, 0.999)}, None, "", DEFAULT),
+    ("eta-huge", {"eta": np.full(9, 1e300)}, LimitExceeded, "eta", DEFAULT),
+    (
+        "eta-of-zero-info",
+        {"info": np.zeros((9, 9)), "eta": np.full(9, 1e-300)},
+        LimitExceeded,
+        "eta",
+        DEFAULT,
+    ),
+    ("tight-world", {"lin": _lin(x=60.0)}, LimitExceeded, "lin", Limits(world_extent=50.0)),
+    ("tight-phi", {"log_phi": 11.0}, LimitExceeded, "phi", Limits(max_abs_log_phi=10.0)),
+]
+
+
+@pytest.mark.parametrize(
+    ("changes", "error", "suffix", "limits"),
+    [pytest.param(c, e, s, lim, id=name) for name, c, e, s, lim in NUMBER_CASES],
+)
+def test_codec_numbers_are_bounded_absolutely(
+    changes: dict[str, Any], error: type[RemoteProtocolError] | None, suffix: str, limits: Limits
+) -> None:
+    msg = _replace_real(1, **changes)
+    field = f"{R1B_FIELD}.{suffix}"
+    if error is None:
+        assert_same_message(decode(raw_pack(msg), limits), msg)
+        assert encode(msg, limits) == raw_pack(msg)
+        return
+    WIRE.assert_rejected(raw_pack(msg), error, field, limits)
+    with pytest.raises(LocalProtocolError) as caught:
+        encode(msg, limits)
+    assert caught.value.field == field
+
+
+@pytest.mark.parametrize(
+    ("position", "error", "limits"),
+    [
+        ((W, -W), None, DEFAULT),
+        ((W * (1 + 1e-12), 0.0), LimitExceeded, DEFAULT),
+        ((0.0, -1.7976931348623157e308), LimitExceeded, DEFAULT),
+        ((51.0, 0.0), LimitExceeded, Limits(world_extent=50.0)),
+    ],
+)
+def test_codec_position_is_within_the_world(
+    position: tuple[float, float], error: type[RemoteProtocolError] | None, limits: Limits
+) -> None:
+    msg = dataclasses.replace(REF, position=position)
+    if error is None:
+        assert_same_message(decode(encode(msg, limits), limits), msg)
+        return
+    WIRE.assert_rejected(raw_pack(msg), error, "pos", limits)
+    with pytest.raises(LocalProtocolError) as caught:
+        encode(msg, limits)
+    assert caught.value.field == "pos"
+
+
+@pytest.mark.parametrize(
+    "changes",
+    [
+        {"max_information": 0.0},
+        {"max_information": math.inf},
+        {"max_condition": 0.5},
+        {"max_abs_log_phi": -1.0},
+        {"world_extent": math.nan},
+        {"psd_tol": -1e-9},
+        {"psd_tol": 1.0},
+        {"max_slots": 0},
+        {"num_classes": 257},
+    ],
+)
+def test_codec_limits_refuse_meaningless_bounds(changes: dict[str, Any]) -> None:
+    with pytest.raises(ValueError, match="limits"):
+        Limits(**changes)
+
+
+@pytest.mark.parametrize(
+    ("limits", "field"),
+    [
+        (Limits(max_slots=2), "slots"),
+        (Limits(max_objects=2), "slots[0].objects"),
+        (Limits(max_realisations=2), "slots[2].real"),
+        (Limits(num_classes=2), "slots[2].real[0].c"),
+        (Limits(max_message_bytes=len(REF_BLOB) - 1), "message"),
+    ],
+)
+def test_codec_encode_applies_the_count_limits(limits: Limits, field: str) -> None:
+    WIRE.assert_rejected(REF_BLOB, RemoteProtocolError, field, limits)
+    with pytest.raises(LocalProtocolError) as caught:
+        encode(REF, limits)
+    assert caught.value.field == field
+
+
+def _near_limits(rng: np.random.Generator, lim: Limits, n: int) -> Realisation:
+    """A realisation whose every number lies near a bound of ``lim``: each rule is broken with
+    probability ≈ 0.05, so about half the messages of a few slots are valid."""
+
+    def pick(valid: float, broken: float) -> float:
+        return broken if rng.random() < 0.05 else valid
+
+    top = lim.max_information * pick(rng.uniform(0.01, 1.0), rng.uniform(1.0, 3.0))
+    floor = 1.0 / lim.world_extent**2
+    lowest = (top + floor) / lim.max_condition - floor  # κ exactly at the cap
+    low = rng.choice(
+        [
+            lowest * rng.uniform(1.0, 10.0),
+            pick(top, lowest * rng.uniform(0.01, 1.0)),
+            pick(top * 0.5, -lim.psd_tol * top * rng.uniform(0.5, 2.0)),
+        ]
+    )
+    eig = np.concatenate([[top, low], rng.uniform(max(low, 0.0), top, 3 * n - 2)])
+    info = with_eigenvalues(list(eig), int(rng.integers(0, 2**32)))
+    w = lim.world_extent
+    lin = rng.uniform(-1, 1, (n, 3)) * [w, w, 2 * math.pi]
+    lin[rng.random((n, 3)) < 0.02] *= 1.5
+    delta_max = math.pi * math.sqrt(n * (2 * w * w + 1))
+    direction = rng.standard_normal(3 * n)
+    eta = direction / np.linalg.norm(direction) * top * delta_max * pick(rng.uniform(0, 0.9), 1.5)
+    log_phi = lim.max_abs_log_phi * pick(rng.uniform(-1, 1), rng.choice([-1.01, 1.01]))
+    classes = tuple(int(c) for c in rng.integers(0, int(pick(lim.num_classes, 255)), n))
+    return Realisation(classes, float(log_phi), lin, info, eta)
+
+
+def _message_near_limits(rng: np.random.Generator, lim: Limits) -> StackMessage:
+    slots = []
+    for i in range(int(rng.integers(0, min(lim.max_slots, 3) + 2))):
+        n = int(rng.integers(1, min(lim.max_objects, 4) + 2))
+        reals = tuple(_near_limits(rng, lim, n) for _ in range(rng.integers(1, 4)))
+        slots.append(Slot(f"r{i}", i, LocalSummary(tuple(range(n)), reals)))
+    w = lim.world_extent
+    pos = (
+        float(rng.uniform(-w, w)),
+        float(rng.uniform(-w, w) * (1.5 if rng.random() < 0.05 else 1)),
+    )
+    return StackMessage("s", pos, Stack(tuple(slots)), 1)
+
+
+PROPERTY_LIMITS = (
+    DEFAULT,
+    Limits(num_classes=3, max_slots=3, max_objects=3, max_realisations=2, max_message_bytes=5000),
+    Limits(max_information=1e3, max_condition=1e4, max_abs_log_phi=20.0, world_extent=50.0),
+)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_codec_encode_accepts_exactly_what_decode_accepts(seed: int) -> None:
+    """Random stacks near every bound, under several Limits: what encode accepts decodes to the
+    same message under the same limits; what it refuses, decode refuses (packed without checks),
+    naming the same field once the message is small enough for decode to read it."""
+    rng = np.random.default_rng(seed)
+    seen: dict[str, int] = {"accepted": 0}
+    for _ in range(40):
+        lim = PROPERTY_LIMITS[int(rng.integers(0, len(PROPERTY_LIMITS)))]
+        msg = _message_near_limits(rng, lim)
+        raw = raw_pack(msg)
+        try:
+            blob = encode(msg, lim)
+        except LocalProtocolError as exc:
+            with pytest.raises((InvalidValue, LimitExceeded)) as caught:
+                decode(raw, lim)
+            if len(raw) <= lim.max_message_bytes:
+                assert caught.value.field == exc.field, (caught.value, exc)
+            kind = f"{type(caught.value).__name__} {caught.value.field.split('.')[-1]}"
+            seen[kind] = seen.get(kind, 0) + 1
+        else:
+            assert blob == raw
+            got = decode(blob, lim)
+            assert_same_message(got, msg)
+            assert_within_limits(got, lim)
+            seen["accepted"] += 1
+    assert seen["accepted"] >= 5 and sum(seen.values()) - seen["accepted"] >= 5, seen
