@@ -399,7 +399,8 @@ class AgentCore:
             self._rounds.setdefault((message.sender, message.step), (message, payload))
             return []
         if self.settings.simulation and not self._heard(message.sender):
-            self.counters.ignored_out_of_range += 1
+            if self._links:  # before the simulator's first verdict nobody is out of range
+                self.counters.ignored_out_of_range += 1
             return []
         return self._merge(message, payload)
 

@@ -14,7 +14,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from numpy.typing import ArrayLike
 
-from estimator.distributed import DistributedBelief, FusionStats, IncomingSlot, SlotError
+from estimator.distributed import DistributedBelief, FusionStats, SlotError
 from estimator.hybrid import BeliefConfig, BeliefModel, HybridBelief
 from estimator.models import SensorFrame
 from estimator.slots import summarise
@@ -252,11 +252,10 @@ class RobotNode:
             )
         return stats
 
-    def _checked(self, slots: Iterable[Slot]) -> list[IncomingSlot]:
+    def _checked(self, slots: Iterable[Slot]) -> list[Slot]:
         """The slots that fit D's model; the others are counted and logged."""
         out = []
-        for s in slots:
-            slot = IncomingSlot(s.owner, s.stamp, s.summary)
+        for slot in slots:
             try:
                 self.distributed.check(slot)
             except SlotError as exc:

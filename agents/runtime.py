@@ -46,6 +46,7 @@ log = logging.getLogger(__name__)
 STACK_INBOX_BYTES = 64 * 1024 * 1024
 FRAME_INBOX_BYTES = 16 * 1024 * 1024
 CONTROL_INBOX_BYTES = 4 * 1024 * 1024
+SHUTDOWN_STEP_WAIT_S = 1.0
 
 
 class MemoryLog:
@@ -153,10 +154,19 @@ class Agent:
             try:
                 await t.close()
             finally:
-                # A step still running in the worker commits or not; either way the journal
-                # holds whole steps. Wait for it before closing the journal under it.
-                await asyncio.get_running_loop().run_in_executor(None, self._worker.shutdown)
-                self.log.close()
+                # A step still running in the worker is waited for up to SHUTDOWN_STEP_WAIT_S,
+                # then abandoned uncommitted (the process is about to exit; a torn commit is cut
+                # at the next open). The journal is never closed under a running step.
+                loop = asyncio.get_running_loop()
+                done = loop.run_in_executor(None, self._worker.shutdown)
+                try:
+                    await asyncio.wait_for(asyncio.shield(done), SHUTDOWN_STEP_WAIT_S)
+                except TimeoutError:
+                    log.warning(
+                        "%s: a step was still running at shutdown: not committed", self.robot
+                    )
+                else:
+                    self.log.close()
 
     # -- loops -------------------------------------------------------------------------------
 

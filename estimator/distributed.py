@@ -19,7 +19,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from estimator.factors import object_key
 from estimator.hybrid import BeliefConfig, BeliefModel, HybridBelief, Hypothesis, UsedSlot
-from estimator.summary import LocalSummary, Realisation
+from estimator.summary import Realisation, Slot
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -37,15 +37,6 @@ _FITS_CELLS = 4_000_000  # booleans compared at once when matching hypotheses wi
 
 class SlotError(ValueError):
     """A slot cannot be integrated: it contradicts this belief (wrong class count, bad shapes)."""
-
-
-@dataclass(frozen=True, slots=True)
-class IncomingSlot:
-    """Robot ``owner``'s summary at its step ``stamp``."""
-
-    owner: str
-    stamp: int
-    summary: LocalSummary
 
 
 @dataclass(frozen=True, slots=True)
@@ -153,7 +144,7 @@ class DistributedBelief(HybridBelief):
         """Whether a slot version is new to this belief (never its own slot)."""
         return owner != self.owner and stamp > self.stamps.get(owner, -1)
 
-    def integrate(self, slots: Sequence[IncomingSlot], settle: bool = True) -> FusionStats:
+    def integrate(self, slots: Sequence[Slot], settle: bool = True) -> FusionStats:
         """Integrate every slot that is newer than the version used before (Eq. 12, 17).
 
         ``settle`` runs the configured extra iSAM2 updates after the fusion; a caller that steps
@@ -197,7 +188,7 @@ class DistributedBelief(HybridBelief):
         return FusionStats(used, tuple(sorted(skipped)), candidates, len(children), len(skipped))
 
     def rebuild(
-        self, local: HybridBelief, held: Sequence[IncomingSlot], settle: bool = True
+        self, local: HybridBelief, held: Sequence[Slot], settle: bool = True
     ) -> FusionStats:
         """Make D anew from the owner's local belief ``local`` and every ``held`` slot (the newest
         version of every other robot's slot).
@@ -230,15 +221,16 @@ class DistributedBelief(HybridBelief):
             stats.rebuilds + 1,
         )
 
-    def check(self, s: IncomingSlot) -> None:
+    def check(self, s: Slot) -> None:
         """Raise :class:`SlotError` if a slot contradicts this belief's model."""
         m = self.model.num_classes
         n = len(s.summary.object_ids)
         fusion_bytes = self.config.max_hypotheses * (3 * n) ** 2 * 8
         if fusion_bytes > self.config.max_fusion_bytes:
+            cap = self.config.max_fusion_bytes / 2**20
             raise SlotError(
                 f"slot of {s.owner}: {n} objects would take {fusion_bytes / 2**20:.0f} MiB of "
-                f"information matrices (max_fusion_bytes {self.config.max_fusion_bytes / 2**20:.0f})"
+                f"information matrices (max_fusion_bytes {cap:.0f} MiB)"
             )
         if len(set(s.summary.object_ids)) != n:
             raise SlotError(f"slot of {s.owner}: duplicate object ids")
@@ -250,7 +242,7 @@ class DistributedBelief(HybridBelief):
             if r.lin.shape != (n, 3) or r.info.shape != (3 * n, 3 * n) or r.eta.shape != (3 * n,):
                 raise SlotError(f"slot of {s.owner}: ξ shapes do not fit {n} objects")
 
-    def _join(self, batch: Sequence[IncomingSlot]) -> tuple[_Join, set[str]]:
+    def _join(self, batch: Sequence[Slot]) -> tuple[_Join, set[str]]:
         """Join D's hypotheses with every slot's realisations on shared objects (bookkeeping only:
         no iSAM2 is touched). Returns the joins and the owners whose slot joined with nothing."""
         known = dict(self._object_index)
@@ -315,7 +307,7 @@ class DistributedBelief(HybridBelief):
         self,
         h: Hypothesis,
         picks: Sequence[tuple[int, int]],
-        batch: Sequence[IncomingSlot],
+        batch: Sequence[Slot],
         order: Sequence[int],
         settle: bool,
     ) -> None:

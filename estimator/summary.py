@@ -32,3 +32,13 @@ class LocalSummary:
 
     object_ids: tuple[int, ...]
     realisations: tuple[Realisation, ...]
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class Slot:
+    """Robot ``owner``'s local summary at its own step ``stamp`` (stamps are per-owner counters:
+    no clock synchronisation is assumed). The one slot type from the wire to the fusion."""
+
+    owner: str
+    stamp: int
+    summary: LocalSummary

@@ -5,17 +5,9 @@ from __future__ import annotations
 from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass
 
-from estimator.summary import LocalSummary
+from estimator.summary import Slot
 
-
-@dataclass(frozen=True, slots=True, eq=False)
-class Slot:
-    """Robot ``owner``'s local summary at its own step ``stamp`` (stamps are per-owner counters:
-    no clock synchronisation is assumed)."""
-
-    owner: str
-    stamp: int
-    summary: LocalSummary
+__all__ = ["Slot", "Stack"]
 
 
 @dataclass(frozen=True, slots=True, eq=False)

@@ -10,7 +10,7 @@ import pytest
 
 from agents.node import RobotNode
 from deploy.study import belief_model, belief_rng
-from estimator.distributed import DistributedBelief, IncomingSlot
+from estimator.distributed import DistributedBelief
 from estimator.factors import object_key
 from estimator.hybrid import BeliefConfig, HybridBelief
 from estimator.slots import summarise
@@ -95,7 +95,7 @@ def test_empty_join_is_counted_and_d_equals_the_rebuild_from_l_and_held_slots(se
     rng = belief_rng(seed, ["r1"])
     for f in frames["r1"]:
         ref.step([f], rng)
-    ref.integrate([IncomingSlot("r2", 2, v2)])
+    ref.integrate([Slot("r2", 2, v2)])
     d = node.distributed
     assert d.object_ids == ref.object_ids
     got = {h.classes: h for h in d.hypotheses}

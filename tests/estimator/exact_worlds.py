@@ -11,10 +11,11 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from deploy.study import belief_model, belief_rng
-from estimator.distributed import DistributedBelief, IncomingSlot
+from estimator.distributed import DistributedBelief
 from estimator.hybrid import BeliefConfig, HybridBelief, Hypothesis
 from estimator.models import SensorFrame
 from estimator.slots import summarise
+from estimator.summary import Slot
 from sim.loader import parse_scenario
 from sim.scenario import Scenario
 from tests.estimator.scenarios import fleet_text
@@ -89,11 +90,11 @@ def local_belief(
 
 def local_slot(
     s: Scenario, robot: str, seed: int, frames: Frames, config: BeliefConfig, steps: int = -1
-) -> IncomingSlot:
+) -> Slot:
     """``robot``'s slot after its first ``steps`` frames (all by default), stamped with the step."""
     summary = summarise(local_belief(s, robot, seed, frames, config, steps))
     assert summary is not None, f"{robot} has seen no object"
-    return IncomingSlot(robot, steps if steps >= 0 else s.steps, summary)
+    return Slot(robot, steps if steps >= 0 else s.steps, summary)
 
 
 def distributed_belief(

@@ -11,12 +11,13 @@ import pytest
 from agents.links import Schedule
 from deploy.fleet import make_nodes, run_fleet
 from deploy.study import belief_model, belief_rng
-from estimator.distributed import DistributedBelief, IncomingSlot
+from estimator.distributed import DistributedBelief
 from estimator.factors import object_key
 from estimator.hybrid import BeliefConfig, HybridBelief, Hypothesis
 from estimator.metrics import world_position_cov
 from estimator.models import GaussianNoise
 from estimator.slots import summarise
+from estimator.summary import Slot
 from sim.generate import generate_scenario
 from sim.loader import load_scenario
 from sim.scenario import Scenario
@@ -99,7 +100,7 @@ def test_fusing_every_latest_slot_reproduces_the_centralized_marginal() -> None:
     central = _centralized(s, seed, frames, config)
     d = _distributed(s, "r1", seed, frames, config)
     slots = [
-        IncomingSlot(r, s.steps, summarise(_local(s, r, seed, frames, config)))
+        Slot(r, s.steps, summarise(_local(s, r, seed, frames, config)))
         for r in ("r2", "r3")
     ]
     d.integrate(slots)
@@ -121,8 +122,8 @@ def test_downdate_by_anti_factor_equals_removal() -> None:
     config = BeliefConfig()
     early = _truncate(s, 16)
     early_frames = {r: fs[:16] for r, fs in frames.items()}
-    v1 = IncomingSlot("r2", 16, summarise(_local(early, "r2", seed, early_frames, config)))
-    v2 = IncomingSlot("r2", 24, summarise(_local(s, "r2", seed, frames, config)))
+    v1 = Slot("r2", 16, summarise(_local(early, "r2", seed, early_frames, config)))
+    v2 = Slot("r2", 24, summarise(_local(s, "r2", seed, frames, config)))
     results = []
     for downdate in ("remove", "anti"):
         d = _distributed(early, "r3", seed, early_frames, config, downdate=downdate)
@@ -145,7 +146,7 @@ def test_integration_order_does_not_matter_before_pruning() -> None:
     seed = 3
     frames = Simulator(s, seed).all_frames()
     slots = {
-        r: IncomingSlot(r, 25, summarise(_local(s, r, seed, frames, NO_PRUNING)))
+        r: Slot(r, 25, summarise(_local(s, r, seed, frames, NO_PRUNING)))
         for r in ("r2", "r3")
     }
     beliefs = []
@@ -171,7 +172,7 @@ def test_integrating_the_same_version_twice_changes_nothing() -> None:
     s = _truncate(load_scenario("paper"), 20)
     seed = 4
     frames = Simulator(s, seed).all_frames()
-    slot = IncomingSlot("r3", 20, summarise(_local(s, "r3", seed, frames, BeliefConfig())))
+    slot = Slot("r3", 20, summarise(_local(s, "r3", seed, frames, BeliefConfig())))
     d = _distributed(s, "r2", seed, frames, BeliefConfig())
     first = d.integrate([slot])
     weights, ids = d.weights().copy(), list(d.object_ids)
