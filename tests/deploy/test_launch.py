@@ -27,6 +27,7 @@ from agents.links import Partition
 from agents.node import RobotNode
 from agents.transport import Inbox, Keys
 from agents.transport.zenoh_transport import ZenohTransport, loopback_endpoint, settings_for
+from deploy.conductor import without_truth
 from deploy.fleet import link_model_for, make_nodes, run_fleet
 from deploy.launch import (
     Faults,
@@ -41,7 +42,9 @@ from deploy.launch import (
 from deploy.study import belief_model, belief_rng
 from estimator.hybrid import BeliefConfig, BeliefSnapshot
 from estimator.metrics import METRICS, evaluate
+from protocol.frames import encode_frame
 from sim.loader import load_scenario, parse_scenario
+from sim.robot_model import dump_robot_model
 from sim.scenario import Scenario
 from sim.sensors import Simulator
 from tests.estimator.scenarios import fleet_text, objects_ahead
@@ -217,8 +220,11 @@ def test_launch_realtime_with_30_percent_loss_completes_close_to_lossless(
     outcome = launch(plan, "paper")
     assert_all_agents_finished(outcome, STEPS)
     for r in ROBOTS:
-        assert "drop = 0.3" in (tmp_path / "agents" / f"{r}.toml").read_text()
+        # Loss is the simulator's (sim/links): the agents only know they run in a simulation.
+        config = (tmp_path / "agents" / f"{r}.toml").read_text()
+        assert "simulation = true" in config and "drop" not in config
         assert outcome.collected.counters[r]["frames_processed"] == STEPS
+    assert sum(outcome.collected.counters[r]["ignored_out_of_range"] for r in ROBOTS) > 0
     metrics = outcome.result.metrics
     # L never depends on communication: identical to the lossless run.
     for name in METRICS:
@@ -369,6 +375,16 @@ async def _sigterm_when_busy(
     watcher.watch_alive(keys.alive("*"), events)
     watcher.subscribe(keys.estimate("*"), estimates)
     ended: dict[str, float] = {}
+    frames = Simulator(PAPER, SEED).all_frames()
+
+    async def feed() -> None:
+        """The robots' perception: a truth-less frame every 0.05 s, so a step is always due."""
+        for k in range(1, PAPER.steps + 1):
+            for r in procs:
+                watcher.publish(keys.frames(r), encode_frame(without_truth(frames[r][k - 1])))
+            await asyncio.sleep(0.05)
+
+    pump: asyncio.Task[None] | None = None
     try:
         await watcher.open()
         alive: set[str] = set()
@@ -376,6 +392,7 @@ async def _sigterm_when_busy(
             while not set(procs) <= alive:
                 await events.wait(0.2)
                 alive |= {keys.robot_of(m.key) or "" for m in events.drain() if m.kind == "alive"}
+            pump = asyncio.create_task(feed())
             while len({keys.robot_of(m.key) for m in estimates.drain()}) < len(procs):
                 await asyncio.sleep(0.3)  # until every agent has published an estimate
         sent = time.monotonic()
@@ -388,22 +405,26 @@ async def _sigterm_when_busy(
                 if r not in ended and p.poll() is not None:
                     ended[r] = time.monotonic() - sent
     finally:
+        if pump is not None:
+            pump.cancel()
         await watcher.close()
     return ended
 
 
 @pytest.mark.slow
 def test_agents_end_within_2_s_of_sigterm(tmp_path: Path) -> None:
-    """Three agents stepping the paper scenario (replaying their own frames every 0.05 s, so a
-    belief step is running when the signal lands) with a live peer session."""
+    """Three agents stepping the paper scenario (a frame every 0.05 s from the watcher's session,
+    so a belief step is running when the signal lands) with a live peer session."""
     keys = Keys("shutdown")
     watcher_port, *ports = free_ports(len(ROBOTS) + 1)
     procs: dict[str, subprocess.Popen[bytes]] = {}
     try:
+        (tmp_path / "model.toml").write_text(dump_robot_model(PAPER.robot_model()), "utf-8")
         for r, port in zip(ROBOTS, ports, strict=True):
             cfg = tmp_path / f"{r}.toml"
-            agent = {"fleet": keys.fleet, "scenario": "paper", "mode": "realtime"}
-            agent |= {"journal": f"{r}.log", "replay_period": 0.05}
+            agent = {"fleet": keys.fleet, "model": "model.toml", "mode": "realtime"}
+            agent |= {"start": [float(v) for v in PAPER.robot(r).start], "roster": list(ROBOTS)}
+            agent |= {"journal": f"{r}.log"}
             zenoh = {"listen": [loopback_endpoint(port)]}
             zenoh |= {"connect": [loopback_endpoint(watcher_port)]}
             write_agent_config(cfg, agent, zenoh)
@@ -474,7 +495,7 @@ def test_launch_commands_user_errors_are_one_line(
     tmp_path: Path, args: list[str], fragment: str
 ) -> None:
     r = semfleet(*args[:1], "--scenario", "paper", *args[1:], "--out", "x", cwd=tmp_path)
-    assert r.returncode == 1, (r.stdout, r.stderr)
+    assert r.returncode == 2, (r.stdout, r.stderr)  # usage errors
     assert "Traceback" not in r.stderr
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("semfleet: error: "), r.stderr
