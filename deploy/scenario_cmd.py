@@ -281,3 +281,6 @@ def add_parser(sub: Any) -> None:
     model.add_argument("-o", "--output", required=True, help="TOML file to write")
     model.add_argument("--force", action="store_true", help="overwrite an existing file")
     model.set_defaults(run=run_model)
+    from deploy import framelog_cmd  # here: it imports this module
+
+    framelog_cmd.add_parser(ssub)
