@@ -32,12 +32,17 @@ async def _settle() -> None:
         await asyncio.sleep(0)
 
 
-def _agent_side(bus: MemoryBus) -> tuple[MemoryTransport, Inbox]:
-    """The agent's end of the bus, with everything published on ``frames/r1``."""
+async def _agent_side(bus: MemoryBus) -> tuple[MemoryTransport, Inbox]:
+    """The agent's end of the bus, open, with everything published on ``frames/r1``."""
     agent = MemoryTransport(bus)
     frames = Inbox(1000)
     agent.subscribe(KEYS.frames("r1"), frames)
+    await agent.open()
     return agent, frames
+
+
+def _link(bus: MemoryBus, history: int = 1000) -> RobotLink:
+    return RobotLink("r1", "fleet", history=history, transport=MemoryTransport(bus))
 
 
 def _ks(inbox: Inbox) -> list[int]:
@@ -47,9 +52,8 @@ def _ks(inbox: Inbox) -> list[int]:
 @pytest.mark.asyncio
 async def test_robot_link_publishes_frames_without_truth() -> None:
     bus = MemoryBus()
-    agent, frames = _agent_side(bus)
-    await agent.open()
-    async with RobotLink("r1", "fleet", transport=MemoryTransport(bus)) as link:
+    _, frames = await _agent_side(bus)
+    async with _link(bus) as link:
         assert np.isfinite(FRAMES[0].true_pose).all()
         link.publish_frame(FRAMES[0])
         await _settle()
@@ -62,9 +66,8 @@ async def test_robot_link_publishes_frames_without_truth() -> None:
 @pytest.mark.asyncio
 async def test_robot_link_answers_need_from_step_k() -> None:
     bus = MemoryBus()
-    agent, frames = _agent_side(bus)
-    await agent.open()
-    async with RobotLink("r1", "fleet", transport=MemoryTransport(bus)) as link:
+    agent, frames = await _agent_side(bus)
+    async with _link(bus) as link:
         for frame in FRAMES[:5]:
             link.publish_frame(frame)
         await _settle()
@@ -83,9 +86,8 @@ async def test_robot_link_history_is_bounded_and_says_what_it_cannot_serve(
     caplog: pytest.LogCaptureFixture,
 ) -> None:
     bus = MemoryBus()
-    agent, frames = _agent_side(bus)
-    await agent.open()
-    async with RobotLink("r1", "fleet", history=2, transport=MemoryTransport(bus)) as link:
+    agent, frames = await _agent_side(bus)
+    async with _link(bus, history=2) as link:
         for frame in FRAMES[:5]:
             link.publish_frame(frame)
         await _settle()
@@ -101,9 +103,8 @@ async def test_robot_link_history_is_bounded_and_says_what_it_cannot_serve(
 @pytest.mark.asyncio
 async def test_robot_link_counts_invalid_control_and_lives_on() -> None:
     bus = MemoryBus()
-    agent, frames = _agent_side(bus)
-    await agent.open()
-    async with RobotLink("r1", "fleet", transport=MemoryTransport(bus)) as link:
+    agent, frames = await _agent_side(bus)
+    async with _link(bus) as link:
         link.publish_frame(FRAMES[0])
         for payload in (
             b"\xc1garbage",
@@ -122,9 +123,8 @@ async def test_robot_link_counts_invalid_control_and_lives_on() -> None:
 @pytest.mark.asyncio
 async def test_robot_link_publish_frame_rules() -> None:
     bus = MemoryBus()
-    agent, frames = _agent_side(bus)
-    await agent.open()
-    link = RobotLink("r1", "fleet", transport=MemoryTransport(bus))
+    agent, frames = await _agent_side(bus)
+    link = _link(bus)
     with pytest.raises(RuntimeError, match="not open"):
         link.publish_frame(FRAMES[0])
     async with link:
@@ -156,7 +156,7 @@ async def test_robot_link_estimates_decoded_until_the_link_closes() -> None:
     bus = MemoryBus()
     agent = MemoryTransport(bus)
     await agent.open()
-    link = RobotLink("r1", "fleet", transport=MemoryTransport(bus))
+    link = _link(bus)
     async with link:
         own, everyone = link.estimates(), link.estimates("*")
         agent.publish(KEYS.estimate("r1"), _estimate("r1", 1))
@@ -180,7 +180,7 @@ async def test_robot_link_estimates_decoded_until_the_link_closes() -> None:
 @pytest.mark.asyncio
 async def test_robot_link_sees_the_agent_come_and_go() -> None:
     bus = MemoryBus()
-    async with RobotLink("r1", "fleet", transport=MemoryTransport(bus)) as link:
+    async with _link(bus) as link:
         assert not link.agent_alive
         agent = MemoryTransport(bus)
         agent.declare_alive(KEYS.alive("r1"))
