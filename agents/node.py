@@ -181,10 +181,14 @@ class RobotNode:
             if self.roster is not None and s.owner not in self.roster:
                 self.counters.foreign_slots += 1
                 continue
+            if s.owner not in held and room <= 0:
+                self.counters.foreign_slots += 1
+                continue
+            if s.stamp <= held.get(s.owner, -1):
+                continue  # not newer: the merge keeps the version held
+            if not self._fits(s):
+                continue  # never held, so never relayed either
             if s.owner not in held:
-                if room <= 0:
-                    self.counters.foreign_slots += 1
-                    continue
                 room -= 1
             out.append(s)
         return out
@@ -254,17 +258,17 @@ class RobotNode:
 
     def _checked(self, slots: Iterable[Slot]) -> list[Slot]:
         """The slots that fit D's model; the others are counted and logged."""
-        out = []
-        for slot in slots:
-            try:
-                self.distributed.check(slot)
-            except SlotError as exc:
-                self.counters.rejected_slots += 1
-                self.counters.last_error = str(exc)
-                log.warning("%s: rejected slot: %s", self.robot, exc)
-                continue
-            out.append(slot)
-        return out
+        return [slot for slot in slots if self._fits(slot)]
+
+    def _fits(self, slot: Slot) -> bool:
+        try:
+            self.distributed.check(slot)
+        except SlotError as exc:
+            self.counters.rejected_slots += 1
+            self.counters.last_error = str(exc)
+            log.warning("%s: rejected slot: %s", self.robot, exc)
+            return False
+        return True
 
     def _count_error(self, exc: RemoteProtocolError) -> None:
         name = type(exc).__name__
