@@ -390,3 +390,40 @@ def test_agent_journal_replay_rebuilds_the_identical_belief(
     final = lockstep_run.estimates[(robot, STEPS)].beliefs
     assert_same_snapshot(agent.node.distributed.snapshot(robot), final["distributed"], "D")
     assert_same_snapshot(agent.node.local.snapshot(robot), final["local"], "L")
+
+
+@pytest.mark.asyncio
+async def test_a_realtime_agents_journal_holds_its_stacks_and_replays_to_the_identical_belief(
+    frames: dict[str, list[SensorFrame]], tmp_path: Path
+) -> None:
+    """Realtime: stacks merged between steps are journaled with the next step's commit, so a
+    replay merges them at the same point and rebuilds exactly the belief."""
+    bus = MemoryBus()
+    world = MemoryTransport(bus)
+    await world.open()
+    peers = _nodes()
+    journal, records = Journal.open(tmp_path / "r2.log", {"robot": "r2", "seed": SEED})
+    agent = _agent("r2", bus, "realtime", journal=journal)
+    async with _running(agent):
+        for k in range(1, STEPS + 1):
+            for r in ("r1", "r3"):
+                peers[r].on_frame(frames[r][k - 1])
+                world.publish(KEYS.stack(r), peers[r].encoded_stack())
+            await _until(lambda k=k: agent.node.counters.stacks_received == 2 * k)  # type: ignore[misc]
+            world.publish(KEYS.frames("r2"), encode_frame(frames["r2"][k - 1]))
+            await _until(lambda k=k: agent.node.k == k)  # type: ignore[misc]
+        merged = agent.node.counters.stacks_merged
+        live = agent.node
+    assert merged > 0
+    journal, records = Journal.open(tmp_path / "r2.log", {"robot": "r2", "seed": SEED})
+    with journal:
+        kinds = [r.kind for r in records]
+        assert kinds.count("frame") == STEPS and kinds.count("stack") == merged
+        again = _agent("r2", MemoryBus(), "realtime", journal=journal)
+        again.replay(records)
+    assert again.node.current_stack().stamps() == live.current_stack().stamps()
+    assert_same_snapshot(
+        again.node.distributed.snapshot("r2"), live.distributed.snapshot("r2"), "D"
+    )
+    assert_same_snapshot(again.node.local.snapshot("r2"), live.local.snapshot("r2"), "L")
+    assert "r1" in live.distributed.stamps and "r3" in live.distributed.stamps
