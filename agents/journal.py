@@ -232,12 +232,13 @@ def _create(path: Path, identity: dict[str, str | int]) -> None:
         _fsync_dir(directory)
 
 
-def _set_aside(path: Path, dropped: bytes, offset: int) -> Path:
-    """Copy ``dropped``, the journal's bytes from ``offset`` on, to a new side file, durably."""
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.corrupt.tmp")
+def _set_aside(path: Path, dropped: bytes, offset: int, label: str = "corrupt") -> Path:
+    """Copy ``dropped``, the journal's bytes from ``offset`` on, to a new side file
+    ``<journal>.<label>-<offset>``, durably."""
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.{label}.tmp")
     try:
         _write_synced(tmp, dropped)
-        side = _link_unique(tmp, path.with_name(f"{path.name}.corrupt-{offset}"))
+        side = _link_unique(tmp, path.with_name(f"{path.name}.{label}-{offset}"))
     finally:
         tmp.unlink(missing_ok=True)
     _fsync_dir(path.parent)
@@ -335,7 +336,17 @@ class Journal:
             return None
         start = offsets[index]
         data = self.path.read_bytes()[: self._size]
-        side = _recover(self.path, fd, data, start)
+        side = _set_aside(self.path, data[start:], start, "cut")
+        log.warning(
+            "journal %s: cut before record %d (offset %d); %d bytes set aside in %s",
+            self.path,
+            index,
+            start,
+            len(data) - start,
+            side,
+        )
+        os.ftruncate(fd, start)
+        os.fsync(fd)
         self._size = start
         return side
 

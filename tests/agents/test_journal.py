@@ -28,6 +28,7 @@ from agents.journal import (
     JournalError,
     QuarantinedRecord,
     Record,
+    _parse,
     quarantine_path,
     read_quarantine,
 )
@@ -610,3 +611,39 @@ def test_journal_sigkill_mid_run_keeps_every_committed_step_and_resumes(tmp_path
     journal, records = Journal.open(path, {"robot": "r1", "seed": 7})
     journal.close()
     assert records == [r for k in range(1, 401) for r in _expected(k)]
+
+
+def test_records_reads_back_exactly_the_committed_records(tmp_path: Path) -> None:
+    journal, _ = Journal.open(tmp_path / "j.log", {"robot": "r1"})
+    with journal:
+        journal.append("frame", b"one")
+        journal.append("stack", b"two")
+        journal.commit()
+        journal.append("frame", b"queued, not committed")
+        assert journal.records() == [Record("frame", b"one"), Record("stack", b"two")]
+
+
+def test_cut_sets_the_cut_records_aside_and_keeps_the_rest(tmp_path: Path) -> None:
+    path = tmp_path / "j.log"
+    journal, _ = Journal.open(path, {"robot": "r1"})
+    bodies = [f"record {i}".encode() for i in range(5)]
+    with journal:
+        for b in bodies:
+            journal.append("frame", b)
+        journal.commit()
+        size = path.stat().st_size
+        side = journal.cut(2)
+        assert side is not None and side.name.startswith("j.log.cut-")
+        assert journal.records() == [Record("frame", b) for b in bodies[:2]]
+        assert journal.cut(7) is None  # nothing to cut
+        journal.append("frame", b"after the cut")
+        journal.commit()
+    assert path.stat().st_size < size
+    _, records = Journal.open(path, {"robot": "r1"})
+    assert [r.body for r in records] == [*bodies[:2], b"after the cut"]
+    # The side file holds exactly the cut records, in journal framing.
+    data, offset, cut = side.read_bytes(), 0, []
+    while (parsed := _parse(data, offset)) is not None:
+        cut.append(parsed[0].body)
+        offset = parsed[1]
+    assert cut == bodies[2:] and offset == len(data)
