@@ -22,6 +22,7 @@ from collections.abc import Sequence  # noqa: E402
 from rich.console import Console  # noqa: E402
 
 from agents.journal import JournalError  # noqa: E402
+from agents.transport.base import TransportError  # noqa: E402
 from deploy import (  # noqa: E402
     agent_cmd,
     demo,
@@ -58,6 +59,7 @@ KNOWN_ERRORS: dict[type[Exception], int] = {
     PermissionError: EXIT_USAGE,
     OSError: EXIT_FAILURE,  # the machine failed the run: disk full, I/O error, port taken
     LaunchError: EXIT_FAILURE,  # an agent died or did not start, the run stalled
+    TransportError: EXIT_FAILURE,  # a Zenoh session could not open (port taken, bad endpoint)
     ConductorError: EXIT_FAILURE,
     # Runtime state the run found: another run's journal, one in use, a tail it could not set
     # aside. Even an identity mismatch is not a configuration mistake: the config may be right

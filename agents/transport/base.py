@@ -29,6 +29,10 @@ class Message:
     kind: Kind = "put"
 
 
+class TransportError(RuntimeError):
+    """A transport that could not open: bad endpoint, port taken, bad configuration file."""
+
+
 class Inbox:
     """A bounded FIFO of :class:`Message`, filled from any thread and drained by the event loop.
 

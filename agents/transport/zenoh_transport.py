@@ -20,7 +20,7 @@ from typing import Any
 
 import zenoh
 
-from agents.transport.base import Inbox, Kind, Message
+from agents.transport.base import Inbox, Kind, Message, TransportError
 
 log = logging.getLogger(__name__)
 
@@ -81,8 +81,12 @@ class ZenohTransport:
         if self._session is not None:
             return
         self._loop = asyncio.get_running_loop()
-        config = self.settings.config()
-        self._session = await asyncio.to_thread(zenoh.open, config)
+        try:
+            config = self.settings.config()
+            self._session = await asyncio.to_thread(zenoh.open, config)
+        except zenoh.ZError as exc:
+            endpoints = ", ".join((*self.settings.listen, *self.settings.connect)) or "none"
+            raise TransportError(f"Zenoh session (endpoints {endpoints}): {exc}") from None
         for expr, inbox in self._pending_subs:
             self._declare_subscriber(expr, inbox)
         for key in self._pending_tokens:

@@ -5,6 +5,7 @@ errors into one line on stderr and a non-zero exit, never a traceback."""
 from __future__ import annotations
 
 import os
+import socket
 import subprocess
 import sys
 from pathlib import Path
@@ -201,3 +202,16 @@ def test_agent_command_journal_of_another_robot_is_one_line_error(tmp_path: Path
     journal.close()
     path = _write(tmp_path, MINIMAL + 'journal = "r1.log"\n')
     _one_line_error(_agent(tmp_path, path), "belongs to another run")
+
+
+def test_agent_command_port_taken_is_one_line_error(tmp_path: Path) -> None:
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        path = _write(tmp_path, MINIMAL + f'[zenoh]\nlisten = ["tcp/127.0.0.1:{port}"]\n')
+        r = _agent(tmp_path, path)
+    # The agent has logged its start (JSON lines on stderr) by then: the error is the last line.
+    assert r.returncode == 1 and "Traceback" not in r.stderr, r.stderr
+    last = r.stderr.strip().splitlines()[-1]
+    assert last.startswith("semfleet: error: ") and f"tcp/127.0.0.1:{port}" in last, last
