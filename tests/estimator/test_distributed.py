@@ -99,10 +99,7 @@ def test_fusing_every_latest_slot_reproduces_the_centralized_marginal() -> None:
     config = EXACT
     central = _centralized(s, seed, frames, config)
     d = _distributed(s, "r1", seed, frames, config)
-    slots = [
-        Slot(r, s.steps, summarise(_local(s, r, seed, frames, config)))
-        for r in ("r2", "r3")
-    ]
+    slots = [Slot(r, s.steps, summarise(_local(s, r, seed, frames, config))) for r in ("r2", "r3")]
     d.integrate(slots)
     assert sorted(d.object_ids) == sorted(central.object_ids)
     ref = central.map_hypothesis()
@@ -146,8 +143,7 @@ def test_integration_order_does_not_matter_before_pruning() -> None:
     seed = 3
     frames = Simulator(s, seed).all_frames()
     slots = {
-        r: Slot(r, 25, summarise(_local(s, r, seed, frames, NO_PRUNING)))
-        for r in ("r2", "r3")
+        r: Slot(r, 25, summarise(_local(s, r, seed, frames, NO_PRUNING))) for r in ("r2", "r3")
     }
     beliefs = []
     for order in (("r2", "r3"), ("r3", "r2")):
