@@ -1,5 +1,6 @@
-"""Link models: who can hear whom at step k. One interface for every deployment; evaluated on the
-ground-truth positions carried by the sensor frames (simulation) or by the stacks (proximity)."""
+"""Link models of a simulated fleet: who can hear whom at step k. The simulator's side only — the
+in-process runner and the conductor evaluate them on the true poses and tell simulated agents the
+verdict (lock-step orders, ``sim/links``); no agent evaluates a link model itself."""
 
 from __future__ import annotations
 
