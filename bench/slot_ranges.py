@@ -4,7 +4,8 @@ Runs the in-process fleet on bundled worlds and seeds and, after every robot ste
 (the slot that goes on the wire) and D (the fused belief) and records, over every realisation:
 Λ's smallest and largest eigenvalue, its condition number λmax/λmin, |log φ|, max |x|, |y| and
 |θ| of ``lin``, max |η|, ‖η‖₂/λmax (a lower bound on the mean's tangent offset ‖δ‖₂, which is what
-the η bound limits) and ‖Λ⁻¹η‖₂ (that offset itself). A measurement, not a timing benchmark:
+the η bound limits) and ‖Λ⁻¹η‖₂ (that offset itself), and whether the default ``Limits`` refuse
+any slot or need eigenvalues for one. A measurement, not a timing benchmark:
 ``python -m bench.slot_ranges [world:variant ...]`` prints one line per world and the overall range.
 """
 
@@ -22,21 +23,29 @@ from deploy.study import belief_model, belief_rng
 from estimator.hybrid import BeliefConfig
 from estimator.slots import summarise
 from estimator.summary import LocalSummary
+from protocol import codec
+from protocol.codec import Limits, numbers_problem
 from sim.loader import load_scenario
 from sim.sensors import Simulator
 
 WORLDS = ("paper", "paper:experiment", "lanes:short", "rendezvous:short")
 SEEDS = (1, 2, 3)
 STEPS = 60
-FIELDS = ("lam_min", "lam_max", "cond", "log_phi", "xy", "theta", "eta", "eta_over_lam", "delta")
+FIELDS = (
+    *("lam_min", "lam_max", "cond", "log_phi", "xy", "theta", "eta", "eta_over_lam", "delta"),
+    *("refused", "eigvalsh"),
+)
 
 
 def slot_figures(summary: LocalSummary) -> dict[str, float]:
-    """The largest (or, for ``lam_min``, smallest) value of every figure over the realisations."""
+    """The largest (or, for ``lam_min``, smallest) value of every figure over the realisations;
+    ``refused`` and ``eigvalsh`` are 1 when the default ``Limits`` refuse the slot, or need
+    eigenvalues to decide (the Cholesky certificate of ``protocol.codec`` cannot)."""
     rs = summary.realisations
     info = np.stack([r.info for r in rs])
     eta = np.stack([r.eta for r in rs])
     lin = np.stack([r.lin for r in rs])
+    phi = np.array([r.log_phi for r in rs])
     lam = np.linalg.eigvalsh(info)
     delta = np.linalg.solve(info, eta[..., None])[..., 0]
     return {
@@ -49,6 +58,8 @@ def slot_figures(summary: LocalSummary) -> dict[str, float]:
         "eta": float(np.abs(eta).max()),
         "eta_over_lam": float((np.linalg.norm(eta, axis=1) / lam[:, -1]).max()),
         "delta": float(np.linalg.norm(delta, axis=1).max()),
+        "refused": float(numbers_problem("slot", phi, lin, info, eta, Limits()) is not None),
+        "eigvalsh": float(not codec._certified(info, eta, Limits())),
     }
 
 

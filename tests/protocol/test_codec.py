@@ -19,6 +19,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from estimator.summary import LocalSummary, Realisation
+from protocol import codec
 from protocol.codec import Limits, StackMessage, decode, encode
 from protocol.errors import (
     InvalidValue,
@@ -856,6 +857,8 @@ NUMBER_CASES: list[tuple[str, dict[str, Any], type[RemoteProtocolError] | None, 
     ("lam-max-at", {"info": np.diag([1e9] * 9)}, None, "", DEFAULT),
     ("entries-near-float-max", {"info": np.full((9, 9), 1.7e308)}, LimitExceeded, "info", DEFAULT),
     ("indefinite", {"info": with_eigenvalues([-1e-3, *ONES])}, InvalidValue, "info", DEFAULT),
+    # Weak information: −5e-9 is above −1/W² = −1e-8 but below −psd_tol·λmax = −1e-9.
+    ("indefinite-weak", {"info": with_eigenvalues([-5e-9, *ONES])}, InvalidValue, "info", DEFAULT),
     (
         "ill-conditioned",
         {"info": with_eigenvalues([1e-5, *[1e8] * 8])},
@@ -1058,3 +1061,19 @@ def test_codec_encode_accepts_exactly_what_decode_accepts(seed: int) -> None:
             assert_within_limits(got, lim)
             seen["accepted"] += 1
     assert seen["accepted"] >= 5 and sum(seen.values()) - seen["accepted"] >= 5, seen
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_codec_cholesky_certificate_never_accepts_what_the_eigenvalues_refuse(seed: int) -> None:
+    """The fast path (one Cholesky, no eigenvalues) may only accept what the eigenvalue rules
+    accept: checked one realisation at a time near every bound."""
+    rng = np.random.default_rng(seed)
+    certified = 0
+    for _ in range(300):
+        lim = PROPERTY_LIMITS[int(rng.integers(0, len(PROPERTY_LIMITS)))]
+        r = _near_limits(rng, lim, int(rng.integers(1, 5)))
+        info, eta = r.info[None], r.eta[None]
+        if codec._certified(info, eta, lim):
+            certified += 1
+            assert codec._spectral_problem("slots[0]", info, eta, lim) is None
+    assert certified >= 30, certified
