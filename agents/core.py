@@ -40,7 +40,7 @@ from agents.node import RobotNode
 from agents.transport.base import Keys
 from estimator.models import SensorFrame
 from protocol.codec import StackMessage
-from protocol.errors import LimitExceeded, RemoteProtocolError
+from protocol.errors import RemoteProtocolError
 from protocol.estimate import EstimateMessage, encode_estimate
 from protocol.frames import decode_frame, encode_frame
 from protocol.stack import Stack
@@ -309,11 +309,7 @@ class AgentCore:
 
     def _on_control(self, payload: bytes) -> list[Action]:
         try:
-            if len(payload) > self.settings.max_control_bytes:
-                raise LimitExceeded(
-                    f"{len(payload)} bytes > {self.settings.max_control_bytes}", "ctl"
-                )
-            order = decode_control(payload)
+            order = decode_control(payload, max_bytes=self.settings.max_control_bytes)
         except RemoteProtocolError as exc:
             self.counters.invalid_control += 1
             self._log_invalid("ctl", exc)
@@ -341,9 +337,7 @@ class AgentCore:
         if not self.settings.simulation:
             return
         try:
-            if len(payload) > self.settings.max_control_bytes:
-                raise LimitExceeded(f"{len(payload)} bytes", "sim")
-            order = decode_control(payload)
+            order = decode_control(payload, max_bytes=self.settings.max_control_bytes)
             if not isinstance(order, StepOrder):
                 raise ValueError(f"expected links, got {type(order).__name__}")
         except (RemoteProtocolError, ValueError) as exc:
@@ -618,6 +612,7 @@ class AgentCore:
             "stacks_invalid": c.invalid,
             "slots_rejected": c.rejected_slots,
             "slots_foreign": c.foreign_slots,
+            "own_slot_invalid": c.own_slot_invalid,
             "slots_refused": a.slots_refused,
             "empty_joins": c.empty_joins,
             "rebuilds": c.rebuilds,

@@ -20,7 +20,7 @@ from estimator.models import SensorFrame
 from estimator.slots import summarise
 from estimator.summary import LocalSummary
 from protocol.codec import Limits, StackMessage, decode, encode
-from protocol.errors import RemoteProtocolError
+from protocol.errors import LocalProtocolError, RemoteProtocolError
 from protocol.stack import Slot, Stack
 
 log = logging.getLogger(__name__)
@@ -31,9 +31,9 @@ class NodeCounters:
     """What a node has seen. ``invalid`` counts messages rejected by the protocol layer,
     ``rejected_slots`` slots that decoded but contradict the belief's model, ``foreign_slots``
     slots refused because their owner is outside the roster (or the stack is full),
-    ``empty_joins`` slots
-    whose join with D was empty and ``rebuilds`` the times D was rebuilt from L and the held slots
-    because of one."""
+    ``own_slot_invalid`` times the own slot could not be sent (outside the limits),
+    ``empty_joins`` slots whose join with D was empty and ``rebuilds`` the times D was rebuilt
+    from L and the held slots because of one."""
 
     stacks_received: int = 0
     stacks_merged: int = 0
@@ -41,6 +41,7 @@ class NodeCounters:
     invalid: int = 0
     rejected_slots: int = 0
     foreign_slots: int = 0
+    own_slot_invalid: int = 0
     empty_joins: int = 0
     rebuilds: int = 0
     bytes_received: int = 0
@@ -294,10 +295,22 @@ class RobotNode:
         return self.encoded_stack()
 
     def encoded_stack(self) -> bytes:
-        """The encoded stack, even when empty (a lock-step agent still announces its round)."""
+        """The encoded stack, even when empty (a lock-step agent still announces its round),
+        under the node's own limits: what its peers would refuse is never sent. Only the own slot
+        and position can break them (every held slot passed the same limits on the way in): then
+        they are left out, counted in ``own_slot_invalid``, and the rest still goes out."""
         stack = self.current_stack()
         if self._encoded is None:
-            self._encoded = encode(StackMessage(self.robot, self.position, stack, self.k))
+            message = StackMessage(self.robot, self.position, stack, self.k)
+            try:
+                self._encoded = encode(message, self.limits)
+            except LocalProtocolError as exc:
+                self.counters.own_slot_invalid += 1
+                self.counters.last_error = str(exc)
+                log.error("%s: own slot or position not sendable: %s", self.robot, exc)
+                others = Stack(tuple(s for s in stack if s.owner != self.robot))
+                message = StackMessage(self.robot, None, others, self.k)
+                self._encoded = encode(message, self.limits)
         return self._encoded
 
     def mark_sent(self, size: int) -> None:

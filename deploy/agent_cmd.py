@@ -35,6 +35,7 @@ from agents.transport.base import Keys
 from agents.transport.zenoh_transport import ZenohSettings, ZenohTransport
 from deploy.build import belief_model, make_node
 from estimator.hybrid import BeliefConfig
+from protocol.codec import Limits
 from protocol.validate import valid_id
 from sim.robot_model import RobotModel, dump_robot_model, load_robot_model
 from sim.scenario import ScenarioError
@@ -64,6 +65,7 @@ class AgentConfig:
     runtime: CoreSettings
     journal: Path | None
     zenoh: ZenohSettings
+    limits: Limits
 
 
 def _get(
@@ -86,10 +88,10 @@ def _name(kind: type | tuple[type, ...]) -> str:
 
 _AGENT_KEYS = {
     "fleet", "model", "start", "roster", "seed", "mode", "gossip_period", "journal",
-    "publish_local", "simulation", "window",
+    "publish_local", "simulation", "window", "world_extent",
 }  # fmt: skip
 _ZENOH_KEYS = {"listen", "connect", "gossip", "shared_memory", "lease_ms", "config_file"}
-MAX_START = 1e6  # metres: a start pose farther out is a typo, not a robot
+MAX_EXTENT = 1e7  # metres: a UTM-like frame; beyond, float64 poses lose millimetres
 
 
 def load_agent_config(path: Path, robot: str) -> AgentConfig:
@@ -120,13 +122,21 @@ def load_agent_config(path: Path, robot: str) -> AgentConfig:
         model = load_robot_model(model_path)
     except ScenarioError as exc:
         raise AgentConfigError(path, "agent.model", str(exc)) from None
+    extent = Limits().world_extent
+    if "world_extent" in a:
+        extent = float(_get(a, "world_extent", (int, float), path, "agent"))
+        if not (math.isfinite(extent) and 1.0 <= extent <= MAX_EXTENT):
+            raise AgentConfigError(path, "agent.world_extent", f"must be in 1..{MAX_EXTENT:g} m")
     start = _get(a, "start", list, path, "agent")
     if not (
         len(start) == 3
         and all(isinstance(v, int | float) and not isinstance(v, bool) for v in start)
-        and all(math.isfinite(v) and abs(v) <= MAX_START for v in start)
+        and all(math.isfinite(v) for v in start)
+        and abs(start[0]) <= extent
+        and abs(start[1]) <= extent
+        and abs(start[2]) <= 2 * math.pi
     ):
-        reason = f"expected [x, y, theta]: three finite numbers within ±{MAX_START:g}"
+        reason = f"expected [x, y, theta]: |x|, |y| ≤ world_extent {extent:g} m, |theta| ≤ 2π"
         raise AgentConfigError(path, "agent.start", reason)
     roster = _get(a, "roster", list, path, "agent")
     if not all(valid_id(r) for r in roster) or len(set(roster)) != len(roster):
@@ -189,6 +199,7 @@ def load_agent_config(path: Path, robot: str) -> AgentConfig:
     return AgentConfig(
         robot, fleet, model_path, model, (float(start[0]), float(start[1]), float(start[2])),
         frozenset(roster), seed, runtime, journal, zenoh_settings,
+        Limits(num_classes=model.num_classes, world_extent=extent),
     )  # fmt: skip
 
 
@@ -205,6 +216,7 @@ def node_factory(config: AgentConfig) -> Callable[[], RobotNode]:
         config.seed,
         BeliefConfig(),
         roster=config.roster,
+        limits=config.limits,
     )
 
 

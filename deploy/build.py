@@ -15,6 +15,7 @@ from numpy.typing import ArrayLike
 from agents.links import AllOf, LinkModel, Partition, Proximity, RandomDrop, Schedule
 from agents.node import LocalTrack, RobotNode
 from estimator.hybrid import BeliefConfig, BeliefModel
+from protocol.codec import Limits
 from sim.loader import COMM_MODES
 from sim.scenario import RobotModel, Scenario
 
@@ -91,12 +92,16 @@ def make_node(
     fusion: str = "consistent",
     downdate: str = "remove",
     roster: frozenset[str] | None = None,
+    limits: Limits | None = None,
 ) -> RobotNode:
     """The node of ``robot`` starting at ``start`` (3,) in run ``seed``, exactly as
     :func:`make_nodes` builds it with ``rng_for = lambda r: belief_rng(seed, [r])``; ``roster``
-    limits the slots it holds to those robots' (None: any owner)."""
+    limits the slots it holds to those robots' (None: any owner); ``limits`` what it accepts and
+    sends (default: the wire defaults with the model's class count)."""
     rng_for = lambda r: belief_rng(seed, [r])  # noqa: E731
-    return _node(robot, start, model, rng_for, config, fusion, downdate, roster=roster)
+    return _node(
+        robot, start, model, rng_for, config, fusion, downdate, roster=roster, limits=limits
+    )
 
 
 def make_nodes(
@@ -135,6 +140,7 @@ def _node(
     downdate: str,
     local: LocalTrack | None = None,
     roster: frozenset[str] | None = None,
+    limits: Limits | None = None,
 ) -> RobotNode:
     return RobotNode(
         robot,
@@ -147,4 +153,5 @@ def _node(
         downdate,
         local=local,
         roster=roster,
+        limits=limits,
     )

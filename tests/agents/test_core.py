@@ -255,3 +255,21 @@ def test_a_stack_that_would_overflow_the_own_stack_is_refused(frames) -> None:  
     assert len(node.stack) <= limits.max_slots - 1
     d.frame(frames["r1"][0])
     assert any(p.key == KEYS.stack("r1") for p in d.published)  # own stack still encodes
+
+
+def test_an_own_slot_outside_the_limits_is_never_sent_and_the_rest_still_is(frames) -> None:  # type: ignore[no-untyped-def]
+    from protocol.codec import Limits, decode
+
+    tight = Limits(num_classes=SCENARIO.num_classes, world_extent=5.0)  # r1 is at y ≈ −8 m
+    model = belief_model(SCENARIO)
+    node = make_node("r1", SCENARIO.robot("r1").start, model, SEED, BeliefConfig(), limits=tight)
+    peer = _seen_something("r2", frames)  # its objects lie within 3.7 m of the origin
+    assert node.on_stack(encode(StackMessage("r2", None, peer.current_stack(), peer.k), tight))
+    for f in frames["r1"]:
+        node.on_frame(f)
+        if len(node.current_stack()) == 2:
+            break
+    message = decode(node.encoded_stack(), tight)
+    assert message.position is None
+    assert [s.owner for s in message.stack] == ["r2"]
+    assert node.counters.own_slot_invalid == 1

@@ -90,6 +90,13 @@ def test_agent_config_valid_file_loads_with_relative_paths_resolved(tmp_path: Pa
     assert (z.gossip, z.lease_ms, z.shared_memory) == (False, 2000, False)
 
 
+def test_agent_config_world_extent_sets_the_limits(tmp_path: Path) -> None:
+    text = _set("agent.start", "[20000, 0, 0]", _set("agent.world_extent", "5e4"))
+    c = load_agent_config(_write(tmp_path, text), "r1")
+    assert c.limits.world_extent == 5e4 and c.start[0] == 20000
+    assert c.limits.num_classes == c.model.num_classes
+
+
 def test_agent_config_defaults(tmp_path: Path) -> None:
     c = load_agent_config(_write(tmp_path, MINIMAL), "r2")
     assert (c.fleet, c.seed, c.runtime.mode, c.journal) == ("default", 0, "realtime", None)
@@ -113,6 +120,11 @@ BAD = [
     (_set("agent.start", '[0, 0, "a"]'), "agent.start"),
     (_set("agent.start", "[0, nan, 0]"), "agent.start"),
     (_set("agent.start", "[1e300, 0, 0]"), "agent.start"),
+    (_set("agent.start", "[20000, 0, 0]"), "agent.start"),  # beyond the default world
+    (_set("agent.start", "[0, 0, 7]"), "agent.start"),
+    (_set("agent.world_extent", "0.5"), "agent.world_extent"),
+    (_set("agent.world_extent", "1e8"), "agent.world_extent"),
+    (_set("agent.world_extent", '"far"'), "agent.world_extent"),
     (_set("agent.start", "[true, 0, 0]"), "agent.start"),
     (_set("agent.roster", '["r2", "r3"]'), "agent.roster"),  # not this robot's fleet
     (_set("agent.roster", '["r1", "r1"]'), "agent.roster"),
