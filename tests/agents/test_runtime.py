@@ -114,6 +114,12 @@ async def _running(*agents: Agent) -> AsyncIterator[list[asyncio.Task[None]]]:
         await asyncio.wait_for(asyncio.gather(*tasks), 10)
 
 
+def _stepped(agent: Agent, k: int) -> bool:
+    """Step k done and published: the worker has rebuilt the own slot (the node is read from
+    the test's thread while the worker may be mid-step)."""
+    return agent.node.k == k and agent.node.stack.stamps().get(agent.robot) == k
+
+
 async def _until(predicate: Callable[[], bool], timeout: float = 10.0) -> None:
     async with asyncio.timeout(timeout):
         while not predicate():
@@ -226,7 +232,7 @@ async def test_agent_lockstep_round_merges_exactly_the_ordered_peers(
 
     async with _running(agent) as (task,):
         order(1, ())
-        await _until(lambda: agent.node.k == 1)
+        await _until(lambda: _stepped(agent, 1))
         for node in peers.values():
             node.on_frame(frames[node.robot][0])
         order(2, ("r1", "r2"))
@@ -235,14 +241,14 @@ async def test_agent_lockstep_round_merges_exactly_the_ordered_peers(
         assert agent.node.k == 1
         assert agent.node.stack.stamps() == {"r3": 1}
         gossip("r1")
-        await _until(lambda: agent.node.k == 2)
+        await _until(lambda: _stepped(agent, 2))
         assert agent.node.stack.stamps() == {"r1": 1, "r2": 1, "r3": 2}
         for node in peers.values():
             node.on_frame(frames[node.robot][1])
         gossip("r1")  # round 2 of r1 arrives, but round 3 orders r2 only
         gossip("r2")
         order(3, ("r2",))
-        await _until(lambda: agent.node.k == 3)
+        await _until(lambda: _stepped(agent, 3))
         assert agent.node.stack.stamps() == {"r1": 1, "r2": 2, "r3": 3}
         assert agent.counters.frames_processed == 3
         assert not task.done()
