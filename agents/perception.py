@@ -4,7 +4,8 @@ The perception process publishes the robot's sensor frames on ``frames/<robot>``
 estimates the agent publishes on ``estimate/<robot>``. It also answers the agent's
 ``ctl/need/<robot>`` (``agents.control.NeedFrames``: after a restart or a lost frame the agent asks
 for its frames from step k on) by re-publishing, from a bounded buffer, the frames it has sent from
-k on. Frames never carry ground truth: :meth:`RobotLink.publish_frame` drops any ``true_pose``.
+k on. A published frame never carries a simulator's pose: :meth:`RobotLink.publish_frame` sends
+the robot's own data only.
 
 Usage (the agent listens on tcp/10.0.0.5:7448; its config's ``[zenoh] listen``)::
 
@@ -32,7 +33,7 @@ import asyncio
 import collections
 import logging
 from collections.abc import AsyncIterator
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from types import TracebackType
 
 import numpy as np
@@ -121,7 +122,7 @@ class RobotLink:
     # -- frames ------------------------------------------------------------------------------
 
     def publish_frame(self, frame: SensorFrame) -> None:
-        """Send ``frame`` (without its ground truth) on ``frames/<robot>`` and keep it for
+        """Send ``frame`` (its robot's own data, nothing else) on ``frames/<robot>`` and keep it for
         ``ctl/need``. Steps never go backwards; publishing the latest step again re-sends it (an
         agent that already has it answers with its latest estimate). Raises ``ValueError`` for
         another robot's frame or a step behind the last, ``LocalProtocolError`` for a frame the
@@ -133,7 +134,10 @@ class RobotLink:
         last = self._sent[-1][0] if self._sent else 0
         if frame.k < last:
             raise ValueError(f"step {frame.k} after step {last}: steps never go backwards")
-        data = encode_frame(replace(frame, true_pose=np.full(3, np.nan)))
+        own = SensorFrame(
+            frame.robot, frame.k, frame.odometry, frame.detections, np.full(3, np.nan)
+        )
+        data = encode_frame(own)
         if frame.k == last:
             self._sent.pop()
         self._sent.append((frame.k, data))
