@@ -273,18 +273,24 @@ class AgentCore:
 
     def on_message(self, key: str, payload: bytes, now: float) -> list[Action]:
         """One message that arrived on ``key``; then every step that became possible."""
+        return self.on_messages([(key, payload)], now)
+
+    def on_messages(self, messages: Sequence[tuple[str, bytes]], now: float) -> list[Action]:
+        """Messages (key, payload) that arrived together, in order, each followed by every step
+        it made possible; what the timer sends is refreshed once, after all of them."""
         keys = self.keys
         self._now = now
         actions: list[Action] = []
-        if key.startswith(keys.ctl("")):
-            actions += self._on_control(payload)
-        elif key == keys.frames(self.robot):
-            actions += self._on_frame(payload)
-        elif key.startswith(f"{keys.prefix}/stack/"):
-            actions += self._on_stack(key, payload)
-        elif key == keys.sim_links():
-            self._on_links(payload)
-        actions += self._step_all()
+        for key, payload in messages:
+            if key.startswith(keys.ctl("")):
+                actions += self._on_control(payload)
+            elif key == keys.frames(self.robot):
+                actions += self._on_frame(payload)
+            elif key.startswith(f"{keys.prefix}/stack/"):
+                actions += self._on_stack(key, payload)
+            elif key == keys.sim_links():
+                self._on_links(payload)
+            actions += self._step_all()
         self._refresh()
         return actions
 

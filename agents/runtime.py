@@ -226,12 +226,8 @@ class Agent:
     def _handle(self, messages: list[Message]) -> list[Action]:
         """In the worker: every message through the core, journal actions carried out here (in
         order, before the publications that follow them); the rest goes back to the loop."""
-        out: list[Action] = []
-        for m in messages:
-            if m.kind != "put":
-                continue
-            out += self._execute(self.core.on_message(m.key, m.payload, self.clock()))
-        return out
+        puts = [(m.key, m.payload) for m in messages if m.kind == "put"]
+        return self._execute(self.core.on_messages(puts, self.clock()))
 
     def _execute(self, actions: Sequence[Action]) -> list[Action]:
         """Carry out the journal actions; return the others."""
