@@ -158,9 +158,9 @@ class Agent:
                 # then abandoned uncommitted (the process is about to exit; a torn commit is cut
                 # at the next open). The journal is never closed under a running step.
                 loop = asyncio.get_running_loop()
-                done = loop.run_in_executor(None, self._worker.shutdown)
+                idle = loop.run_in_executor(None, self._worker.shutdown)
                 try:
-                    await asyncio.wait_for(asyncio.shield(done), SHUTDOWN_STEP_WAIT_S)
+                    await asyncio.wait_for(asyncio.shield(idle), SHUTDOWN_STEP_WAIT_S)
                 except TimeoutError:
                     log.warning(
                         "%s: a step was still running at shutdown: not committed", self.robot

@@ -86,7 +86,7 @@ def meeting_text(seed: int = 0) -> str:
     return text
 
 
-def _measure(text: str, centralized: bool, queue: mp.Queue) -> None:  # type: ignore[type-arg]
+def _measure(text: str, centralized: bool, queue: mp.Queue[object]) -> None:
     from deploy.study import belief_model, belief_rng
     from estimator.hybrid import BeliefConfig, HybridBelief
     from sim.loader import parse_scenario
@@ -116,7 +116,7 @@ def _run(text: str, centralized: bool = False) -> tuple[list[float], list[int], 
     proc.start()
     out = queue.get(timeout=600)
     proc.join()
-    return out  # type: ignore[no-any-return]
+    return out
 
 
 def run() -> list[Result]:
