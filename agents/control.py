@@ -18,6 +18,7 @@ from typing import Any
 
 import msgpack
 
+from estimator.models.frames import MAX_STEP
 from protocol.errors import (
     InvalidValue,
     LimitExceeded,
@@ -27,7 +28,6 @@ from protocol.errors import (
 )
 from protocol.validate import decode_document, valid_id
 
-MAX_STEP = 10**9
 # Far above any fleet's roster. The byte cap bounds the work of a decode on its own (the worst
 # case, 64 KiB of one-letter sender ids, 28 k of them, decodes in ≈ 15 ms); this cap bounds what a
 # receiver keeps of a step order when a deployment raises max_bytes.

@@ -41,6 +41,7 @@ from agents.transport.zenoh_transport import ZenohSettings, ZenohTransport
 from deploy.errors import RunFailure, UsageError
 from estimator.hybrid import BeliefSnapshot
 from estimator.metrics import world_position_cov
+from estimator.models import ROBOT_ID_RULE
 from estimator.pruning import class_marginals
 from protocol.errors import RemoteProtocolError
 from protocol.estimate import EstimateLimits, EstimateMessage, decode_estimate
@@ -100,7 +101,7 @@ def endpoint(text: str) -> str:
 def connection(args: argparse.Namespace) -> tuple[ZenohSettings, Keys]:
     """The session settings and the fleet's keys from the common options."""
     if not valid_id(args.fleet):
-        raise UsageError(f"--fleet {args.fleet!r}: 1–32 of A–Z a–z 0–9 _ -")
+        raise UsageError(f"--fleet {args.fleet!r}: {ROBOT_ID_RULE}")
     endpoints = tuple(endpoint(e) for e in args.connect)
     config_file = None
     if args.zenoh_config is not None:

@@ -14,16 +14,14 @@ import gtsam
 import numpy as np
 from numpy.typing import NDArray
 
-from estimator.models import AliasedClassifier, ClassifierModel, GaussianNoise
+from estimator.models import MAX_STEP, AliasedClassifier, ClassifierModel, GaussianNoise
 
 Array = NDArray[np.float64]
 
-_MAX_STEPS = 10_000_000
-
 
 def pose_key(slot: int, k: int) -> int:
-    """Key of robot ``slot``'s pose at step ``k`` (k < 10⁷)."""
-    return int(gtsam.symbol("x", slot * _MAX_STEPS + k))
+    """Key of robot ``slot``'s pose at step ``k`` (0 ≤ k ≤ MAX_STEP)."""
+    return int(gtsam.symbol("x", slot * (MAX_STEP + 1) + k))
 
 
 def object_key(object_id: int) -> int:

@@ -16,6 +16,7 @@ import msgpack
 import numpy as np
 from numpy.typing import NDArray
 
+from estimator.models.frames import MAX_STEP
 from estimator.summary import LocalSummary, Realisation
 from protocol.errors import (
     InvalidValue,
@@ -32,7 +33,7 @@ Array = NDArray[np.float64]
 VERSION = 1
 STACK = "stack"
 _F64 = np.dtype("<f8")
-_MAX_STAMP = 2**63 - 1
+_MAX_STAMP = MAX_STEP  # a stamp is its owner's step
 _MAX_OBJECT_ID = 2**32 - 1
 _TOP_KEYS = frozenset({"v", "type", "sender", "k", "pos", "slots"})
 _SLOT_KEYS = frozenset({"owner", "stamp", "objects", "real"})

@@ -23,6 +23,7 @@ from typing import Any
 import msgpack
 import numpy as np
 
+from estimator.models.frames import MAX_STEP
 from estimator.snapshot import BeliefSnapshot
 from protocol.errors import (
     InvalidValue,
@@ -35,7 +36,6 @@ from protocol.validate import as_int, as_map, decode_document, need, robot_id, v
 
 VERSION = 1
 ESTIMATE = "estimate"
-MAX_STEP = 2**63 - 1
 MAX_COUNT = 2**63 - 1
 MAX_OBJECT_ID = 2**32 - 1
 MAX_BELIEFS = 8

@@ -18,7 +18,7 @@ import msgpack
 import numpy as np
 from numpy.typing import NDArray
 
-from estimator.models import Detection, SensorFrame
+from estimator.models import MAX_STEP, Detection, SensorFrame
 from protocol.errors import (
     InvalidValue,
     LimitExceeded,
@@ -33,7 +33,6 @@ Array = NDArray[np.float64]
 
 VERSION = 1
 FRAME = "frame"
-MAX_STEP = 2**63 - 1
 MAX_OBJECT_ID = 2**32 - 1
 MAX_SCORES = 64  # length of a score vector when FrameLimits.num_classes is not given
 _F64 = np.dtype("<f8")

@@ -3,17 +3,17 @@
 
 from __future__ import annotations
 
-import re
 from collections.abc import Callable
 from typing import Any, TypeVar
 
 import msgpack
 import numpy as np
 
+from estimator.models.frames import ROBOT_ID
 from protocol.errors import InvalidValue, LimitExceeded, MalformedMessage, ProtocolError
 
 T = TypeVar("T")
-ID_PATTERN = re.compile(r"^[A-Za-z0-9_-]{1,32}$")
+ID_PATTERN = ROBOT_ID
 
 
 def valid_id(value: object) -> bool:

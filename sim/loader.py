@@ -9,14 +9,13 @@ from __future__ import annotations
 import copy
 import dataclasses
 import math
-import re
 import tomllib
 from collections.abc import Iterable, Mapping
 from importlib import resources
 from pathlib import Path
 from typing import Any
 
-from estimator.models import GaussianNoise
+from estimator.models import ROBOT_ID, ROBOT_ID_RULE, GaussianNoise
 from sim.scenario import (
     FORMAT_VERSION,
     ClassifierSpec,
@@ -31,7 +30,7 @@ from sim.scenario import (
     Variant,
 )
 
-_ID_PATTERN = re.compile(r"^[A-Za-z0-9_-]{1,32}$")
+_ID_PATTERN = ROBOT_ID
 COMM_MODES = ("schedule", "range", "both")
 _CLASSIFIER_MODELS = ("paper", "aliased")
 _PRIOR_TOLERANCE = 1e-6
@@ -400,7 +399,7 @@ def _sensor(f: FieldReader) -> Sensor:
 
 def _check_id(f: FieldReader, key: str | int, value: str) -> None:
     if not _ID_PATTERN.match(value):
-        raise f.fail(key, f"{value!r} is not a valid robot id (1–32 of A–Z a–z 0–9 _ -)")
+        raise f.fail(key, f"{value!r} is not a valid robot id ({ROBOT_ID_RULE})")
 
 
 def _robots(top: FieldReader, steps: int, default_sensor: Sensor) -> tuple[Robot, ...]:

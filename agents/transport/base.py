@@ -14,6 +14,7 @@ import threading
 from dataclasses import dataclass
 from typing import Literal, Protocol
 
+from estimator.models import ROBOT_ID_RULE
 from protocol.validate import valid_id
 
 Kind = Literal["put", "alive", "gone"]
@@ -186,7 +187,7 @@ class Keys:
 
     def __post_init__(self) -> None:
         if not valid_id(self.fleet):
-            raise ValueError(f"fleet name {self.fleet!r}: 1–32 of A–Z a–z 0–9 _ -")
+            raise ValueError(f"fleet name {self.fleet!r}: {ROBOT_ID_RULE}")
 
     @property
     def prefix(self) -> str:
@@ -220,5 +221,5 @@ class Keys:
 def _robot(robot: str) -> str:
     """A robot id, or the wildcard ``*`` (all robots) for subscriptions."""
     if robot != "*" and not valid_id(robot):
-        raise ValueError(f"robot id {robot!r}: 1–32 of A–Z a–z 0–9 _ -")
+        raise ValueError(f"robot id {robot!r}: {ROBOT_ID_RULE}")
     return robot

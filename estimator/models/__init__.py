@@ -7,10 +7,13 @@ from estimator.models.classifier import (
     paper_classifier,
     viewpoint,
 )
-from estimator.models.frames import Detection, SensorFrame
+from estimator.models.frames import MAX_STEP, ROBOT_ID, ROBOT_ID_RULE, Detection, SensorFrame
 from estimator.models.noise import GaussianNoise
 
 __all__ = [
+    "MAX_STEP",
+    "ROBOT_ID",
+    "ROBOT_ID_RULE",
     "AliasedClassifier",
     "ClassifierModel",
     "Detection",

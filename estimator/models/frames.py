@@ -2,12 +2,18 @@
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
 
 Array = NDArray[np.float64]
+
+# The one definition of what a robot id and a step may be, for every layer (wire, files, keys).
+ROBOT_ID = re.compile(r"^[A-Za-z0-9_-]{1,32}$")
+ROBOT_ID_RULE = "1–32 of A–Z a–z 0–9 _ -"  # (they become Zenoh key segments)
+MAX_STEP = 9_999_999  # a belief packs the step into 7 decimal digits of a pose key
 
 
 @dataclass(frozen=True, slots=True, eq=False)

@@ -18,6 +18,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from estimator.models import MAX_STEP
 from estimator.summary import LocalSummary, Realisation
 from protocol import codec
 from protocol.codec import Limits, StackMessage, decode, encode
@@ -197,8 +198,8 @@ BASE_MESSAGES = (
     StackMessage(
         "big",
         None,
-        Stack((Slot("b", 2**63 - 1, make_summary(np.random.default_rng(9), 6, 4)),)),
-        2**63 - 1,
+        Stack((Slot("b", MAX_STEP, make_summary(np.random.default_rng(9), 6, 4)),)),
+        MAX_STEP,
     ),
     *(make_message(np.random.default_rng(seed)) for seed in (11, 12, 13)),
 )
@@ -287,7 +288,7 @@ def test_codec_realisation_size_at_fifteen_objects() -> None:
     position=st.none() | st.tuples(st.floats(-1e4, 1e4), st.floats(-1e4, 1e4)),
     versions=st.dictionaries(
         fuzz.ROBOT_IDS,
-        st.integers(0, 2**63 - 1),
+        st.integers(0, MAX_STEP),
         max_size=4,
     ),
 )

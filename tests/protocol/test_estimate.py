@@ -20,6 +20,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from estimator.hybrid import BeliefSnapshot
+from estimator.models import MAX_STEP
 from protocol.errors import (
     InvalidValue,
     LimitExceeded,
@@ -100,7 +101,7 @@ BASE_MESSAGES = (
     EstimateMessage("x" * 32, 0, {"local": make_snapshot(np.random.default_rng(3), h=1, n=0)}),
     EstimateMessage(
         "r9",
-        2**63 - 1,
+        MAX_STEP,
         {
             "a": make_snapshot(np.random.default_rng(4)),
             "b_c": make_snapshot(np.random.default_rng(5)),
@@ -191,7 +192,7 @@ def test_estimate_negative_zero_and_subnormals_survive() -> None:
 @settings(FUZZ, max_examples=600)
 @given(
     seed=st.integers(0, 2**32 - 1),
-    k=st.integers(0, 2**63 - 1),
+    k=st.integers(0, MAX_STEP),
     names=st.lists(st.text("abcxyz_", min_size=1, max_size=32), min_size=1, max_size=3),
     counters=st.dictionaries(
         st.text("abcxyz_", min_size=1, max_size=48), st.integers(0, 2**63 - 1), max_size=6

@@ -19,7 +19,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from estimator.models import Detection, SensorFrame
+from estimator.models import MAX_STEP, Detection, SensorFrame
 from protocol.errors import (
     InvalidValue,
     LimitExceeded,
@@ -88,7 +88,7 @@ REF_DOC: dict[str, Any] = msgpack.unpackb(REF_BLOB, raw=False)
 BASE_FRAMES = (
     REF,
     dataclasses.replace(REF, true_pose=NO_TRUTH),
-    SensorFrame("x" * 32, 2**63 - 1, np.zeros(3), (), np.zeros(3)),
+    SensorFrame("x" * 32, MAX_STEP, np.zeros(3), (), np.zeros(3)),
     *(make_frame(np.random.default_rng(seed), truth=seed % 2 == 0) for seed in (1, 2, 3)),
 )
 BASE_BLOBS = tuple(encode_frame(f) for f in BASE_FRAMES)
@@ -158,7 +158,7 @@ def _int_bytes(value: int) -> int:
 
 @pytest.mark.parametrize(
     ("robot", "k", "count", "m", "truth"),
-    [("r1", 1, 0, 2, False), ("x" * 31, 300, 3, 31, True), ("r1", 2**40, 16, 32, True)],
+    [("r1", 1, 0, 2, False), ("x" * 31, 300, 3, 31, True), ("r1", MAX_STEP, 16, 32, True)],
 )
 def test_frames_size_matches_docs(robot: str, k: int, count: int, m: int, truth: bool) -> None:
     frame = make_frame(np.random.default_rng(0), robot, k, count, m, truth)
@@ -172,7 +172,7 @@ def test_frames_size_matches_docs(robot: str, k: int, count: int, m: int, truth:
 @given(
     seed=st.integers(0, 2**32 - 1),
     robot=fuzz.ROBOT_IDS,
-    k=st.integers(1, 2**63 - 1),
+    k=st.integers(1, MAX_STEP),
     detections=st.integers(0, 8),
     scores=st.integers(1, 64),
     truth=st.booleans(),
@@ -390,7 +390,7 @@ def test_frames_exactly_at_limits_is_accepted() -> None:
 MUTATOR = fuzz.Mutator(
     known_keys=("v", "type", "robot", "k", "odo", "truth", "det", "id", "geo", "sem"),
     strings=("frame", "r1", "r1\n", ""),
-    edge_ints=(-1, 0, 1, 2**32 - 1, 2**32, 2**63 - 1, 2**63),
+    edge_ints=(-1, 0, 1, 2**32 - 1, 2**32, MAX_STEP, MAX_STEP + 1, 2**63 - 1, 2**63),
 )
 
 
@@ -482,7 +482,7 @@ BAD_VECTORS = (
 @settings(FUZZ, max_examples=1000)
 @given(
     seed=st.integers(0, 2**32 - 1),
-    k=st.sampled_from((0, 1, 2**63 - 1, 2**63, -1)),
+    k=st.sampled_from((0, 1, MAX_STEP, MAX_STEP + 1, 2**63 - 1, 2**63, -1)),
     odometry=st.none() | BAD_VECTORS,
     truth=st.none() | BAD_VECTORS,
     ids=st.none() | st.lists(st.sampled_from((-1, 0, 1, 2**32 - 1, 2**32)), min_size=3, max_size=3),
