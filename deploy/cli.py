@@ -7,23 +7,18 @@ exits 2 for a usage or configuration mistake, 1 for a failure at run time (see
 
 from __future__ import annotations
 
-import os
+# The BLAS thread variables are pinned by the ``deploy`` package itself (deploy/__init__.py),
+# which Python imports before this module.
+import argparse
+import logging
+import sys
+from collections.abc import Sequence
 
-# Before numpy loads: the estimators work on tiny matrices, where a multi-threaded BLAS only spins
-# against the Python thread (measured: the demo ran 2.6× slower on 2 cores). Explicit settings win.
-for _variable in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(_variable, "1")
+from rich.console import Console
 
-import argparse  # noqa: E402
-import logging  # noqa: E402
-import sys  # noqa: E402
-from collections.abc import Sequence  # noqa: E402
-
-from rich.console import Console  # noqa: E402
-
-from agents.journal import JournalError  # noqa: E402
-from agents.transport.base import TransportError  # noqa: E402
-from deploy import (  # noqa: E402
+from agents.journal import JournalError
+from agents.transport.base import TransportError
+from deploy import (
     agent_cmd,
     demo,
     launch_cmd,
@@ -33,17 +28,17 @@ from deploy import (  # noqa: E402
     study_cmd,
     ufastslam_cmd,
 )
-from deploy.agent_cmd import AgentConfigError  # noqa: E402
-from deploy.conductor import ConductorError  # noqa: E402
-from deploy.errors import (  # noqa: E402
+from deploy.agent_cmd import AgentConfigError
+from deploy.conductor import ConductorError
+from deploy.errors import (
     EXIT_FAILURE,
     EXIT_INTERRUPTED,
     EXIT_USAGE,
     CommandError,
 )
-from deploy.launch import LaunchError  # noqa: E402
-from protocol.errors import ProtocolError  # noqa: E402
-from sim.scenario import ScenarioError  # noqa: E402
+from deploy.launch import LaunchError
+from protocol.errors import ProtocolError
+from sim.scenario import ScenarioError
 
 # The project's error types raised outside deploy.errors' hierarchy, and their exit codes; an
 # exception maps by the first of its classes (most specific first) found here. deploy's own
