@@ -49,6 +49,8 @@ log = logging.getLogger(__name__)
 
 MODES = ("lockstep", "realtime")
 MAX_REFUSED = 4096  # slot versions remembered as refused (oldest forgotten first)
+GOSSIP_PERIOD_S = 0.5  # the one default gossip period (agent configs, launches)
+WINDOW_STEPS = 64  # the one default of how far ahead frames, orders, rounds and links are kept
 
 
 @dataclass(frozen=True, slots=True)
@@ -61,9 +63,9 @@ class CoreSettings:
     (``sim/links``), which no real robot ever does."""
 
     mode: str = "realtime"
-    gossip_period: float = 0.5
+    gossip_period: float = GOSSIP_PERIOD_S
     retry_period: float = 0.25
-    window: int = 64
+    window: int = WINDOW_STEPS
     max_control_bytes: int = 64 * 1024
     invalid_log_period: float = 5.0
     publish_local: bool = True

@@ -27,7 +27,7 @@ from typing import Any
 
 from rich.console import Console
 
-from agents.core import AgentCore, CoreSettings
+from agents.core import GOSSIP_PERIOD_S, WINDOW_STEPS, AgentCore, CoreSettings
 from agents.journal import Journal, Record
 from agents.node import RobotNode
 from agents.runtime import Agent
@@ -155,11 +155,11 @@ def load_agent_config(path: Path, robot: str) -> AgentConfig:
     period = (
         float(_get(a, "gossip_period", (int, float), path, "agent"))
         if "gossip_period" in a
-        else 0.5
+        else GOSSIP_PERIOD_S
     )
     if not (math.isfinite(period) and 0.01 <= period <= 3600):
         raise AgentConfigError(path, "agent.gossip_period", "must be in 0.01..3600 s")
-    window = _get(a, "window", int, path, "agent") if "window" in a else 64
+    window = _get(a, "window", int, path, "agent") if "window" in a else WINDOW_STEPS
     if not 1 <= window <= 100_000:
         raise AgentConfigError(path, "agent.window", "must be in 1..100000 steps")
     journal = None
