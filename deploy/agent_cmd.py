@@ -17,7 +17,6 @@ import math
 import os
 import signal
 import sys
-import tomllib
 import zlib
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -37,6 +36,7 @@ from deploy.build import belief_model, make_node
 from estimator.hybrid import BeliefConfig
 from protocol.codec import Limits
 from protocol.validate import valid_id
+from sim.loader import FieldReader, parse_toml, read_file
 from sim.robot_model import RobotModel, dump_robot_model, load_robot_model
 from sim.scenario import ScenarioError
 
@@ -68,24 +68,6 @@ class AgentConfig:
     limits: Limits
 
 
-def _get(
-    table: dict[str, Any], key: str, kind: type | tuple[type, ...], path: Path, where: str
-) -> Any:
-    value = table[key]
-    if isinstance(value, bool) and bool not in (kind if isinstance(kind, tuple) else (kind,)):
-        raise AgentConfigError(path, f"{where}.{key}", f"expected {_name(kind)}, got a boolean")
-    if not isinstance(value, kind):
-        raise AgentConfigError(
-            path, f"{where}.{key}", f"expected {_name(kind)}, got {type(value).__name__}"
-        )
-    return value
-
-
-def _name(kind: type | tuple[type, ...]) -> str:
-    kinds = kind if isinstance(kind, tuple) else (kind,)
-    return " or ".join(k.__name__ for k in kinds)
-
-
 _AGENT_KEYS = {
     "fleet", "model", "start", "roster", "seed", "mode", "gossip_period", "journal",
     "publish_local", "simulation", "window", "world_extent",
@@ -95,112 +77,90 @@ MAX_EXTENT = 1e7  # metres: a UTM-like frame; beyond, float64 poses lose millime
 
 
 def load_agent_config(path: Path, robot: str) -> AgentConfig:
-    """Parse and validate an agent config; relative paths are relative to the file's folder."""
-    try:
-        doc = tomllib.loads(path.read_text(encoding="utf-8"))
-    except tomllib.TOMLDecodeError as exc:
-        raise AgentConfigError(path, "toml", str(exc)) from None
+    """Parse and validate an agent config; relative paths are relative to the file's folder.
+    Read with the scenario format's field reader (one validation path for every config file);
+    every error is an :class:`AgentConfigError` naming the file and the field."""
     if not valid_id(robot):
         raise AgentConfigError(path, "--robot", f"invalid robot id {robot!r}")
-    unknown = set(doc) - {"agent", "zenoh"}
-    if unknown:
-        raise AgentConfigError(path, sorted(unknown)[0], "unknown table (known: agent, zenoh)")
-    a = doc.get("agent", {})
-    z = doc.get("zenoh", {})
-    for table, keys, name in ((a, _AGENT_KEYS, "agent"), (z, _ZENOH_KEYS, "zenoh")):
-        if not isinstance(table, dict):
-            raise AgentConfigError(path, name, "expected a table")
-        extra = set(table) - keys
-        if extra:
-            raise AgentConfigError(path, f"{name}.{sorted(extra)[0]}", "unknown key")
-    for key in ("model", "start", "roster"):
-        if key not in a:
-            raise AgentConfigError(path, f"agent.{key}", "missing")
+    try:
+        return _read_agent_config(path, robot)
+    except ScenarioError as exc:
+        raise AgentConfigError(path, exc.field or "toml", exc.reason) from None
+
+
+def _read_agent_config(path: Path, robot: str) -> AgentConfig:
+    label = str(path)
+    top = FieldReader(label, parse_toml(read_file(path, "agent config"), label), "")
+    top.check_keys({"agent", "zenoh"})
+    a = top.table("agent") if top.has("agent") else FieldReader(label, {}, "agent")
+    z = top.table("zenoh") if top.has("zenoh") else FieldReader(label, {}, "zenoh")
+    a.check_keys(_AGENT_KEYS)
+    z.check_keys(_ZENOH_KEYS)
     base = path.parent
-    model_path = base / _get(a, "model", str, path, "agent")
+    model_path = base / a.string("model")
     try:
         model = load_robot_model(model_path)
     except ScenarioError as exc:
-        raise AgentConfigError(path, "agent.model", str(exc)) from None
-    extent = Limits().world_extent
-    if "world_extent" in a:
-        extent = float(_get(a, "world_extent", (int, float), path, "agent"))
-        if not (math.isfinite(extent) and 1.0 <= extent <= MAX_EXTENT):
-            raise AgentConfigError(path, "agent.world_extent", f"must be in 1..{MAX_EXTENT:g} m")
-    start = _get(a, "start", list, path, "agent")
-    if not (
-        len(start) == 3
-        and all(isinstance(v, int | float) and not isinstance(v, bool) for v in start)
-        and all(math.isfinite(v) for v in start)
-        and abs(start[0]) <= extent
-        and abs(start[1]) <= extent
-        and abs(start[2]) <= 2 * math.pi
-    ):
-        reason = f"expected [x, y, theta]: |x|, |y| ≤ world_extent {extent:g} m, |theta| ≤ 2π"
-        raise AgentConfigError(path, "agent.start", reason)
-    roster = _get(a, "roster", list, path, "agent")
+        raise a.fail("model", str(exc)) from None
+    extent = a.number("world_extent", positive=True) if a.has("world_extent") else None
+    if extent is not None and not 1.0 <= extent <= MAX_EXTENT:
+        raise a.fail("world_extent", f"must be in 1..{MAX_EXTENT:g} m")
+    limits = Limits(num_classes=model.num_classes, world_extent=extent or Limits().world_extent)
+    x, y, theta = a.vector("start", 3)
+    if max(abs(x), abs(y)) > limits.world_extent or abs(theta) > 2 * math.pi:
+        reason = f"|x|, |y| ≤ world_extent {limits.world_extent:g} m and |theta| ≤ 2π"
+        raise a.fail("start", reason)
+    roster_field = a.array("roster")
+    roster = [roster_field.string(i) for i in range(len(roster_field.raw))]
     if not all(valid_id(r) for r in roster) or len(set(roster)) != len(roster):
-        raise AgentConfigError(path, "agent.roster", "expected distinct robot ids")
+        raise a.fail("roster", "expected distinct robot ids")
     if robot not in roster:
-        raise AgentConfigError(path, "agent.roster", f"does not list this robot ({robot})")
-    fleet = _get(a, "fleet", str, path, "agent") if "fleet" in a else "default"
+        raise a.fail("roster", f"does not list this robot ({robot})")
+    fleet = a.string("fleet") if a.has("fleet") else "default"
     if not valid_id(fleet):
-        raise AgentConfigError(path, "agent.fleet", f"invalid fleet name {fleet!r}")
-    seed = _get(a, "seed", int, path, "agent") if "seed" in a else 0
-    if not 0 <= seed < 2**63:
-        raise AgentConfigError(path, "agent.seed", "must be in 0..2^63-1")
-    mode = _get(a, "mode", str, path, "agent") if "mode" in a else "realtime"
+        raise a.fail("fleet", f"invalid fleet name {fleet!r}")
+    mode = a.string("mode") if a.has("mode") else "realtime"
     if mode not in MODES:
-        raise AgentConfigError(path, "agent.mode", f"{mode!r} (known: {', '.join(MODES)})")
-    period = (
-        float(_get(a, "gossip_period", (int, float), path, "agent"))
-        if "gossip_period" in a
-        else GOSSIP_PERIOD_S
-    )
-    if not (math.isfinite(period) and 0.01 <= period <= 3600):
-        raise AgentConfigError(path, "agent.gossip_period", "must be in 0.01..3600 s")
-    window = _get(a, "window", int, path, "agent") if "window" in a else WINDOW_STEPS
-    if not 1 <= window <= 100_000:
-        raise AgentConfigError(path, "agent.window", "must be in 1..100000 steps")
-    journal = None
-    if "journal" in a:
-        journal = base / _get(a, "journal", str, path, "agent")
+        raise a.fail("mode", f"{mode!r} (known: {', '.join(MODES)})")
+    period = a.number("gossip_period") if a.has("gossip_period") else GOSSIP_PERIOD_S
+    if not 0.01 <= period <= 3600:
+        raise a.fail("gossip_period", "must be in 0.01..3600 s")
     runtime = CoreSettings(
         mode=mode,
         gossip_period=period,
-        window=window,
-        publish_local=_get(a, "publish_local", bool, path, "agent")
-        if "publish_local" in a
-        else True,
-        simulation=_get(a, "simulation", bool, path, "agent") if "simulation" in a else False,
+        window=a.integer("window", 1, 100_000) if a.has("window") else WINDOW_STEPS,
+        publish_local=a.boolean("publish_local") if a.has("publish_local") else True,
+        simulation=a.boolean("simulation") if a.has("simulation") else False,
     )
-    listen = tuple(_get(z, "listen", list, path, "zenoh")) if "listen" in z else ()
-    connect = tuple(_get(z, "connect", list, path, "zenoh")) if "connect" in z else ()
-    for name, endpoints in (("listen", listen), ("connect", connect)):
-        for e in endpoints:
-            if not isinstance(e, str) or "/" not in e:
-                raise AgentConfigError(
-                    path, f"zenoh.{name}", f"bad endpoint {e!r} (e.g. tcp/127.0.0.1:7447)"
-                )
-    config_file = base / _get(z, "config_file", str, path, "zenoh") if "config_file" in z else None
-    lease_ms = _get(z, "lease_ms", int, path, "zenoh") if "lease_ms" in z else 3000
-    if not 100 <= lease_ms <= 3_600_000:
-        raise AgentConfigError(path, "zenoh.lease_ms", "must be in 100..3600000 ms")
+    endpoints = {}
+    for name in ("listen", "connect"):
+        field = z.array(name) if z.has(name) else FieldReader(label, [], f"zenoh.{name}")
+        values = [field.string(i) for i in range(len(field.raw))]
+        for e in values:
+            if "/" not in e:
+                raise z.fail(name, f"bad endpoint {e!r} (e.g. tcp/127.0.0.1:7447)")
+        endpoints[name] = tuple(values)
     zenoh_settings = ZenohSettings(
-        listen=listen,
-        connect=connect,
-        gossip=_get(z, "gossip", bool, path, "zenoh") if "gossip" in z else True,
-        shared_memory=_get(z, "shared_memory", bool, path, "zenoh")
-        if "shared_memory" in z
-        else False,
-        lease_ms=lease_ms,
-        config_file=config_file,
+        listen=endpoints["listen"],
+        connect=endpoints["connect"],
+        gossip=z.boolean("gossip") if z.has("gossip") else True,
+        shared_memory=z.boolean("shared_memory") if z.has("shared_memory") else False,
+        lease_ms=z.integer("lease_ms", 100, 3_600_000) if z.has("lease_ms") else 3000,
+        config_file=base / z.string("config_file") if z.has("config_file") else None,
     )
     return AgentConfig(
-        robot, fleet, model_path, model, (float(start[0]), float(start[1]), float(start[2])),
-        frozenset(roster), seed, runtime, journal, zenoh_settings,
-        Limits(num_classes=model.num_classes, world_extent=extent),
-    )  # fmt: skip
+        robot=robot,
+        fleet=fleet,
+        model_path=model_path,
+        model=model,
+        start=(x, y, theta),
+        roster=frozenset(roster),
+        seed=a.integer("seed", 0, 2**63 - 1) if a.has("seed") else 0,
+        runtime=runtime,
+        journal=base / a.string("journal") if a.has("journal") else None,
+        zenoh=zenoh_settings,
+        limits=limits,
+    )
 
 
 def node_factory(config: AgentConfig) -> Callable[[], RobotNode]:

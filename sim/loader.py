@@ -273,6 +273,12 @@ class FieldReader:
             raise self.fail(key, f"{value} must be ≤ {maximum}")
         return value
 
+    def boolean(self, key: str | int) -> bool:
+        value = self._get(key)
+        if not isinstance(value, bool):
+            raise self.fail(key, f"expected true or false, got {_type_name(value)}")
+        return value
+
     def number(self, key: str | int, positive: bool = False) -> float:
         value = self._get(key)
         if isinstance(value, bool) or not isinstance(value, int | float):
