@@ -10,6 +10,7 @@ from __future__ import annotations
 # The BLAS thread variables are pinned by the ``deploy`` package itself (deploy/__init__.py),
 # which Python imports before this module.
 import argparse
+import importlib.metadata
 import logging
 import sys
 from collections.abc import Sequence
@@ -78,7 +79,10 @@ def build_parser() -> argparse.ArgumentParser:
         prog="semfleet",
         description="Distributed, consistent, multi-robot semantic SLAM.",
     )
-    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    parser.add_argument(
+        "-v", "--verbose", action="store_true", help="debug logging (semfleet's own modules)"
+    )
+    parser.add_argument("--version", action="version", version=f"semfleet {_version()}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     scenario_cmd.add_parser(sub)
     study_cmd.add_parser(sub)
@@ -91,13 +95,25 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+OWN_LOGGERS = ("semfleet", "agents", "deploy", "estimator", "protocol", "sim")
+
+
+def _version() -> str:
+    try:
+        return importlib.metadata.version("semfleet")
+    except importlib.metadata.PackageNotFoundError:
+        return "unknown (not installed)"
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     logging.basicConfig(
-        level=logging.DEBUG if args.verbose else logging.WARNING,
-        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+        level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s: %(message)s"
     )
+    if args.verbose:  # our debug lines only, not matplotlib's, numba's or asyncio's
+        for package in OWN_LOGGERS:
+            logging.getLogger(package).setLevel(logging.DEBUG)
     console = Console()
     try:
         code: int = args.run(args, console)

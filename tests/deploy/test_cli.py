@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 import errno
+import importlib.metadata
 import json
 import os
 import subprocess
@@ -349,3 +350,25 @@ def test_study_dead_worker_is_a_one_line_run_failure() -> None:
     with pytest.raises(StudyError, match="run with seed 7 failed: ") as caught:
         run_seeded({7: (os._exit, 3)}, jobs=1)
     assert exit_code(caught.value) == 1
+
+
+def test_version_prints_the_installed_version(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as info:
+        main(["--version"])
+    assert info.value.code == 0
+    assert capsys.readouterr().out.strip() == f"semfleet {importlib.metadata.version('semfleet')}"
+
+
+CLI = (sys.executable, "-m", "deploy.cli")
+
+
+def test_verbose_shows_semfleet_debug_lines_only(tmp_path: Path) -> None:
+    r = subprocess.run(
+        [*CLI, "-v", "scenario", "plot", "paper", "-o", str(tmp_path / "p.png")],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=ROOT,
+    )
+    assert r.returncode == 0, r.stderr
+    assert "matplotlib" not in r.stderr and "PIL" not in r.stderr, r.stderr[:2000]
