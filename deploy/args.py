@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 
+from sim.loader import MAX_CLASSES
+
 MAX_SEED = 2**63 - 1
 
 
@@ -23,8 +25,8 @@ def positive_int(text: str) -> int:
 
 def class_count(text: str) -> int:
     value = _integer(text)
-    if value < 2:
-        raise argparse.ArgumentTypeError(f"{text}: need at least 2 classes")
+    if not 2 <= value <= MAX_CLASSES:
+        raise argparse.ArgumentTypeError(f"{text}: need 2 to {MAX_CLASSES} classes")
     return value
 
 

@@ -15,7 +15,7 @@ from rich.table import Table
 from deploy.args import class_count, positive_int, seed
 from deploy.errors import UsageError
 from sim.generate import dump_scenario, generate_scenario
-from sim.loader import load_scenario
+from sim.loader import load_scenario, parse_scenario
 from sim.robot_model import dump_robot_model
 from sim.scenario import Scenario, ScenarioError
 from sim.world import World
@@ -199,9 +199,14 @@ def run_generate(args: argparse.Namespace, console: Console) -> int:
         area=args.area,
         comm_range=args.comm_range,
     )
+    text = dump_scenario(scenario)
+    try:  # never write a file that cannot be read back
+        parse_scenario(text, args.output)
+    except ScenarioError as exc:
+        raise UsageError(f"the generated world would not load: {exc}") from None
     out = Path(args.output)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(dump_scenario(scenario), encoding="utf-8")
+    out.write_text(text, encoding="utf-8")
     console.print(f"wrote {out} ({scenario.name})")
     return 0
 

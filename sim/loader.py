@@ -36,7 +36,7 @@ _CLASSIFIER_MODELS = ("paper", "aliased")
 _PRIOR_TOLERANCE = 1e-6
 _MAX_INT = 2**32 - 1  # ids, steps and counts; ids travel as unsigned 32-bit integers on the wire
 _MAX_FLOAT_INT = 2**53
-_MAX_CLASSES = 64
+MAX_CLASSES = 64  # the wire carries a class as one byte; scores are at most 64 long
 _MAX_STEPS = 1_000_000
 # The tables of a robot model file, which a scenario file has too.
 MODEL_TABLES = ("classes", "classifier", "noise", "sensor")
@@ -353,7 +353,7 @@ def robot_model_tables(top: FieldReader, owner: str) -> RobotModel:
 
 def _classes(f: FieldReader) -> tuple[int, tuple[float, ...]]:
     f.check_keys({"count", "prior"})
-    m = f.integer("count", minimum=2, maximum=_MAX_CLASSES)
+    m = f.integer("count", minimum=2, maximum=MAX_CLASSES)
     if not f.has("prior"):
         return m, tuple([1.0 / m] * m)
     prior = f.vector("prior", m, positive=True)

@@ -372,3 +372,19 @@ def test_verbose_shows_semfleet_debug_lines_only(tmp_path: Path) -> None:
     )
     assert r.returncode == 0, r.stderr
     assert "matplotlib" not in r.stderr and "PIL" not in r.stderr, r.stderr[:2000]
+
+
+def test_scenario_generate_refuses_more_classes_than_a_scenario_may_have(tmp_path: Path) -> None:
+    r = semfleet(*GENERATE, "--seed", "1", "--classes", "65", "-o", "g.toml", cwd=tmp_path)
+    assert r.returncode == 2 and "65: need 2 to 64 classes" in r.stderr, r.stderr
+    assert not (tmp_path / "g.toml").exists()
+
+
+def test_scenario_generate_never_writes_a_file_it_cannot_read_back(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    monkeypatch.setattr("deploy.scenario_cmd.dump_scenario", lambda s: 'format = 1\nname = "x"\n')
+    out = tmp_path / "g.toml"
+    code = main([*GENERATE, "--seed", "1", "-o", str(out)])
+    assert code == 2 and not out.exists()
+    assert "the generated world would not load" in capsys.readouterr().err
