@@ -21,6 +21,11 @@ from deploy.launch_cmd import counters_table, write_outputs
 from deploy.scenario_cmd import render_show, save_ground_truth_plot
 from sim.loader import load_scenario
 
+STUDY_HINT = (
+    "semfleet study --scenario paper --methods local,distributed,double_count,centralized "
+    "--runs 100"
+)
+
 
 def final_table(doc: dict[str, Any], steps: int) -> Table:
     """Local vs distributed at the final step, mean over robots."""
@@ -55,8 +60,7 @@ def run(args: argparse.Namespace, console: Console) -> int:
     console.print(final_table(doc, scenario.steps))
     console.print(
         f"demo took {time.perf_counter() - start:.1f} s (agents ran {outcome.wall_s:.1f} s); "
-        f"ground truth in {png}. All four methods over 100 runs: "
-        "semfleet study --methods local,distributed,double_count,centralized --runs 100"
+        f"ground truth in {png}. All four methods over 100 runs: {STUDY_HINT}"
     )
     return 0
 

@@ -9,6 +9,7 @@ import errno
 import importlib.metadata
 import json
 import os
+import shlex
 import subprocess
 import sys
 from collections.abc import Callable
@@ -20,7 +21,7 @@ from rich.console import Console
 from agents.journal import JournalError
 from deploy import demo as demo_cmd
 from deploy.agent_cmd import AgentConfigError
-from deploy.cli import exit_code, main
+from deploy.cli import build_parser, exit_code, main
 from deploy.conductor import ConductorError
 from deploy.errors import RunFailure, UsageError
 from deploy.launch import LaunchError
@@ -388,3 +389,8 @@ def test_scenario_generate_never_writes_a_file_it_cannot_read_back(
     code = main([*GENERATE, "--seed", "1", "-o", str(out)])
     assert code == 2 and not out.exists()
     assert "the generated world would not load" in capsys.readouterr().err
+
+
+def test_the_study_command_the_demo_suggests_parses() -> None:
+    args = build_parser().parse_args(shlex.split(demo_cmd.STUDY_HINT)[1:])
+    assert args.scenario == "paper" and args.runs == 100
