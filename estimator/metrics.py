@@ -1,7 +1,10 @@
-"""Evaluation of a belief against ground truth (design doc §8). Pure functions of arrays."""
+"""Evaluation of an estimate against ground truth (design doc §8), for both estimators: the hybrid
+belief's metrics, and the consistency measures every study shares — NEES and its χ² bounds (from
+scipy). Pure functions of arrays."""
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 
 import numpy as np
@@ -31,6 +34,10 @@ METRICS = (
 
 # Equal-width bins on [0, 1] of the class expected calibration error.
 ECE_BINS = 10
+
+# Variance floor (m², rad²) of :func:`nees` for a covariance that may be singular: a collapsed
+# particle set (one particle copied N times, P = 0) is reported as overconfident, not hidden.
+NEES_VARIANCE_FLOOR = 1e-12
 
 # A probability below this is clipped before the log-loss, so a pruned true class costs a large
 # but finite amount.
@@ -96,10 +103,33 @@ def world_position_cov(pose: Array, cov: Array) -> Array:
     return np.asarray(rot @ cov[..., :2, :2] @ np.swapaxes(rot, -1, -2))
 
 
+def nees(error: Array, cov: Array, floor: float | None = None) -> Array:
+    """Normalised estimation error squared eᵀΣ⁻¹e: error (..., d), cov (..., d, d) → (...).
+
+    With ``floor``, the eigenvalues of the symmetrised Σ are raised to at least ``floor`` before
+    inverting, so a singular Σ gives a large NEES instead of an error (see
+    :data:`NEES_VARIANCE_FLOOR`)."""
+    if floor is None:
+        solved = np.linalg.solve(cov, error[..., None])[..., 0]
+        return np.asarray(np.einsum("...i,...i->...", error, solved))
+    w, v = np.linalg.eigh(0.5 * (cov + np.swapaxes(cov, -1, -2)))
+    proj = (np.swapaxes(v, -1, -2) @ error[..., None])[..., 0]
+    return np.asarray(np.sum(proj**2 / np.maximum(w, floor), axis=-1))
+
+
 def pose_nees(estimate: Array, cov: Array, truth: Array) -> Array:
-    """eᵀΣ⁻¹e with e = Logmap(x̂⁻¹ x_gt) (3 dof): estimate (..., 3), cov (..., 3, 3) → (...)."""
-    e = se2.local(estimate, truth)
-    return np.asarray(np.einsum("...i,...i->...", e, np.linalg.solve(cov, e[..., None])[..., 0]))
+    """NEES of a pose whose covariance lives in the body-frame tangent space (GTSAM's marginals),
+    3 dof: e = Logmap(x̂⁻¹ x_gt); estimate (..., 3), cov (..., 3, 3) → (...)."""
+    return nees(se2.local(estimate, truth), cov)
+
+
+def world_pose_nees(mean: Array, cov: Array, truth: Array) -> float:
+    """NEES of a pose belief N(mean, cov) in world coordinates (x, y, θ) — a particle filter's
+    moments — 3 dof: e = truth − mean with θ wrapped, Σ floored by :data:`NEES_VARIANCE_FLOOR`;
+    mean (3,), cov (3, 3), truth (3,)."""
+    e = truth - mean
+    e[2] = (e[2] + math.pi) % (2 * math.pi) - math.pi
+    return float(nees(e, cov, NEES_VARIANCE_FLOOR))
 
 
 def mixture_position_nees(weights: Array, pose: Array, cov: Array, truth_xy: Array) -> Array:
@@ -113,8 +143,7 @@ def mixture_position_nees(weights: Array, pose: Array, cov: Array, truth_xy: Arr
     spread = xy - mean
     within = world_position_cov(pose, cov)
     total = np.sum(w[..., None] * (within + spread[..., :, None] * spread[..., None, :]), axis=0)
-    e = truth_xy - mean
-    return np.asarray(np.einsum("...i,...i->...", e, np.linalg.solve(total, e[..., None])[..., 0]))
+    return nees(truth_xy - mean, total)
 
 
 def evaluate(
@@ -157,8 +186,7 @@ def evaluate(
     out["object_sqrt_det"] = float(np.mean(w @ np.sqrt(np.linalg.det(obj_pos_cov))))
     top_e = snap.object_pose[top, :, :2] - truth[:, :2]
     top_cov = obj_pos_cov[top]
-    nees = np.einsum("ni,ni->n", top_e, np.linalg.solve(top_cov, top_e[..., None])[..., 0])
-    out["object_nees"] = float(np.mean(nees))
+    out["object_nees"] = float(np.mean(nees(top_e, top_cov)))
     out["object_nees_mixture"] = float(
         np.mean(mixture_position_nees(w, snap.object_pose, snap.object_cov, truth[:, :2]))
     )
@@ -176,8 +204,19 @@ def evaluate_calibration(
 
 
 def chi2_bounds(dof: int, runs: int, probability: float = 0.95) -> tuple[float, float]:
-    """Two-sided bounds of the average NEES over ``runs`` runs of a ``dof``-dimensional error."""
+    """Two-sided bounds of the average NEES over ``runs`` runs of a ``dof``-dimensional error:
+    the ANEES of a consistent estimator lies inside with ``probability``."""
+    # Imported here: scipy.stats takes 0.3 s to import, and every process that scores a belief
+    # imports this module.
     from scipy.stats import chi2
 
     tail = (1.0 - probability) / 2.0
     return float(chi2.ppf(tail, dof * runs) / runs), float(chi2.ppf(1.0 - tail, dof * runs) / runs)
+
+
+def chi2_bound(dof: int, probability: float = 0.99) -> float:
+    """The upper bound of one NEES of a ``dof``-dimensional error: a consistent estimator's NEES
+    stays below it with ``probability`` (χ²₃ 99 %: 11.34)."""
+    from scipy.stats import chi2
+
+    return float(chi2.ppf(probability, dof))

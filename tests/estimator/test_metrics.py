@@ -12,7 +12,9 @@ from estimator.hybrid import BeliefSnapshot
 from estimator.metrics import (
     ECE_BINS,
     METRICS,
+    NEES_VARIANCE_FLOOR,
     calibration_stats,
+    chi2_bound,
     chi2_bounds,
     class_ece,
     class_log_loss,
@@ -22,7 +24,9 @@ from estimator.metrics import (
     evaluate_calibration,
     mixture_position_nees,
     msde,
+    nees,
     pose_nees,
+    world_pose_nees,
     world_position_cov,
 )
 from tests.tolerance import assert_close
@@ -158,6 +162,40 @@ def test_world_position_cov_eighth_turn_and_stacks() -> None:
     assert_close(got[0, 1], [[2.5, 1.5], [1.5, 2.5]], atol=1e-12)
 
 
+def test_nees_full_covariance_and_batches() -> None:
+    a = np.array([[0.3, 0.05, 0.01], [0.0, 0.2, 0.02], [0.0, 0.0, 0.1]])
+    cov = a @ a.T
+    e = np.array([0.1, -0.2, 0.05])
+    expected = float(e @ np.linalg.inv(cov) @ e)
+    assert_close(nees(e, cov), expected)
+    # the floored form is the same number while Σ is well above the floor
+    assert_close(nees(e, cov, NEES_VARIANCE_FLOOR), expected)
+    batch = nees(np.stack([e, 2 * e]), np.stack([cov, cov]), NEES_VARIANCE_FLOOR)
+    assert_close(batch, [expected, 4 * expected])
+
+
+def test_nees_floor_lifts_a_singular_covariance() -> None:
+    e = np.array([0.0, 1e-3])
+    cov = np.diag([1.0, 0.0])
+    assert_close(nees(e, cov, floor=1e-8), 1e-6 / 1e-8)
+    with pytest.raises(np.linalg.LinAlgError):
+        nees(e, cov)
+
+
+def test_world_pose_nees_is_a_world_frame_vector_error() -> None:
+    cov = np.diag([0.04, 0.01, 0.0025])
+    assert_close(world_pose_nees(np.zeros(3), cov, np.array([0.2, 0.1, 0.05])), 3.0)
+    # the error is not rotated into the estimate's frame, unlike pose_nees
+    facing_y = np.array([0.0, 0.0, math.pi / 2])
+    assert_close(world_pose_nees(facing_y, cov, np.array([0.2, 0.0, math.pi / 2])), 1.0)
+    # θ is wrapped: 2π − 0.05 away is 0.05 away
+    assert_close(
+        world_pose_nees(np.array([0, 0, np.pi - 0.02]), cov, np.array([0, 0, -np.pi + 0.03])), 1.0
+    )
+    # a collapsed particle set (P = 0) is overconfident, not an error
+    assert world_pose_nees(np.zeros(3), np.zeros((3, 3)), np.array([0.1, 0.0, 0.0])) > 1e9
+
+
 def test_pose_nees_translation_seen_from_rotated_estimate() -> None:
     # The estimate faces +y, so a truth 1 m further along +y is 1 m ahead in the body frame.
     estimate = np.array([0.0, 0.0, math.pi / 2])
@@ -238,6 +276,15 @@ def test_mixture_position_nees_per_object() -> None:
 def test_chi2_bounds_match_design_doc() -> None:
     assert_close(chi2_bounds(3, 100), (2.54, 3.50), atol=0.005, rtol=0, what="d = 3, N = 100")
     assert_close(chi2_bounds(2, 100), (1.63, 2.41), atol=0.005, rtol=0, what="d = 2, N = 100")
+
+
+def test_chi2_bound_is_the_one_sided_quantile() -> None:
+    # the χ² table: 11.345 (3 dof, 99 %), 5.991 (2 dof, 95 %), 6.635 (1 dof, 99 %)
+    assert_close(chi2_bound(3), 11.345, atol=5e-4, rtol=0)
+    assert_close(chi2_bound(2, 0.95), 5.991, atol=5e-4, rtol=0)
+    assert_close(chi2_bound(1, 0.99), 6.635, atol=5e-4, rtol=0)
+    # one run: the two-sided ANEES band's upper end is the one-sided bound at 1 − (1 − p)/2
+    assert_close(chi2_bounds(3, 1, 0.98)[1], chi2_bound(3, 0.99))
 
 
 def _snapshot() -> BeliefSnapshot:
