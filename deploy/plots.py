@@ -1,15 +1,34 @@
-"""Plots. Each function draws on an axes it is given; none reads settings from the environment."""
+"""Every plot of semfleet. Each ``plot_*`` function draws data on an axes it is given; the
+``write_*`` functions lay out and save the figures of a study. None reads settings from the
+environment. Import it only where a plot is drawn: matplotlib takes a second to import.
+
+Over 300 lines for a reason: the one home of the project's plots (issue 12), with the hybrid-belief
+study's, the UFastSLAM study's and the scenario's figures side by side.
+"""
 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
 
+import matplotlib
 import matplotlib.pyplot as plt
 import numpy as np
 from matplotlib.axes import Axes
+from matplotlib.figure import Figure
 from matplotlib.patches import Wedge
 
+from deploy.results import pooled_calibration
+from deploy.study import RunResult
+from deploy.ufastslam_study import LABELS, METHODS, MethodRun, SeedRun, semantic_method
+from estimator.hybrid import BeliefSnapshot
+from estimator.metrics import chi2_bounds
+from sim.scenario import Scenario
+from sim.ufastslam import UWorld
 from sim.world import World
+
+DPI = 110
 
 _ROBOT_COLOURS = plt.get_cmap("tab10")
 _CLASS_COLOURS = plt.get_cmap("Set1")
@@ -24,7 +43,9 @@ def plot_ground_truth(ax: Axes, world: World, cone_steps: Sequence[int] = ()) ->
         colour = _ROBOT_COLOURS(i % 10)
         ax.plot(traj[:, 0], traj[:, 1], "-", color=colour, lw=1.5, label=r.id)
         ax.plot(*traj[0, :2], "o", color=colour, ms=6)
-        ax.annotate(r.id, traj[0, :2], textcoords="offset points", xytext=(4, 4), color=colour)
+        ax.annotate(
+            r.id, tuple(traj[0, :2]), textcoords="offset points", xytext=(4, 4), color=colour
+        )
         for k in cone_steps:
             if not 0 <= k <= s.steps:
                 continue
@@ -88,7 +109,7 @@ def plot_ground_truth(ax: Axes, world: World, cone_steps: Sequence[int] = ()) ->
     ax.legend(loc="best", fontsize=8)
 
 
-_METHOD_STYLE = {
+_METHOD_STYLE: dict[str, dict[str, Any]] = {
     "local": {"color": "tab:blue", "ls": "-"},
     "distributed": {"color": "tab:green", "ls": "-"},
     "double_count": {"color": "tab:red", "ls": "--"},
@@ -171,7 +192,7 @@ def covariance_ellipse(
 def plot_hypotheses(
     ax_map: Axes,
     ax_class: Axes,
-    snap: object,
+    snap: BeliefSnapshot,
     world: World,
     robot: str,
     k: int,
@@ -182,37 +203,36 @@ def plot_hypotheses(
     from estimator.metrics import class_marginals, world_position_cov
 
     s = world.scenario
-    w = snap.weights  # type: ignore[attr-defined]
+    w = snap.weights
     order = np.argsort(-w)[:max_hypotheses]
     traj = world.trajectories[robot]
     ax_map.plot(traj[: k + 1, 0], traj[: k + 1, 1], "k-", lw=1, label=f"{robot} true path")
     truth = {o.id: o for o in s.objects}
-    ids = snap.object_ids  # type: ignore[attr-defined]
+    ids = snap.object_ids
     for j in ids:
-        ax_map.plot(*truth[j].pose[:2], "ks", ms=5, mfc="none")
-        ax_map.annotate(
-            str(j), truth[j].pose[:2], textcoords="offset points", xytext=(4, 4), fontsize=7
-        )
+        tx, ty = truth[j].pose[:2]
+        ax_map.plot(tx, ty, "ks", ms=5, mfc="none")
+        ax_map.annotate(str(j), (tx, ty), textcoords="offset points", xytext=(4, 4), fontsize=7)
     cmap = plt.get_cmap("viridis")
     # Lightest first, so the heaviest hypothesis is drawn on top.
     for rank, h in reversed(list(enumerate(order))):
         colour = cmap(rank / max(1, len(order) - 1))
         label = f"h{rank + 1}: w = {w[h]:.2f}"
-        rp = snap.robot_pose[h]  # type: ignore[attr-defined]
+        rp = snap.robot_pose[h]
         ax_map.plot(*rp[:2], "o", color=colour, ms=4, label=label)
         covariance_ellipse(
             ax_map, rp[:2], world_position_cov(rp, snap.robot_cov[h]), color=colour, lw=0.8
-        )  # type: ignore[attr-defined]
+        )
         for n in range(len(ids)):
-            op = snap.object_pose[h, n]  # type: ignore[attr-defined]
-            oc = world_position_cov(op, snap.object_cov[h, n])  # type: ignore[attr-defined]
+            op = snap.object_pose[h, n]
+            oc = world_position_cov(op, snap.object_cov[h, n])
             covariance_ellipse(ax_map, op[:2], oc, color=colour, lw=0.8)
             ax_map.plot(*op[:2], ".", color=colour, ms=4)
     ax_map.set_aspect("equal")
     ax_map.set_title(f"{robot} at k = {k}: top {len(order)} of {len(w)} hypotheses (2σ)")
     ax_map.legend(fontsize=7)
     ax_map.grid(True, alpha=0.3)
-    prob = class_marginals(w, snap.classes, s.num_classes)  # type: ignore[attr-defined]
+    prob = class_marginals(w, snap.classes, s.num_classes)
     x = np.arange(len(ids))
     true_c1 = np.array([1.0 if truth[j].class_index == 0 else 0.0 for j in ids])
     ax_class.bar(x, prob[:, 0], color="tab:blue", label="P(c = 1)")
@@ -224,3 +244,183 @@ def plot_hypotheses(
     ax_class.set_xlabel("object")
     ax_class.set_title("class 1 probability per object")
     ax_class.legend(fontsize=7)
+
+
+def save(fig: Figure, path: Path) -> Path:
+    """Save ``fig`` as a PNG at ``path`` and close it."""
+    fig.savefig(path, dpi=DPI, bbox_inches="tight")
+    plt.close(fig)
+    return path
+
+
+# ---- the hybrid-belief study (docs/results.md, "Plots") ----------------------------------------
+
+# metric, y label, title, the NEES degrees of freedom of its χ² band (None: no band)
+STUDY_CURVES = (
+    ("msde", "MSDE", "class accuracy (paper Fig. 3a)", None),
+    ("robot_error", "robot position error [m]", "robot error (Fig. 2b)", None),
+    ("object_error", "object position error [m]", "object error (Fig. 2c)", None),
+    ("robot_sqrt_det", "√det Σ_robot [m²]", "robot uncertainty (Fig. 2d)", None),
+    ("object_sqrt_det", "√det Σ_objects [m²]", "object uncertainty (Fig. 2e)", None),
+    ("robot_nees", "NEES (top hypothesis, 3 dof)", "robot pose NEES", 3),
+    ("object_nees", "NEES (top hypothesis, 2 dof)", "object position NEES", 2),
+    ("hypotheses", "hypotheses", "hypotheses per belief", None),
+)
+
+
+def write_study_plots(
+    out: Path,
+    doc: dict[str, Any],
+    scenario: Scenario,
+    results: Sequence[RunResult],
+    step: int,
+    robot: str,
+) -> list[Path]:
+    """The curves of ``doc``'s means, the reliability diagram at ``step`` and the first run's
+    hypothesis snapshots of ``robot`` into ``out``; the paths written."""
+    matplotlib.use("Agg")
+    written = []
+    for metric, ylabel, title, dof in STUDY_CURVES:
+        fig, ax = plt.subplots(figsize=(7, 4.5))
+        curves = {m: e["mean"][metric] for m, e in doc["methods"].items()}
+        band = None if dof is None else chi2_bounds(dof, doc["runs"])
+        plot_curves(ax, curves, ylabel, f"{doc['scenario']}: {title}", band)
+        written.append(save(fig, out / f"{metric}.png"))
+    pooled = {m: pooled_calibration(results, m) for m in doc["methods"]}
+    at_step = {m: p[step - 1] for m, p in pooled.items() if p is not None}
+    if at_step:
+        fig, (ax, ax_counts) = plt.subplots(
+            2, 1, figsize=(6.5, 7), sharex=True, gridspec_kw={"height_ratios": [3, 1]}
+        )
+        title = f"{doc['scenario']}: class calibration at k = {step}"
+        plot_reliability(ax, ax_counts, at_step, title)
+        written.append(save(fig, out / "reliability.png"))
+    world = World(scenario)
+    for method, snaps in results[0].snapshots.items():
+        if robot not in snaps:
+            continue
+        fig, (ax_map, ax_class) = plt.subplots(
+            1, 2, figsize=(13, 5.5), gridspec_kw={"width_ratios": [1.4, 1]}
+        )
+        plot_hypotheses(ax_map, ax_class, snaps[robot], world, robot, step)
+        fig.suptitle(f"{method}, seed {results[0].seed} (paper Fig. 3b/3c)")
+        written.append(save(fig, out / f"hypotheses_{method}_{robot}_k{step}.png"))
+    return written
+
+
+# ---- the UFastSLAM study (docs/ufastslam.md) ---------------------------------------------------
+
+
+def plot_paths(
+    ax: Axes,
+    landmark_ids: Sequence[int],
+    landmarks: np.ndarray,
+    truth: np.ndarray,
+    odometry: np.ndarray,
+    est: MethodRun,
+    title: str,
+) -> None:
+    """Like the paper's Fig. 4, 7 and 10: true path (steps + 1, 3), odometry (steps + 1, 3), the
+    estimate, true landmarks (L, 2) and estimated ones, and the relation groups the estimate used
+    (dotted, on the estimated map)."""
+    ax.plot(truth[:, 0], truth[:, 1], "k-", lw=1.4, label="true path")
+    ax.plot(odometry[:, 0], odometry[:, 1], "--", color="0.55", lw=1.0, label="odometry")
+    ax.plot(est.path[:, 0], est.path[:, 1], "-", color="tab:red", lw=1.2, label="estimate")
+    ax.plot(*landmarks.T, "s", ms=5, mfc="none", mec="k", label="true landmarks")
+    ax.plot(*est.map_xy.T, "x", color="tab:blue", ms=5, label="estimated landmarks")
+    for lid, (x, y) in zip(landmark_ids, landmarks, strict=True):
+        ax.annotate(str(lid), (x, y), textcoords="offset points", xytext=(3, 3), fontsize=6)
+    where = {lid: xy for lid, xy in zip(est.map_ids, est.map_xy, strict=True)}
+    colours = {"x": "tab:green", "y": "tab:purple", "col": "tab:orange"}
+    shown = set()
+    for kind, _, members in est.groups:
+        pts = np.array([where[m] for m in members if m in where]).reshape(-1, 2)
+        if len(pts) < 2:
+            continue
+        order = np.argsort(pts[:, 1] if kind == "x" else pts[:, 0])
+        label = None if kind in shown else f"{kind} relation"
+        shown.add(kind)
+        ax.plot(*pts[order].T, ":", color=colours[kind], lw=1.0, label=label)
+    ax.plot(*truth[0, :2], "ko", ms=6)
+    ax.set_aspect("equal")
+    ax.grid(True, alpha=0.3)
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.set_title(title, fontsize=10)
+    ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.12), ncol=4)
+
+
+def plot_error_curves(ax: Axes, curves: dict[str, np.ndarray], dt: float, title: str) -> None:
+    """Mean position error over time per method: ``curves`` label → (steps + 1,)."""
+    for label, curve in curves.items():
+        ax.plot(np.arange(len(curve)) * dt, curve, label=label)
+    ax.set_xlabel("time [s]")
+    ax.set_ylabel("position error [m]")
+    ax.set_title(title, fontsize=10)
+    ax.grid(True, alpha=0.3)
+    ax.legend(fontsize=8)
+
+
+def plot_per_run(
+    ax: Axes, seeds: Sequence[int], plain: np.ndarray, semantic: np.ndarray, label: str
+) -> None:
+    """Pose RMSE of UFastSLAM and the semantic variant on every run: plain, semantic (runs,)."""
+    x = np.arange(len(seeds))
+    ax.bar(x - 0.2, plain, 0.4, label="UFastSLAM", color="tab:gray")
+    ax.bar(x + 0.2, semantic, 0.4, label=label, color="tab:red")
+    ax.set_xticks(x, [str(s) for s in seeds], fontsize=7)
+    ax.set_xlabel("seed")
+    ax.set_ylabel("pose RMSE [m]")
+    ax.grid(True, axis="y", alpha=0.3)
+    ax.legend(fontsize=8)
+
+
+def write_ufastslam_plots(
+    out: Path, world: UWorld, runs: Sequence[SeedRun], relations: str
+) -> list[Path]:
+    """The first seed's paths, the mean position error over time and the pose RMSE per run of a
+    UFastSLAM study into ``out``; the paths written."""
+    matplotlib.use("Agg")
+    first = runs[0]
+    semantic = semantic_method(relations)
+    sem_label = f"Semantic UFastSLAM ({relations})"
+    odometry = first.methods["odometry"].path
+    written = []
+    extent = np.ptp(np.vstack([world.landmarks, first.truth[:, :2], odometry[:, :2]]), axis=0)
+    height = float(np.clip(6.5 * extent[1] / max(extent[0], 1e-9), 3.0, 10.0))
+    fig, axes = plt.subplots(1, 2, figsize=(14, height + 1.6), layout="constrained")
+    for ax, method, title in (
+        (axes[0], "ufastslam", "(a) UFastSLAM"),
+        (axes[1], semantic, f"(b) {sem_label}"),
+    ):
+        plot_paths(
+            ax,
+            world.landmark_ids,
+            world.landmarks,
+            first.truth,
+            odometry,
+            first.methods[method],
+            title,
+        )
+    fig.suptitle(f"{world.name}, seed {first.seed} (like the paper's Fig. 4, 7, 10)")
+    written.append(save(fig, out / f"paths_seed{first.seed}.png"))
+    fig, ax = plt.subplots(figsize=(8, 4.5))
+    curves = {}
+    for m in METHODS:
+        paths = np.stack([r.methods[m].path for r in runs])
+        error = np.linalg.norm(paths[..., :2] - first.truth[None, :, :2], axis=-1)
+        curves[LABELS[m]] = error.mean(0)
+    title = f"{world.name}: mean position error over {len(runs)} runs"
+    plot_error_curves(ax, curves, world.dt, title)
+    written.append(save(fig, out / "position_error.png"))
+    fig, ax = plt.subplots(figsize=(max(6, 0.4 * len(runs) + 2), 4))
+    plot_per_run(
+        ax,
+        [r.seed for r in runs],
+        np.array([r.methods["ufastslam"].pose_rmse for r in runs]),
+        np.array([r.methods[semantic].pose_rmse for r in runs]),
+        sem_label,
+    )
+    ax.set_title(f"{world.name}: pose RMSE per run", fontsize=10)
+    written.append(save(fig, out / "pose_rmse_per_run.png"))
+    return written

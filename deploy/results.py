@@ -1,12 +1,20 @@
-"""Study results: aggregation over runs and robots, and the results.json / results.npz files
-(schema in docs/results.md)."""
+"""The results archive of every study: one typed value, one writer, one reader (schema in
+docs/results.md).
+
+A :class:`ResultsArchive` is what ``results.json`` and ``results.npz`` hold: the same envelope for
+the hybrid-belief study (``semfleet study``, ``launch``, ``chaos``, ``demo``) and the UFastSLAM
+study (``semfleet ufastslam``), a summary entry per method, the study's own settings and the
+arrays behind the summaries. :func:`study_archive` builds the hybrid-belief study's archive from
+its runs; ``deploy.ufastslam_study.ufastslam_archive`` the UFastSLAM study's.
+"""
 
 from __future__ import annotations
 
 import json
 import math
 import warnings
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -18,9 +26,164 @@ from estimator.metrics import METRICS, ece_from_stats
 
 Array = NDArray[np.float64]
 
-RESULTS_FORMAT = 1
+# Format 2 (issue 12): one envelope for both studies, with the ``study`` key telling them apart;
+# format 1 were two unrelated schemas.
+RESULTS_FORMAT = 2
+STUDIES = ("hybrid", "ufastslam")
+# The keys every results.json starts with; a study's settings may not reuse them.
+ENVELOPE = ("format", "study", "scenario", "runs", "seeds", "steps", "methods")
 # The percentiles of step and fusion times reported next to their maximum.
 TAIL_PERCENTILES = (50, 95, 99)
+
+
+@dataclass(frozen=True, slots=True)
+class ResultsArchive:
+    """One study's results. ``methods``: method → its summary (JSON values, means over runs);
+    ``settings``: the study's run-level values (JSON values, written after ``methods``);
+    ``arrays``: the values behind the summaries, ``results.npz`` keys → arrays (``seeds`` is
+    added by the writer)."""
+
+    study: str
+    scenario: str
+    seeds: tuple[int, ...]
+    steps: int
+    methods: Mapping[str, Mapping[str, Any]]
+    settings: Mapping[str, Any]
+    arrays: Mapping[str, NDArray[Any]]
+
+    def __post_init__(self) -> None:
+        if self.study not in STUDIES:
+            raise ValueError(f"unknown study {self.study!r} (known: {', '.join(STUDIES)})")
+        clash = sorted(set(self.settings) & set(ENVELOPE))
+        if clash:
+            raise ValueError(f"settings {clash} would overwrite the results.json envelope")
+        if "seeds" in self.arrays:
+            raise ValueError("arrays: 'seeds' is written from the archive's seeds")
+
+    def document(self) -> dict[str, Any]:
+        """The results.json document."""
+        return {
+            "format": RESULTS_FORMAT,
+            "study": self.study,
+            "scenario": self.scenario,
+            "runs": len(self.seeds),
+            "seeds": list(self.seeds),
+            "steps": self.steps,
+            "methods": {m: dict(entry) for m, entry in self.methods.items()},
+            **self.settings,
+        }
+
+
+def write_archive(out: Path, archive: ResultsArchive) -> None:
+    """``out/results.json`` (strict JSON: no NaN or Infinity) and ``out/results.npz``."""
+    _write(out, archive.document(), archive.arrays, archive.seeds)
+
+
+def _write(
+    out: Path, doc: Mapping[str, Any], arrays: Mapping[str, NDArray[Any]], seeds: Sequence[int]
+) -> None:
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "results.json").write_text(
+        json.dumps(doc, indent=1, allow_nan=False) + "\n", encoding="utf-8"
+    )
+    npz = {**arrays, "seeds": np.array(seeds, dtype=np.int64)}
+    np.savez_compressed(out / "results.npz", **npz)  # type: ignore[arg-type]
+
+
+def read_results(path: Path) -> dict[str, Any]:
+    """Read a results.json and check its format."""
+    doc: dict[str, Any] = json.loads(path.read_text(encoding="utf-8"))
+    if doc.get("format") != RESULTS_FORMAT:
+        raise ValueError(f"{path}: unsupported results format {doc.get('format')!r}")
+    return doc
+
+
+# ---- the hybrid-belief study ---------------------------------------------------------------
+
+
+def study_archive(
+    scenario: str,
+    results: Sequence[RunResult],
+    methods: Sequence[str],
+    settings: Mapping[str, Any] | None = None,
+) -> ResultsArchive:
+    """The archive of hybrid-belief runs: per method the mean curves and figures of
+    :func:`method_summary`, the arrays of :func:`study_arrays`; ``robots`` (the robot axis of
+    every array, from the runs) leads the ``settings``."""
+    robots = list(results[0].robots)
+    axes = next(iter(results[0].metrics[methods[0]].values())).shape  # (robots, steps)
+    if robots and len(robots) != axes[0]:
+        raise ValueError(f"robots {robots} do not match the runs' {axes[0]} robots")
+    return ResultsArchive(
+        "hybrid",
+        scenario,
+        tuple(r.seed for r in results),
+        axes[1],
+        {m: method_summary(results, m) for m in methods},
+        {"robots": robots, **(settings or {})},
+        study_arrays(results, methods),
+    )
+
+
+def summarise(
+    scenario: str,
+    results: Sequence[RunResult],
+    methods: Sequence[str],
+    extra: dict[str, Any] | None = None,
+) -> dict[str, Any]:
+    """The results.json document of :func:`study_archive` (kept for deploy/launch_cmd.py)."""
+    return study_archive(scenario, results, methods, extra).document()
+
+
+def write_results(
+    out: Path, doc: dict[str, Any], results: Sequence[RunResult], methods: Sequence[str]
+) -> None:
+    """Write ``doc`` and the arrays of ``results`` (kept for deploy/launch_cmd.py; new code
+    writes a :class:`ResultsArchive` with :func:`write_archive`)."""
+    _write(out, doc, study_arrays(results, methods), [r.seed for r in results])
+
+
+def method_summary(results: Sequence[RunResult], method: str) -> dict[str, Any]:
+    """One method's results.json entry: mean curves, pooled class ECE, wall time, step-time
+    tails and, where the runs measured them, the fleets' fusion, stack and join figures."""
+    stacked = stack_runs(results, method)
+    all_ms = np.concatenate([r.step_ms[method] for r in results])
+    entry: dict[str, Any] = {"mean": {m: mean_curve(stacked[m]) for m in METRICS}}
+    pooled = pooled_calibration(results, method)
+    if pooled is not None:
+        entry["class_ece_pooled"] = _nullable(ece_from_stats(pooled))
+    entry["wall_s"] = float(sum(r.wall_s[method] for r in results))
+    entry.update(tail("step_ms", all_ms))
+    if any(method in r.fusion_ms for r in results):
+        fusion = np.concatenate([r.fusion_ms[method] for r in results])
+        sizes = np.concatenate([r.stack_bytes[method] for r in results]).astype(float)
+        entry.update(tail("fusion_ms", fusion))
+        entry["stack_bytes_mean"] = float(sizes.mean()) if len(sizes) else 0.0
+        entry["stack_bytes_max"] = int(sizes.max()) if len(sizes) else 0
+        entry["stacks_delivered"] = len(sizes)
+    if all(method in r.empty_joins for r in results):
+        entry["empty_joins"] = int(sum(sum(r.empty_joins[method]) for r in results))
+        entry["rebuilds"] = int(sum(sum(r.rebuilds[method]) for r in results))
+    return entry
+
+
+def study_arrays(results: Sequence[RunResult], methods: Sequence[str]) -> dict[str, NDArray[Any]]:
+    """``METHOD/METRIC`` (runs, robots, steps), step times, class-ECE bin statistics and the
+    fleets' fusion times, empty joins and rebuilds."""
+    arrays: dict[str, NDArray[Any]] = {}
+    for method in methods:
+        for metric, values in stack_runs(results, method).items():
+            arrays[f"{method}/{metric}"] = values
+        arrays[f"{method}/step_ms"] = np.array([r.step_ms[method] for r in results])
+        if method in results[0].fusion_ms:
+            arrays[f"{method}/fusion_ms"] = np.array([r.fusion_ms[method] for r in results])
+        if all(method in r.calibration for r in results):
+            arrays[f"{method}/calibration"] = np.stack([r.calibration[method] for r in results])
+        if all(method in r.empty_joins for r in results):
+            for key in ("empty_joins", "rebuilds"):
+                counts = [getattr(r, key)[method] for r in results]
+                arrays[f"{method}/{key}"] = np.array(counts, dtype=np.int64)
+    return arrays
 
 
 def stack_runs(results: Sequence[RunResult], method: str) -> dict[str, Array]:
@@ -56,78 +219,3 @@ def tail(name: str, values: Sequence[float] | Array) -> dict[str, float | None]:
         return dict.fromkeys(keys)
     figures = [*np.percentile(values, TAIL_PERCENTILES), np.max(values)]
     return {k: float(v) for k, v in zip(keys, figures, strict=True)}
-
-
-def summarise(
-    scenario: str,
-    results: Sequence[RunResult],
-    methods: Sequence[str],
-    extra: dict[str, Any] | None = None,
-) -> dict[str, Any]:
-    """The results.json document."""
-    steps = next(iter(results[0].metrics[methods[0]].values())).shape[-1]
-    doc: dict[str, Any] = {
-        "format": RESULTS_FORMAT,
-        "scenario": scenario,
-        "runs": len(results),
-        "seeds": [r.seed for r in results],
-        "steps": steps,
-        "methods": {},
-    }
-    for method in methods:
-        stacked = stack_runs(results, method)
-        all_ms = np.concatenate([r.step_ms[method] for r in results])
-        entry: dict[str, Any] = {"mean": {m: mean_curve(stacked[m]) for m in METRICS}}
-        pooled = pooled_calibration(results, method)
-        if pooled is not None:
-            entry["class_ece_pooled"] = _nullable(ece_from_stats(pooled))
-        entry["wall_s"] = float(sum(r.wall_s[method] for r in results))
-        entry.update(tail("step_ms", all_ms))
-        if any(method in r.fusion_ms for r in results):
-            fusion = np.concatenate([r.fusion_ms[method] for r in results])
-            sizes = np.concatenate([r.stack_bytes[method] for r in results]).astype(float)
-            entry.update(tail("fusion_ms", fusion))
-            entry["stack_bytes_mean"] = float(sizes.mean()) if len(sizes) else 0.0
-            entry["stack_bytes_max"] = int(sizes.max()) if len(sizes) else 0
-            entry["stacks_delivered"] = len(sizes)
-        if all(method in r.empty_joins for r in results):
-            entry["empty_joins"] = int(sum(sum(r.empty_joins[method]) for r in results))
-            entry["rebuilds"] = int(sum(sum(r.rebuilds[method]) for r in results))
-        doc["methods"][method] = entry
-    if extra:
-        doc.update(extra)
-    return doc
-
-
-def write_results(
-    out: Path, doc: dict[str, Any], results: Sequence[RunResult], methods: Sequence[str]
-) -> None:
-    """Write ``out/results.json`` and ``out/results.npz`` (arrays ``METHOD/METRIC``, step times,
-    class-ECE bin statistics and the fleets' fusion figures)."""
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "results.json").write_text(
-        json.dumps(doc, indent=1, allow_nan=False) + "\n", encoding="utf-8"
-    )
-    arrays = {}
-    for method in methods:
-        for metric, values in stack_runs(results, method).items():
-            arrays[f"{method}/{metric}"] = values
-        arrays[f"{method}/step_ms"] = np.array([r.step_ms[method] for r in results])
-        if method in results[0].fusion_ms:
-            arrays[f"{method}/fusion_ms"] = np.array([r.fusion_ms[method] for r in results])
-        if all(method in r.calibration for r in results):
-            arrays[f"{method}/calibration"] = np.stack([r.calibration[method] for r in results])
-        if all(method in r.empty_joins for r in results):
-            for key in ("empty_joins", "rebuilds"):
-                counts = [getattr(r, key)[method] for r in results]
-                arrays[f"{method}/{key}"] = np.array(counts, dtype=np.int64)
-    arrays["seeds"] = np.array([r.seed for r in results], dtype=np.int64)
-    np.savez_compressed(out / "results.npz", **arrays)  # type: ignore[arg-type]
-
-
-def read_results(path: Path) -> dict[str, Any]:
-    """Read a results.json and check its format."""
-    doc: dict[str, Any] = json.loads(path.read_text(encoding="utf-8"))
-    if doc.get("format") != RESULTS_FORMAT:
-        raise ValueError(f"{path}: unsupported results format {doc.get('format')!r}")
-    return doc

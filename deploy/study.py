@@ -2,19 +2,26 @@
 
 Every run is an independent process (``spawn``: GTSAM's iSAM2 cannot be pickled or forked safely)
 that simulates the scenario's frames once and feeds the very same frames to every method.
+:func:`run_study` returns one :class:`RunResult` per seed; ``deploy.results.study_archive`` turns
+them into the results archive. :func:`run_seeded` is the process pool of both studies.
 """
 
 from __future__ import annotations
 
+import multiprocessing
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from agents.node import LocalTrack, RobotNode
 from deploy.build import belief_model, belief_rng, link_model_for, make_nodes
+from deploy.errors import RunFailure
 from deploy.fleet import FleetStats, StepCallback, run_fleets
 from estimator.hybrid import BeliefConfig, BeliefModel, BeliefSnapshot, HybridBelief
 from estimator.metrics import ECE_BINS, METRICS, evaluate, evaluate_calibration
@@ -35,7 +42,9 @@ class RunResult:
 
     ``calibration[method]`` (robots, steps, 3, ECE_BINS) holds the class-ECE bin statistics
     (``estimator.metrics.calibration_stats``); the fleets' ``fusion_ms``, ``empty_joins`` and
-    ``rebuilds`` have one entry per robot step, in the order of ``step_ms``."""
+    ``rebuilds`` have one entry per robot step, in the order of ``step_ms``; ``stack_bytes`` the
+    size of every delivered stack. ``robots`` names the robot axis of every array, in order
+    (empty: not recorded)."""
 
     seed: int
     metrics: dict[str, dict[str, Array]]
@@ -47,6 +56,57 @@ class RunResult:
     calibration: dict[str, Array] = field(default_factory=dict)
     empty_joins: dict[str, list[int]] = field(default_factory=dict)
     rebuilds: dict[str, list[int]] = field(default_factory=dict)
+    robots: tuple[str, ...] = ()
+
+
+class StudyError(RunFailure):
+    """A worker process of a run died (killed, out of memory); the message names the seed."""
+
+
+def run_study(
+    scenario: Scenario,
+    methods: list[str],
+    seeds: list[int],
+    config: BeliefConfig,
+    jobs: int,
+    snapshot_step: int | None,
+    advance: Callable[[], None] = lambda: None,
+    comm: str | None = None,
+) -> list[RunResult]:
+    """Run every seed in its own spawned process, at most ``jobs`` at once; results in seed
+    order. Only the first seed keeps belief snapshots (at ``snapshot_step``)."""
+    calls = {
+        seed: (run_single, scenario, methods, seed, config, snapshot_step if i == 0 else None, comm)
+        for i, seed in enumerate(seeds)
+    }
+    return run_seeded(calls, jobs, advance)
+
+
+def run_seeded(
+    calls: dict[int, tuple[Any, ...]], jobs: int, advance: Callable[[], None] = lambda: None
+) -> list[Any]:
+    """``calls[seed] = (function, *args)``, each in a spawned process (at most ``jobs`` at once;
+    ``deploy`` pins their BLAS to one thread); results in the order of ``calls``. The first
+    failure cancels the rest: a worker that died becomes a :class:`StudyError` naming its seed,
+    an exception raised by a run is re-raised as it is (a bug keeps its traceback, the remote one
+    included), with a note naming the seed. ``advance()`` after every finished run."""
+    done: dict[int, Any] = {}
+    ctx = multiprocessing.get_context("spawn")
+    with ProcessPoolExecutor(max_workers=jobs, mp_context=ctx) as pool:
+        futures = {pool.submit(*call): seed for seed, call in calls.items()}
+        for fut in as_completed(futures):
+            seed = futures[fut]
+            try:
+                done[seed] = fut.result()
+            except Exception as exc:
+                for other in futures:
+                    other.cancel()
+                if isinstance(exc, BrokenProcessPool):
+                    raise StudyError(f"run with seed {seed} failed: {exc}") from exc
+                exc.add_note(f"in the run with seed {seed}")
+                raise
+            advance()
+    return [done[s] for s in calls]
 
 
 def run_single(
@@ -106,6 +166,7 @@ def run_single(
         calibration={m: recorders[m].calibration for m in methods},
         empty_joins={m: st.empty_joins for m, st in fleet.items()},
         rebuilds={m: st.rebuilds for m, st in fleet.items()},
+        robots=tuple(robots),
     )
 
 

@@ -1,14 +1,10 @@
-"""`semfleet study`: the paper's Monte Carlo comparison, as parallel seeded processes."""
+"""`semfleet study`: the paper's Monte Carlo comparison, as parallel seeded processes. Parses the
+options, runs :func:`deploy.study.run_study`, writes its archive and plots, prints the tables."""
 
 from __future__ import annotations
 
 import argparse
-import contextlib
-import multiprocessing
-import os
-from collections.abc import Callable, Iterator
-from concurrent.futures import ProcessPoolExecutor, as_completed
-from concurrent.futures.process import BrokenProcessPool
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -17,18 +13,20 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from rich.table import Table
 
 from deploy.args import MAX_SEED, positive_int, seed
-from deploy.errors import RunFailure, UsageError
+from deploy.errors import UsageError
 from deploy.fleet import COMM_MODES
-from deploy.results import pooled_calibration, summarise, write_results
+from deploy.results import study_archive, write_archive
 from deploy.scenario_cmd import scenario_from_args
-from deploy.study import METHODS, RunResult, run_single
+
+# StudyError, run_seeded: imported from here by tests/deploy/test_cli.py before issue 12.
+from deploy.study import METHODS, RunResult, run_study
+from deploy.study import StudyError as StudyError
+from deploy.study import run_seeded as run_seeded
 from estimator.hybrid import BeliefConfig
 from estimator.metrics import chi2_bounds
 from estimator.weights import WEIGHT_ESTIMATORS
 from sim.scenario import Scenario
-from sim.world import World
 
-_THREAD_VARIABLES = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
 # Rows of the comparison table per method: a curve of the method's results.json entry
 # (class_ece_pooled) or of its means.
 SUMMARY_METRICS = (
@@ -40,79 +38,6 @@ SUMMARY_METRICS = (
     "robot_nees",
     "hypotheses",
 )
-
-
-class StudyError(RunFailure):
-    """A worker process of a run died (killed, out of memory); the message names the seed."""
-
-
-def run_study(
-    scenario: Scenario,
-    methods: list[str],
-    seeds: list[int],
-    config: BeliefConfig,
-    jobs: int,
-    snapshot_step: int | None,
-    progress: Progress | None = None,
-    comm: str | None = None,
-) -> list[RunResult]:
-    """Run every seed in its own spawned process; results come back in seed order."""
-    task = progress.add_task("runs", total=len(seeds)) if progress else None
-
-    def advance() -> None:
-        if progress is not None and task is not None:
-            progress.advance(task)
-
-    calls = {
-        seed: (run_single, scenario, methods, seed, config, snapshot_step if i == 0 else None, comm)
-        for i, seed in enumerate(seeds)
-    }
-    return run_seeded(calls, jobs, advance)
-
-
-def run_seeded(
-    calls: dict[int, tuple[Any, ...]], jobs: int, advance: Callable[[], None] = lambda: None
-) -> list[Any]:
-    """``calls[seed] = (function, *args)``, each in a spawned single-threaded process (at most
-    ``jobs`` at once); results in the order of ``calls``. The first failure cancels the rest: a
-    worker that died becomes a :class:`StudyError` naming its seed, an exception raised by a run
-    is re-raised as it is (a bug keeps its traceback, the remote one included), with a note naming
-    the seed. ``advance()`` after every finished run."""
-    done: dict[int, Any] = {}
-    ctx = multiprocessing.get_context("spawn")
-    with single_threaded_children(), ProcessPoolExecutor(max_workers=jobs, mp_context=ctx) as pool:
-        futures = {pool.submit(*call): seed for seed, call in calls.items()}
-        for fut in as_completed(futures):
-            seed = futures[fut]
-            try:
-                done[seed] = fut.result()
-            except Exception as exc:
-                for other in futures:
-                    other.cancel()
-                if isinstance(exc, BrokenProcessPool):
-                    raise StudyError(f"run with seed {seed} failed: {exc}") from exc
-                exc.add_note(f"in the run with seed {seed}")
-                raise
-            advance()
-    return [done[s] for s in calls]
-
-
-@contextlib.contextmanager
-def single_threaded_children() -> Iterator[None]:
-    """Spawned workers inherit one BLAS/OpenMP thread each. The matrices are tiny, and a multi-
-    threaded BLAS in every worker of a pool oversubscribes the cores: measured 3× slower for two
-    workers on two cores. Variables the user set explicitly are left alone."""
-    saved = {v: os.environ.get(v) for v in _THREAD_VARIABLES}
-    for v in _THREAD_VARIABLES:
-        os.environ.setdefault(v, "1")
-    try:
-        yield
-    finally:
-        for v, value in saved.items():
-            if value is None:
-                os.environ.pop(v, None)
-            else:
-                os.environ[v] = value
 
 
 def _methods(text: str) -> list[str]:
@@ -194,72 +119,15 @@ def write_plots(
     step: int,
     robot: str,
 ) -> list[Path]:
-    import matplotlib
+    """:func:`deploy.plots.write_study_plots`, imported when called: matplotlib takes a second to
+    import, and every command imports this module (deploy/launch_cmd.py calls it by this name)."""
+    from deploy.plots import write_study_plots
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from deploy.plots import plot_curves, plot_hypotheses, plot_reliability
-
-    written = []
-    specs = [
-        ("msde", "MSDE", "class accuracy (paper Fig. 3a)", None),
-        ("robot_error", "robot position error [m]", "robot error (Fig. 2b)", None),
-        ("object_error", "object position error [m]", "object error (Fig. 2c)", None),
-        ("robot_sqrt_det", "√det Σ_robot [m²]", "robot uncertainty (Fig. 2d)", None),
-        ("object_sqrt_det", "√det Σ_objects [m²]", "object uncertainty (Fig. 2e)", None),
-        (
-            "robot_nees",
-            "NEES (top hypothesis, 3 dof)",
-            "robot pose NEES",
-            chi2_bounds(3, doc["runs"]),
-        ),
-        (
-            "object_nees",
-            "NEES (top hypothesis, 2 dof)",
-            "object position NEES",
-            chi2_bounds(2, doc["runs"]),
-        ),
-        ("hypotheses", "hypotheses", "hypotheses per belief", None),
-    ]
-    for metric, ylabel, title, band in specs:
-        fig, ax = plt.subplots(figsize=(7, 4.5))
-        curves = {m: e["mean"][metric] for m, e in doc["methods"].items()}
-        plot_curves(ax, curves, ylabel, f"{doc['scenario']}: {title}", band)
-        path = out / f"{metric}.png"
-        fig.savefig(path, dpi=110, bbox_inches="tight")
-        plt.close(fig)
-        written.append(path)
-    pooled = {m: pooled_calibration(results, m) for m in doc["methods"]}
-    at_step = {m: p[step - 1] for m, p in pooled.items() if p is not None}
-    if at_step:
-        fig, (ax, ax_counts) = plt.subplots(
-            2, 1, figsize=(6.5, 7), sharex=True, gridspec_kw={"height_ratios": [3, 1]}
-        )
-        title = f"{doc['scenario']}: class calibration at k = {step}"
-        plot_reliability(ax, ax_counts, at_step, title)
-        path = out / "reliability.png"
-        fig.savefig(path, dpi=110, bbox_inches="tight")
-        plt.close(fig)
-        written.append(path)
-    world = World(scenario)
-    for method, snaps in results[0].snapshots.items():
-        if robot not in snaps:
-            continue
-        fig, (ax_map, ax_class) = plt.subplots(
-            1, 2, figsize=(13, 5.5), gridspec_kw={"width_ratios": [1.4, 1]}
-        )
-        plot_hypotheses(ax_map, ax_class, snaps[robot], world, robot, step)
-        fig.suptitle(f"{method}, seed {results[0].seed} (paper Fig. 3b/3c)")
-        path = out / f"hypotheses_{method}_{robot}_k{step}.png"
-        fig.savefig(path, dpi=110, bbox_inches="tight")
-        plt.close(fig)
-        written.append(path)
-    return written
+    return write_study_plots(out, doc, scenario, results, step, robot)
 
 
 # Named hypothesis managements (docs/estimator.md): the default, the paper's, none.
-HYPOTHESIS_MANAGEMENT = {
+HYPOTHESIS_MANAGEMENT: dict[str, Callable[..., BeliefConfig]] = {
     "marginal": BeliefConfig,
     "paper": BeliefConfig.paper,
     "exact": BeliefConfig.exact,
@@ -294,18 +162,27 @@ def run(args: argparse.Namespace, console: Console) -> int:
         TimeElapsedColumn(),
     )
     with Progress(*columns, console=console, transient=False) as progress:
+        task = progress.add_task("runs", total=len(seeds))
         results = run_study(
-            scenario, args.methods, seeds, config, args.jobs, step, progress, args.comm
+            scenario,
+            args.methods,
+            seeds,
+            config,
+            args.jobs,
+            step,
+            lambda: progress.advance(task),
+            args.comm,
         )
-    extra = {
+    settings = {
         "weight_estimator": args.weights,
         "hypotheses": args.hypotheses,
         "max_hypotheses": config.max_hypotheses,
         "communication": comm,
     }
-    doc = summarise(scenario.name, results, args.methods, extra)
+    archive = study_archive(scenario.name, results, args.methods, settings)
     out = Path(args.out)
-    write_results(out, doc, results, args.methods)
+    write_archive(out, archive)
+    doc = archive.document()
     render_summary(doc, console)
     plots = write_plots(out, doc, scenario, results, step, robot)
     console.print(

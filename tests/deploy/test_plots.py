@@ -9,7 +9,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
-from deploy.plots import plot_reliability
+from deploy.plots import plot_error_curves, plot_paths, plot_per_run, plot_reliability
+from deploy.ufastslam_study import MethodRun
 from estimator.metrics import ECE_BINS, calibration_stats
 from tests.tolerance import assert_close
 
@@ -31,5 +32,50 @@ def test_plot_reliability_points_diagonal_and_counts() -> None:
         assert_close(heights[:ECE_BINS], local[0])
         assert_close(heights[ECE_BINS:], dist[0])
         assert ax.get_title() == "t"
+    finally:
+        plt.close(fig)
+
+
+def _method_run(path: np.ndarray, map_ids: tuple[int, ...], map_xy: np.ndarray) -> MethodRun:
+    groups = (("x", "west", (1, 2, 3)), ("x", "east", (4, 5)), ("y", "north", (1, 9)))
+    return MethodRun(0.1, 0.2, 0.3, 1.0, 2, 0, 3.0, 0.5, path, map_ids, map_xy, groups)
+
+
+def test_plot_paths_draws_the_estimate_and_its_mapped_groups() -> None:
+    truth = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [2.0, 0.5, 0.0]])
+    odometry = truth + 0.3
+    estimate = truth + 0.1
+    # landmark 9 is not mapped: group "north" has one mapped member and is not drawn
+    map_ids = (1, 2, 3, 4, 5)
+    map_xy = np.array([[0.0, 3.0], [0.1, 1.0], [0.0, 2.0], [3.0, 1.0], [3.1, 2.0]])
+    landmarks = np.array([[0.0, 3.0], [0.0, 1.0], [0.0, 2.0], [3.0, 1.0], [3.0, 2.0], [5.0, 5.0]])
+    fig, ax = plt.subplots()
+    try:
+        run = _method_run(estimate, map_ids, map_xy)
+        plot_paths(ax, (1, 2, 3, 4, 5, 9), landmarks, truth, odometry, run, "t")
+        lines = {line.get_label(): line for line in ax.get_lines()}
+        assert_close(lines["estimate"].get_xydata(), estimate[:, :2])
+        assert_close(lines["odometry"].get_xydata(), odometry[:, :2])
+        assert_close(lines["estimated landmarks"].get_xydata(), map_xy)
+        dotted = [line for line in ax.get_lines() if line.get_linestyle() == ":"]
+        assert len(dotted) == 2  # west and east; north has one mapped member
+        # a same-x group is drawn in order of y, labelled once per kind
+        assert_close(dotted[0].get_xydata(), [[0.1, 1.0], [0.0, 2.0], [0.0, 3.0]])
+        assert dotted[0].get_label() == "x relation"
+        assert dotted[1].get_label().startswith("_")  # no second legend entry for "x"
+        assert len(ax.texts) == 6 and ax.get_title() == "t"
+    finally:
+        plt.close(fig)
+
+
+def test_plot_error_curves_time_axis_and_plot_per_run_bars() -> None:
+    fig, (ax, ax_bars) = plt.subplots(1, 2)
+    try:
+        plot_error_curves(ax, {"a": np.array([0.0, 1.0, 4.0])}, 0.5, "t")
+        assert_close(ax.get_lines()[0].get_xydata(), [[0.0, 0.0], [0.5, 1.0], [1.0, 4.0]])
+        plot_per_run(ax_bars, [7, 8], np.array([0.4, 0.6]), np.array([0.1, 0.2]), "sem")
+        heights = [bar.get_height() for bar in ax_bars.patches]
+        assert_close(heights, [0.4, 0.6, 0.1, 0.2])
+        assert [t.get_text() for t in ax_bars.get_xticklabels()] == ["7", "8"]
     finally:
         plt.close(fig)

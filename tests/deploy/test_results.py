@@ -1,13 +1,29 @@
-"""Study results: pooled calibration, time tails and fusion counts, on hand-made runs."""
+"""The results archive (envelope, writer, reader) and the hybrid-belief study's summaries: pooled
+calibration, time tails and fusion counts, on hand-made runs."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
+import math
+import re
 from pathlib import Path
+from typing import Any
 
 import numpy as np
+import pytest
 
-from deploy.results import pooled_calibration, summarise, tail, write_results
+from deploy.results import (
+    RESULTS_FORMAT,
+    ResultsArchive,
+    pooled_calibration,
+    read_results,
+    study_archive,
+    summarise,
+    tail,
+    write_archive,
+    write_results,
+)
 from deploy.study import RunResult
 from estimator.metrics import ECE_BINS, METRICS, calibration_stats
 from tests.tolerance import assert_close
@@ -41,6 +57,7 @@ def _run(seed: int, calibration: np.ndarray, joins: list[int], rebuilds: list[in
         calibration={"local": calibration, "distributed": calibration},
         empty_joins={"distributed": joins},
         rebuilds={"distributed": rebuilds},
+        robots=("r1", "r2"),
     )
 
 
@@ -83,15 +100,15 @@ def test_pooled_calibration_sums_runs_and_robots() -> None:
     assert pooled_calibration(runs, "centralized") is None
 
 
-def test_summarise_pooled_ece_is_not_the_mean_of_robot_eces() -> None:
-    doc = summarise("hand", _two_runs(), ["local", "distributed"])
+def test_study_archive_pooled_ece_is_not_the_mean_of_robot_eces() -> None:
+    doc = study_archive("hand", _two_runs(), ["local", "distributed"]).document()
     # pooled: (|2.7 − 1| + |0.3 − 2|) / 6 = 3.4 / 6; the robots' own ECEs are 0.1, 0.9 and 0.9
     for method in ("local", "distributed"):
         assert_close(doc["methods"][method]["class_ece_pooled"], [3.4 / 6] * STEPS, what=method)
 
 
-def test_summarise_time_tails_and_fusion_counts() -> None:
-    doc = summarise("hand", _two_runs(), ["local", "distributed"])
+def test_study_archive_time_tails_and_fusion_counts() -> None:
+    doc = study_archive("hand", _two_runs(), ["local", "distributed"]).document()
     local, dist = doc["methods"]["local"], doc["methods"]["distributed"]
     assert_close(local["step_ms_p50"], 2.0)
     assert local["step_ms_max"] == 3.0
@@ -104,16 +121,15 @@ def test_summarise_time_tails_and_fusion_counts() -> None:
     assert isinstance(dist["empty_joins"], int) and isinstance(dist["rebuilds"], int)
 
 
-def test_summarise_no_object_known_is_null() -> None:
+def test_study_archive_no_object_known_is_null() -> None:
     nothing = np.zeros((ROBOTS, STEPS, 3, ECE_BINS))
-    doc = summarise("hand", [_run(0, nothing, [0] * 6, [0] * 6)], ["local"])
+    doc = study_archive("hand", [_run(0, nothing, [0] * 6, [0] * 6)], ["local"]).document()
     assert doc["methods"]["local"]["class_ece_pooled"] == [None] * STEPS
 
 
-def test_write_results_carries_bins_and_counts(tmp_path: Path) -> None:
+def test_write_archive_carries_bins_and_counts(tmp_path: Path) -> None:
     runs = _two_runs()
-    doc = summarise("hand", runs, ["local", "distributed"])
-    write_results(tmp_path, doc, runs, ["local", "distributed"])
+    write_archive(tmp_path, study_archive("hand", runs, ["local", "distributed"]))
     json.loads((tmp_path / "results.json").read_text(encoding="utf-8"))
     with np.load(tmp_path / "results.npz") as npz:
         arrays = {k: npz[k] for k in npz.files}
@@ -127,3 +143,97 @@ def test_write_results_carries_bins_and_counts(tmp_path: Path) -> None:
     )
     assert arrays["distributed/empty_joins"].dtype == np.int64
     assert "local/empty_joins" not in arrays
+
+
+def _archive(**changes: Any) -> ResultsArchive:
+    fields: dict[str, Any] = {
+        "study": "ufastslam",
+        "scenario": "w",
+        "seeds": (4, 5),
+        "steps": 3,
+        "methods": {"a": {"x": 1.5}},
+        "settings": {"particles": 7},
+        "arrays": {"a/x": np.array([1.0, 2.0])},
+    }
+    return ResultsArchive(**(fields | changes))
+
+
+def test_archive_document_is_the_envelope_then_the_settings() -> None:
+    doc = _archive().document()
+    assert list(doc) == [
+        "format", "study", "scenario", "runs", "seeds", "steps", "methods", "particles",
+    ]  # fmt: skip
+    assert doc["format"] == RESULTS_FORMAT == 2
+    assert (doc["study"], doc["runs"], doc["seeds"]) == ("ufastslam", 2, [4, 5])
+    assert doc["methods"] == {"a": {"x": 1.5}}
+
+
+@pytest.mark.parametrize(
+    ("changes", "fragment"),
+    [
+        ({"study": "mystery"}, "unknown study 'mystery'"),
+        ({"settings": {"runs": 3, "seeds": [], "x": 1}}, "settings ['runs', 'seeds'] would"),
+        ({"arrays": {"seeds": np.zeros(2)}}, "'seeds' is written from the archive's seeds"),
+    ],
+)
+def test_archive_refuses_what_the_files_cannot_hold(changes: dict[str, Any], fragment: str) -> None:
+    with pytest.raises(ValueError, match=re.escape(fragment)):
+        _archive(**changes)
+
+
+def test_write_archive_reads_back(tmp_path: Path) -> None:
+    write_archive(tmp_path, _archive())
+    assert read_results(tmp_path / "results.json") == _archive().document()
+    with np.load(tmp_path / "results.npz") as npz:
+        assert sorted(npz.files) == ["a/x", "seeds"]
+        np.testing.assert_array_equal(npz["seeds"], [4, 5])
+        assert npz["seeds"].dtype == np.int64
+
+
+def test_read_results_refuses_another_format(tmp_path: Path) -> None:
+    path = tmp_path / "results.json"
+    path.write_text(json.dumps({**_archive().document(), "format": 1}), encoding="utf-8")
+    with pytest.raises(ValueError, match="unsupported results format 1"):
+        read_results(path)
+
+
+def test_write_archive_refuses_nan(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match="Out of range float"):
+        write_archive(tmp_path, _archive(methods={"a": {"x": math.nan}}))
+
+
+def test_study_archive_records_robots_and_settings() -> None:
+    runs = _two_runs()
+    settings = {"communication": "range", "launch": {"mode": "lockstep"}}
+    archive = study_archive("hand", runs, ["local"], settings)
+    assert (archive.study, archive.seeds, archive.steps) == ("hybrid", (0, 1), STEPS)
+    doc = archive.document()
+    assert doc["robots"] == ["r1", "r2"]
+    assert doc["communication"] == "range" and doc["launch"] == {"mode": "lockstep"}
+    assert set(archive.arrays) == {f"local/{k}" for k in (*METRICS, "step_ms", "calibration")}
+
+
+def test_study_archive_refuses_robots_that_are_not_the_robot_axis() -> None:
+    runs = [dataclasses.replace(r, robots=("r1", "r2", "r3")) for r in _two_runs()]
+    with pytest.raises(ValueError, match=r"robots \['r1', 'r2', 'r3'\] do not match the runs' 2"):
+        study_archive("hand", runs, ["local"])
+
+
+def test_summarise_and_write_results_are_the_study_archive(tmp_path: Path) -> None:
+    # the names deploy/launch_cmd.py still calls
+    runs = _two_runs()
+    extra = {"launch": {"mode": "lockstep"}}
+    doc = summarise("hand", runs, ["local", "distributed"], extra)
+    archive = study_archive("hand", runs, ["local", "distributed"], extra)
+    assert doc == archive.document()
+    write_results(tmp_path / "old", doc, runs, ["local", "distributed"])
+    write_archive(tmp_path / "new", archive)
+    for name in ("results.json", "results.npz"):
+        old, new = (tmp_path / d / name for d in ("old", "new"))
+        if name.endswith(".json"):
+            assert old.read_text(encoding="utf-8") == new.read_text(encoding="utf-8")
+            continue
+        with np.load(old) as a, np.load(new) as b:
+            assert a.files == b.files
+            for key in a.files:
+                np.testing.assert_array_equal(a[key], b[key], err_msg=key)

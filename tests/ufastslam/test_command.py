@@ -1,4 +1,5 @@
-"""`semfleet ufastslam`: the table, results.json / results.npz, plots and user errors."""
+"""`semfleet ufastslam` and its study (deploy.ufastslam_study): the table, results.json /
+results.npz, plots and user errors."""
 
 from __future__ import annotations
 
@@ -12,9 +13,18 @@ import numpy as np
 import pytest
 
 from deploy.cli import main
-from deploy.ufastslam_cmd import METHODS, pose_nees, relation_is_true, run_all, run_seed
+from deploy.ufastslam_study import (
+    METHODS,
+    SeedRun,
+    filter_config,
+    relation_is_true,
+    run_all,
+    run_filter,
+    run_seed,
+    ufastslam_archive,
+)
 from estimator.ufastslam import AcceptedRelation
-from sim.ufastslam import UWorld, parse_world
+from sim.ufastslam import UWorld, parse_world, simulate
 from tests.tolerance import assert_close
 
 SEMFLEET = Path(sys.executable).with_name("semfleet")
@@ -141,9 +151,10 @@ def test_command_prints_the_table(two_runs: tuple[subprocess.CompletedProcess[st
 
 def test_results_json_schema(two_runs: tuple[subprocess.CompletedProcess[str], Path]) -> None:
     doc = read_json(two_runs[1])
-    assert doc["format"] == 1
+    assert doc["format"] == 2 and doc["study"] == "ufastslam"
     assert doc["scenario"] == "corridor"
     assert doc["runs"] == 2 and doc["seeds"] == [3, 4]
+    assert (doc["steps"], doc["particles"]) == (parse_world(WORLD).steps, 12)
     assert set(doc["methods"]) == SCHEMA_METHODS
     for entry in doc["methods"].values():
         assert set(entry) >= SCHEMA_METRICS
@@ -200,13 +211,53 @@ def test_jobs_do_not_change_results(
             np.testing.assert_array_equal(serial[key], parallel[key], err_msg=key)
 
 
-def test_a_run_depends_on_its_seed_only() -> None:
+@pytest.fixture(scope="module")
+def corridor_runs() -> list[SeedRun]:
+    """Seeds 3 and 4 with 10 particles, in this process."""
+    return run_all(parse_world(WORLD), [3, 4], 10, jobs=1)
+
+
+def test_a_run_depends_on_its_seed_only(corridor_runs: list[SeedRun]) -> None:
     world = parse_world(WORLD)
-    both = run_all(world, [3, 4], 10, jobs=1)
+    both = corridor_runs
     alone = run_seed(world, 4, 10)
     for method in METHODS:
         np.testing.assert_array_equal(both[1].methods[method].path, alone.methods[method].path)
     assert not np.array_equal(both[0].methods["ufastslam"].path, alone.methods["ufastslam"].path)
+
+
+@pytest.mark.parametrize("relations", ["threshold", "oracle"])
+def test_archive_semantic_ufastslam_is_the_chosen_variant(
+    corridor_runs: list[SeedRun], relations: str
+) -> None:
+    world = parse_world(WORLD)
+    archive = ufastslam_archive(world, corridor_runs, 10, relations)
+    chosen = f"semantic_{relations}"
+    doc = archive.document()
+    semantic = doc["methods"]["semantic_ufastslam"]
+    assert semantic["relations"] == relations
+    for key in ("pose_rmse", "relations_true", "pose_nees", "nees_over_bound"):
+        values = [getattr(r.methods[chosen], key) for r in corridor_runs]
+        assert semantic[key] == doc["table"][chosen][key] == float(np.mean(values)), key
+    wins = [r.methods[chosen].pose_rmse < r.methods["ufastslam"].pose_rmse for r in corridor_runs]
+    assert doc["semantic_beats_ufastslam"] == sum(wins)
+    paths = np.stack([r.methods[chosen].path for r in corridor_runs])
+    np.testing.assert_array_equal(archive.arrays["semantic_ufastslam/path"], paths)
+    errors = np.linalg.norm(paths[..., :2] - corridor_runs[0].truth[:, :2], axis=-1)
+    np.testing.assert_array_equal(archive.arrays["semantic_ufastslam/position_error"], errors)
+    assert (doc["study"], doc["seeds"], doc["particles"]) == ("ufastslam", [3, 4], 10)
+
+
+def test_archive_with_relations_off_counts_no_wins(corridor_runs: list[SeedRun]) -> None:
+    doc = ufastslam_archive(parse_world(WORLD), corridor_runs, 10, "off").document()
+    plain = doc["methods"]["ufastslam"]
+    assert doc["methods"]["semantic_ufastslam"] == {
+        **plain,
+        "relations_true": 0.0,
+        "relations_false": 0.0,
+        "relations": "off",
+    }
+    assert doc["semantic_beats_ufastslam"] == 0
 
 
 def test_relations_off_is_plain_ufastslam(world_file: Path, tmp_path: Path) -> None:
@@ -222,14 +273,28 @@ def test_relations_off_is_plain_ufastslam(world_file: Path, tmp_path: Path) -> N
 
 def test_semantic_with_relations_off_runs_the_same_filter() -> None:
     """The summary's shortcut for --relations off is what running the filter would give."""
-    from deploy.ufastslam_cmd import filter_config, run_filter
-    from sim.ufastslam import simulate
-
     world = parse_world(WORLD)
     run = simulate(world, 5)
     plain = run_seed(world, 5, 8).methods["ufastslam"]
     again = run_filter(world, run, filter_config(world, 8, "off"))
     np.testing.assert_array_equal(plain.path, again.path)
+
+
+def test_filter_nees_is_the_median_and_the_share_above_the_chi2_bound(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # χ²₃ 99 % is 11.34487: a NEES of 11.34495 is above it (and below the rounded 11.345)
+    import deploy.ufastslam_study as study
+
+    world = parse_world(WORLD)
+    values = [*[1.0, 11.34495] * (world.steps // 2), 20.0, 30.0][: world.steps]
+    stream = iter(values)
+    monkeypatch.setattr(study, "world_pose_nees", lambda mean, cov, truth: next(stream))
+    result = run_filter(world, simulate(world, 0), filter_config(world, 4, "off"))
+    above = sum(v > 11.3449 for v in values)
+    assert above == (world.steps + 1) // 2
+    assert result.nees_over_bound == above / world.steps
+    assert result.pose_nees == float(np.median(values))
 
 
 def once_relations(world: UWorld) -> int:
@@ -255,16 +320,6 @@ def test_relations_are_judged_against_the_truth() -> None:
     assert oracle.relations_true == once_relations(world) == 5
     threshold = result.methods["semantic_threshold"]
     assert threshold.relations_true + threshold.relations_false > 0
-
-
-def test_pose_nees() -> None:
-    cov = np.diag([0.04, 0.01, 0.0025])
-    assert_close(pose_nees(np.zeros(3), cov, np.array([0.2, 0.1, 0.05])), 3.0)
-    # θ is wrapped: 2π − 0.05 away is 0.05 away
-    assert_close(
-        pose_nees(np.array([0, 0, np.pi - 0.02]), cov, np.array([0, 0, -np.pi + 0.03])), 1.0
-    )
-    assert pose_nees(np.zeros(3), np.zeros((3, 3)), np.array([0.1, 0.0, 0.0])) > 1e9
 
 
 def test_relation_truth_judge() -> None:
