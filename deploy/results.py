@@ -145,7 +145,8 @@ def write_results(
 
 def method_summary(results: Sequence[RunResult], method: str) -> dict[str, Any]:
     """One method's results.json entry: mean curves, pooled class ECE, wall time, step-time
-    tails and, where the runs measured them, the fleets' fusion, stack and join figures."""
+    tails and, where every run measured them, the fleets' fusion times, stack sizes, empty joins
+    and rebuilds (each on its own: a run may record some and not others)."""
     stacked = stack_runs(results, method)
     all_ms = np.concatenate([r.step_ms[method] for r in results])
     entry: dict[str, Any] = {"mean": {m: mean_curve(stacked[m]) for m in METRICS}}
@@ -154,10 +155,10 @@ def method_summary(results: Sequence[RunResult], method: str) -> dict[str, Any]:
         entry["class_ece_pooled"] = _nullable(ece_from_stats(pooled))
     entry["wall_s"] = float(sum(r.wall_s[method] for r in results))
     entry.update(tail("step_ms", all_ms))
-    if any(method in r.fusion_ms for r in results):
-        fusion = np.concatenate([r.fusion_ms[method] for r in results])
+    if all(method in r.fusion_ms for r in results):
+        entry.update(tail("fusion_ms", np.concatenate([r.fusion_ms[method] for r in results])))
+    if all(method in r.stack_bytes for r in results):
         sizes = np.concatenate([r.stack_bytes[method] for r in results]).astype(float)
-        entry.update(tail("fusion_ms", fusion))
         entry["stack_bytes_mean"] = float(sizes.mean()) if len(sizes) else 0.0
         entry["stack_bytes_max"] = int(sizes.max()) if len(sizes) else 0
         entry["stacks_delivered"] = len(sizes)

@@ -237,3 +237,20 @@ def test_summarise_and_write_results_are_the_study_archive(tmp_path: Path) -> No
             assert a.files == b.files
             for key in a.files:
                 np.testing.assert_array_equal(a[key], b[key], err_msg=key)
+
+
+def test_study_archive_takes_fusion_times_and_stack_sizes_each_on_its_own() -> None:
+    # what a launcher may record: stack sizes without fusion times, or the reverse
+    sizes_only = [dataclasses.replace(r, fusion_ms={}) for r in _two_runs()]
+    entry = study_archive("hand", sizes_only, ["distributed"]).methods["distributed"]
+    assert (entry["stack_bytes_mean"], entry["stack_bytes_max"], entry["stacks_delivered"]) == (
+        200.0,
+        300,
+        4,
+    )
+    assert "fusion_ms_p50" not in entry
+    times_only = [dataclasses.replace(r, stack_bytes={}) for r in _two_runs()]
+    archive = study_archive("hand", times_only, ["distributed"])
+    assert archive.methods["distributed"]["fusion_ms_max"] == 0.5
+    assert "stack_bytes_mean" not in archive.methods["distributed"]
+    assert archive.arrays["distributed/fusion_ms"].shape == (2, ROBOTS * STEPS)
