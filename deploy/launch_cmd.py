@@ -21,18 +21,19 @@ from deploy.results import summarise, write_results
 from deploy.study import run_single
 from deploy.study_cmd import render_summary, write_plots
 from estimator.hybrid import BeliefConfig
+from estimator.models import ROBOT_ID
 from sim.loader import load_scenario
 from sim.scenario import Scenario
 
-_ROBOT_AT = re.compile(r"^([A-Za-z0-9_-]{1,32})@(\d+)$")
-_PARTITION = re.compile(r"^([A-Za-z0-9_,-]+):(\d+)-(\d+)$")
+_STEP = re.compile(r"^\d{1,9}$")
+_PARTITION = re.compile(r"^([A-Za-z0-9_,-]+):(\d{1,9})-(\d{1,9})$")
 
 
 def robot_at(text: str) -> tuple[str, int]:
-    m = _ROBOT_AT.fullmatch(text)
-    if not m:
+    robot, _, step = text.partition("@")
+    if not (ROBOT_ID.fullmatch(robot) and _STEP.fullmatch(step)):
         raise argparse.ArgumentTypeError(f"expected ROBOT@STEP, got {text!r}")
-    return m.group(1), int(m.group(2))
+    return robot, int(step)
 
 
 def partition(text: str) -> Partition:
@@ -91,11 +92,15 @@ def write_outputs(
     methods = list(LAUNCH_METHODS)
     doc = summarise(s.name, [outcome.result], methods, extra)
     write_results(plan.out, doc, [outcome.result], methods)
-    steps = min(s.steps, plan.steps or s.steps)
+    steps = plan.run_steps
     render_summary(doc, console)
     plots = write_plots(plan.out, doc, s, [outcome.result], steps, plan.robots[0])
     console.print(f"wrote {plan.out / 'results.json'} and {len(plots)} plots in {plan.out}")
     return doc
+
+
+def agents(n: int) -> str:
+    return f"{n} agent" if n == 1 else f"{n} agents"
 
 
 def counters_table(outcome: LaunchOutcome) -> Table:
@@ -125,10 +130,10 @@ def run_launch(args: argparse.Namespace, console: Console) -> int:
         steps=_steps(scenario, args.steps),
     )
     console.print(
-        f"launching {len(plan.robots)} agents of {scenario.name} ({plan.mode}, seed {plan.seed}) "
-        f"on loopback Zenoh; logs in {plan.out / 'logs'}"
+        f"launching {agents(len(plan.robots))} of {scenario.name} ({plan.mode}, seed "
+        f"{plan.seed}) on loopback Zenoh; logs in {plan.out / 'logs'}"
     )
-    outcome = launch(plan, args.scenario, console)
+    outcome = launch(plan, console=console)
     console.print(counters_table(outcome))
     console.print(f"run took {outcome.wall_s:.1f} s")
     write_outputs(plan, outcome, console, {"launch": {"mode": plan.mode, "wall_s": outcome.wall_s}})
@@ -154,18 +159,16 @@ def run_chaos(args: argparse.Namespace, console: Console) -> int:
         steps=_steps(scenario, args.steps),
     )
     console.print(
-        f"chaos on {scenario.name}, seed {plan.seed}: drop {faults.drop}, partitions "
-        f"{[(sorted(p.group), p.first, p.last) for p in faults.partitions]}, kills {list(kills)}, "
-        f"restarts {list(restarts)}, garbage {faults.garbage_rate}/s "
-        f"(realtime, period {plan.period} s)"
+        f"chaos on {scenario.name}, seed {plan.seed}: {faults.describe()} "
+        f"(realtime, period {plan.period:g} s)"
     )
-    outcome = launch(plan, args.scenario, console)
+    outcome = launch(plan, console=console)
     for e in outcome.events:
         console.print(f"- {e}")
     console.print(f"- garbage stacks published: {outcome.garbage_sent}")
     console.print(counters_table(outcome))
     doc = write_outputs(plan, outcome, console, {"chaos": {"events": outcome.events}})
-    steps = min(scenario.steps, plan.steps or scenario.steps)
+    steps = plan.run_steps
     # Frames are pure functions of (seed, robot, step): the first steps of the scenario are the
     # same run, and the steps after them (48 of the paper's 60 for --steps 12) cost minutes.
     reference = run_single(

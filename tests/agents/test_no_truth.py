@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from deploy.conductor import without_truth
+from deploy.launch.conductor import without_truth
 from estimator.models import SensorFrame
 from protocol.frames import decode_frame, encode_frame
 

@@ -27,8 +27,8 @@ from agents.node import RobotNode
 from agents.runtime import Agent
 from agents.transport import Inbox, Keys, MemoryBus, MemoryTransport
 from deploy.build import belief_model, belief_rng, make_node, make_nodes
-from deploy.conductor import Conductor
 from deploy.fleet import run_fleet
+from deploy.launch.conductor import Conductor
 from estimator.hybrid import BeliefConfig, BeliefSnapshot
 from estimator.models import SensorFrame
 from protocol.codec import StackMessage, encode

@@ -22,9 +22,9 @@ from agents.journal import JournalError
 from deploy import demo as demo_cmd
 from deploy.agent_cmd import AgentConfigError
 from deploy.cli import build_parser, exit_code, main
-from deploy.conductor import ConductorError
 from deploy.errors import RunFailure, UsageError
 from deploy.launch import LaunchError
+from deploy.launch.conductor import ConductorError
 from deploy.study_cmd import StudyError, run_seeded
 from estimator.distributed import SlotError
 from protocol.errors import LocalProtocolError, MalformedMessage

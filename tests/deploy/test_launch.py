@@ -27,7 +27,6 @@ from agents.links import Partition
 from agents.node import RobotNode
 from agents.transport import Inbox, Keys
 from agents.transport.zenoh_transport import ZenohTransport, loopback_endpoint, settings_for
-from deploy.conductor import without_truth
 from deploy.fleet import link_model_for, make_nodes, run_fleet
 from deploy.launch import (
     Faults,
@@ -39,6 +38,7 @@ from deploy.launch import (
     launch,
     write_agent_config,
 )
+from deploy.launch.conductor import without_truth
 from deploy.study import belief_model, belief_rng
 from estimator.hybrid import BeliefConfig, BeliefSnapshot
 from estimator.metrics import METRICS, evaluate
@@ -422,7 +422,7 @@ def test_agents_end_within_2_s_of_sigterm(tmp_path: Path) -> None:
         (tmp_path / "model.toml").write_text(dump_robot_model(PAPER.robot_model()), "utf-8")
         for r, port in zip(ROBOTS, ports, strict=True):
             cfg = tmp_path / f"{r}.toml"
-            agent = {"fleet": keys.fleet, "model": "model.toml", "mode": "realtime"}
+            agent: dict[str, Any] = {"fleet": keys.fleet, "model": "model.toml", "mode": "realtime"}
             agent |= {"start": [float(v) for v in PAPER.robot(r).start], "roster": list(ROBOTS)}
             agent |= {"journal": f"{r}.log"}
             zenoh = {"listen": [loopback_endpoint(port)]}
@@ -467,7 +467,8 @@ def test_chaos_command_runs_every_fault_and_prints_the_comparison(tmp_path: Path
     assert r.returncode == 0, r.stderr[-3000:]
     out = r.stdout
     for text in (
-        "drop 0.2",
+        "chaos on paper, seed 1: drop 0.2, kill r2@5, restart r2@7, garbage 50 stacks/s "
+        "(realtime, period 0.3 s)",
         "- step 5: SIGKILL r2",
         "- step 7: restarted r2 from its journal",
         "agent counters (last estimate)",

@@ -27,9 +27,9 @@ from agents.control import NeedFrames, Stop, decode_control
 from agents.transport.base import Inbox, Keys, Message
 from agents.transport.zenoh_transport import ZenohSettings, ZenohTransport, loopback_endpoint
 from deploy import cli
-from deploy.conductor import without_truth
 from deploy.errors import UsageError
 from deploy.launch import free_ports, write_agent_config
+from deploy.launch.conductor import without_truth
 from deploy.operator_cmd import (
     FleetView,
     StopProgress,

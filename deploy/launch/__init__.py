@@ -1,0 +1,31 @@
+"""`semfleet launch` and `semfleet chaos`: one conductor and one agent process per robot, on
+loopback Zenoh.
+
+- :mod:`deploy.launch.run` — the plan, the launcher that runs it and :func:`launch`;
+- :mod:`deploy.launch.supervisor` — ports, agent configs, agent processes, shutdown on signals;
+- :mod:`deploy.launch.conductor` — the simulated world: truth-less frames, lock-step orders,
+  simulated links, and the scoring of the estimates that come back;
+- :mod:`deploy.launch.chaos` — faults (loss, partitions, kills, restarts) and garbage stacks;
+- :mod:`deploy.launch.table` — the live table.
+"""
+
+from deploy.launch.chaos import Faults, garbage_stack
+from deploy.launch.errors import LaunchError, PlanError
+from deploy.launch.run import LAUNCH_METHODS, Launcher, LaunchOutcome, LaunchPlan, launch
+from deploy.launch.supervisor import AgentProcess, Stopped, free_ports, write_agent_config
+
+__all__ = [
+    "LAUNCH_METHODS",
+    "AgentProcess",
+    "Faults",
+    "LaunchError",
+    "LaunchOutcome",
+    "LaunchPlan",
+    "Launcher",
+    "PlanError",
+    "Stopped",
+    "free_ports",
+    "garbage_stack",
+    "launch",
+    "write_agent_config",
+]

@@ -1,0 +1,311 @@
+"""The conductor of a simulated fleet: the world's side of a launch.
+
+It publishes every robot's sensor frames (``frames/<robot>``), orders lock-step rounds
+(``ctl/step``) with the links the scenario's link model allows on ground truth, answers agents'
+requests for missing frames (``ctl/need``), and collects their estimates (``estimate/<robot>``).
+A :class:`Scorer` scores them against ground truth into the same metrics as ``semfleet study``
+(``estimator.metrics``); it is the conductor's only user of the truth besides the links.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+from numpy.typing import NDArray
+
+from agents.control import NeedFrames, StepOrder, Stop, decode_control, encode_control
+from agents.links import LinkModel
+from agents.transport.base import Inbox, Keys, Transport
+from estimator.hybrid import BeliefSnapshot
+from estimator.metrics import ECE_BINS, METRICS, evaluate, evaluate_calibration
+from estimator.models import SensorFrame
+from protocol.codec import decode
+from protocol.errors import RemoteProtocolError
+from protocol.estimate import EstimateMessage, decode_estimate
+from protocol.frames import encode_frame
+from sim.scenario import Scenario
+
+log = logging.getLogger(__name__)
+
+Array = NDArray[np.float64]
+BELIEFS = ("local", "distributed")
+
+
+class ConductorError(RuntimeError):
+    """The run cannot go on (an agent is gone, a deadline passed)."""
+
+
+@dataclass(slots=True)
+class Collected:
+    """What came back: metrics per belief (robots, steps), class-ECE bin statistics per belief
+    (robots, steps, 3, bins), step times and the agents' counters."""
+
+    metrics: dict[str, dict[str, Array]]
+    calibration: dict[str, Array] = field(default_factory=dict)
+    step_ms: dict[str, list[float]] = field(default_factory=dict)
+    counters: dict[str, dict[str, int]] = field(default_factory=dict)
+    received: dict[str, int] = field(default_factory=dict)
+    invalid: int = 0
+    last_step: dict[str, int] = field(default_factory=dict)
+    final: dict[str, EstimateMessage] = field(default_factory=dict)
+    estimates: dict[tuple[str, int], EstimateMessage] = field(default_factory=dict)
+    stack_log: list[tuple[float, str, dict[str, int]]] = field(default_factory=list)
+
+
+def without_truth(frame: SensorFrame) -> SensorFrame:
+    """The frame an agent gets: the simulator keeps the true pose for its metrics."""
+    return replace(frame, true_pose=np.full(3, np.nan))
+
+
+def links_at(
+    links: LinkModel, frames: Mapping[str, Sequence[SensorFrame]], robots: Sequence[str], k: int
+) -> dict[str, tuple[str, ...]]:
+    """Who hears whom at the start of step k, on the true poses of step k (as the in-process
+    runner delivers)."""
+    pos = {r: frames[r][k - 1].true_pose for r in robots}
+    return {
+        receiver: tuple(
+            s
+            for s in robots
+            if s != receiver and links.allowed(s, receiver, k, pos[s], pos[receiver])
+        )
+        for receiver in robots
+    }
+
+
+class Scorer:
+    """Scores beliefs against ground truth: ``metrics[belief][metric]`` (robots, steps) and the
+    class-ECE bin statistics ``calibration[belief]`` (robots, steps, 3, ECE_BINS), for the beliefs
+    of :data:`BELIEFS`; a step never recorded stays NaN (metrics) or zero (bins)."""
+
+    def __init__(
+        self,
+        scenario: Scenario,
+        frames: Mapping[str, Sequence[SensorFrame]],
+        robots: Sequence[str],
+    ) -> None:
+        self.num_classes = scenario.num_classes
+        self.frames = frames
+        self.truth = {o.id: (np.array(o.pose), o.class_index) for o in scenario.objects}
+        self.index = {r: i for i, r in enumerate(robots)}
+        shape = (len(robots), scenario.steps)
+        self.metrics = {b: {m: np.full(shape, np.nan) for m in METRICS} for b in BELIEFS}
+        self.calibration = {b: np.zeros((*shape, 3, ECE_BINS)) for b in BELIEFS}
+
+    def record(self, belief: str, robot: str, k: int, snap: BeliefSnapshot) -> None:
+        """Score ``robot``'s ``belief`` after step k (a belief not scored here is ignored)."""
+        if belief not in self.metrics:
+            return
+        i = self.index[robot]
+        true_pose = self.frames[robot][k - 1].true_pose
+        for name, value in evaluate(snap, self.num_classes, true_pose, self.truth).items():
+            self.metrics[belief][name][i, k - 1] = value
+        stats = evaluate_calibration(snap, self.num_classes, self.truth)
+        self.calibration[belief][i, k - 1] = stats
+
+
+class Conductor:
+    """Drives ``robots`` of ``scenario`` through its steps over ``transport``."""
+
+    def __init__(
+        self,
+        scenario: Scenario,
+        frames: Mapping[str, Sequence[SensorFrame]],
+        robots: Sequence[str],
+        transport: Transport,
+        keys: Keys,
+        links: LinkModel,
+        retry_period: float = 0.5,
+        keep_estimates: bool = False,
+        observe_stacks: bool = False,
+    ) -> None:
+        """``keep_estimates``: keep every decoded estimate in ``collected.estimates``;
+        ``observe_stacks``: log (time, robot, {owner: stamp}) of every stack heard."""
+        self.scenario = scenario
+        self.frames = frames
+        self.robots = list(robots)
+        self.transport = transport
+        self.keys = keys
+        self.links = links
+        self.retry_period = retry_period
+        self.keep_estimates = keep_estimates
+        self.observe_stacks = observe_stacks
+        self.stacks = Inbox(100_000)
+        self.estimates = Inbox(100_000)
+        self.control = Inbox(10_000)
+        self.alive_events = Inbox(10_000)
+        self.alive: set[str] = set()
+        self.k = 0
+        self.published_up_to: dict[str, int] = {r: 0 for r in self.robots}
+        self.scorer = Scorer(scenario, frames, self.robots)
+        self.collected = Collected(self.scorer.metrics, self.scorer.calibration)
+        self._index = {r: i for i, r in enumerate(self.robots)}
+        self._acked: dict[str, int] = {r: 0 for r in self.robots}
+
+    async def open(self) -> None:
+        self.transport.subscribe(self.keys.estimate("*"), self.estimates)
+        self.transport.subscribe(self.keys.ctl("need", "*"), self.control)
+        self.transport.watch_alive(self.keys.alive("*"), self.alive_events)
+        if self.observe_stacks:
+            self.transport.subscribe(self.keys.stack("*"), self.stacks)
+        await self.transport.open()
+
+    # -- helpers -----------------------------------------------------------------------------
+
+    def _publish_frames(self, robot: str, first: int, last: int) -> None:
+        """Frames as a robot's perception would send them: without ground truth."""
+        for k in range(max(first, 1), last + 1):
+            frame = without_truth(self.frames[robot][k - 1])
+            self.transport.publish(self.keys.frames(robot), encode_frame(frame))
+        self.published_up_to[robot] = max(self.published_up_to[robot], last)
+
+    def _order(self, k: int) -> None:
+        order = StepOrder(k, links_at(self.links, self.frames, self.robots, k))
+        self.transport.publish(self.keys.ctl("step"), encode_control(order))
+
+    def _publish_links(self, k: int) -> None:
+        """Realtime simulations: who hears whom at step k, decided here on the true poses and
+        obeyed only by agents configured as simulated (``simulation = true``)."""
+        links = StepOrder(k, links_at(self.links, self.frames, self.robots, k))
+        self.transport.publish(self.keys.sim_links(), encode_control(links))
+
+    def pump(self) -> None:
+        """Handle everything that arrived: liveliness, frame requests, estimates."""
+        for m in self.alive_events.drain():
+            robot = self.keys.robot_of(m.key)
+            if robot in self._index:
+                (self.alive.add if m.kind == "alive" else self.alive.discard)(robot)
+        for m in self.control.drain():
+            try:
+                need = decode_control(m.payload)
+            except RemoteProtocolError:
+                continue
+            if isinstance(need, NeedFrames) and need.robot in self._index and self.k > 0:
+                self._publish_frames(need.robot, need.k, self.k)
+                if need.k <= self.k:
+                    self._order(self.k)
+        for m in self.estimates.drain():
+            self._on_estimate(m.payload)
+        now = time.monotonic()
+        for m in self.stacks.drain():
+            robot = self.keys.robot_of(m.key)
+            if robot not in self._index:
+                continue
+            try:
+                message = decode(m.payload)
+            except RemoteProtocolError:
+                continue
+            if message.sender == robot:
+                self.collected.stack_log.append((now, robot, message.stack.stamps()))
+
+    def _on_estimate(self, data: bytes) -> None:
+        try:
+            est = decode_estimate(data)
+        except RemoteProtocolError as exc:
+            self.collected.invalid += 1
+            log.warning("invalid estimate: %s", exc)
+            return
+        if est.robot not in self._index or not 1 <= est.k <= self.scenario.steps:
+            return
+        c = self.collected
+        c.received[est.robot] = c.received.get(est.robot, 0) + 1
+        c.counters[est.robot] = dict(est.counters)
+        c.final[est.robot] = est
+        if self.keep_estimates:
+            c.estimates[(est.robot, est.k)] = est
+        c.last_step[est.robot] = max(c.last_step.get(est.robot, 0), est.k)
+        self._acked[est.robot] = max(self._acked[est.robot], est.k)
+        for belief, snap in est.beliefs.items():
+            self.scorer.record(belief, est.robot, est.k, snap)
+        for belief, key in (("local", "step_us_local"), ("distributed", "step_us_distributed")):
+            if key in est.counters:
+                c.step_ms.setdefault(belief, []).append(est.counters[key] / 1e3)
+
+    def acked(self, robot: str) -> int:
+        return self._acked[robot]
+
+    # -- runs --------------------------------------------------------------------------------
+
+    async def wait_alive(self, timeout: float, check: Callable[[], None] | None = None) -> None:
+        deadline = time.monotonic() + timeout
+        while set(self.robots) - self.alive:
+            if check is not None:
+                check()
+            if time.monotonic() > deadline:
+                missing = sorted(set(self.robots) - self.alive)
+                raise ConductorError(f"agents {missing} did not come up within {timeout:.0f} s")
+            await self.alive_events.wait(0.1)
+            self.pump()
+
+    async def run_lockstep(
+        self,
+        steps: int,
+        on_step: Callable[[int], None] | None = None,
+        check: Callable[[], None] | None = None,
+        step_timeout: float = 120.0,
+    ) -> None:
+        """Round by round: order round k, send frame k, wait for every agent's estimate of k
+        (re-sending what an agent may have missed every ``retry_period``)."""
+        for k in range(1, steps + 1):
+            self.k = k
+            self._order(k)
+            for r in self.robots:
+                self._publish_frames(r, k, k)
+            deadline = time.monotonic() + step_timeout
+            last_send = time.monotonic()
+            while any(self._acked[r] < k for r in self.robots):
+                if check is not None:
+                    check()
+                await self.estimates.wait(0.05)
+                self.pump()
+                now = time.monotonic()
+                if now > deadline:
+                    late = [r for r in self.robots if self._acked[r] < k]
+                    raise ConductorError(f"step {k}: no estimate from {late} in {step_timeout} s")
+                if now - last_send > self.retry_period:
+                    last_send = now
+                    self._order(k)
+                    for r in self.robots:
+                        if self._acked[r] < k:
+                            self._publish_frames(r, k, k)
+            if on_step is not None:
+                on_step(k)
+
+    async def run_realtime(
+        self,
+        steps: int,
+        period: float,
+        on_step: Callable[[int], None] | None = None,
+        check: Callable[[], None] | None = None,
+        settle: float = 10.0,
+    ) -> None:
+        """One frame per robot every ``period`` seconds whatever the agents do; then up to
+        ``settle`` seconds for the last estimates."""
+        start = time.monotonic()
+        for k in range(1, steps + 1):
+            self.k = k
+            self._publish_links(k)
+            for r in self.robots:
+                self._publish_frames(r, k, k)
+            if on_step is not None:
+                on_step(k)
+            while time.monotonic() < start + k * period:
+                if check is not None:
+                    check()
+                await self.estimates.wait(
+                    max(0.0, min(0.05, start + k * period - time.monotonic()))
+                )
+                self.pump()
+        deadline = time.monotonic() + settle
+        while any(self._acked[r] < steps for r in self.robots) and time.monotonic() < deadline:
+            if check is not None:
+                check()
+            await self.estimates.wait(0.05)
+            self.pump()
+
+    def stop_agents(self, reason: str = "run complete") -> None:
+        self.transport.publish(self.keys.ctl("stop"), encode_control(Stop(reason)))

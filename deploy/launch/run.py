@@ -1,0 +1,287 @@
+"""One launch: a plan, the launcher that runs it, and :func:`launch` with its live table.
+
+The launcher allocates loopback ports, writes one agent config per robot, starts every agent
+(:mod:`deploy.launch.supervisor`), opens the conductor's own Zenoh session, drives the run in
+``lockstep`` or ``realtime`` mode (:mod:`deploy.launch.conductor`) with the plan's faults
+(:mod:`deploy.launch.chaos`), and returns the agents' scored estimates as a
+:class:`deploy.study.RunResult` (methods ``local`` and ``distributed``). Whatever happens —
+success, an agent that died unplanned, SIGTERM, SIGHUP, Ctrl-C — every agent is stopped before
+:meth:`Launcher.run` returns or raises.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from rich.console import Console
+from rich.live import Live
+
+from agents.core import GOSSIP_PERIOD_S
+from agents.links import LinkModel
+from agents.transport.base import Keys
+from agents.transport.zenoh_transport import ZenohSettings, ZenohTransport, loopback_endpoint
+from deploy.fleet import link_model_for
+from deploy.launch.chaos import KILL, Faults, Garbage
+from deploy.launch.conductor import Collected, Conductor, ConductorError
+from deploy.launch.errors import LaunchError, PlanError
+from deploy.launch.supervisor import (
+    AgentProcess,
+    SignalStop,
+    Supervisor,
+    free_ports,
+    write_agent_config,
+)
+from deploy.launch.table import progress_table
+from deploy.study import RunResult
+from sim.robot_model import dump_robot_model
+from sim.scenario import Scenario
+from sim.sensors import Simulator
+
+LAUNCH_METHODS = ("local", "distributed")
+MODES = ("lockstep", "realtime")
+STOP_SETTLE_S = 0.2  # after ctl/stop, before SIGTERM: agents that heard it exit on their own
+
+OnStep = Callable[[Conductor, int], None]
+
+
+@dataclass(slots=True)
+class LaunchPlan:
+    """What to run. Checked when made (:class:`PlanError`): robots of the scenario, each once;
+    ``steps`` within the scenario's; faults within the run (:meth:`Faults.check`)."""
+
+    scenario: Scenario
+    seed: int
+    robots: list[str]
+    out: Path
+    mode: str = "lockstep"
+    period: float = 0.5
+    gossip_period: float = GOSSIP_PERIOD_S
+    comm: str | None = None
+    faults: Faults = field(default_factory=Faults)
+    fleet: str = "launch"
+    steps: int | None = None
+    zenoh_neighbours: Mapping[str, Sequence[str]] | None = None  # None: full mesh via gossip
+    publish_local: bool = True
+    keep_estimates: bool = False  # every estimate in LaunchOutcome.collected.estimates
+    observe_stacks: bool = False  # log every robot's stack stamps (collected.stack_log)
+
+    def __post_init__(self) -> None:
+        s = self.scenario
+        if self.mode not in MODES:
+            raise PlanError(f"mode {self.mode!r}: expected one of {', '.join(MODES)}")
+        unknown = [r for r in self.robots if r not in s.robot_ids]
+        if unknown or not self.robots:
+            raise PlanError(f"robots {unknown} are not in scenario {s.name}")
+        twice = sorted({r for r in self.robots if self.robots.count(r) > 1})
+        if twice:
+            raise PlanError(f"robots: {', '.join(twice)} listed more than once")
+        if self.steps is not None and not 1 <= self.steps <= s.steps:
+            raise PlanError(f"steps: {self.steps} outside 1..{s.steps} (scenario {s.name})")
+        self.faults.check(self.robots, self.run_steps, self.mode == "lockstep")
+
+    @property
+    def run_steps(self) -> int:
+        return self.steps or self.scenario.steps
+
+
+@dataclass(slots=True)
+class LaunchOutcome:
+    result: RunResult
+    collected: Collected
+    wall_s: float
+    agents: dict[str, AgentProcess]
+    events: list[str]
+    garbage_sent: int
+
+
+class Launcher:
+    """Owns the agent processes and the conductor of one launch. ``scenario_source`` is not
+    used: agents are configured from the scenario's robot model, written next to their configs."""
+
+    def __init__(self, plan: LaunchPlan, scenario_source: str | None = None) -> None:
+        self.plan = plan
+        self.steps = plan.run_steps
+        self.supervisor = Supervisor()
+        self.agents = self.supervisor.agents
+        self.events = self.supervisor.events
+        self.garbage = Garbage(plan.robots, plan.faults.garbage_rate, plan.seed)
+        self._garbage_task: asyncio.Task[None] | None = None
+        self.conductor: Conductor | None = None  # once the run has begun
+        self.links: LinkModel = link_model_for(
+            plan.scenario, plan.comm, plan.faults.drop, plan.seed, plan.faults.partitions
+        )
+
+    def _prepare(self) -> int:
+        """Ports, the robot model and one config per agent under ``out/agents``; returns the
+        conductor's port."""
+        plan = self.plan
+        conductor_port, *ports = free_ports(len(plan.robots) + 1)
+        agent_ports = dict(zip(plan.robots, ports, strict=True))
+        model = plan.out / "agents" / "model.toml"
+        model.parent.mkdir(parents=True, exist_ok=True)
+        model.write_text(dump_robot_model(plan.scenario.robot_model()), encoding="utf-8")
+        journal_dir = plan.out / "journal"
+        journal_dir.mkdir(parents=True, exist_ok=True)
+        for r in plan.robots:
+            (journal_dir / f"{r}.log").unlink(missing_ok=True)
+        for r in plan.robots:
+            cfg = plan.out / "agents" / f"{r}.toml"
+            zenoh = self._zenoh_section(r, agent_ports, conductor_port)
+            write_agent_config(cfg, self._agent_section(r), zenoh)
+            log = plan.out / "logs" / f"{r}.log"
+            self.supervisor.add(AgentProcess(r, cfg, log, agent_ports[r]))
+        return conductor_port
+
+    def _agent_section(self, robot: str) -> dict[str, Any]:
+        plan = self.plan
+        return {
+            "fleet": plan.fleet,
+            "model": "model.toml",
+            "start": [float(v) for v in plan.scenario.robot(robot).start],
+            "roster": list(plan.robots),
+            "seed": plan.seed,
+            "mode": plan.mode,
+            "gossip_period": plan.gossip_period,
+            "journal": f"../journal/{robot}.log",
+            "publish_local": plan.publish_local,
+            # Loss, partitions and range are the simulator's: it publishes who hears whom
+            # (sim/links), which only a simulated agent obeys.
+            "simulation": True,
+        }
+
+    def _zenoh_section(
+        self, robot: str, ports: Mapping[str, int], conductor_port: int
+    ) -> dict[str, Any]:
+        neighbours = self.plan.zenoh_neighbours
+        listen = [loopback_endpoint(ports[robot])]
+        if neighbours is None:
+            return {
+                "listen": listen,
+                "connect": [loopback_endpoint(conductor_port)],
+                "gossip": True,
+            }
+        # Zenoh links only where the robots may talk; the conductor dials every agent.
+        dial = [loopback_endpoint(ports[p]) for p in neighbours.get(robot, ()) if p < robot]
+        return {"listen": listen, "connect": dial, "gossip": False}
+
+    def _conductor(self, conductor_port: int) -> Conductor:
+        plan = self.plan
+        neighbours = plan.zenoh_neighbours
+        dial = (
+            ()
+            if neighbours is None
+            else tuple(loopback_endpoint(self.agents[r].port) for r in plan.robots)
+        )
+        listen = (loopback_endpoint(conductor_port),)
+        settings = ZenohSettings(listen=listen, connect=dial, gossip=neighbours is None)
+        return Conductor(
+            plan.scenario,
+            Simulator(plan.scenario, plan.seed).all_frames(),
+            plan.robots,
+            ZenohTransport(settings),
+            Keys(plan.fleet),
+            self.links,
+            keep_estimates=plan.keep_estimates,
+            observe_stacks=plan.observe_stacks,
+        )
+
+    # -- the run -----------------------------------------------------------------------------
+
+    async def run(self, on_step: OnStep | None = None) -> LaunchOutcome:
+        """Run the plan; ``on_step(conductor, k)`` after every step.
+        Raises :class:`LaunchError` if the run fails, :class:`~deploy.launch.Stopped` (or
+        ``KeyboardInterrupt`` for SIGINT) if a signal stopped it — each after every agent was
+        stopped."""
+        conductor = self.conductor = self._conductor(self._prepare())
+        start = time.perf_counter()
+        with SignalStop() as signals:
+            try:
+                await self._drive(conductor, on_step)
+            except ConductorError as exc:
+                raise LaunchError(str(exc)) from None
+            except asyncio.CancelledError:
+                if signals.received is None:
+                    raise
+            finally:
+                signals.hold()
+                await self._shutdown(conductor, signals)
+            signals.raise_if_stopped()
+        return self._outcome(conductor, time.perf_counter() - start)
+
+    async def _drive(self, conductor: Conductor, on_step: OnStep | None) -> None:
+        plan = self.plan
+        schedule: dict[int, list[tuple[str, str]]] = {}
+        for k, kind, robot in plan.faults.schedule():
+            schedule.setdefault(k, []).append((kind, robot))
+        for r in plan.robots:
+            self.supervisor.start(r)
+        await conductor.open()
+        await conductor.wait_alive(90.0, self.supervisor.check)
+        if plan.faults.garbage_rate > 0:
+            self._garbage_task = asyncio.create_task(
+                self.garbage.run(conductor.transport, conductor.keys)
+            )
+
+        def step_done(k: int) -> None:
+            for kind, robot in schedule.get(k, ()):
+                if kind == KILL:
+                    self.supervisor.kill(robot)
+                    self.events.append(f"step {k}: SIGKILL {robot}")
+                else:
+                    self.supervisor.start(robot)
+                    self.events.append(f"step {k}: restarted {robot} from its journal")
+            if on_step is not None:
+                on_step(conductor, k)
+
+        check = self.supervisor.check
+        if plan.mode == "lockstep":
+            await conductor.run_lockstep(self.steps, step_done, check)
+        else:
+            await conductor.run_realtime(self.steps, plan.period, step_done, check)
+        conductor.stop_agents()
+
+    async def _shutdown(self, conductor: Conductor, signals: SignalStop) -> None:
+        if self._garbage_task is not None:
+            self._garbage_task.cancel()
+        if signals.received is not None:
+            conductor.stop_agents(f"launcher stopped by {signals.received.name}")
+        await asyncio.sleep(STOP_SETTLE_S)
+        self.supervisor.stop_all()
+        await conductor.transport.close()
+
+    def _outcome(self, conductor: Conductor, wall: float) -> LaunchOutcome:
+        c = conductor.collected
+        steps = self.steps
+        metrics = {m: {n: v[:, :steps] for n, v in c.metrics[m].items()} for m in LAUNCH_METHODS}
+        result = RunResult(
+            self.plan.seed,
+            metrics,
+            {m: c.step_ms.get(m, []) for m in LAUNCH_METHODS},
+            {m: wall for m in LAUNCH_METHODS},
+            calibration={m: c.calibration[m][:, :steps] for m in LAUNCH_METHODS},
+        )
+        return LaunchOutcome(result, c, wall, self.agents, self.events, self.garbage.sent)
+
+
+def launch(
+    plan: LaunchPlan, scenario_source: str | None = None, console: Console | None = None
+) -> LaunchOutcome:
+    """Run ``plan`` with a live table on ``console`` (if given). ``scenario_source`` is not used
+    (see :class:`Launcher`)."""
+    launcher = Launcher(plan)
+    if console is None:
+        return asyncio.run(launcher.run())
+    with Live(console=console, refresh_per_second=4, transient=False) as live:
+
+        def show(conductor: Conductor, _k: int = 0) -> None:
+            live.update(progress_table(conductor, plan.robots, launcher.steps))
+
+        outcome = asyncio.run(launcher.run(show))
+        assert launcher.conductor is not None
+        show(launcher.conductor)  # a realtime run's last estimates come in after its last frame
+        return outcome

@@ -1,0 +1,38 @@
+"""`semfleet launch` as a user in their own folder runs it: a world file named relative to where
+they stand, one robot, a few realtime steps."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+from deploy.launch_cmd import agents
+from tests.deploy.test_launch import world_text
+
+SEMFLEET = Path(sys.executable).with_name("semfleet")
+
+
+def test_launch_scenario_path_relative_to_the_callers_folder(tmp_path: Path) -> None:
+    site = tmp_path / "site"
+    (site / "worlds").mkdir(parents=True)
+    (site / "worlds" / "pair.toml").write_text(world_text("pair", 2, 3.0, 4, 0.1), "utf-8")
+    args = ["--robots", "r1", "--mode", "realtime", "--steps", "2", "--period", "0.2"]
+    r = subprocess.run(
+        [str(SEMFLEET), "launch", "--scenario", "worlds/pair.toml", *args, "--out", "run"],
+        capture_output=True,
+        text=True,
+        timeout=600,  # a guard against hangs
+        cwd=site,
+        env={"COLUMNS": "200", "PATH": "/usr/bin:/bin", "MPLBACKEND": "Agg"},
+    )
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert "launching 1 agent of pair (realtime, seed 0)" in r.stdout
+    doc = json.loads((site / "run" / "results.json").read_text(encoding="utf-8"))
+    assert doc["scenario"] == "pair"
+    assert "up at step 0" in (site / "run" / "logs" / "r1.log").read_text()
+
+
+def test_agents_counts_in_words() -> None:
+    assert [agents(n) for n in (1, 2, 3)] == ["1 agent", "2 agents", "3 agents"]
