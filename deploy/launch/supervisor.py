@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import asyncio
 import ctypes
+import json
 import os
 import signal
 import socket
@@ -194,11 +195,22 @@ class Supervisor:
 
 
 def _tail(path: Path, lines: int = 3) -> str:
+    """The last ``lines`` of an agent's log, each JSON record as its message only: the error
+    line stays a line (a counters record alone is 1.4 kB)."""
     try:
         text = path.read_text(encoding="utf-8", errors="replace").strip().splitlines()
     except OSError:
         return "(no log)"
-    return " | ".join(text[-lines:]) or "(empty log)"
+    return " | ".join(_message(line) for line in text[-lines:]) or "(empty log)"
+
+
+def _message(line: str) -> str:
+    try:
+        record = json.loads(line)
+    except ValueError:
+        return line  # a traceback's line, or the command's own one-line error
+    message = record.get("msg") if isinstance(record, dict) else None
+    return message if isinstance(message, str) else line
 
 
 class SignalStop:

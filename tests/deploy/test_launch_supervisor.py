@@ -162,6 +162,7 @@ def test_launch_whose_agent_dies_unplanned_leaves_no_agent(tmp_path: Path) -> No
     assert returncode == 1, err
     assert err.startswith("semfleet: error: agent r2 exited unexpectedly with code -9"), err
     assert err.count("\n") == 1, err
+    assert "r2: up at step 0" in err and '"ts"' not in err, err  # messages, not JSON records
     assert gone <= GONE_S
 
 
