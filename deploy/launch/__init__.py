@@ -4,7 +4,8 @@ loopback Zenoh.
 - :mod:`deploy.launch.run` — the plan, the launcher that runs it and :func:`launch`;
 - :mod:`deploy.launch.supervisor` — ports, agent configs, agent processes, shutdown on signals;
 - :mod:`deploy.launch.conductor` — the simulated world: truth-less frames, lock-step orders,
-  simulated links, and the scoring of the estimates that come back;
+  simulated links, the estimates that come back;
+- :mod:`deploy.launch.scoring` — those estimates against ground truth, in the study's metrics;
 - :mod:`deploy.launch.chaos` — faults (loss, partitions, kills, restarts) and garbage stacks;
 - :mod:`deploy.launch.table` — the live table.
 """

@@ -3,8 +3,8 @@
 It publishes every robot's sensor frames (``frames/<robot>``), orders lock-step rounds
 (``ctl/step``) with the links the scenario's link model allows on ground truth, answers agents'
 requests for missing frames (``ctl/need``), and collects their estimates (``estimate/<robot>``).
-A :class:`Scorer` scores them against ground truth into the same metrics as ``semfleet study``
-(``estimator.metrics``); it is the conductor's only user of the truth besides the links.
+A :class:`~deploy.launch.scoring.Scorer` scores them against ground truth; besides the links it
+is the only user of the truth.
 """
 
 from __future__ import annotations
@@ -20,8 +20,7 @@ from numpy.typing import NDArray
 from agents.control import NeedFrames, StepOrder, Stop, decode_control, encode_control
 from agents.links import LinkModel
 from agents.transport.base import Inbox, Keys, Transport
-from estimator.hybrid import BeliefSnapshot
-from estimator.metrics import ECE_BINS, METRICS, evaluate, evaluate_calibration
+from deploy.launch.scoring import Scorer
 from estimator.models import SensorFrame
 from protocol.codec import decode
 from protocol.errors import RemoteProtocolError
@@ -32,7 +31,6 @@ from sim.scenario import Scenario
 log = logging.getLogger(__name__)
 
 Array = NDArray[np.float64]
-BELIEFS = ("local", "distributed")
 
 
 class ConductorError(RuntimeError):
@@ -75,37 +73,6 @@ def links_at(
         )
         for receiver in robots
     }
-
-
-class Scorer:
-    """Scores beliefs against ground truth: ``metrics[belief][metric]`` (robots, steps) and the
-    class-ECE bin statistics ``calibration[belief]`` (robots, steps, 3, ECE_BINS), for the beliefs
-    of :data:`BELIEFS`; a step never recorded stays NaN (metrics) or zero (bins)."""
-
-    def __init__(
-        self,
-        scenario: Scenario,
-        frames: Mapping[str, Sequence[SensorFrame]],
-        robots: Sequence[str],
-    ) -> None:
-        self.num_classes = scenario.num_classes
-        self.frames = frames
-        self.truth = {o.id: (np.array(o.pose), o.class_index) for o in scenario.objects}
-        self.index = {r: i for i, r in enumerate(robots)}
-        shape = (len(robots), scenario.steps)
-        self.metrics = {b: {m: np.full(shape, np.nan) for m in METRICS} for b in BELIEFS}
-        self.calibration = {b: np.zeros((*shape, 3, ECE_BINS)) for b in BELIEFS}
-
-    def record(self, belief: str, robot: str, k: int, snap: BeliefSnapshot) -> None:
-        """Score ``robot``'s ``belief`` after step k (a belief not scored here is ignored)."""
-        if belief not in self.metrics:
-            return
-        i = self.index[robot]
-        true_pose = self.frames[robot][k - 1].true_pose
-        for name, value in evaluate(snap, self.num_classes, true_pose, self.truth).items():
-            self.metrics[belief][name][i, k - 1] = value
-        stats = evaluate_calibration(snap, self.num_classes, self.truth)
-        self.calibration[belief][i, k - 1] = stats
 
 
 class Conductor:
