@@ -574,8 +574,8 @@ class AgentCore:
 
     def _refresh(self) -> None:
         """Publish, whole, what the timer may read."""
-        stack = self.node.encoded_stack() if self.node.k > 0 or len(self.node.stack) else None
-        self._out = _Outgoing(stack, self._out.previous, self._frames_missing())
+        # Always, even empty: a lock-step peer ordered to hear us at round 1 needs our round 0.
+        self._out = _Outgoing(self.node.encoded_stack(), self._out.previous, self._frames_missing())
 
     # -- output ------------------------------------------------------------------------------
 

@@ -433,3 +433,22 @@ async def test_a_realtime_agents_journal_holds_its_stacks_and_replays_to_the_ide
     )
     assert_same_snapshot(again.node.local.snapshot("r2"), live.local.snapshot("r2"), "L")
     assert "r1" in live.distributed.stamps and "r3" in live.distributed.stamps
+
+
+@pytest.mark.asyncio
+async def test_a_lockstep_peer_that_started_late_still_gets_the_round_0_stack(
+    frames: dict[str, list[SensorFrame]],
+) -> None:
+    """r2 announces its round-0 stack before r3 listens; the timer must re-send it, or r3, ordered
+    to hear r2 in round 1, waits forever."""
+    bus = MemoryBus()
+    world = MemoryTransport(bus)
+    await world.open()
+    early = _agent("r2", bus, "lockstep", gossip_period=0.05)
+    async with _running(early):
+        await asyncio.sleep(0.1)  # r2's start-up announcement is gone
+        late = _agent("r3", bus, "lockstep", gossip_period=0.05)
+        async with _running(late):
+            world.publish(KEYS.ctl("step"), encode_control(StepOrder(1, {"r3": ("r2",)})))
+            world.publish(KEYS.frames("r3"), encode_frame(frames["r3"][0]))
+            await _until(lambda: _stepped(late, 1))
