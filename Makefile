@@ -28,7 +28,7 @@ test: $(STAMP)
 lint: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
-	$(BIN)/mypy estimator protocol sim
+	$(BIN)/mypy estimator protocol sim agents deploy bench
 
 bench: $(STAMP)
 	$(BIN)/python -m bench
