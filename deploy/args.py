@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import argparse
+import os
+from pathlib import Path
 
+from deploy.errors import UsageError
 from sim.loader import MAX_CLASSES
 
 MAX_SEED = 2**63 - 1
@@ -35,3 +38,20 @@ def seed(text: str) -> int:
     if not 0 <= value <= MAX_SEED:
         raise argparse.ArgumentTypeError(f"{text}: seeds are non-negative integers below 2**63")
     return value
+
+
+def plural(count: int, noun: str) -> str:
+    """``1 run``, ``2 runs``."""
+    return f"{count} {noun}{'' if count == 1 else 's'}"
+
+
+def writable_out(directory: Path) -> None:
+    """Raise a usage error now if ``directory`` cannot be created or written, so that a long run
+    does not find out at its end."""
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+        probe = directory / f".semfleet-write-probe-{os.getpid()}"
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as exc:
+        raise UsageError(f"--out {directory}: cannot write there ({exc.strerror or exc})") from None

@@ -12,7 +12,7 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from deploy.args import MAX_SEED, positive_int, seed
+from deploy.args import MAX_SEED, plural, positive_int, seed, writable_out
 from deploy.errors import UsageError
 from deploy.fleet import COMM_MODES
 from deploy.results import study_archive, write_archive
@@ -70,7 +70,7 @@ def render_summary(
     robot NEES band."""
     steps = doc["steps"]
     at = [k for k in (at_steps or table_steps(steps)) if 1 <= k <= steps] or [steps]
-    runs = f"{doc['runs']} run" + ("s" if doc["runs"] != 1 else "")
+    runs = plural(doc["runs"], "run")
     table = Table(title=f"{doc['scenario']}: {runs}, mean over runs and robots")
     table.add_column("method")
     table.add_column("metric")
@@ -107,7 +107,8 @@ def render_summary(
     console.print(timing)
     lo, hi = chi2_bounds(3, doc["runs"])
     console.print(
-        f"robot NEES (3 dof) 95 % band for the mean over {doc['runs']} runs: [{lo:.2f}, {hi:.2f}]"
+        f"robot NEES (3 dof) 95 % band for the mean over {plural(doc['runs'], 'run')}: "
+        f"[{lo:.2f}, {hi:.2f}]"
     )
 
 
@@ -150,9 +151,11 @@ def run(args: argparse.Namespace, console: Console) -> int:
         raise UsageError(f"--seed {args.seed} with --runs {args.runs} runs past the largest seed")
     seeds = [args.seed + i for i in range(args.runs)]
     comm = args.comm or scenario.communication.mode
+    writable_out(Path(args.out))  # before any run, not after all of them
     console.print(
-        f"study: {scenario.name}, methods {', '.join(args.methods)}, {args.runs} runs "
-        f"(seeds {seeds[0]}..{seeds[-1]}), {args.jobs} jobs, weights {args.weights}, "
+        f"study: {scenario.name}, methods {', '.join(args.methods)}, "
+        f"{plural(args.runs, 'run')} (seeds {seeds[0]}..{seeds[-1]}), "
+        f"{plural(args.jobs, 'job')}, weights {args.weights}, "
         f"hypotheses {args.hypotheses}, communication {comm}"
     )
     columns = (

@@ -394,3 +394,17 @@ def test_scenario_generate_never_writes_a_file_it_cannot_read_back(
 def test_the_study_command_the_demo_suggests_parses() -> None:
     args = build_parser().parse_args(shlex.split(demo_cmd.STUDY_HINT)[1:])
     assert args.scenario == "paper" and args.runs == 100
+
+
+def test_study_refuses_an_unwritable_out_before_any_run(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    def no_run(*args: object, **kwargs: object) -> None:
+        raise AssertionError("a run started before --out was checked")
+
+    monkeypatch.setattr("deploy.study_cmd.run_study", no_run)
+    (tmp_path / "a-file").write_text("not a directory")
+    out = tmp_path / "a-file" / "study"
+    code = main(["study", "--scenario", "lanes:short", "--runs", "1", "--out", str(out)])
+    assert code == 2
+    assert f"--out {out}: cannot write there" in capsys.readouterr().err
