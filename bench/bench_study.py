@@ -17,7 +17,7 @@ import numpy as np
 
 from bench import Result, median_seconds
 from deploy.fleet import link_model_for, make_nodes, run_fleet
-from deploy.results import summarise, write_results
+from deploy.results import study_archive, write_archive
 from deploy.study import belief_model, belief_rng
 from deploy.study_cmd import run_study, write_plots
 from estimator.hybrid import BeliefConfig
@@ -76,8 +76,9 @@ def run() -> list[Result]:
     start = time.perf_counter()
     results = run_study(s, METHODS, seeds, BeliefConfig(), JOBS, s.steps)
     wall = time.perf_counter() - start
-    doc = summarise(s.name, results, METHODS, {"weight_estimator": "geo_conditioned"})
-    write_results(OUT, doc, results, METHODS)
+    archive = study_archive(s.name, results, METHODS, {"weight_estimator": "geo_conditioned"})
+    write_archive(OUT, archive)
+    doc = archive.document()
     write_plots(OUT, doc, s, results, s.steps, s.robot_ids[0])
     minutes = wall / 60.0
     if RUNS < 100:

@@ -17,7 +17,7 @@ from deploy.args import positive_int, seed
 from deploy.errors import UsageError
 from deploy.fleet import COMM_MODES
 from deploy.launch import LAUNCH_METHODS, Faults, LaunchOutcome, LaunchPlan, launch
-from deploy.results import summarise, write_results
+from deploy.results import study_archive, write_archive
 from deploy.study import run_single
 from deploy.study_cmd import render_summary, write_plots
 from estimator.hybrid import BeliefConfig
@@ -90,8 +90,10 @@ def write_outputs(
     """results.json/npz and plots like `semfleet study`, and the summary table."""
     s = plan.scenario
     methods = list(LAUNCH_METHODS)
-    doc = summarise(s.name, [outcome.result], methods, extra)
-    write_results(plan.out, doc, [outcome.result], methods)
+    settings = {"communication": plan.comm or s.communication.mode, **extra}
+    archive = study_archive(s.name, [outcome.result], methods, settings)
+    write_archive(plan.out, archive)
+    doc = archive.document()
     steps = plan.run_steps
     render_summary(doc, console)
     plots = write_plots(plan.out, doc, s, [outcome.result], steps, plan.robots[0])

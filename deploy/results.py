@@ -125,24 +125,6 @@ def study_archive(
     )
 
 
-def summarise(
-    scenario: str,
-    results: Sequence[RunResult],
-    methods: Sequence[str],
-    extra: dict[str, Any] | None = None,
-) -> dict[str, Any]:
-    """The results.json document of :func:`study_archive` (kept for deploy/launch_cmd.py)."""
-    return study_archive(scenario, results, methods, extra).document()
-
-
-def write_results(
-    out: Path, doc: dict[str, Any], results: Sequence[RunResult], methods: Sequence[str]
-) -> None:
-    """Write ``doc`` and the arrays of ``results`` (kept for deploy/launch_cmd.py; new code
-    writes a :class:`ResultsArchive` with :func:`write_archive`)."""
-    _write(out, doc, study_arrays(results, methods), [r.seed for r in results])
-
-
 def method_summary(results: Sequence[RunResult], method: str) -> dict[str, Any]:
     """One method's results.json entry: mean curves, pooled class ECE, wall time, step-time
     tails and, where every run measured them, the fleets' fusion times, stack sizes, empty joins

@@ -264,6 +264,7 @@ class Launcher:
             {m: c.step_ms.get(m, []) for m in LAUNCH_METHODS},
             {m: wall for m in LAUNCH_METHODS},
             calibration={m: c.calibration[m][:, :steps] for m in LAUNCH_METHODS},
+            robots=tuple(self.plan.robots),  # the conductor's robot axis
         )
         return LaunchOutcome(result, c, wall, self.agents, self.events, self.garbage.sent)
 

@@ -31,6 +31,7 @@ def test_launch_scenario_path_relative_to_the_callers_folder(tmp_path: Path) -> 
     assert "launching 1 agent of pair (realtime, seed 0)" in r.stdout
     doc = json.loads((site / "run" / "results.json").read_text(encoding="utf-8"))
     assert doc["scenario"] == "pair"
+    assert doc["robots"] == ["r1"] and doc["communication"] == "range", doc  # which ran, how
     assert "up at step 0" in (site / "run" / "logs" / "r1.log").read_text()
 
 
