@@ -3,12 +3,13 @@
 environment. Import it only where a plot is drawn: matplotlib takes a second to import.
 
 Over 300 lines for a reason: the one home of the project's plots (issue 12), with the hybrid-belief
-study's, the UFastSLAM study's and the scenario's figures side by side.
+study's, the UFastSLAM study's, the scenario's and the fleet operator's figures side by side.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import math
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -424,3 +425,64 @@ def write_ufastslam_plots(
     ax.set_title(f"{world.name}: pose RMSE per run", fontsize=10)
     written.append(save(fig, out / "pose_rmse_per_run.png"))
     return written
+
+
+def plot_robot_map(
+    ax: Axes, robot: str, doc: Mapping[str, Any], belief: str, colours: Mapping[str, Any]
+) -> None:
+    """One robot's ``belief`` from an estimates.json document: objects coloured by their most
+    probable class with 2σ ellipses, every robot's trail and latest position (its own belief)."""
+    entry = doc["robots"][robot]
+    b = entry["beliefs"][belief]
+    drawn: set[int] = set()
+    for obj in b["objects"]:
+        c = int(np.argmax(obj["marginals"]))
+        colour = _CLASS_COLOURS(c % 9)
+        xy = np.array(obj["pose"][:2])
+        covariance_ellipse(ax, xy, np.array(obj["cov_xy"]), color=colour, lw=0.8)
+        label = f"class {c + 1}" if c not in drawn else None
+        drawn.add(c)
+        ax.plot(*xy, "s", color=colour, ms=5, label=label)
+        ax.annotate(
+            str(obj["id"]), tuple(xy), textcoords="offset points", xytext=(4, 4), fontsize=7
+        )
+    for other, e in doc["robots"].items():
+        colour = colours[other]
+        trail = np.array(e["trail"], dtype=float).reshape(-1, 3)
+        ax.plot(trail[:, 1], trail[:, 2], "-", color=colour, lw=1.5 if other == robot else 0.8)
+        own = e["beliefs"][_main_belief(e)]
+        x, y, theta = own["robot_pose"]
+        if other == robot:
+            covariance_ellipse(ax, np.array([x, y]), np.array(own["robot_cov_xy"]), color=colour)
+        marker = (3, 0, math.degrees(theta) - 90)  # a triangle pointing along θ
+        ax.plot(x, y, marker=marker, color=colour, ms=10 if other == robot else 6, ls="none")
+        ax.annotate(other, (x, y), textcoords="offset points", xytext=(6, -10), color=colour)
+    ax.set_aspect("equal")
+    ax.set_title(f"{robot} at k = {entry['k']}: {belief}, {b['hypotheses']} hypotheses (2σ)")
+    ax.grid(True, alpha=0.3)
+    if drawn:
+        ax.legend(fontsize=7, loc="best")
+
+
+def _main_belief(entry: Mapping[str, Any]) -> str:
+    beliefs = entry["beliefs"]
+    return "distributed" if "distributed" in beliefs else sorted(beliefs)[0]
+
+
+def write_fleet_map(path: Path, doc: Mapping[str, Any]) -> None:
+    """map.png: one panel per robot (its D, or its only belief), on common axes."""
+    matplotlib.use("Agg")
+    robots = sorted(doc["robots"])
+    colours = {r: plt.get_cmap("tab10")(i % 10) for i, r in enumerate(robots)}
+    cols = min(3, len(robots))
+    rows = math.ceil(len(robots) / cols)
+    fig, axes = plt.subplots(
+        rows, cols, figsize=(6 * cols, 6 * rows), squeeze=False, sharex=True, sharey=True
+    )
+    for ax, robot in zip(axes.flat, robots, strict=False):
+        plot_robot_map(ax, robot, doc, _main_belief(doc["robots"][robot]), colours)
+    for ax in list(axes.flat)[len(robots) :]:
+        ax.set_visible(False)
+    fig.suptitle(f"fleet {doc['fleet']}: estimates after {doc['watched_s']:.0f} s of watch")
+    fig.savefig(path, dpi=110, bbox_inches="tight")
+    plt.close(fig)

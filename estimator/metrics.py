@@ -132,17 +132,25 @@ def world_pose_nees(mean: Array, cov: Array, truth: Array) -> float:
     return float(nees(e, cov, NEES_VARIANCE_FLOOR))
 
 
-def mixture_position_nees(weights: Array, pose: Array, cov: Array, truth_xy: Array) -> Array:
-    """NEES of the world position under the Gaussian-mixture moment match (2 dof).
-
-    weights (H,), pose (H, ..., 3), cov (H, ..., 3, 3), truth_xy (..., 2) → (...).
-    """
+def mixture_position_moments(weights: Array, pose: Array, cov: Array) -> tuple[Array, Array]:
+    """Moment match of the hypotheses' world positions: the weighted mean (..., 2) and the
+    covariance Σ_h w_h [R Σ^h_xy Rᵀ + (t^h − μ)(t^h − μ)ᵀ] (..., 2, 2), within plus between
+    hypotheses; weights (H,), pose (H, ..., 3), cov (H, ..., 3, 3)."""
     w = weights.reshape((-1,) + (1,) * (pose.ndim - 1))
     xy = pose[..., :2]
     mean = np.sum(w * xy, axis=0)
     spread = xy - mean
     within = world_position_cov(pose, cov)
     total = np.sum(w[..., None] * (within + spread[..., :, None] * spread[..., None, :]), axis=0)
+    return mean, total
+
+
+def mixture_position_nees(weights: Array, pose: Array, cov: Array, truth_xy: Array) -> Array:
+    """NEES of the world position under the Gaussian-mixture moment match (2 dof).
+
+    weights (H,), pose (H, ..., 3), cov (H, ..., 3, 3), truth_xy (..., 2) → (...).
+    """
+    mean, total = mixture_position_moments(weights, pose, cov)
     return nees(truth_xy - mean, total)
 
 
