@@ -18,8 +18,8 @@ import numpy as np
 from bench import Result, median_seconds
 from deploy.fleet import link_model_for, make_nodes, run_fleet
 from deploy.results import study_archive, write_archive
-from deploy.study import belief_model, belief_rng
-from deploy.study_cmd import run_study, write_plots
+from deploy.study import belief_model, belief_rng, run_study
+from deploy.study_report import write_plots
 from estimator.hybrid import BeliefConfig
 from estimator.metrics import chi2_bounds
 from protocol.codec import StackMessage, decode, encode

@@ -19,17 +19,9 @@ from rich.console import Console
 
 from agents.journal import JournalError
 from agents.transport.base import TransportError
-from deploy import (
-    agent_cmd,
-    demo,
-    launch_cmd,
-    operator_cmd,
-    replay_cmd,
-    scenario_cmd,
-    study_cmd,
-    ufastslam_cmd,
-)
-from deploy.agent_cmd import AgentConfigError
+from deploy import launch_cmd
+from deploy.agent_config import AgentConfigError
+from deploy.commands import agent, demo, fleet, replay, scenario, study, ufastslam
 from deploy.conductor import ConductorError
 from deploy.errors import (
     EXIT_FAILURE,
@@ -84,14 +76,14 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="version", version=f"semfleet {_version()}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    scenario_cmd.add_parser(sub)
-    study_cmd.add_parser(sub)
+    scenario.add_parser(sub)
+    study.add_parser(sub)
     demo.add_parser(sub)
-    ufastslam_cmd.add_parser(sub)
+    ufastslam.add_parser(sub)
     launch_cmd.add_parser(sub)
-    agent_cmd.add_parser(sub)
-    operator_cmd.add_parser(sub)
-    replay_cmd.add_parser(sub)
+    agent.add_parser(sub)
+    fleet.add_parser(sub)
+    replay.add_parser(sub)
     return parser
 
 

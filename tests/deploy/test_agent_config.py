@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 from agents.journal import Journal
-from deploy.agent_cmd import AgentConfigError, load_agent_config
+from deploy.agent_config import AgentConfigError, load_agent_config
 from sim.loader import load_scenario
 from sim.robot_model import dump_robot_model
 

@@ -19,13 +19,13 @@ import pytest
 from rich.console import Console
 
 from agents.journal import JournalError
-from deploy import demo as demo_cmd
-from deploy.agent_cmd import AgentConfigError
+from deploy.agent_config import AgentConfigError
 from deploy.cli import build_parser, exit_code, main
+from deploy.commands import demo as demo_cmd
 from deploy.errors import RunFailure, UsageError
 from deploy.launch import LaunchError
 from deploy.launch.conductor import ConductorError
-from deploy.study_cmd import StudyError, run_seeded
+from deploy.study import StudyError, run_seeded
 from estimator.distributed import SlotError
 from protocol.errors import LocalProtocolError, MalformedMessage
 from sim.scenario import ScenarioError
@@ -318,7 +318,7 @@ def test_cli_unexpected_errors_keep_their_traceback(
 def test_cli_unexpected_error_prints_its_traceback_from_a_real_process() -> None:
     script = (
         "import sys\n"
-        "from deploy import cli, demo\n"
+        "from deploy import cli\nfrom deploy.commands import demo\n"
         "def run(args, console):\n"
         "    raise ValueError('a bug in a command')\n"
         "demo.run = run\n"
@@ -384,7 +384,9 @@ def test_scenario_generate_refuses_more_classes_than_a_scenario_may_have(tmp_pat
 def test_scenario_generate_never_writes_a_file_it_cannot_read_back(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    monkeypatch.setattr("deploy.scenario_cmd.dump_scenario", lambda s: 'format = 1\nname = "x"\n')
+    monkeypatch.setattr(
+        "deploy.commands.scenario.dump_scenario", lambda s: 'format = 1\nname = "x"\n'
+    )
     out = tmp_path / "g.toml"
     code = main([*GENERATE, "--seed", "1", "-o", str(out)])
     assert code == 2 and not out.exists()
@@ -402,7 +404,7 @@ def test_study_refuses_an_unwritable_out_before_any_run(
     def no_run(*args: object, **kwargs: object) -> None:
         raise AssertionError("a run started before --out was checked")
 
-    monkeypatch.setattr("deploy.study_cmd.run_study", no_run)
+    monkeypatch.setattr("deploy.commands.study.run_study", no_run)
     (tmp_path / "a-file").write_text("not a directory")
     out = tmp_path / "a-file" / "study"
     code = main(["study", "--scenario", "lanes:short", "--runs", "1", "--out", str(out)])

@@ -9,7 +9,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from deploy.study_cmd import run_study
+from deploy.study import run_study
 from estimator.hybrid import BeliefConfig
 from estimator.metrics import chi2_bounds
 from sim.loader import load_scenario

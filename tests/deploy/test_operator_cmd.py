@@ -27,12 +27,12 @@ from agents.control import NeedFrames, Stop, decode_control
 from agents.transport.base import Inbox, Keys, Message
 from agents.transport.zenoh_transport import ZenohSettings, ZenohTransport, loopback_endpoint
 from deploy import cli
+from deploy.commands.fleet import endpoint
 from deploy.errors import UsageError
 from deploy.fleet_session import StopProgress, session_settings, stop_fleet
 from deploy.fleet_view import FleetView, estimates_doc, mixture_moments
 from deploy.launch import free_ports, write_agent_config
 from deploy.launch.conductor import without_truth
-from deploy.operator_cmd import endpoint
 from estimator.hybrid import BeliefSnapshot
 from estimator.models import SensorFrame
 from protocol.errors import RemoteProtocolError

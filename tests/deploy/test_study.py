@@ -18,7 +18,7 @@ from agents.node import RobotNode
 from deploy.cli import main
 from deploy.results import study_archive
 from deploy.study import run_single
-from deploy.study_cmd import render_summary, table_steps
+from deploy.study_report import render_summary, table_steps
 from estimator.distributed import FusionStats
 from estimator.hybrid import BeliefConfig
 from estimator.metrics import ECE_BINS, METRICS, ece_from_stats

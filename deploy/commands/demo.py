@@ -18,7 +18,7 @@ from rich.table import Table
 from deploy.args import seed
 from deploy.launch import LaunchPlan, launch
 from deploy.launch_cmd import counters_table, write_outputs
-from deploy.scenario_cmd import render_show, save_ground_truth_plot
+from deploy.scenario_show import render_show, save_ground_truth_plot
 from sim.loader import load_scenario
 
 STUDY_HINT = (

@@ -20,7 +20,7 @@ from rich.console import Console
 
 from agents.perception import RobotLink
 from agents.transport.zenoh_transport import ZenohSettings
-from deploy.agent_cmd import load_agent_config
+from deploy.agent_config import load_agent_config
 from deploy.errors import RunFailure, UsageError
 from estimator.models import SensorFrame
 from protocol.estimate import EstimateMessage

@@ -11,7 +11,7 @@ from typing import Any
 from rich.console import Console
 
 from deploy.args import positive_int, seed
-from deploy.scenario_cmd import add_scenario_arguments, scenario_from_args, write_new_file
+from deploy.scenario_args import add_scenario_arguments, scenario_from_args, write_new_file
 from protocol.framelog import format_frame_line, format_header
 from sim.scenario import Scenario, ScenarioError
 from sim.sensors import Simulator

@@ -17,7 +17,6 @@ from deploy.results import write_archive
 
 # filter_config: imported from here by bench/bench_ufastslam.py before issue 12.
 from deploy.ufastslam_study import RELATION_CHOICES, run_all, ufastslam_archive
-from deploy.ufastslam_study import filter_config as filter_config
 from sim.ufastslam import load_world
 
 

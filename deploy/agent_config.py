@@ -1,0 +1,136 @@
+"""An agent's config file (TOML, docs/agents.md): read, validated and typed as an
+:class:`AgentConfig`; every mistake an :class:`AgentConfigError` naming the file and field."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+from agents.core import GOSSIP_PERIOD_S, WINDOW_STEPS, CoreSettings
+from agents.transport.zenoh_transport import ZenohSettings
+from protocol.codec import Limits
+from protocol.validate import valid_id
+from sim.loader import FieldReader, parse_toml, read_file
+from sim.robot_model import RobotModel, load_robot_model
+from sim.scenario import ScenarioError
+
+MODES = ("lockstep", "realtime")
+
+
+class AgentConfigError(ValueError):
+    """A bad agent config: names the file and field."""
+
+    def __init__(self, path: Path, field: str, reason: str) -> None:
+        super().__init__(f"{path}: {field}: {reason}")
+        self.field = field
+
+
+@dataclass(frozen=True, slots=True)
+class AgentConfig:
+    robot: str
+    fleet: str
+    model_path: Path
+    model: RobotModel
+    start: tuple[float, float, float]
+    roster: frozenset[str]
+    seed: int
+    runtime: CoreSettings
+    journal: Path | None
+    zenoh: ZenohSettings
+    limits: Limits
+
+
+_AGENT_KEYS = {
+    "fleet", "model", "start", "roster", "seed", "mode", "gossip_period", "journal",
+    "publish_local", "simulation", "window", "world_extent",
+}  # fmt: skip
+_ZENOH_KEYS = {"listen", "connect", "gossip", "shared_memory", "lease_ms", "config_file"}
+MAX_EXTENT = 1e7  # metres: a UTM-like frame; beyond, float64 poses lose millimetres
+
+
+def load_agent_config(path: Path, robot: str) -> AgentConfig:
+    """Parse and validate an agent config; relative paths are relative to the file's folder.
+    Read with the scenario format's field reader (one validation path for every config file);
+    every error is an :class:`AgentConfigError` naming the file and the field."""
+    if not valid_id(robot):
+        raise AgentConfigError(path, "--robot", f"invalid robot id {robot!r}")
+    try:
+        return _read_agent_config(path, robot)
+    except ScenarioError as exc:
+        raise AgentConfigError(path, exc.field or "toml", exc.reason) from None
+
+
+def _read_agent_config(path: Path, robot: str) -> AgentConfig:
+    label = str(path)
+    top = FieldReader(label, parse_toml(read_file(path, "agent config"), label), "")
+    top.check_keys({"agent", "zenoh"})
+    a = top.table("agent") if top.has("agent") else FieldReader(label, {}, "agent")
+    z = top.table("zenoh") if top.has("zenoh") else FieldReader(label, {}, "zenoh")
+    a.check_keys(_AGENT_KEYS)
+    z.check_keys(_ZENOH_KEYS)
+    base = path.parent
+    model_path = base / a.string("model")
+    try:
+        model = load_robot_model(model_path)
+    except ScenarioError as exc:
+        raise a.fail("model", str(exc)) from None
+    extent = a.number("world_extent", positive=True) if a.has("world_extent") else None
+    if extent is not None and not 1.0 <= extent <= MAX_EXTENT:
+        raise a.fail("world_extent", f"must be in 1..{MAX_EXTENT:g} m")
+    limits = Limits(num_classes=model.num_classes, world_extent=extent or Limits().world_extent)
+    x, y, theta = a.vector("start", 3)
+    if max(abs(x), abs(y)) > limits.world_extent or abs(theta) > 2 * math.pi:
+        reason = f"|x|, |y| ≤ world_extent {limits.world_extent:g} m and |theta| ≤ 2π"
+        raise a.fail("start", reason)
+    roster_field = a.array("roster")
+    roster = [roster_field.string(i) for i in range(len(roster_field.raw))]
+    if not all(valid_id(r) for r in roster) or len(set(roster)) != len(roster):
+        raise a.fail("roster", "expected distinct robot ids")
+    if robot not in roster:
+        raise a.fail("roster", f"does not list this robot ({robot})")
+    fleet = a.string("fleet") if a.has("fleet") else "default"
+    if not valid_id(fleet):
+        raise a.fail("fleet", f"invalid fleet name {fleet!r}")
+    mode = a.string("mode") if a.has("mode") else "realtime"
+    if mode not in MODES:
+        raise a.fail("mode", f"{mode!r} (known: {', '.join(MODES)})")
+    period = a.number("gossip_period") if a.has("gossip_period") else GOSSIP_PERIOD_S
+    if not 0.01 <= period <= 3600:
+        raise a.fail("gossip_period", "must be in 0.01..3600 s")
+    runtime = CoreSettings(
+        mode=mode,
+        gossip_period=period,
+        window=a.integer("window", 1, 100_000) if a.has("window") else WINDOW_STEPS,
+        publish_local=a.boolean("publish_local") if a.has("publish_local") else True,
+        simulation=a.boolean("simulation") if a.has("simulation") else False,
+    )
+    endpoints = {}
+    for name in ("listen", "connect"):
+        field = z.array(name) if z.has(name) else FieldReader(label, [], f"zenoh.{name}")
+        values = [field.string(i) for i in range(len(field.raw))]
+        for e in values:
+            if "/" not in e:
+                raise z.fail(name, f"bad endpoint {e!r} (e.g. tcp/127.0.0.1:7447)")
+        endpoints[name] = tuple(values)
+    zenoh_settings = ZenohSettings(
+        listen=endpoints["listen"],
+        connect=endpoints["connect"],
+        gossip=z.boolean("gossip") if z.has("gossip") else True,
+        shared_memory=z.boolean("shared_memory") if z.has("shared_memory") else False,
+        lease_ms=z.integer("lease_ms", 100, 3_600_000) if z.has("lease_ms") else 3000,
+        config_file=base / z.string("config_file") if z.has("config_file") else None,
+    )
+    return AgentConfig(
+        robot=robot,
+        fleet=fleet,
+        model_path=model_path,
+        model=model,
+        start=(x, y, theta),
+        roster=frozenset(roster),
+        seed=a.integer("seed", 0, 2**63 - 1) if a.has("seed") else 0,
+        runtime=runtime,
+        journal=base / a.string("journal") if a.has("journal") else None,
+        zenoh=zenoh_settings,
+        limits=limits,
+    )

@@ -1,0 +1,149 @@
+"""`semfleet study`: the paper's Monte Carlo comparison, as parallel seeded processes. Parses the
+options, runs :func:`deploy.study.run_study`, writes its archive and plots, prints the tables."""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+from deploy.args import MAX_SEED, plural, positive_int, seed, writable_out
+from deploy.errors import UsageError
+from deploy.fleet import COMM_MODES
+from deploy.results import study_archive, write_archive
+from deploy.scenario_args import scenario_from_args
+from deploy.study import METHODS, run_study
+from deploy.study_report import render_summary, write_plots
+from estimator.hybrid import BeliefConfig
+from estimator.weights import WEIGHT_ESTIMATORS
+
+
+def _methods(text: str) -> list[str]:
+    methods = [m.strip() for m in text.split(",") if m.strip()]
+    unknown = [m for m in methods if m not in METHODS]
+    if not methods or unknown:
+        raise argparse.ArgumentTypeError(
+            f"unknown method(s) {unknown} (available: {', '.join(METHODS)})"
+        )
+    return list(dict.fromkeys(methods))
+
+
+# Named hypothesis managements (docs/estimator.md): the default, the paper's, none.
+HYPOTHESIS_MANAGEMENT: dict[str, Callable[..., BeliefConfig]] = {
+    "marginal": BeliefConfig,
+    "paper": BeliefConfig.paper,
+    "exact": BeliefConfig.exact,
+}
+
+
+def run(args: argparse.Namespace, console: Console) -> int:
+    scenario = scenario_from_args(args)
+    robot = args.snapshot_robot or scenario.robot_ids[0]
+    if robot not in scenario.robot_ids:
+        raise UsageError(f"--snapshot-robot: no robot {robot!r} in {scenario.name}")
+    step = scenario.steps if args.snapshot_step is None else args.snapshot_step
+    if not 1 <= step <= scenario.steps:
+        raise UsageError(f"--snapshot-step: {step} is outside 1..{scenario.steps}")
+    changes = {"weight_estimator": args.weights, "num_samples": args.samples}
+    if args.max_hypotheses is not None:
+        changes["max_hypotheses"] = args.max_hypotheses
+    config = HYPOTHESIS_MANAGEMENT[args.hypotheses](**changes)
+    if args.seed + args.runs - 1 > MAX_SEED:
+        raise UsageError(f"--seed {args.seed} with --runs {args.runs} runs past the largest seed")
+    seeds = [args.seed + i for i in range(args.runs)]
+    comm = args.comm or scenario.communication.mode
+    writable_out(Path(args.out))  # before any run, not after all of them
+    console.print(
+        f"study: {scenario.name}, methods {', '.join(args.methods)}, "
+        f"{plural(args.runs, 'run')} (seeds {seeds[0]}..{seeds[-1]}), "
+        f"{plural(args.jobs, 'job')}, weights {args.weights}, "
+        f"hypotheses {args.hypotheses}, communication {comm}"
+    )
+    columns = (
+        TextColumn("{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+    )
+    with Progress(*columns, console=console, transient=False) as progress:
+        task = progress.add_task("runs", total=len(seeds))
+        results = run_study(
+            scenario,
+            args.methods,
+            seeds,
+            config,
+            args.jobs,
+            step,
+            lambda: progress.advance(task),
+            args.comm,
+        )
+    settings = {
+        "weight_estimator": args.weights,
+        "hypotheses": args.hypotheses,
+        "max_hypotheses": config.max_hypotheses,
+        "communication": comm,
+    }
+    archive = study_archive(scenario.name, results, args.methods, settings)
+    out = Path(args.out)
+    write_archive(out, archive)
+    doc = archive.document()
+    render_summary(doc, console)
+    plots = write_plots(out, doc, scenario, results, step, robot)
+    console.print(
+        f"wrote {out / 'results.json'}, {out / 'results.npz'} and {len(plots)} plots in {out}"
+    )
+    return 0
+
+
+def add_parser(sub: Any) -> None:
+    p = sub.add_parser("study", help="Monte Carlo comparison of methods over seeded runs")
+    p.add_argument("--scenario", required=True, help="scenario file or bundled name (e.g. paper)")
+    p.add_argument("--variant", action="append", default=[], metavar="NAME")
+    p.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE", dest="overrides")
+    p.add_argument(
+        "--methods",
+        type=_methods,
+        default=list(METHODS),
+        help=f"comma-separated, from: {', '.join(METHODS)}",
+    )
+    p.add_argument("--runs", type=positive_int, default=10)
+    p.add_argument("--jobs", type=positive_int, default=2, help="parallel processes")
+    p.add_argument("--seed", type=seed, default=0, help="runs use seeds S, S+1, …")
+    p.add_argument("--out", default="out/study", help="output folder")
+    p.add_argument("--weights", choices=WEIGHT_ESTIMATORS, default="geo_conditioned")
+    p.add_argument(
+        "--comm",
+        choices=COMM_MODES,
+        default=None,
+        help="communication for distributed methods: the schedule table, the range rule "
+        "(scenario's range, 10 m in paper) or both (default: the scenario's mode)",
+    )
+    p.add_argument("--samples", type=positive_int, default=BeliefConfig().num_samples)
+    p.add_argument(
+        "--hypotheses",
+        choices=tuple(HYPOTHESIS_MANAGEMENT),
+        default="marginal",
+        help="hypothesis management: marginal (default), paper (joint ratio 1/150, to replicate "
+        "the paper) or exact (no pruning, small worlds only)",
+    )
+    p.add_argument(
+        "--max-hypotheses",
+        type=positive_int,
+        default=None,
+        help=f"cap on hypotheses per belief (default {BeliefConfig().max_hypotheses}; "
+        f"{BeliefConfig.exact().max_hypotheses} with --hypotheses exact)",
+    )
+    p.add_argument(
+        "--snapshot-step",
+        type=int,
+        default=None,
+        help="step of the hypothesis plot (default: last)",
+    )
+    p.add_argument(
+        "--snapshot-robot", default=None, help="robot of the hypothesis plot (default: first)"
+    )
+    p.set_defaults(run=run)

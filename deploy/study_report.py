@@ -1,0 +1,104 @@
+"""What a study prints and draws: the comparison and cost tables of a results document and its
+plots (`semfleet study`, `semfleet launch`)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from rich.console import Console
+from rich.table import Table
+
+from deploy.args import plural
+from deploy.study import RunResult
+from estimator.metrics import chi2_bounds
+from sim.scenario import Scenario
+
+# Rows of the comparison table per method: a curve of the method's results.json entry
+# (class_ece_pooled) or of its means.
+SUMMARY_METRICS = (
+    "msde",
+    "class_log_loss",
+    "class_ece_pooled",
+    "robot_error",
+    "object_error",
+    "robot_nees",
+    "hypotheses",
+)
+
+
+def table_steps(steps: int, count: int = 4) -> list[int]:
+    """``count`` evenly spaced steps ending at the last one, k = ⌈i·steps/count⌉: 15, 30, 45, 60
+    for the paper's 60 steps, 5, 10, 15, 20 for 20."""
+    return sorted({max(1, -(-i * steps // count)) for i in range(1, count + 1)})
+
+
+def _tail_cell(entry: dict[str, Any], name: str) -> str:
+    figures = [entry.get(f"{name}_{q}") for q in ("p50", "p95", "p99", "max")]
+    if any(v is None for v in figures):
+        return "—"
+    return " / ".join(f"{v:.2f}" for v in figures)
+
+
+def render_summary(
+    doc: dict[str, Any], console: Console, at_steps: list[int] | None = None
+) -> None:
+    """The comparison table at ``at_steps`` (default :func:`table_steps`), the cost table and the
+    robot NEES band."""
+    steps = doc["steps"]
+    at = [k for k in (at_steps or table_steps(steps)) if 1 <= k <= steps] or [steps]
+    runs = plural(doc["runs"], "run")
+    table = Table(title=f"{doc['scenario']}: {runs}, mean over runs and robots")
+    table.add_column("method")
+    table.add_column("metric")
+    for k in at:
+        table.add_column(f"k = {k}", justify="right")
+    for method, entry in doc["methods"].items():
+        for i, metric in enumerate(SUMMARY_METRICS):
+            curve = entry[metric] if metric in entry else entry["mean"].get(metric)
+            if curve is None:
+                curve = [None] * steps
+            cells = ["—" if curve[k - 1] is None else f"{curve[k - 1]:.4g}" for k in at]
+            table.add_row(
+                method if i == 0 else "", metric, *cells, end_section=i == len(SUMMARY_METRICS) - 1
+            )
+    console.print(table)
+    timing = Table(title="cost (times in ms: p50 / p95 / p99 / max; stack bytes: mean / max)")
+    columns = ("method", "wall s (all runs)", "belief step ms", "fusion ms", "stack bytes")
+    for col in (*columns, "empty joins", "rebuilds"):
+        timing.add_column(col, justify="right")
+    for method, entry in doc["methods"].items():
+        size = (
+            f"{entry['stack_bytes_mean']:,.0f} / {entry['stack_bytes_max']:,}"
+            if "stack_bytes_mean" in entry
+            else "—"
+        )
+        timing.add_row(
+            method,
+            f"{entry['wall_s']:.1f}",
+            _tail_cell(entry, "step_ms"),
+            _tail_cell(entry, "fusion_ms"),
+            size,
+            *(f"{entry[key]:,}" if key in entry else "—" for key in ("empty_joins", "rebuilds")),
+        )
+    console.print(timing)
+    lo, hi = chi2_bounds(3, doc["runs"])
+    console.print(
+        f"robot NEES (3 dof) 95 % band for the mean over {plural(doc['runs'], 'run')}: "
+        f"[{lo:.2f}, {hi:.2f}]"
+    )
+
+
+def write_plots(
+    out: Path,
+    doc: dict[str, Any],
+    scenario: Scenario,
+    results: list[RunResult],
+    step: int,
+    robot: str,
+) -> list[Path]:
+    """:func:`deploy.plots.write_study_plots`, imported when called: matplotlib takes a second to
+    import, and every command imports this module."""
+    from deploy.plots import write_study_plots
+
+    return write_study_plots(out, doc, scenario, results, step, robot)
