@@ -19,9 +19,9 @@ from rich.console import Console
 
 from agents.journal import JournalError
 from agents.transport.base import TransportError
-from deploy import launch_cmd
 from deploy.agent_config import AgentConfigError
 from deploy.commands import agent, demo, fleet, replay, scenario, study, ufastslam
+from deploy.commands import launch as launch_command
 from deploy.conductor import ConductorError
 from deploy.errors import (
     EXIT_FAILURE,
@@ -80,7 +80,7 @@ def build_parser() -> argparse.ArgumentParser:
     study.add_parser(sub)
     demo.add_parser(sub)
     ufastslam.add_parser(sub)
-    launch_cmd.add_parser(sub)
+    launch_command.add_parser(sub)
     agent.add_parser(sub)
     fleet.add_parser(sub)
     replay.add_parser(sub)

@@ -17,7 +17,7 @@ from rich.table import Table
 
 from deploy.args import seed
 from deploy.launch import LaunchPlan, launch
-from deploy.launch_cmd import counters_table, write_outputs
+from deploy.launch.report import counters_table, write_outputs
 from deploy.scenario_show import render_show, save_ground_truth_plot
 from sim.loader import load_scenario
 

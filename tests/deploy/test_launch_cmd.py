@@ -8,7 +8,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from deploy.launch_cmd import agents
+from deploy.launch.report import agents
 from tests.deploy.test_launch import world_text
 
 SEMFLEET = Path(sys.executable).with_name("semfleet")

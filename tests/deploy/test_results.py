@@ -19,10 +19,8 @@ from deploy.results import (
     pooled_calibration,
     read_results,
     study_archive,
-    summarise,
     tail,
     write_archive,
-    write_results,
 )
 from deploy.study import RunResult
 from estimator.metrics import ECE_BINS, METRICS, calibration_stats
@@ -217,26 +215,6 @@ def test_study_archive_refuses_robots_that_are_not_the_robot_axis() -> None:
     runs = [dataclasses.replace(r, robots=("r1", "r2", "r3")) for r in _two_runs()]
     with pytest.raises(ValueError, match=r"robots \['r1', 'r2', 'r3'\] do not match the runs' 2"):
         study_archive("hand", runs, ["local"])
-
-
-def test_summarise_and_write_results_are_the_study_archive(tmp_path: Path) -> None:
-    # the names deploy/launch_cmd.py still calls
-    runs = _two_runs()
-    extra = {"launch": {"mode": "lockstep"}}
-    doc = summarise("hand", runs, ["local", "distributed"], extra)
-    archive = study_archive("hand", runs, ["local", "distributed"], extra)
-    assert doc == archive.document()
-    write_results(tmp_path / "old", doc, runs, ["local", "distributed"])
-    write_archive(tmp_path / "new", archive)
-    for name in ("results.json", "results.npz"):
-        old, new = (tmp_path / d / name for d in ("old", "new"))
-        if name.endswith(".json"):
-            assert old.read_text(encoding="utf-8") == new.read_text(encoding="utf-8")
-            continue
-        with np.load(old) as a, np.load(new) as b:
-            assert a.files == b.files
-            for key in a.files:
-                np.testing.assert_array_equal(a[key], b[key], err_msg=key)
 
 
 def test_study_archive_takes_fusion_times_and_stack_sizes_each_on_its_own() -> None:

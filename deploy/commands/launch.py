@@ -16,10 +16,9 @@ from agents.links import Partition
 from deploy.args import positive_int, seed
 from deploy.errors import UsageError
 from deploy.fleet import COMM_MODES
-from deploy.launch import LAUNCH_METHODS, Faults, LaunchOutcome, LaunchPlan, launch
-from deploy.results import study_archive, write_archive
+from deploy.launch import LAUNCH_METHODS, Faults, LaunchPlan, launch
+from deploy.launch.report import agents, counters_table, write_outputs
 from deploy.study import run_single
-from deploy.study_cmd import render_summary, write_plots
 from estimator.hybrid import BeliefConfig
 from estimator.models import ROBOT_ID
 from sim.loader import load_scenario
@@ -82,41 +81,6 @@ def _steps(scenario: Scenario, steps: int | None) -> int | None:
     if steps is not None and steps > scenario.steps:
         raise UsageError(f"--steps: {steps} outside 1..{scenario.steps} (scenario {scenario.name})")
     return steps
-
-
-def write_outputs(
-    plan: LaunchPlan, outcome: LaunchOutcome, console: Console, extra: dict[str, Any]
-) -> dict[str, Any]:
-    """results.json/npz and plots like `semfleet study`, and the summary table."""
-    s = plan.scenario
-    methods = list(LAUNCH_METHODS)
-    settings = {"communication": plan.comm or s.communication.mode, **extra}
-    archive = study_archive(s.name, [outcome.result], methods, settings)
-    write_archive(plan.out, archive)
-    doc = archive.document()
-    steps = plan.run_steps
-    render_summary(doc, console)
-    plots = write_plots(plan.out, doc, s, [outcome.result], steps, plan.robots[0])
-    console.print(f"wrote {plan.out / 'results.json'} and {len(plots)} plots in {plan.out}")
-    return doc
-
-
-def agents(n: int) -> str:
-    return f"{n} agent" if n == 1 else f"{n} agents"
-
-
-def counters_table(outcome: LaunchOutcome) -> Table:
-    names = (
-        "step", "stacks_sent", "stacks_received", "stacks_merged", "stacks_invalid",
-        "ignored_out_of_range", "frames_processed", "replayed_frames", "bytes_sent",
-    )  # fmt: skip
-    t = Table(title="agent counters (last estimate)")
-    t.add_column("robot")
-    for n in names:
-        t.add_column(n.replace("_", " "), justify="right")
-    for r, c in sorted(outcome.collected.counters.items()):
-        t.add_row(r, *(f"{c.get(n, 0):,}" for n in names))
-    return t
 
 
 def run_launch(args: argparse.Namespace, console: Console) -> int:
