@@ -251,7 +251,10 @@ class Conductor:
         settle: float = 10.0,
     ) -> None:
         """One frame per robot every ``period`` seconds whatever the agents do; then up to
-        ``settle`` seconds for the last estimates."""
+        ``settle`` seconds for the last estimates. Every put is best-effort (a congested link
+        drops it), so while waiting the last frame is sent again every ``retry_period`` to the
+        robots not heard from: one that already took that step answers with its estimate again,
+        one still behind ignores the duplicate (or gets a frame it lost)."""
         start = time.monotonic()
         for k in range(1, steps + 1):
             self.k = k
@@ -268,11 +271,17 @@ class Conductor:
                 )
                 self.pump()
         deadline = time.monotonic() + settle
+        last_send = time.monotonic()
         while any(self._acked[r] < steps for r in self.robots) and time.monotonic() < deadline:
             if check is not None:
                 check()
             await self.estimates.wait(0.05)
             self.pump()
+            if time.monotonic() - last_send > self.retry_period:
+                last_send = time.monotonic()
+                for r in self.robots:
+                    if self._acked[r] < steps:
+                        self._publish_frames(r, steps, steps)
 
     def stop_agents(self, reason: str = "run complete") -> None:
         self.transport.publish(self.keys.ctl("stop"), encode_control(Stop(reason)))
