@@ -76,6 +76,24 @@ class MemoryLog:
         pass
 
 
+def execute_journal_actions(log: Journal | MemoryLog, actions: Sequence[Action]) -> list[Action]:
+    """Carry out a core's journal actions (append, commit, quarantine, cut) on ``log``, in order;
+    return the other actions (publications, halts) for the caller."""
+    rest: list[Action] = []
+    for a in actions:
+        if isinstance(a, Append):
+            log.append(a.kind, a.body)
+        elif isinstance(a, Commit):
+            log.commit()
+        elif isinstance(a, Quarantine):
+            log.quarantine(a.kind, a.body, a.reason, a.index)
+        elif isinstance(a, CutJournal):
+            log.cut(a.index)
+        else:
+            rest.append(a)
+    return rest
+
+
 class Agent:
     """One robot of the fleet: ``core`` on ``transport``, its records in ``journal`` (or in
     memory). ``clock`` gives the ``now`` of every event."""
@@ -231,19 +249,7 @@ class Agent:
 
     def _execute(self, actions: Sequence[Action]) -> list[Action]:
         """Carry out the journal actions; return the others."""
-        rest: list[Action] = []
-        for a in actions:
-            if isinstance(a, Append):
-                self.log.append(a.kind, a.body)
-            elif isinstance(a, Commit):
-                self.log.commit()
-            elif isinstance(a, Quarantine):
-                self.log.quarantine(a.kind, a.body, a.reason, a.index)
-            elif isinstance(a, CutJournal):
-                self.log.cut(a.index)
-            else:
-                rest.append(a)
-        return rest
+        return execute_journal_actions(self.log, actions)
 
     def _carry_out(self, actions: Sequence[Action]) -> None:
         """On the loop: publications and halts."""

@@ -146,9 +146,9 @@ def _gossip_rows() -> list[Result]:
 
 
 def _run_launch(
-    plan: LaunchPlan, source: str, sample: bool = False
+    plan: LaunchPlan, sample: bool = False
 ) -> tuple[LaunchOutcome, dict[str, dict[str, float]]]:
-    launcher = Launcher(plan, source)
+    launcher = Launcher(plan)
     usage: dict[str, dict[str, float]] = {}
 
     def on_step(conductor: object, k: int) -> None:
@@ -187,7 +187,7 @@ def _relay_rows(tmp: Path) -> list[Result]:
         s, 0, robots, tmp / "relay", mode="realtime", period=PERIOD_S, gossip_period=GOSSIP_S,
         fleet="relay", zenoh_neighbours=neighbours, observe_stacks=True, publish_local=False,
     )  # fmt: skip
-    outcome, _ = _run_launch(plan, str(path))
+    outcome, _ = _run_launch(plan)
     log = outcome.collected.stack_log
     first_seen: dict[tuple[str, int], dict[str, float]] = {}
     for t, holder, stamps in log:
@@ -225,7 +225,7 @@ def _capacity_rows(tmp: Path) -> list[Result]:
         )  # fmt: skip
         start = time.perf_counter()
         try:
-            outcome, usage = _run_launch(plan, str(path), sample=True)
+            outcome, usage = _run_launch(plan, sample=True)
         except Exception as exc:  # a capacity probe may fail at high N: that is the figure
             rows.append(
                 Result(f"realtime capacity: {n} agents", n, float("nan"), note=f"failed: {exc}")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import re
 from pathlib import Path
 
 from deploy.errors import UsageError
@@ -55,3 +56,27 @@ def writable_out(directory: Path) -> None:
         probe.unlink()
     except OSError as exc:
         raise UsageError(f"--out {directory}: cannot write there ({exc.strerror or exc})") from None
+
+
+_IP_PROTOCOLS = {"tcp", "udp", "tls", "quic", "ws"}
+_OTHER_PROTOCOLS = {"unixsock-stream", "unixpipe", "serial", "vsock"}
+_ENDPOINT = re.compile(r"^(?P<proto>[a-z][a-z0-9-]*)/(?P<address>[^?#]+)(?P<rest>[?#].*)?$")
+
+
+def zenoh_endpoint(text: str, option: str) -> str:
+    """A Zenoh endpoint ``PROTOCOL/ADDRESS`` (e.g. ``tcp/127.0.0.1:7447``); IP protocols need a
+    ``host:port`` with a port in 1..65535."""
+    m = _ENDPOINT.fullmatch(text)
+    if m is None or m["proto"] not in _IP_PROTOCOLS | _OTHER_PROTOCOLS:
+        known = ", ".join(sorted(_IP_PROTOCOLS | _OTHER_PROTOCOLS))
+        raise UsageError(
+            f"{option} {text!r}: expected PROTOCOL/ADDRESS such as tcp/127.0.0.1:7447 "
+            f"(protocols: {known})"
+        )
+    if m["proto"] in _IP_PROTOCOLS:
+        host, colon, port = m["address"].rpartition(":")
+        if not (colon and host and port.isdigit() and 1 <= int(port) <= 65535):
+            raise UsageError(
+                f"{option} {text!r}: expected HOST:PORT with a port in 1..65535 after {m['proto']}/"
+            )
+    return text

@@ -21,12 +21,20 @@ from sim.scenario import RobotModel, Scenario
 
 __all__ = [
     "COMM_MODES",
+    "HYPOTHESIS_MANAGEMENT",
     "belief_model",
     "belief_rng",
     "link_model_for",
     "make_node",
     "make_nodes",
 ]
+
+# Named hypothesis managements (docs/estimator.md): the default, the paper's, none.
+HYPOTHESIS_MANAGEMENT: dict[str, Callable[..., BeliefConfig]] = {
+    "marginal": BeliefConfig,
+    "paper": BeliefConfig.paper,
+    "exact": BeliefConfig.exact,
+}
 
 
 def belief_model(model: RobotModel | Scenario) -> BeliefModel:

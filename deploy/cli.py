@@ -12,24 +12,27 @@ from __future__ import annotations
 import argparse
 import importlib.metadata
 import logging
+import signal
 import sys
+import threading
 from collections.abc import Sequence
-
-from rich.console import Console
+from typing import Any, NoReturn
 
 from agents.journal import JournalError
 from agents.transport.base import TransportError
 from deploy.agent_config import AgentConfigError
 from deploy.commands import agent, demo, fleet, replay, scenario, study, ufastslam
 from deploy.commands import launch as launch_command
-from deploy.conductor import ConductorError
 from deploy.errors import (
     EXIT_FAILURE,
     EXIT_INTERRUPTED,
     EXIT_USAGE,
     CommandError,
+    SignalExit,
 )
 from deploy.launch import LaunchError
+from deploy.launch.conductor import ConductorError
+from deploy.output import make_console
 from protocol.errors import ProtocolError
 from sim.scenario import ScenarioError
 
@@ -66,8 +69,21 @@ def exit_code(exc: Exception) -> int | None:
     return next((KNOWN_ERRORS[c] for c in type(exc).__mro__ if c in KNOWN_ERRORS), None)
 
 
+class Parser(argparse.ArgumentParser):
+    """argparse's own mistakes (unknown option, bad value, missing argument) as one line, like
+    the project's: ``semfleet COMMAND: error: … (semfleet COMMAND --help)``, exit code 2.
+    Sub-command parsers are made of the same class."""
+
+    def error(self, message: str) -> NoReturn:
+        print(
+            f"{self.prog}: error: {' '.join(message.split())} (see {self.prog} --help)",
+            file=sys.stderr,
+        )
+        sys.exit(EXIT_USAGE)
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = Parser(
         prog="semfleet",
         description="Distributed, consistent, multi-robot semantic SLAM.",
     )
@@ -106,19 +122,38 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.verbose:  # our debug lines only, not matplotlib's, numba's or asyncio's
         for package in OWN_LOGGERS:
             logging.getLogger(package).setLevel(logging.DEBUG)
-    console = Console()
+    console = make_console()
+    previous = _raise_on_stop_signals()
     try:
         code: int = args.run(args, console)
         return code
     except KeyboardInterrupt:
         _error("interrupted")
         return EXIT_INTERRUPTED
+    except SignalExit as stop:
+        _error(f"stopped by {signal.Signals(stop.signal_number).name}")
+        return stop.exit_code
     except Exception as exc:
         known = exit_code(exc)
         if known is None:
             raise
         _error(_message(exc))
         return known
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
+def _raise_on_stop_signals() -> dict[signal.Signals, Any]:
+    """SIGTERM and SIGHUP raise :class:`SignalExit` in the main thread (commands that run an
+    event loop install their own handlers while it runs); the previous handlers, to restore."""
+    if threading.current_thread() is not threading.main_thread():
+        return {}
+
+    def raise_exit(signum: int, _frame: object) -> None:
+        raise SignalExit(signum)
+
+    return {sig: signal.signal(sig, raise_exit) for sig in (signal.SIGTERM, signal.SIGHUP)}
 
 
 def _message(exc: Exception) -> str:

@@ -33,3 +33,15 @@ class RunFailure(CommandError):
     """The command was right but the run failed (exit 1)."""
 
     exit_code = EXIT_FAILURE
+
+
+class SignalExit(BaseException):
+    """SIGTERM or SIGHUP arrived while a command ran outside an event loop (a study, a scenario
+    command): raised in the main thread like ``KeyboardInterrupt`` for Ctrl-C, so that every
+    ``with`` and ``finally`` on the way out runs (worker processes are stopped, files closed).
+    Not an ``Exception``: no ``except Exception`` on the way may swallow it."""
+
+    def __init__(self, signal_number: int) -> None:
+        super().__init__(signal_number)
+        self.signal_number = signal_number
+        self.exit_code = 128 + signal_number

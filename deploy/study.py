@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import multiprocessing
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
@@ -92,20 +92,27 @@ def run_seeded(
     included), with a note naming the seed. ``advance()`` after every finished run."""
     done: dict[int, Any] = {}
     ctx = multiprocessing.get_context("spawn")
-    with ProcessPoolExecutor(max_workers=jobs, mp_context=ctx) as pool:
+    pool = ProcessPoolExecutor(max_workers=jobs, mp_context=ctx)
+    try:
         futures = {pool.submit(*call): seed for seed, call in calls.items()}
         for fut in as_completed(futures):
             seed = futures[fut]
             try:
                 done[seed] = fut.result()
             except Exception as exc:
-                for other in futures:
-                    other.cancel()
                 if isinstance(exc, BrokenProcessPool):
                     raise StudyError(f"run with seed {seed} failed: {exc}") from exc
                 exc.add_note(f"in the run with seed {seed}")
                 raise
             advance()
+    except BaseException:
+        # A failed run, Ctrl-C or a stop signal: the other runs are not waited for. Their
+        # workers are stopped here, so none outlives the command.
+        for process in list(getattr(pool, "_processes", {}).values()):
+            process.terminate()
+        raise
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
     return [done[s] for s in calls]
 
 
@@ -124,14 +131,14 @@ def run_single(
         raise ValueError(f"unknown methods {unknown} (known: {', '.join(METHODS)})")
     sim = Simulator(scenario, seed)
     frames = sim.all_frames()
-    truth_objects = {o.id: (np.array(o.pose), o.class_index) for o in scenario.objects}
+    truth_objects = true_objects(scenario)
     robots = scenario.robot_ids
     model = belief_model(scenario)
     metrics: dict[str, dict[str, Array]] = {}
     step_ms: dict[str, list[float]] = {}
     wall: dict[str, float] = {}
     snapshots: dict[str, dict[str, BeliefSnapshot]] = {}
-    recorders = {m: _Recorder(scenario, frames, truth_objects, snapshot_step) for m in methods}
+    recorders = {m: Recorder(scenario, frames, truth_objects, snapshot_step) for m in methods}
     fleet_methods = [m for m in methods if m in FLEET_METHODS]
     if "local" in methods or fleet_methods:
         _run_shared_local(scenario, model, config, seed, comm, frames, recorders, fleet_methods)
@@ -177,7 +184,7 @@ def _run_shared_local(
     seed: int,
     comm: str | None,
     frames: dict[str, list[SensorFrame]],
-    recorders: dict[str, _Recorder],
+    recorders: dict[str, Recorder],
     fleet_methods: Sequence[str],
 ) -> None:
     """``local`` and the fleets (``distributed``, ``double_count``) in one lock-step loop over one
@@ -213,7 +220,7 @@ def _run_shared_local(
                 local.step_ms.append(ms)
                 local.record(tracks[r].belief, index[r], r, k, ms)
 
-    def on_step_for(rec: _Recorder) -> StepCallback:
+    def on_step_for(rec: Recorder) -> StepCallback:
         def on_step(robot: str, k: int, node: RobotNode, fused_ms: float, ms: float) -> None:
             rec.step_ms.append(ms)
             rec.fusion_ms.append(fused_ms)
@@ -228,20 +235,28 @@ def _run_shared_local(
         recorders[m].fleet = st
 
 
-class _Recorder:
+def true_objects(scenario: Scenario) -> dict[int, tuple[Array, int]]:
+    """Object id → (true pose, true class index): what the metrics score against."""
+    return {o.id: (np.array(o.pose), o.class_index) for o in scenario.objects}
+
+
+class Recorder:
     """Collects one method's metrics (robots, steps), class-ECE bin statistics (robots, steps, 3,
-    bins), step times, the requested snapshots and, for a fleet, its :class:`FleetStats`."""
+    bins), step times, the requested snapshots and, for a fleet, its :class:`FleetStats`. A
+    launch scores its agents' published snapshots with it too (:meth:`score`), so a launch and a
+    study are measured by the same code. ``robots``: how many rows (default: the scenario's)."""
 
     def __init__(
         self,
         scenario: Scenario,
-        frames: dict[str, list[SensorFrame]],
+        frames: Mapping[str, Sequence[SensorFrame]],
         truth_objects: dict[int, tuple[Array, int]],
-        snapshot_step: int | None,
+        snapshot_step: int | None = None,
+        robots: int | None = None,
     ) -> None:
         self.scenario, self.frames, self.truth = scenario, frames, truth_objects
         self.snapshot_step = snapshot_step
-        shape = (len(scenario.robots), scenario.steps)
+        shape = (len(scenario.robots) if robots is None else robots, scenario.steps)
         self.arrays = {m: np.full(shape, np.nan) for m in METRICS}
         self.calibration = np.zeros((*shape, 3, ECE_BINS))
         self.step_ms: list[float] = []
@@ -264,11 +279,16 @@ class _Recorder:
         t = time.perf_counter()
         if snap is None:
             snap = belief.snapshot(robot)
+        self.score(i, robot, k, snap)
+        if k == self.snapshot_step:
+            self.snapshots[robot] = snap
+        self.wall_s += step_ms / 1e3 + time.perf_counter() - t
+
+    def score(self, i: int, robot: str, k: int, snap: BeliefSnapshot) -> None:
+        """Row ``i`` (``robot``), step k: ``snap`` against the ground truth, every metric and
+        the class-ECE bin statistics."""
         true_pose = self.frames[robot][k - 1].true_pose
         num_classes = self.scenario.num_classes
         for name, value in evaluate(snap, num_classes, true_pose, self.truth).items():
             self.arrays[name][i, k - 1] = value
         self.calibration[i, k - 1] = evaluate_calibration(snap, num_classes, self.truth)
-        if k == self.snapshot_step:
-            self.snapshots[robot] = snap
-        self.wall_s += step_ms / 1e3 + time.perf_counter() - t

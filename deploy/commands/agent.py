@@ -11,130 +11,16 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import json
 import logging
 import os
-import signal
 import sys
-import zlib
-from collections.abc import Callable
-from functools import partial
 from pathlib import Path
 from typing import Any
 
 from rich.console import Console
 
-from agents.core import AgentCore
-from agents.journal import Journal, Record
-from agents.node import RobotNode
-from agents.runtime import Agent
-from agents.transport.base import Keys
-from agents.transport.zenoh_transport import ZenohTransport
-from deploy.agent_config import AgentConfig, load_agent_config
-from deploy.build import belief_model, make_node
-from estimator.hybrid import BeliefConfig
-from sim.robot_model import dump_robot_model
-
-log = logging.getLogger("semfleet.agent")
-
-
-def node_factory(config: AgentConfig) -> Callable[[], RobotNode]:
-    """Builds the agent's node at step 0: L and D seeded exactly like the in-process runner's,
-    holding the slots of the roster's robots only."""
-    model = belief_model(config.model)
-
-    return partial(
-        make_node,
-        config.robot,
-        config.start,
-        model,
-        config.seed,
-        BeliefConfig(),
-        roster=config.roster,
-        limits=config.limits,
-    )
-
-
-def journal_identity(config: AgentConfig) -> dict[str, str | int]:
-    """What a journal must have been written by: this robot, fleet, model, start, seed, mode."""
-    model = zlib.crc32(dump_robot_model(config.model).encode())
-    start = zlib.crc32(repr(config.start).encode())
-    return {
-        "robot": config.robot,
-        "fleet": config.fleet,
-        "model": f"{model:08x}",
-        "start": f"{start:08x}",
-        "seed": config.seed,
-        "mode": config.runtime.mode,
-    }
-
-
-def build_agent(config: AgentConfig, transport: ZenohTransport) -> Agent:
-    """The core (its node from the robot model), its journal replayed, the agent."""
-    journal = None
-    records: list[Record] = []
-    if config.journal is not None:
-        journal, records = Journal.open(config.journal, journal_identity(config))
-    core = AgentCore(node_factory(config), Keys(config.fleet), config.runtime)
-    agent = Agent(core, transport, journal)
-    agent.replay(records)
-    return agent
-
-
-class JsonLines(logging.Formatter):
-    """One JSON object per line: time, level, logger, message and any ``extra`` fields."""
-
-    _STANDARD = set(vars(logging.LogRecord("", 0, "", 0, "", None, None))) | {"message"}
-
-    def __init__(self, robot: str) -> None:
-        super().__init__()
-        self.robot = robot
-
-    def format(self, record: logging.LogRecord) -> str:
-        doc: dict[str, Any] = {
-            "ts": round(record.created, 6),
-            "level": record.levelname.lower(),
-            "logger": record.name,
-            "robot": self.robot,
-            "msg": record.getMessage(),
-        }
-        doc.update({k: v for k, v in vars(record).items() if k not in self._STANDARD})
-        if record.exc_info:
-            doc["exc"] = self.formatException(record.exc_info)
-        return json.dumps(doc, default=str)
-
-
-async def _log_counters(agent: Agent, every: float) -> None:
-    while True:
-        await asyncio.sleep(every)
-        log.info("%s: counters", agent.robot, extra={"event": "counters", **agent.counter_values()})
-
-
-async def serve(config: AgentConfig) -> int:
-    transport = ZenohTransport(config.zenoh)
-    agent = build_agent(config, transport)
-    loop = asyncio.get_running_loop()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        loop.add_signal_handler(sig, agent.stop, signal.Signals(sig).name)
-    log.info(
-        "%s: up at step %d (%s mode)",
-        config.robot,
-        agent.node.k,
-        config.runtime.mode,
-        extra={"event": "start", "step": agent.node.k, "mode": config.runtime.mode},
-    )
-    counters = asyncio.create_task(_log_counters(agent, 10.0))
-    try:
-        await agent.run()
-    finally:
-        counters.cancel()
-    log.info(
-        "%s: stopped (%s)",
-        config.robot,
-        agent.stop_reason,
-        extra={"event": "stop", "reason": agent.stop_reason, **agent.counter_values()},
-    )
-    return 0
+from deploy.agent_config import load_agent_config
+from deploy.agent_service import JsonLines, serve
 
 
 def run(args: argparse.Namespace, console: Console) -> int:

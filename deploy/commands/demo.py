@@ -54,7 +54,7 @@ def run(args: argparse.Namespace, console: Console) -> int:
         f"launching {len(plan.robots)} agent processes (Zenoh on loopback, lock-step, seed "
         f"{plan.seed}); logs in {out / 'logs'}"
     )
-    outcome = launch(plan, "paper", console)
+    outcome = launch(plan, console)
     console.print(counters_table(outcome))
     doc = write_outputs(plan, outcome, console, {"demo": True})
     console.print(final_table(doc, scenario.steps))

@@ -19,19 +19,18 @@ import argparse
 import asyncio
 import json
 import math
-import re
 from pathlib import Path
 from typing import Any
 
 from rich.console import Console
-from rich.live import Live
-from rich.table import Table
 
 from agents.transport.base import Keys
 from agents.transport.zenoh_transport import ZenohSettings
+from deploy.args import zenoh_endpoint
 from deploy.errors import RunFailure, UsageError
 from deploy.fleet_session import collect_status, session_settings, stop_fleet, watch_fleet
 from deploy.fleet_view import FleetView, status_doc, write_watch_results
+from deploy.output import FiguresTable, figures_table, live_display
 from estimator.models import ROBOT_ID_RULE
 from protocol.validate import valid_id
 
@@ -45,36 +44,13 @@ COUNTER_COLUMNS = (
     ("frames_processed", "frames"),
     ("frames_quarantined", "quarantined"),
 )
-_IP_PROTOCOLS = {"tcp", "udp", "tls", "quic", "ws"}
-_OTHER_PROTOCOLS = {"unixsock-stream", "unixpipe", "serial", "vsock"}
-_ENDPOINT = re.compile(r"^(?P<proto>[a-z][a-z0-9-]*)/(?P<address>[^?#]+)(?P<rest>[?#].*)?$")
-
-
-def endpoint(text: str) -> str:
-    """A Zenoh endpoint ``PROTOCOL/ADDRESS`` (e.g. ``tcp/127.0.0.1:7447``); IP protocols need a
-    ``host:port`` with a port in 1..65535."""
-    m = _ENDPOINT.fullmatch(text)
-    if m is None or m["proto"] not in _IP_PROTOCOLS | _OTHER_PROTOCOLS:
-        known = ", ".join(sorted(_IP_PROTOCOLS | _OTHER_PROTOCOLS))
-        raise UsageError(
-            f"--connect {text!r}: expected PROTOCOL/ADDRESS such as tcp/127.0.0.1:7447 "
-            f"(protocols: {known})"
-        )
-    if m["proto"] in _IP_PROTOCOLS:
-        host, colon, port = m["address"].rpartition(":")
-        if not (colon and host and port.isdigit() and 1 <= int(port) <= 65535):
-            raise UsageError(
-                f"--connect {text!r}: expected HOST:PORT with a port in 1..65535 after "
-                f"{m['proto']}/"
-            )
-    return text
 
 
 def connection(args: argparse.Namespace) -> tuple[ZenohSettings, Keys]:
     """The session settings and the fleet's keys from the common options."""
     if not valid_id(args.fleet):
         raise UsageError(f"--fleet {args.fleet!r}: {ROBOT_ID_RULE}")
-    endpoints = tuple(endpoint(e) for e in args.connect)
+    endpoints = tuple(zenoh_endpoint(e, "--connect") for e in args.connect)
     config_file = None
     if args.zenoh_config is not None:
         config_file = Path(args.zenoh_config)
@@ -85,25 +61,22 @@ def connection(args: argparse.Namespace) -> tuple[ZenohSettings, Keys]:
     return session_settings(endpoints, args.mode, config_file), Keys(args.fleet)
 
 
-def fleet_table(view: FleetView, title: str, now: float | None = None) -> Table:
+def fleet_table(view: FleetView, title: str, now: float | None = None) -> FiguresTable:
     """Robot, token, step, hypotheses and objects of D / L, the :data:`COUNTER_COLUMNS` some
     robot reports and, given ``now``, the age of the latest estimate."""
     estimates = [s.estimate for s in view.robots.values() if s.estimate is not None]
     shown = [(k, h) for k, h in COUNTER_COLUMNS if any(k in e.counters for e in estimates)]
-    t = Table(title=title)
-    for name in ("robot", "alive", "step", "hyp. D/L", "objects D/L"):
-        t.add_column(name, justify="left" if name == "robot" else "right")
-    for _, heading in shown:
-        t.add_column(heading, justify="right")
+    headings = ["robot", "alive", "step", "hyp. D/L", "objects D/L", *(h for _, h in shown)]
     if now is not None:
-        t.add_column("age (s)", justify="right")
+        headings.append("age (s)")
+    rows = []
     for robot in sorted(view.robots):
         state = view.robots[robot]
         est = state.estimate
         alive = "[green]yes[/]" if state.alive else "[red]no[/]"
         ages = ["—"] if now is not None else []
         if est is None:
-            t.add_row(robot, alive, "—", "—", "—", *("—" for _ in shown), *ages)
+            rows.append([robot, alive, "—", "—", "—", *("—" for _ in shown), *ages])
             continue
         d, loc = est.beliefs.get("distributed"), est.beliefs.get("local")
         hyp = "/".join(str(len(s.weights)) if s else "—" for s in (d, loc))
@@ -111,8 +84,8 @@ def fleet_table(view: FleetView, title: str, now: float | None = None) -> Table:
         counters = (str(est.counters.get(k, "—")) for k, _ in shown)
         if now is not None:
             ages = [f"{now - state.received:.1f}"]
-        t.add_row(robot, alive, str(est.k), hyp, objects, *counters, *ages)
-    return t
+        rows.append([robot, alive, str(est.k), hyp, objects, *counters, *ages])
+    return figures_table(title, headings, rows)
 
 
 def run_status(args: argparse.Namespace, console: Console) -> int:
@@ -136,7 +109,7 @@ def run_watch(args: argparse.Namespace, console: Console) -> int:
     if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
         raise UsageError(f"--duration {args.duration}: must be a positive number")
     title = f"fleet {keys.fleet} at {', '.join(settings.connect)}"
-    with Live(console=console, refresh_per_second=4, transient=False) as live:
+    with live_display(console) as live:
 
         def show(view: FleetView, now: float) -> None:
             live.update(fleet_table(view, title, now))

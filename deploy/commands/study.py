@@ -4,16 +4,16 @@ options, runs :func:`deploy.study.run_study`, writes its archive and plots, prin
 from __future__ import annotations
 
 import argparse
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
 from deploy.args import MAX_SEED, plural, positive_int, seed, writable_out
+from deploy.build import HYPOTHESIS_MANAGEMENT
 from deploy.errors import UsageError
 from deploy.fleet import COMM_MODES
+from deploy.output import runs_progress
 from deploy.results import study_archive, write_archive
 from deploy.scenario_args import scenario_from_args
 from deploy.study import METHODS, run_study
@@ -30,14 +30,6 @@ def _methods(text: str) -> list[str]:
             f"unknown method(s) {unknown} (available: {', '.join(METHODS)})"
         )
     return list(dict.fromkeys(methods))
-
-
-# Named hypothesis managements (docs/estimator.md): the default, the paper's, none.
-HYPOTHESIS_MANAGEMENT: dict[str, Callable[..., BeliefConfig]] = {
-    "marginal": BeliefConfig,
-    "paper": BeliefConfig.paper,
-    "exact": BeliefConfig.exact,
-}
 
 
 def run(args: argparse.Namespace, console: Console) -> int:
@@ -63,13 +55,7 @@ def run(args: argparse.Namespace, console: Console) -> int:
         f"{plural(args.jobs, 'job')}, weights {args.weights}, "
         f"hypotheses {args.hypotheses}, communication {comm}"
     )
-    columns = (
-        TextColumn("{task.description}"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        TimeElapsedColumn(),
-    )
-    with Progress(*columns, console=console, transient=False) as progress:
+    with runs_progress(console) as progress:
         task = progress.add_task("runs", total=len(seeds))
         results = run_study(
             scenario,

@@ -8,11 +8,11 @@ from pathlib import Path
 from typing import Any
 
 from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
 from deploy.args import MAX_SEED, positive_int, seed
 from deploy.errors import UsageError
+from deploy.output import runs_progress
 from deploy.results import write_archive
 
 # filter_config: imported from here by bench/bench_ufastslam.py before issue 12.
@@ -73,13 +73,7 @@ def run(args: argparse.Namespace, console: Console) -> int:
         f"{args.particles} particles, {args.runs} runs (seeds {seeds[0]}..{seeds[-1]}), "
         f"{args.jobs} jobs, relations {args.relations}"
     )
-    columns = (
-        TextColumn("{task.description}"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        TimeElapsedColumn(),
-    )
-    with Progress(*columns, console=console, transient=True) as progress:
+    with runs_progress(console, transient=True) as progress:
         task = progress.add_task("runs", total=len(seeds))
         runs = run_all(world, seeds, args.particles, args.jobs, lambda: progress.advance(task))
     archive = ufastslam_archive(world, runs, args.particles, args.relations)

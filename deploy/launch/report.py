@@ -6,9 +6,9 @@ from __future__ import annotations
 from typing import Any
 
 from rich.console import Console
-from rich.table import Table
 
 from deploy.launch.run import LAUNCH_METHODS, LaunchOutcome, LaunchPlan
+from deploy.output import FiguresTable, figures_table, size
 from deploy.results import study_archive, write_archive
 from deploy.study_report import render_summary, write_plots
 
@@ -34,15 +34,25 @@ def agents(n: int) -> str:
     return f"{n} agent" if n == 1 else f"{n} agents"
 
 
-def counters_table(outcome: LaunchOutcome) -> Table:
-    names = (
-        "step", "stacks_sent", "stacks_received", "stacks_merged", "stacks_invalid",
-        "ignored_out_of_range", "frames_processed", "replayed_frames", "bytes_sent",
-    )  # fmt: skip
-    t = Table(title="agent counters (last estimate)")
-    t.add_column("robot")
-    for n in names:
-        t.add_column(n.replace("_", " "), justify="right")
-    for r, c in sorted(outcome.collected.counters.items()):
-        t.add_row(r, *(f"{c.get(n, 0):,}" for n in names))
-    return t
+COUNTERS = (
+    ("step", "step"),
+    ("stacks sent", "stacks_sent"),
+    ("stacks in", "stacks_received"),
+    ("merged", "stacks_merged"),
+    ("invalid", "stacks_invalid"),
+    ("out of range", "ignored_out_of_range"),
+    ("frames", "frames_processed"),
+    ("replayed", "replayed_frames"),
+    ("bytes sent", "bytes_sent"),
+)
+
+
+def counters_table(outcome: LaunchOutcome) -> FiguresTable:
+    """Each agent's counters in its last estimate; fits 80 columns (bytes sent in kB/MB)."""
+    rows = [
+        [r, *(size(c.get(k, 0)) if k == "bytes_sent" else str(c.get(k, 0)) for _, k in COUNTERS)]
+        for r, c in sorted(outcome.collected.counters.items())
+    ]
+    return figures_table(
+        "agent counters (last estimate)", ["robot", *(h for h, _ in COUNTERS)], rows
+    )

@@ -19,7 +19,6 @@ from pathlib import Path
 from typing import Any
 
 from rich.console import Console
-from rich.live import Live
 
 from agents.core import GOSSIP_PERIOD_S
 from agents.links import LinkModel
@@ -37,6 +36,7 @@ from deploy.launch.supervisor import (
     write_agent_config,
 )
 from deploy.launch.table import progress_table
+from deploy.output import live_display
 from deploy.study import RunResult
 from sim.robot_model import dump_robot_model
 from sim.scenario import Scenario
@@ -100,10 +100,10 @@ class LaunchOutcome:
 
 
 class Launcher:
-    """Owns the agent processes and the conductor of one launch. ``scenario_source`` is not
-    used: agents are configured from the scenario's robot model, written next to their configs."""
+    """Owns the agent processes and the conductor of one launch. Agents are configured from the
+    scenario's robot model, written next to their configs."""
 
-    def __init__(self, plan: LaunchPlan, scenario_source: str | None = None) -> None:
+    def __init__(self, plan: LaunchPlan) -> None:
         self.plan = plan
         self.steps = plan.run_steps
         self.supervisor = Supervisor()
@@ -269,15 +269,12 @@ class Launcher:
         return LaunchOutcome(result, c, wall, self.agents, self.events, self.garbage.sent)
 
 
-def launch(
-    plan: LaunchPlan, scenario_source: str | None = None, console: Console | None = None
-) -> LaunchOutcome:
-    """Run ``plan`` with a live table on ``console`` (if given). ``scenario_source`` is not used
-    (see :class:`Launcher`)."""
+def launch(plan: LaunchPlan, console: Console | None = None) -> LaunchOutcome:
+    """Run ``plan`` with a live table on ``console`` (if given)."""
     launcher = Launcher(plan)
     if console is None:
         return asyncio.run(launcher.run())
-    with Live(console=console, refresh_per_second=4, transient=False) as live:
+    with live_display(console) as live:
 
         def show(conductor: Conductor, _k: int = 0) -> None:
             live.update(progress_table(conductor, plan.robots, launcher.steps))

@@ -1,18 +1,16 @@
-"""The scoring of a launch: the agents' estimates against ground truth, into the metrics of
-``semfleet study`` (``estimator.metrics``), so that a launch and a study are read the same way.
+"""The scoring of a launch: the agents' estimates against ground truth, by the study's own
+:class:`deploy.study.Recorder`, so that a launch and a study are measured by the same code.
 
-The study records beliefs it steps itself (``deploy.study``); a launch only has the snapshots its
-agents published, so it scores those here.
+The study records beliefs it steps itself; a launch only has the snapshots its agents published,
+so it hands those to a recorder per belief.
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 
-import numpy as np
-
+from deploy.study import Recorder, true_objects
 from estimator.hybrid import BeliefSnapshot
-from estimator.metrics import ECE_BINS, METRICS, evaluate, evaluate_calibration
 from estimator.models import SensorFrame
 from sim.scenario import Scenario
 
@@ -30,21 +28,13 @@ class Scorer:
         frames: Mapping[str, Sequence[SensorFrame]],
         robots: Sequence[str],
     ) -> None:
-        self.num_classes = scenario.num_classes
-        self.frames = frames
-        self.truth = {o.id: (np.array(o.pose), o.class_index) for o in scenario.objects}
+        truth = true_objects(scenario)
         self.index = {r: i for i, r in enumerate(robots)}
-        shape = (len(robots), scenario.steps)
-        self.metrics = {b: {m: np.full(shape, np.nan) for m in METRICS} for b in BELIEFS}
-        self.calibration = {b: np.zeros((*shape, 3, ECE_BINS)) for b in BELIEFS}
+        self.recorders = {b: Recorder(scenario, frames, truth, robots=len(robots)) for b in BELIEFS}
+        self.metrics = {b: rec.arrays for b, rec in self.recorders.items()}
+        self.calibration = {b: rec.calibration for b, rec in self.recorders.items()}
 
     def record(self, belief: str, robot: str, k: int, snap: BeliefSnapshot) -> None:
         """Score ``robot``'s ``belief`` after step k (a belief not scored here is ignored)."""
-        if belief not in self.metrics:
-            return
-        i = self.index[robot]
-        true_pose = self.frames[robot][k - 1].true_pose
-        for name, value in evaluate(snap, self.num_classes, true_pose, self.truth).items():
-            self.metrics[belief][name][i, k - 1] = value
-        stats = evaluate_calibration(snap, self.num_classes, self.truth)
-        self.calibration[belief][i, k - 1] = stats
+        if belief in self.recorders:
+            self.recorders[belief].score(self.index[robot], robot, k, snap)

@@ -4,9 +4,8 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-from rich.table import Table
-
 from deploy.launch.conductor import Conductor
+from deploy.output import FiguresTable, figures_table
 
 PROGRESS = (
     ("hyp L", "hypotheses_local"),
@@ -18,15 +17,16 @@ PROGRESS = (
 )
 
 
-def progress_table(conductor: Conductor, robots: Sequence[str], steps: int) -> Table:
+def progress_table(conductor: Conductor, robots: Sequence[str], steps: int) -> FiguresTable:
     """Every robot's last estimated step and counters. The title counts the steps every robot
     has estimated — what the rows show — not the frames sent ahead of them."""
     done = min((conductor.acked(r) for r in robots), default=0)
-    t = Table(title=f"step {done}/{steps}")
-    for col in ("robot", "alive", "step", *(name for name, _ in PROGRESS)):
-        t.add_column(col, justify="right")
+    rows = []
     for r in robots:
         c = conductor.collected.counters.get(r, {})
         alive = "yes" if r in conductor.alive else "no"
-        t.add_row(r, alive, str(conductor.acked(r)), *(str(c.get(key, "")) for _, key in PROGRESS))
-    return t
+        rows.append(
+            [r, alive, str(conductor.acked(r)), *(str(c.get(key, "")) for _, key in PROGRESS)]
+        )
+    headings = ["robot", "alive", "step", *(name for name, _ in PROGRESS)]
+    return figures_table(f"step {done}/{steps}", headings, rows)

@@ -15,8 +15,6 @@ from agents.control import StepOrder, encode_control
 from agents.core import (
     Action,
     AgentCore,
-    Append,
-    Commit,
     CoreSettings,
     CutJournal,
     Publish,
@@ -24,7 +22,7 @@ from agents.core import (
 )
 from agents.journal import Record
 from agents.node import RobotNode
-from agents.runtime import MemoryLog
+from agents.runtime import MemoryLog, execute_journal_actions
 from agents.transport.base import Keys
 from deploy.build import belief_model, make_node
 from estimator.distributed import DistributedBelief
@@ -72,17 +70,9 @@ class Driver:
         self.published: list[Publish] = []
 
     def run(self, actions: Sequence[Action]) -> None:
-        for a in actions:
-            if isinstance(a, Append):
-                self.log.append(a.kind, a.body)
-            elif isinstance(a, Commit):
-                self.log.commit()
-            elif isinstance(a, Quarantine):
-                self.quarantined.append(a)
-            elif isinstance(a, CutJournal):
-                self.log.cut(a.index)
-            elif isinstance(a, Publish):
-                self.published.append(a)
+        self.quarantined += [a for a in actions if isinstance(a, Quarantine)]
+        rest = execute_journal_actions(self.log, actions)
+        self.published += [a for a in rest if isinstance(a, Publish)]
 
     def send(self, key: str, payload: bytes) -> None:
         self.run(self.core.on_message(key, payload, 0.0))

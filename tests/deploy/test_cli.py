@@ -10,8 +10,10 @@ import importlib.metadata
 import json
 import os
 import shlex
+import signal
 import subprocess
 import sys
+import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -410,3 +412,55 @@ def test_study_refuses_an_unwritable_out_before_any_run(
     code = main(["study", "--scenario", "lanes:short", "--runs", "1", "--out", str(out)])
     assert code == 2
     assert f"--out {out}: cannot write there" in capsys.readouterr().err
+
+
+def _children(pid: int) -> set[int]:
+    """Every live descendant of ``pid`` (from /proc)."""
+    parents: dict[int, int] = {}
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        parents[int(stat.parent.name)] = int(fields[1])
+    found: set[int] = set()
+    frontier = {pid}
+    while frontier:
+        frontier = {c for c, p in parents.items() if p in frontier} - found
+        found |= frontier
+    return found
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP], ids=lambda s: s.name)
+def test_study_stopped_by_a_signal_leaves_no_worker_behind(
+    tmp_path: Path, sig: signal.Signals
+) -> None:
+    """``study --jobs 2`` stopped while its workers run: one line, the signal's exit code, and
+    neither a worker nor the resource tracker outlives it (they used to, with leaked
+    semaphores)."""
+    proc = subprocess.Popen(
+        [
+            str(SEMFLEET),
+            *shlex.split("study --scenario lanes:short --runs 6 --jobs 2 --out"),
+            str(tmp_path / "out"),
+        ],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+        env={"PATH": "/usr/bin:/bin", "MPLBACKEND": "Agg"},
+    )
+    deadline = time.monotonic() + 120
+    while len(children := _children(proc.pid)) < 3 and time.monotonic() < deadline:
+        time.sleep(0.1)  # the resource tracker and both workers
+    assert len(children) >= 3, "the study's workers never started"
+    time.sleep(1.0)  # well inside a run
+    proc.send_signal(sig)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 128 + sig, err
+    assert err == f"semfleet: error: stopped by {sig.name}\n", err
+    deadline = time.monotonic() + 10  # orphans would belong to init now: look them up by pid
+    while (still := [p for p in children if Path(f"/proc/{p}").exists()]) and (
+        time.monotonic() < deadline
+    ):
+        time.sleep(0.1)
+    assert not still, f"{still} outlived the study"

@@ -27,7 +27,7 @@ from agents.control import NeedFrames, Stop, decode_control
 from agents.transport.base import Inbox, Keys, Message
 from agents.transport.zenoh_transport import ZenohSettings, ZenohTransport, loopback_endpoint
 from deploy import cli
-from deploy.commands.fleet import endpoint
+from deploy.args import zenoh_endpoint
 from deploy.errors import UsageError
 from deploy.fleet_session import StopProgress, session_settings, stop_fleet
 from deploy.fleet_view import FleetView, estimates_doc, mixture_moments
@@ -317,9 +317,9 @@ def test_bad_arguments_are_one_line_and_exit_2(
 
 def test_endpoint_accepts_zenoh_endpoints() -> None:
     for text in ("tcp/127.0.0.1:7447", "tls/[::1]:7447", "udp/robot-3.local:7447#iface=wlan0"):
-        assert endpoint(text) == text
+        assert zenoh_endpoint(text, "--connect") == text
     with pytest.raises(UsageError, match=r"port in 1\.\.65535"):
-        endpoint("tcp/host:99999")
+        zenoh_endpoint("tcp/host:99999", "--connect")
 
 
 def test_unreachable_endpoint_exits_1_with_one_line() -> None:

@@ -135,7 +135,7 @@ def _plan(out: Path, **kwargs: Any) -> LaunchPlan:
 def test_launch_lockstep_paper_equals_the_in_process_runner(
     tmp_path: Path, reference: Reference
 ) -> None:
-    outcome = launch(_plan(tmp_path, steps=STEPS, keep_estimates=True), "paper")
+    outcome = launch(_plan(tmp_path, steps=STEPS, keep_estimates=True))
     assert_estimates_match(outcome, reference, STEPS)
     for b in BELIEFS:
         for name in METRICS:
@@ -161,7 +161,7 @@ def test_launch_agent_killed_and_restarted_from_its_journal_continues_exactly(
 ) -> None:
     steps = KILL_STEP + 4
     faults = Faults(kills=(("r2", KILL_STEP),), restarts=(("r2", KILL_STEP),))
-    outcome = launch(_plan(tmp_path, steps=steps, keep_estimates=True, faults=faults), "paper")
+    outcome = launch(_plan(tmp_path, steps=steps, keep_estimates=True, faults=faults))
     assert outcome.events == [
         f"step {KILL_STEP}: SIGKILL r2",
         f"step {KILL_STEP}: restarted r2 from its journal",
@@ -182,7 +182,7 @@ def test_launch_garbage_stacks_are_counted_and_change_nothing(
     tmp_path: Path, reference: Reference
 ) -> None:
     faults = Faults(garbage_rate=2000.0)
-    outcome = launch(_plan(tmp_path, steps=STEPS, keep_estimates=True, faults=faults), "paper")
+    outcome = launch(_plan(tmp_path, steps=STEPS, keep_estimates=True, faults=faults))
     invalid = sum(c["stacks_invalid"] for c in outcome.collected.counters.values())
     print(f"garbage: {outcome.garbage_sent} published, {invalid} counted invalid by the agents")
     assert outcome.garbage_sent >= 500, outcome.garbage_sent
@@ -217,7 +217,7 @@ def test_launch_realtime_with_30_percent_loss_completes_close_to_lossless(
         gossip_period=GOSSIP,
         faults=Faults(drop=0.3),
     )
-    outcome = launch(plan, "paper")
+    outcome = launch(plan)
     assert_all_agents_finished(outcome, STEPS)
     for r in ROBOTS:
         # Loss is the simulator's (sim/links): the agents only know they run in a simulation.
@@ -257,10 +257,10 @@ def world_text(name: str, n: int, spacing: float, steps: int, speed: float) -> s
     )
 
 
-def _world(tmp_path: Path, text: str) -> tuple[Scenario, str]:
+def _world(tmp_path: Path, text: str) -> Scenario:
     path = tmp_path / "world.toml"
     path.write_text(text, encoding="utf-8")
-    return parse_scenario(text, str(path)), str(path)
+    return parse_scenario(text, str(path))
 
 
 def own_stamps(log: StackLog) -> dict[str, list[tuple[float, int]]]:
@@ -279,7 +279,7 @@ def test_launch_relay_over_zenoh_links_between_neighbours_only(tmp_path: Path) -
     filter and counted in ``ignored_out_of_range``. Realtime, because only there the agent
     filters by range itself (in lock-step the conductor's orders decide)."""
     ids = [f"r{i}" for i in range(1, 7)]
-    scenario, source = _world(tmp_path, world_text("line6", 6, 8.0, 12, 0.05))
+    scenario = _world(tmp_path, world_text("line6", 6, 8.0, 12, 0.05))
     neighbours = {
         r: [ids[j] for j in (i - 1, i + 1) if 0 <= j < len(ids)] for i, r in enumerate(ids)
     }
@@ -294,7 +294,7 @@ def test_launch_relay_over_zenoh_links_between_neighbours_only(tmp_path: Path) -
         zenoh_neighbours=neighbours,
         observe_stacks=True,
     )
-    outcome = launch(plan, source)
+    outcome = launch(plan)
     assert_all_agents_finished(outcome, scenario.steps)
     r3 = (tmp_path / "run" / "agents" / "r3.toml").read_text()
     assert "gossip = false" in r3 and r3.count("tcp/127.0.0.1:") == 2  # listen + dial r2
@@ -336,7 +336,7 @@ def last_view_before(log: StackLog, holder: str, owner: str, t_end: float) -> in
 @pytest.mark.slow
 def test_launch_partition_heals_within_two_gossip_periods(tmp_path: Path) -> None:
     robots = ["r1", "r2", "r3"]
-    scenario, source = _world(tmp_path, world_text("close3", 3, 3.0, 14, 0.1))
+    scenario = _world(tmp_path, world_text("close3", 3, 3.0, 14, 0.1))
     first, last = PARTITION
     plan = LaunchPlan(
         scenario,
@@ -349,7 +349,7 @@ def test_launch_partition_heals_within_two_gossip_periods(tmp_path: Path) -> Non
         faults=Faults(partitions=(Partition(frozenset({"r3"}), first, last),)),
         observe_stacks=True,
     )
-    outcome = launch(plan, source)
+    outcome = launch(plan)
     assert_all_agents_finished(outcome, scenario.steps)
     log = outcome.collected.stack_log
     own = own_stamps(log)
@@ -505,7 +505,7 @@ def test_launch_commands_user_errors_are_one_line(
 
 @pytest.mark.slow
 def test_launch_stops_with_a_clear_error_when_an_agent_dies_unplanned(tmp_path: Path) -> None:
-    launcher = Launcher(_plan(tmp_path / "die", steps=8), "paper")
+    launcher = Launcher(_plan(tmp_path / "die", steps=8))
 
     def murder(_conductor: object, k: int) -> None:
         if k == 3:  # not through the chaos schedule: nobody expects this exit

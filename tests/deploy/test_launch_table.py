@@ -29,7 +29,7 @@ def test_realtime_table_ends_with_every_robot_at_the_last_step(tmp_path: Path) -
     launch(plan, console=Console(file=screen, width=200, force_terminal=False))
     out = screen.getvalue()
     assert out.count(f"step {STEPS}/{STEPS}") == 1, out  # the final table, printed once
-    rows = re.findall(r"│\s+(r\d)\s+│\s+(yes|no)\s+│\s+(\d+)\s+│", out)
+    rows = re.findall(r"^(r\d)\s+(yes|no)\s+(\d+)\s", out, re.MULTILINE)
     assert sorted(rows) == [("r1", "yes", str(STEPS)), ("r2", "yes", str(STEPS))], out
 
 
@@ -43,7 +43,7 @@ def test_table_title_is_the_step_its_rows_show_while_frames_run_ahead(tmp_path: 
 
     def on_step(conductor: Conductor, k: int) -> None:
         table = progress_table(conductor, plan.robots, STEPS)
-        steps = [int(str(cell)) for cell in table.columns[2].cells]
+        steps = [int(row[2]) for row in table.rows]
         seen.append((conductor.k, str(table.title), steps))
 
     asyncio.run(launcher.run(on_step))
