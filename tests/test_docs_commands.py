@@ -1,10 +1,11 @@
 """Every `semfleet` command shown in README.md and docs/ matches the code.
 
-A command in the text or a table, or a command line with placeholders (``ID``, ``FILE``, ``[--steps N]``, ``a|b``, ``…``, ``$r``) is a
-synopsis: its command must exist and every option it names must be one of that command's. A
-command line without them is an example and is run, in a scratch folder, with small sizes
-(:data:`SMALL`): it must succeed. Examples that need running agents or take minutes are run by
-the test named in :data:`RUN_ELSEWHERE`, which must exist.
+A command in the text or a table, or a command line with placeholders (``ID``, ``FILE``,
+``[--steps N]``, ``a|b``, ``…``, ``$r``), is a synopsis: its command must exist and every option
+it names must be one of that command's. A command line of a code block without them is an
+example and is run, in a scratch folder, with small sizes (:data:`SMALL`): it must succeed.
+Examples that need running agents or take minutes are run by the test named in
+:data:`RUN_ELSEWHERE`, which must exist.
 """
 
 from __future__ import annotations

@@ -283,5 +283,32 @@ class Conductor:
                     if self._acked[r] < steps:
                         self._publish_frames(r, steps, steps)
 
+    def relayed(self) -> bool:
+        """Whether every robot's latest observed stack holds every robot's final own slot (the
+        newest stamp the owner itself published)."""
+        own: dict[str, int] = {}
+        latest: dict[str, dict[str, int]] = {}
+        for _, robot, stamps in self.collected.stack_log:
+            own[robot] = max(own.get(robot, 0), stamps.get(robot, 0))
+            latest[robot] = stamps
+        if set(latest) != set(self.robots):
+            return False
+        return all(
+            latest[holder].get(owner, 0) >= own[owner]
+            for holder in self.robots
+            for owner in self.robots
+        )
+
+    async def linger(self, timeout: float, check: Callable[[], None] | None = None) -> None:
+        """After the run: keep pumping (the agents keep gossiping) until :meth:`relayed`, at
+        most ``timeout`` seconds. How long multi-hop relay takes once the steps are done is then
+        in ``collected.stack_log``, whatever the machine's load was during the run."""
+        deadline = time.monotonic() + timeout
+        while not self.relayed() and time.monotonic() < deadline:
+            if check is not None:
+                check()
+            await self.stacks.wait(0.05)
+            self.pump()
+
     def stop_agents(self, reason: str = "run complete") -> None:
         self.transport.publish(self.keys.ctl("stop"), encode_control(Stop(reason)))

@@ -69,6 +69,9 @@ class LaunchPlan:
     publish_local: bool = True
     keep_estimates: bool = False  # every estimate in LaunchOutcome.collected.estimates
     observe_stacks: bool = False  # log every robot's stack stamps (collected.stack_log)
+    # With observe_stacks: after the last estimates, keep the fleet gossiping up to this many
+    # seconds until every robot's stack holds every robot's final slot (Conductor.linger).
+    linger: float = 0.0
 
     def __post_init__(self) -> None:
         s = self.scenario
@@ -80,6 +83,8 @@ class LaunchPlan:
         twice = sorted({r for r in self.robots if self.robots.count(r) > 1})
         if twice:
             raise PlanError(f"robots: {', '.join(twice)} listed more than once")
+        if self.linger and not (self.observe_stacks and 0 < self.linger <= 600):
+            raise PlanError(f"linger {self.linger}: needs observe_stacks and 0 < linger ≤ 600 s")
         if self.steps is not None and not 1 <= self.steps <= s.steps:
             raise PlanError(f"steps: {self.steps} outside 1..{s.steps} (scenario {s.name})")
         self.faults.check(self.robots, self.run_steps, self.mode == "lockstep")
@@ -243,6 +248,8 @@ class Launcher:
             await conductor.run_lockstep(self.steps, step_done, check)
         else:
             await conductor.run_realtime(self.steps, plan.period, step_done, check)
+        if plan.linger:
+            await conductor.linger(plan.linger, check)
         conductor.stop_agents()
 
     async def _shutdown(self, conductor: Conductor, signals: SignalStop) -> None:

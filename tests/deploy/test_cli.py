@@ -60,6 +60,18 @@ def test_scenario_show_paper_lists_robots_sightings_and_edges() -> None:
         assert text in out, text
     # object 7 is only ever seen by r1, first at step 1
     assert "r1@1" in out
+    assert "\x1b[" not in out  # piped: plain text, no colours or cursor moves
+
+
+def test_piped_output_is_plain_even_when_the_terminal_variables_say_colour() -> None:
+    r = subprocess.run(
+        [str(SEMFLEET), "scenario", "show", "lanes:short"],
+        capture_output=True,
+        text=True,
+        env={"PATH": "/usr/bin:/bin", "TERM": "xterm-256color", "COLUMNS": "80"},
+    )
+    assert r.returncode == 0 and "\x1b[" not in r.stdout, r.stdout[:300]
+    assert max(len(line) for line in r.stdout.splitlines()) <= 80
 
 
 def test_scenario_show_applies_variants_and_overrides() -> None:

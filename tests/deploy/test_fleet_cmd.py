@@ -202,7 +202,7 @@ def test_status_sees_both_agents_alive_at_their_last_step(tmp_path: Path) -> Non
         print(r.stdout)
         lines = r.stdout.splitlines()
         for robot in ("r1", "r2"):
-            row = next(line for line in lines if f" {robot} " in line)
+            row = next(line for line in lines if line.split()[:1] == [robot])
             assert "yes" in row and f" {STEPS} " in row, row
         assert "2 alive, 2 answered" in r.stdout
         r = semfleet(

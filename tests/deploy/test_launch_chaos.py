@@ -82,6 +82,8 @@ def test_launch_plan_checks_its_faults_and_robots(tmp_path: Path) -> None:
         LaunchPlan(PAPER, 0, list(ROBOTS), tmp_path, steps=12, faults=Faults(kills=(("r1", 13),)))
     with pytest.raises(PlanError, match="robots: r1 listed more than once"):
         LaunchPlan(PAPER, 0, ["r1", "r2", "r1"], tmp_path)
+    with pytest.raises(PlanError, match=r"linger 5\.0: needs observe_stacks"):
+        LaunchPlan(PAPER, 0, list(ROBOTS), tmp_path, linger=5.0)
     assert not any(tmp_path.iterdir())
 
 
