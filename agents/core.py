@@ -20,6 +20,10 @@ on. If even the odometry fails, the agent stays at its last good step, alive, un
 arrives for that step (the failing bytes are never tried again). Every buffer is bounded: frames,
 orders, lock-step rounds and simulated links only within ``window`` steps ahead, control
 messages by size, refused slot versions and failed frames by count.
+
+Over 300 lines for a reason: the agent's whole event logic (frames, stacks, control, links,
+timers, roll-back and replay) is one state machine over one node; split, its invariants (what is
+committed, what is refused) would be spread over modules that all mutate the same state.
 """
 
 from __future__ import annotations

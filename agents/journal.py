@@ -39,6 +39,10 @@ fails cuts the file back to its last committed size, so no half-written step is 
 file is created under a temporary name with its header, fsynced, linked into place (never
 replacing an existing journal) and its directory fsynced, so a journal is never seen without its
 header. One process at a time may hold a journal (``flock``).
+
+Over 300 lines for a reason: the file format, recovery at every byte offset, the side files
+(corrupt, cut, quarantine) and the lock are one durability contract; each part relies on how the
+others write and fsync.
 """
 
 from __future__ import annotations

@@ -3,6 +3,10 @@
 It owns the robot's LOCAL belief L, its DISTRIBUTED belief D and its stack. Bytes come in through
 ``on_stack``, frames through ``on_frame``, and ``outgoing`` gives the bytes to send. It never
 touches a socket, a clock or a thread; the shells (in-process runner, asyncio agent) drive it.
+
+Over 300 lines for a reason: L, D and the stack of one robot change together on every frame
+and every stack (the own slot is rebuilt from L, D integrates what the stack holds); one class
+keeps that order in one place.
 """
 
 from __future__ import annotations

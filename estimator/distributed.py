@@ -5,6 +5,10 @@ or from other robots' slots. Integrating a newer version of robot i's slot multi
 φ and divides out the version used before: the old ξ factor leaves iSAM2 (``downdate="remove"``) or
 is cancelled by its negation (``"anti"``, DDF-SAM 2.0), and its log φ is subtracted. With
 ``fusion="double_count"`` neither happens: the paper's double-counting baseline.
+
+Over 300 lines for a reason: the join, the ξ factors, the version replacement (both downdate
+modes), the rebuild and their bookkeeping act on the same hypotheses and must stay consistent with
+each other (docs/distributed.md); the slot summary itself is :mod:`estimator.slots`.
 """
 
 from __future__ import annotations

@@ -5,6 +5,11 @@ several for the centralized reference) and the objects they have seen. Each step
 hypothesis with the odometry, branches it over the classes of newly seen objects, weighs every
 child with the weight integral (``estimator.weights``), prunes, and only then materialises the
 surviving children by copying iSAM2 and adding the geometric and semantic factors.
+
+Over 300 lines for a reason: the step (propagate, weigh, branch object by object, prune,
+materialise) is one algorithm over one set of hypotheses; the weight integrals
+(:mod:`estimator.weights`), the pruning rules (:mod:`estimator.pruning`) and the factors
+(:mod:`estimator.factors`) already live apart.
 """
 
 from __future__ import annotations

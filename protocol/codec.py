@@ -4,6 +4,9 @@ A message is a msgpack map ``{"v": 1, "type": "stack", "sender": str, "k": int, 
 "slots": [...]}``; every float array travels as little-endian float64 bytes, Λ as its upper
 triangle. ``decode`` turns every malformed input into a :class:`RemoteProtocolError` subclass that
 names the field; nothing else escapes it.
+
+Over 300 lines for a reason: encode and decode must refuse exactly the same documents, so both
+sides of every field, and the limits they share, are kept side by side in this one module.
 """
 
 from __future__ import annotations

@@ -2,6 +2,10 @@
 
 Every problem becomes a :class:`ScenarioError` whose message names the file, the field and the
 reason, e.g. ``paper.toml: objects[3].class: 3 is out of range 1..2``.
+
+Over 300 lines for a reason: one reader per table of the scenario format (robots, objects,
+classes, classifier, noise, sensor, communication, variants), each naming its fields in its
+errors; the format is one document and is validated as one.
 """
 
 from __future__ import annotations

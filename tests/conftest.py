@@ -29,6 +29,23 @@ SERIAL_MODULES = {
     "deploy/test_launch_table.py",
     "deploy/test_replay.py",
 }
+# The modules whose tests take most of the suite's time (measured with --durations, slowest
+# first). They are collected first: xdist hands out the first tests one by one, in turn, to its
+# workers, so the long ones start at once on different cores and the short ones fill the gaps
+# (longest first: the phase ends close to total work / cores instead of a long test starting
+# last). A module's tests stay together, so module fixtures are built once.
+LONGEST_FIRST = (
+    "deploy/test_consistency.py",
+    "deploy/test_fleet_calibration.py",
+    "estimator/test_hybrid.py",
+    "deploy/test_fleet_quiet.py",
+    "estimator/test_exact_reference.py",
+    "deploy/test_cli.py",
+    "deploy/test_study_methods.py",
+    "test_docs_commands.py",
+    "protocol/test_codec.py",
+    "estimator/test_distributed.py",
+)
 HERE = Path(__file__).parent
 
 
@@ -36,3 +53,5 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     for item in items:
         if item.path.relative_to(HERE).as_posix() in SERIAL_MODULES:
             item.add_marker(pytest.mark.serial)
+    rank = {m: i for i, m in enumerate(LONGEST_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.relative_to(HERE).as_posix(), len(rank)))

@@ -5,6 +5,10 @@ It publishes every robot's sensor frames (``frames/<robot>``), orders lock-step 
 requests for missing frames (``ctl/need``), and collects their estimates (``estimate/<robot>``).
 A :class:`~deploy.launch.scoring.Scorer` scores them against ground truth; besides the links it
 is the only user of the truth.
+
+Over 300 lines for a reason: everything the world's side publishes and observes over one
+Zenoh session (frames, orders, links, need answers, estimates, stacks and the relay check on
+them), around one pump; the scoring itself is in :mod:`deploy.launch.scoring`.
 """
 
 from __future__ import annotations

@@ -5,6 +5,10 @@ The particles live in arrays — poses (N, 3), pose covariances (N, 3, 3), landm
 and covariances (N, C, 2, 2), log-weights (N,) — with one landmark index space shared by all
 particles (C is a growing capacity; the first ``len(landmark_ids)`` slots are mapped). Every step is
 vectorised over the particles; Python loops only run over the one or two observations of a step.
+
+Over 300 lines for a reason: prediction, landmark update and initialisation, the relation
+updates and resampling share the particle arrays and their index space; the unscented transform
+and the relations' geometry live in their own modules.
 """
 
 from __future__ import annotations
