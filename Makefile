@@ -26,7 +26,7 @@ demo: $(STAMP)
 # (tests/conftest.py says which and why). Each phase fails the target on a failure or on no test.
 PYTEST_JOBS ?= auto
 test: $(STAMP)
-	$(BIN)/python -m pytest -q -n $(PYTEST_JOBS) -m "not serial"
+	$(BIN)/python -m pytest -q -n $(PYTEST_JOBS) --dist worksteal -m "not serial"
 	$(BIN)/python -m pytest -q -m serial
 
 lint: $(STAMP)

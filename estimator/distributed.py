@@ -122,6 +122,23 @@ def xi_factor(
     return gtsam.LinearContainerFactor(gtsam.HessianFactor(pieces), lin)
 
 
+class _XiFactors:
+    """The ξ factors of one fusion, built once per (realisation, sign) however many hypotheses
+    take that realisation: a factor is never changed once built, and iSAM2 only holds a pointer
+    to it (it relinearises into new factors), so hypotheses can share it."""
+
+    def __init__(self) -> None:
+        self._built: dict[tuple[int, float], tuple[Realisation, gtsam.LinearContainerFactor]] = {}
+
+    def get(
+        self, object_ids: Sequence[int], r: Realisation, sign: float = 1.0
+    ) -> gtsam.LinearContainerFactor:
+        key = (id(r), sign)
+        if key not in self._built:  # the realisation is kept too, so its id is never reused
+            self._built[key] = (r, xi_factor([object_key(j) for j in object_ids], r, sign))
+        return self._built[key][1]
+
+
 class DistributedBelief(HybridBelief):
     """D of robot ``owner``: its own data, plus every other robot's latest slot (never its own)."""
 
@@ -176,13 +193,14 @@ class DistributedBelief(HybridBelief):
             self.object_ids.append(j)
         last_child = {int(p): n for n, p in enumerate(join.parent)}
         children = []
+        xi = _XiFactors()
         for n, p in enumerate(join.parent):
             classes = tuple(int(c) for c in join.classes[n])
             child = parents[p].branch(
                 classes, float(join.log_weight[n]), copy_isam=last_child[int(p)] != n
             )
             picks = [(b, int(r)) for b, r in enumerate(join.picks[n]) if r >= 0]
-            self._fuse(child, picks, batch, join.order, settle)
+            self._fuse(child, picks, batch, join.order, settle, xi)
             children.append(child)
         self.hypotheses = children
         self._normalise()
@@ -314,6 +332,7 @@ class DistributedBelief(HybridBelief):
         batch: Sequence[Slot],
         order: Sequence[int],
         settle: bool,
+        xi: _XiFactors,
     ) -> None:
         """Add the picked realisations' ξ factors and the priors of objects new to D, and divide
         out the versions used before (Eq. 12)."""
@@ -342,11 +361,9 @@ class DistributedBelief(HybridBelief):
                     remove.extend(old.factor_indices)
                 else:
                     carried = old.factor_indices
-                    graph.add(
-                        xi_factor([object_key(j) for j in old.object_ids], old.realisation, -1.0)
-                    )
+                    graph.add(xi.get(old.object_ids, old.realisation, -1.0))
             start = graph.size()
-            graph.add(xi_factor([object_key(j) for j in ids], real))
+            graph.add(xi.get(ids, real))
             positions.append((s, real, carried, first, start))
         result = h.isam.update(graph, values, remove)
         new_indices = list(result.getNewFactorsIndices())
