@@ -5,6 +5,7 @@ bounds, double counting's above. Twenty runs of the paper's first 30 steps here;
 from __future__ import annotations
 
 import dataclasses
+import os
 
 import numpy as np
 import pytest
@@ -16,6 +17,9 @@ from sim.loader import load_scenario
 
 RUNS = 20
 STEPS = 30
+# Two processes of its own when the test runs alone; one under pytest-xdist, whose other worker
+# already keeps the second core busy (two more would only make every test of the suite wait).
+JOBS = 1 if "PYTEST_XDIST_WORKER" in os.environ else 2
 
 
 @pytest.mark.slow
@@ -24,7 +28,7 @@ def test_distributed_is_consistent_and_double_counting_is_not() -> None:
     robots = tuple(dataclasses.replace(r, actions=r.actions[:STEPS]) for r in s.robots)
     s = dataclasses.replace(s, steps=STEPS, robots=robots)
     seeds = list(range(100, 100 + RUNS))
-    results = run_study(s, ["distributed", "double_count"], seeds, BeliefConfig(), 2, None)
+    results = run_study(s, ["distributed", "double_count"], seeds, BeliefConfig(), JOBS, None)
 
     def anees(method: str, metric: str) -> np.ndarray:
         """Per robot, the mean over runs at the last step."""
