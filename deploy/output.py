@@ -48,26 +48,32 @@ def runs_progress(console: Console, transient: bool = False) -> Progress:
 @dataclass(frozen=True)
 class FiguresTable:
     """Per-robot figures that fit the console's width (80 columns when piped): no vertical
-    rules, headings wrap at their spaces, and a figure is never wrapped or cut. Columns that do
-    not fit go to a further table below, the robot column (the first) repeated."""
+    rules, headings whole when everything fits and else wrapped at their spaces, and a figure is
+    never wrapped or cut. Columns that still do not fit go to a further table below, the robot
+    column (the first) repeated."""
 
     title: str
     headings: Sequence[str]
     rows: Sequence[Sequence[str]]
 
-    def widths(self) -> list[int]:
-        """Each column's width: its longest heading word or its widest figure."""
+    def widths(self, width: int) -> list[int]:
+        """Each column's width: its widest figure, and its whole heading when every column fits
+        ``width`` that way, else its heading's longest word (the heading then wraps)."""
+        figures = [
+            max((len(Text.from_markup(row[i]).plain) for row in self.rows), default=1)
+            for i in range(len(self.headings))
+        ]
+        whole = [max(f, len(h)) for f, h in zip(figures, self.headings, strict=True)]
+        if sum(whole) + GAP * (len(whole) - 1) <= width:
+            return whole
         return [
-            max(
-                *(len(word) for word in heading.split()),
-                *(len(Text.from_markup(row[i]).plain) for row in self.rows),
-            )
-            for i, heading in enumerate(self.headings)
+            max(f, *(len(word) for word in h.split()))
+            for f, h in zip(figures, self.headings, strict=True)
         ]
 
     def blocks(self, width: int) -> list[list[int]]:
         """The column indices of each table printed, each fitting ``width`` where it can."""
-        widths = self.widths()
+        widths = self.widths(width)
         blocks: list[list[int]] = [[0]]
         used = widths[0]
         for i in range(1, len(widths)):
@@ -79,7 +85,7 @@ class FiguresTable:
         return blocks
 
     def __rich_console__(self, console: Console, options: ConsoleOptions) -> RenderResult:
-        widths = self.widths()
+        widths = self.widths(options.max_width)
         for n, block in enumerate(self.blocks(options.max_width)):
             t = Table(
                 title=self.title if n == 0 else None,

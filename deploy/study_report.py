@@ -10,6 +10,7 @@ from rich.console import Console
 from rich.table import Table
 
 from deploy.args import plural
+from deploy.output import figures_table
 from deploy.study import RunResult
 from estimator.metrics import chi2_bounds
 from sim.scenario import Scenario
@@ -63,24 +64,22 @@ def render_summary(
                 method if i == 0 else "", metric, *cells, end_section=i == len(SUMMARY_METRICS) - 1
             )
     console.print(table)
-    timing = Table(title="cost (times in ms: p50 / p95 / p99 / max; stack bytes: mean / max)")
-    columns = ("method", "wall s (all runs)", "belief step ms", "fusion ms", "stack bytes")
-    for col in (*columns, "empty joins", "rebuilds"):
-        timing.add_column(col, justify="right")
+    columns = ("method", "wall s", "belief step ms", "fusion ms", "stack bytes")
+    counts = ("empty_joins", "rebuilds")
+    rows = []
     for method, entry in doc["methods"].items():
         size = (
             f"{entry['stack_bytes_mean']:,.0f} / {entry['stack_bytes_max']:,}"
             if "stack_bytes_mean" in entry
             else "—"
         )
-        timing.add_row(
-            method,
-            f"{entry['wall_s']:.1f}",
-            _tail_cell(entry, "step_ms"),
-            _tail_cell(entry, "fusion_ms"),
-            size,
-            *(f"{entry[key]:,}" if key in entry else "—" for key in ("empty_joins", "rebuilds")),
+        wall = f"{entry['wall_s']:.1f}"
+        tails = (_tail_cell(entry, "step_ms"), _tail_cell(entry, "fusion_ms"))
+        rows.append(
+            [method, wall, *tails, size, *(f"{entry[k]:,}" if k in entry else "—" for k in counts)]
         )
+    title = "cost (wall s: all runs; ms: p50 / p95 / p99 / max; stack bytes: mean / max)"
+    timing = figures_table(title, [*columns, "empty joins", "rebuilds"], rows)
     console.print(timing)
     lo, hi = chi2_bounds(3, doc["runs"])
     console.print(

@@ -381,7 +381,18 @@ def test_render_summary_on_a_20_step_world() -> None:
     assert "1.00 / 2.00 / 3.00 / 4.00" in local and local.count("—") == 4
     fleet = next(line for line in lines if "1,234" in line)
     assert "0.10 / 0.20 / 0.30 / 0.40" in fleet and "10 / 20" in fleet
-    assert fleet.split("│")[-3].strip() == "7"
+    assert fleet.split()[-2:] == ["7", "1,234"]  # empty joins, rebuilds
+
+
+def test_render_summary_fits_80_columns_without_cutting_a_figure() -> None:
+    """The cost table's cells hold four figures each: at 80 columns a column that does not fit
+    goes to a second block; nothing is cut (it printed ``distrib…`` in the demo)."""
+    console = Console(record=True, width=80)
+    render_summary(_doc(20), console)
+    text = console.export_text()
+    assert "…" not in text and max(len(line) for line in text.splitlines()) <= 80, text
+    assert "1.00 / 2.00 / 3.00 / 4.00" in text and "0.10 / 0.20 / 0.30 / 0.40" in text
+    assert "distributed" in text and "rebuilds" in text
 
 
 def test_render_summary_without_pooled_ece_shows_dashes() -> None:
