@@ -1,6 +1,6 @@
 """The estimator runs off the event loop: while a long, real estimator step runs (20 objects of
 10 classes first seen at once, ~0.5 s alone on this machine), the agent's gossip timer still sends
-its stack every period and the loop is never held for long."""
+its stack through the step and the loop is never held for long."""
 
 from __future__ import annotations
 
@@ -64,9 +64,14 @@ async def test_gossip_goes_on_during_a_long_estimator_step() -> None:
     finally:
         agent.stop("test over")
         await asyncio.wait_for(task, 30)
-    assert step_s > 4 * PERIOD, f"the step took only {step_s:.3f} s: not a long step"
-    # Every period of the step had its gossip (allowing for the first and last partial ones).
-    assert len(sent) >= step_s / PERIOD - 2
+    assert step_s > 10 * PERIOD, f"the step took only {step_s:.3f} s: not a long step"
     gaps = np.diff(sent)
     print(f"step {step_s:.3f} s, {len(sent)} stacks, gap max {gaps.max():.3f} s")
+    # Gossip went on through the step. With the step on the loop there would be one gap as long
+    # as the step and about no stack. A tick can still come late: the worker's GTSAM calls hold
+    # the GIL for tens of milliseconds, longer on a loaded machine, and a late tick sends once
+    # (stacks are latest-wins) — so the bounds are on the gaps and on most periods, not on
+    # every period (a CI run sent 58 stacks in a 3.06 s step, one period short of that).
+    assert gaps.max() <= 10 * PERIOD, f"a gap of {gaps.max():.3f} s during the step"
+    assert len(sent) >= 0.75 * step_s / PERIOD, (len(sent), step_s)
     assert agent.loop_lag_max_s < step_s / 2  # the loop was never held for the step
