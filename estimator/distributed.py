@@ -247,7 +247,7 @@ class DistributedBelief(HybridBelief):
         """Raise :class:`SlotError` if a slot contradicts this belief's model."""
         m = self.model.num_classes
         n = len(s.summary.object_ids)
-        fusion_bytes = self.config.max_hypotheses * (3 * n) ** 2 * 8
+        fusion_bytes = self.cap * (3 * n) ** 2 * 8
         if fusion_bytes > self.config.max_fusion_bytes:
             cap = self.config.max_fusion_bytes / 2**20
             raise SlotError(
@@ -313,7 +313,7 @@ class DistributedBelief(HybridBelief):
                 lw,
                 join.order + [ids[i] for i in fresh],
             )
-            if len(rows) > _JOIN_GUARD * self.config.max_hypotheses:
+            if len(rows) > _JOIN_GUARD * self.cap:
                 join = join.keep(self._select(join.log_weight, join.classes))
             for i in fresh:
                 known[ids[i]] = len(known)

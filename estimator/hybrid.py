@@ -58,7 +58,10 @@ class BeliefConfig:
     1/``marginal_ratio`` of the marginal probability of one of its own classes;
     ``class_floor``: (``"marginal"`` only) a class of an object with at least this marginal
     probability keeps its heaviest hypothesis, and the kept hypotheses are reweighted to the
-    class marginals before pruning; ``max_hypotheses``: hard cap; ``max_join``: the most
+    class marginals before pruning; ``max_hypotheses``: hard cap; ``robot_budget``: the
+    hypotheses one robot trajectory of the belief may keep (a robot's real-time budget: a belief
+    over R trajectories, such as the centralized reference, keeps at most R × ``robot_budget``,
+    never more than ``max_hypotheses``; ``None``: no budget); ``max_join``: the most
     (hypothesis, realisation) pairs a fusion builds for one slot (the lightest hypotheses are
     left out first; bounds the work of a received slot before anything is built);
     ``max_fusion_bytes``: a slot whose information matrices, one per kept hypothesis, would
@@ -77,6 +80,7 @@ class BeliefConfig:
     class_floor: float = 1e-4
     marginal_ratio: float = 150.0
     max_hypotheses: int = 300
+    robot_budget: int | None = 64
     max_join: int = 250_000
     max_fusion_bytes: int = 2**30
     object_prior_sigmas: tuple[float, float, float] = (100.0, 100.0, math.pi)
@@ -95,6 +99,8 @@ class BeliefConfig:
             raise ValueError("max_join and max_fusion_bytes must be ≥ 1")
         if self.num_samples < 1 or self.max_hypotheses < 1 or self.extra_updates < 0:
             raise ValueError("num_samples and max_hypotheses must be ≥ 1, extra_updates ≥ 0")
+        if self.robot_budget is not None and self.robot_budget < 1:
+            raise ValueError(f"robot_budget must be ≥ 1 or None, got {self.robot_budget}")
         if not self.prune_ratio > 1.0:
             raise ValueError(f"prune_ratio must be > 1, got {self.prune_ratio}")
         if not 0.0 <= self.class_floor < 1.0:
@@ -105,20 +111,25 @@ class BeliefConfig:
 
     @classmethod
     def paper(cls, **changes: object) -> BeliefConfig:
-        """The paper's hypothesis management: joint weight ratio 1/150, cap 300."""
-        return cls(**{"pruning": "ratio", "prune_ratio": 150.0, **changes})  # type: ignore[arg-type]
+        """The paper's hypothesis management: joint weight ratio 1/150, cap 300, no budget."""
+        fields = {"pruning": "ratio", "prune_ratio": 150.0, "robot_budget": None, **changes}
+        return cls(**fields)  # type: ignore[arg-type]
 
     @classmethod
     def exact(cls, **changes: object) -> BeliefConfig:
         """No pruning (enumeration, up to 4096 hypotheses): the reference of small worlds."""
-        fields = {"prune_ratio": math.inf, "max_hypotheses": 4096, **changes}
+        fields = {"prune_ratio": math.inf, "max_hypotheses": 4096, "robot_budget": None, **changes}
         return cls(**fields)  # type: ignore[arg-type]
 
-    def rule(self) -> PruningRule:
+    def cap(self, robots: int = 1) -> int:
+        """The most hypotheses a belief over ``robots`` trajectories keeps."""
+        if self.robot_budget is None:
+            return self.max_hypotheses
+        return min(self.max_hypotheses, self.robot_budget * max(1, robots))
+
+    def rule(self, robots: int = 1) -> PruningRule:
         c = self
-        return PruningRule(
-            c.pruning, c.prune_ratio, c.class_floor, c.max_hypotheses, c.marginal_ratio
-        )
+        return PruningRule(c.pruning, c.prune_ratio, c.class_floor, c.cap(robots), c.marginal_ratio)
 
 
 @dataclass(frozen=True, slots=True)
@@ -265,6 +276,11 @@ class HybridBelief:
         self.hypotheses = [Hypothesis((), isam, 0.0, isam.calculateEstimate())]
 
     # -- keys and queries -------------------------------------------------------------------
+
+    @property
+    def cap(self) -> int:
+        """The most hypotheses this belief keeps (``BeliefConfig.cap`` of its trajectories)."""
+        return self.config.cap(len(self.robots))
 
     def pose_key(self, robot: str, k: int | None = None) -> int:
         """Key of ``robot``'s pose at step ``k`` (default: its latest step)."""
@@ -576,7 +592,7 @@ class HybridBelief:
     ) -> IntArray:
         """Indices of the candidates to keep (``estimator.pruning.select``): log-weights (K,) of
         candidates with class realisations (K, n)."""
-        rule = self.config.rule()
+        rule = self.config.rule(len(self.robots))
         return select(log_weights, classes, self.model.num_classes, rule, reference)
 
     def _prune(self, log_weights: Array, classes: IntArray) -> tuple[IntArray, Array]:

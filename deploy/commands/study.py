@@ -43,6 +43,8 @@ def run(args: argparse.Namespace, console: Console) -> int:
     changes = {"weight_estimator": args.weights, "num_samples": args.samples}
     if args.max_hypotheses is not None:
         changes["max_hypotheses"] = args.max_hypotheses
+    if args.robot_budget is not None:
+        changes["robot_budget"] = args.robot_budget or None
     config = HYPOTHESIS_MANAGEMENT[args.hypotheses](**changes)
     if args.seed + args.runs - 1 > MAX_SEED:
         raise UsageError(f"--seed {args.seed} with --runs {args.runs} runs past the largest seed")
@@ -71,6 +73,7 @@ def run(args: argparse.Namespace, console: Console) -> int:
         "weight_estimator": args.weights,
         "hypotheses": args.hypotheses,
         "max_hypotheses": config.max_hypotheses,
+        "robot_budget": config.robot_budget,
         "communication": comm,
     }
     archive = study_archive(scenario.name, results, args.methods, settings)
@@ -122,6 +125,14 @@ def add_parser(sub: Any) -> None:
         default=None,
         help=f"cap on hypotheses per belief (default {BeliefConfig().max_hypotheses}; "
         f"{BeliefConfig.exact().max_hypotheses} with --hypotheses exact)",
+    )
+    p.add_argument(
+        "--robot-budget",
+        type=int,
+        default=None,
+        metavar="N",
+        help=f"hypotheses per robot trajectory of a belief (default {BeliefConfig().robot_budget} "
+        "with --hypotheses marginal, none with paper and exact; 0: none)",
     )
     p.add_argument(
         "--snapshot-step",

@@ -141,6 +141,7 @@ def test_study_results_json_schema(two_runs: tuple[subprocess.CompletedProcess[s
     assert doc["weight_estimator"] == "geo_conditioned"
     assert (doc["hypotheses"], doc["communication"]) == ("marginal", "range")
     assert doc["max_hypotheses"] == BeliefConfig().max_hypotheses
+    assert doc["robot_budget"] == BeliefConfig().robot_budget
     assert set(doc["methods"]) == set(METHODS)
     for method, entry in doc["methods"].items():
         assert set(entry["mean"]) == set(METRICS), method

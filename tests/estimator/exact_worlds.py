@@ -45,6 +45,7 @@ def no_pruning(**overrides: object) -> BeliefConfig:
     fields: dict[str, object] = {
         "prune_ratio": 1e300,
         "max_hypotheses": 100_000,
+        "robot_budget": None,
         "relinearize_skip": 1,
     }
     fields.update(overrides)

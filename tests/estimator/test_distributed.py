@@ -27,7 +27,9 @@ from sim.sensors import Simulator
 # (relinearize_skip = 10) leaves iterates up to ~2 mm from that point whatever the fusion does, so
 # the exactness tests relinearise at every update (skip 1) to test the fusion, not the iterate.
 EXACT = BeliefConfig(relinearize_skip=1)
-NO_PRUNING = BeliefConfig(prune_ratio=1e9, max_hypotheses=5000, relinearize_skip=1)
+NO_PRUNING = BeliefConfig(
+    prune_ratio=1e9, max_hypotheses=5000, robot_budget=None, relinearize_skip=1
+)
 
 
 def _truncate(s: Scenario, steps: int) -> Scenario:

@@ -216,7 +216,7 @@ def test_branch_cost_grows_linearly_with_new_objects() -> None:
     rng = np.random.default_rng(0)
     hyps, evidence, detections, new_ids = _synthetic_step(belief, rng, 1, 0, list(range(1, 21)))
     beam = _branch(belief, hyps, evidence, detections, new_ids)
-    cap = belief.config.max_hypotheses
+    cap = belief.cap
     assert len(beam.parent) <= cap
     # each of the 20 objects extends at most `cap` partial children by 10 classes
     assert beam.weighed <= 1 + 20 * cap * 10
