@@ -8,7 +8,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from agents.core import GOSSIP_PERIOD_S, WINDOW_STEPS, CoreSettings
-from agents.transport.zenoh_transport import ZenohSettings
+from agents.transport.zenoh_transport import ZenohConfigError, ZenohSettings
 from protocol.codec import Limits
 from protocol.validate import valid_id
 from sim.loader import FieldReader, parse_toml, read_file
@@ -45,7 +45,9 @@ _AGENT_KEYS = {
     "fleet", "model", "start", "roster", "seed", "mode", "gossip_period", "journal",
     "publish_local", "simulation", "window", "world_extent",
 }  # fmt: skip
-_ZENOH_KEYS = {"listen", "connect", "gossip", "shared_memory", "lease_ms", "config_file"}
+_ZENOH_KEYS = {
+    "listen", "connect", "gossip", "shared_memory", "lease_ms", "config_file", "insecure",
+}  # fmt: skip
 MAX_EXTENT = 1e7  # metres: a UTM-like frame; beyond, float64 poses lose millimetres
 
 
@@ -59,6 +61,23 @@ def load_agent_config(path: Path, robot: str) -> AgentConfig:
         return _read_agent_config(path, robot)
     except ScenarioError as exc:
         raise AgentConfigError(path, exc.field or "toml", exc.reason) from None
+
+
+def _check_security(z: FieldReader, settings: ZenohSettings, insecure: bool) -> None:
+    """The JSON5 file and the TOML fields must agree, and an agent reachable off loopback runs
+    with mutual TLS unless its config says ``insecure = true``."""
+    try:
+        exposed = settings.off_loopback()
+        secure = settings.mutual_tls()
+    except ZenohConfigError as exc:
+        raise z.fail("config_file", str(exc)) from None
+    if exposed and not secure and not insecure:
+        raise z.fail(
+            "insecure",
+            f"endpoints {', '.join(exposed)} are not on loopback and the session has no mutual "
+            "TLS (tls/ endpoints, root_ca_certificate, enable_mtls): use the files of "
+            "`semfleet fleet init`, or set insecure = true to run without authentication",
+        )
 
 
 def _read_agent_config(path: Path, robot: str) -> AgentConfig:
@@ -116,11 +135,12 @@ def _read_agent_config(path: Path, robot: str) -> AgentConfig:
     zenoh_settings = ZenohSettings(
         listen=endpoints["listen"],
         connect=endpoints["connect"],
-        gossip=z.boolean("gossip") if z.has("gossip") else True,
-        shared_memory=z.boolean("shared_memory") if z.has("shared_memory") else False,
-        lease_ms=z.integer("lease_ms", 100, 3_600_000) if z.has("lease_ms") else 3000,
+        gossip=z.boolean("gossip") if z.has("gossip") else None,
+        shared_memory=z.boolean("shared_memory") if z.has("shared_memory") else None,
+        lease_ms=z.integer("lease_ms", 100, 3_600_000) if z.has("lease_ms") else None,
         config_file=base / z.string("config_file") if z.has("config_file") else None,
     )
+    _check_security(z, zenoh_settings, z.boolean("insecure") if z.has("insecure") else False)
     return AgentConfig(
         robot=robot,
         fleet=fleet,

@@ -40,8 +40,7 @@ def session_settings(
 ) -> ZenohSettings:
     """An operator's session: dials ``endpoints``, never listens; ``mode`` "client" or "peer"
     (with gossip scouting)."""
-    extra = {"mode": mode} if mode != "peer" else {}
-    return ZenohSettings(connect=endpoints, gossip=True, config_file=config_file, extra=extra)
+    return ZenohSettings(connect=endpoints, config_file=config_file, mode=mode)
 
 
 class Session:

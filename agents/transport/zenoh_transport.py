@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import json5
 import zenoh
 
 from agents.transport.base import Inbox, Kind, Message, TransportError
@@ -25,37 +26,145 @@ from agents.transport.base import Inbox, Kind, Message, TransportError
 log = logging.getLogger(__name__)
 
 
+# The TLS file fields of a Zenoh config: a relative path in a JSON5 file is resolved against the
+# file's folder, so that a fleet's folder can be copied onto a robot as it is.
+TLS_FILES = (
+    "root_ca_certificate",
+    "listen_certificate",
+    "listen_private_key",
+    "connect_certificate",
+    "connect_private_key",
+)
+LOOPBACK_HOSTS = ("127.0.0.1", "localhost", "[::1]", "::1")
+
+
+class ZenohConfigError(ValueError):
+    """A Zenoh JSON5 file that cannot be read, or that contradicts the settings given with it
+    (names the file and the field)."""
+
+
 @dataclass(frozen=True, slots=True)
 class ZenohSettings:
     """How one session joins the fleet network. ``gossip``: Zenoh's gossip scouting, which links
     every reachable peer (keep it on for local simulations, off on a real fleet so Zenoh links
-    match radio links); ``config_file``: a JSON5 file applied first (TLS, access control…), the
-    fields here then override it."""
+    match radio links); ``config_file``: a JSON5 file (TLS, access control…).
+
+    The file and the fields are merged, never silently overwritten: a field left ``None`` (or an
+    empty endpoint list) takes the file's value, else the default (gossip on, shared memory off,
+    lease 3000 ms); a field that is set must agree with the file where the file sets it too, or
+    :meth:`config` raises :class:`ZenohConfigError` naming both. Multicast scouting is always off
+    (a file that turns it on is refused); ``mode`` is ``peer`` unless ``mode`` says otherwise."""
 
     listen: tuple[str, ...] = ()
     connect: tuple[str, ...] = ()
-    gossip: bool = True
-    shared_memory: bool = False
-    lease_ms: int = 3000
+    gossip: bool | None = None
+    shared_memory: bool | None = None
+    lease_ms: int | None = None
     config_file: Path | None = None
     extra: dict[str, Any] = field(default_factory=dict)
+    mode: str = "peer"
+
+    def document(self) -> dict[str, Any]:
+        """The merged configuration as a JSON-able document (see the class docstring)."""
+        doc = read_json5(self.config_file) if self.config_file else {}
+        where = str(self.config_file)
+        fields: list[tuple[str, Any, Any]] = [
+            ("mode", self.mode, None),
+            ("listen/endpoints", list(self.listen) or None, None),
+            ("connect/endpoints", list(self.connect) or None, None),
+            ("scouting/gossip/enabled", self.gossip, True),
+            ("transport/link/tx/lease", self.lease_ms, 3000),
+            ("transport/shared_memory/enabled", self.shared_memory, False),
+        ]
+        for path, value, default in fields:
+            held = _get(doc, path)
+            if value is not None and held is not None and held != value:
+                raise ZenohConfigError(
+                    f"{where}: {path} is {json.dumps(held)} but the settings say "
+                    f"{json.dumps(value)} (remove one of the two)"
+                )
+            if held is None:
+                chosen = value if value is not None else default
+                if chosen is not None:
+                    _set(doc, path, chosen)
+        if _get(doc, "scouting/multicast/enabled") is True:
+            raise ZenohConfigError(f"{where}: scouting/multicast/enabled must be false")
+        _set(doc, "scouting/multicast/enabled", False)
+        if _get(doc, "connect/retry") is None:
+            retry = {"period_init_ms": 100, "period_max_ms": 500, "period_increase_factor": 2}
+            _set(doc, "connect/retry", retry)
+        for key, value in self.extra.items():
+            _set(doc, key, value)
+        return doc
 
     def config(self) -> zenoh.Config:
-        cfg = zenoh.Config.from_file(str(self.config_file)) if self.config_file else zenoh.Config()
-        cfg.insert_json5("mode", '"peer"')
-        cfg.insert_json5("listen/endpoints", json.dumps(list(self.listen)))
-        cfg.insert_json5("connect/endpoints", json.dumps(list(self.connect)))
-        cfg.insert_json5(
-            "connect/retry",
-            json.dumps({"period_init_ms": 100, "period_max_ms": 500, "period_increase_factor": 2}),
-        )
-        cfg.insert_json5("scouting/multicast/enabled", "false")
-        cfg.insert_json5("scouting/gossip/enabled", json.dumps(self.gossip))
-        cfg.insert_json5("transport/link/tx/lease", str(self.lease_ms))
-        cfg.insert_json5("transport/shared_memory/enabled", json.dumps(self.shared_memory))
-        for key, value in self.extra.items():
-            cfg.insert_json5(key, json.dumps(value))
-        return cfg
+        try:
+            return zenoh.Config.from_json5(json.dumps(self.document()))
+        except zenoh.ZError as exc:
+            raise ZenohConfigError(f"{self.config_file or 'zenoh settings'}: {exc}") from None
+
+    def mutual_tls(self) -> bool:
+        """Whether every endpoint, listened on or dialled, is TLS with a root CA and client
+        certificates required (mutual TLS)."""
+        doc = self.document()
+        tls = _get(doc, "transport/link/tls") or {}
+        configured = bool(tls.get("enable_mtls")) and bool(tls.get("root_ca_certificate"))
+        return configured and all(e.startswith("tls/") for e in _endpoints(doc))
+
+    def off_loopback(self) -> list[str]:
+        """The endpoints (listened on or dialled) whose host is not a loopback address."""
+        return [e for e in _endpoints(self.document()) if not _loopback(e)]
+
+
+def _endpoints(doc: dict[str, Any]) -> list[str]:
+    listen = _get(doc, "listen/endpoints") or []
+    connect = _get(doc, "connect/endpoints") or []
+    return [str(e) for e in (*listen, *connect)]
+
+
+def read_json5(path: Path) -> dict[str, Any]:
+    """A Zenoh JSON5 file as a document; relative TLS file paths resolved against its folder."""
+    try:
+        doc = json5.loads(path.read_text(encoding="utf-8"))
+    except OSError as exc:
+        raise ZenohConfigError(f"{path}: {exc.strerror}") from None
+    except ValueError as exc:
+        raise ZenohConfigError(f"{path}: not JSON5: {exc}") from None
+    if not isinstance(doc, dict):
+        raise ZenohConfigError(f"{path}: expected a JSON5 object at the top")
+    tls = _get(doc, "transport/link/tls")
+    if isinstance(tls, dict):
+        for name in TLS_FILES:
+            value = tls.get(name)
+            if isinstance(value, str) and not Path(value).is_absolute():
+                tls[name] = str((path.parent / value).resolve())
+    return doc
+
+
+def _loopback(endpoint: str) -> bool:
+    locator = endpoint.split("/", 1)[-1].split("#", 1)[0].split("?", 1)[0]
+    host = locator.rsplit(":", 1)[0] if ":" in locator else locator
+    return host in LOOPBACK_HOSTS or host.startswith("127.")
+
+
+def _get(doc: dict[str, Any], path: str) -> Any:
+    node: Any = doc
+    for part in path.split("/"):
+        if not isinstance(node, dict) or part not in node:
+            return None
+        node = node[part]
+    return node
+
+
+def _set(doc: dict[str, Any], path: str, value: Any) -> None:
+    parts = path.split("/")
+    node = doc
+    for part in parts[:-1]:
+        child = node.get(part)
+        if not isinstance(child, dict):
+            child = node[part] = {}
+        node = child
+    node[parts[-1]] = value
 
 
 class ZenohTransport:
@@ -84,6 +193,8 @@ class ZenohTransport:
         try:
             config = self.settings.config()
             self._session = await asyncio.to_thread(zenoh.open, config)
+        except ZenohConfigError as exc:
+            raise TransportError(str(exc)) from None
         except zenoh.ZError as exc:
             endpoints = ", ".join((*self.settings.listen, *self.settings.connect)) or "none"
             raise TransportError(f"Zenoh session (endpoints {endpoints}): {exc}") from None

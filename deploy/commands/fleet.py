@@ -27,6 +27,7 @@ from rich.console import Console
 from agents.transport.base import Keys
 from agents.transport.zenoh_transport import ZenohSettings
 from deploy.args import zenoh_endpoint
+from deploy.commands.fleet_init import add_init_parser
 from deploy.errors import RunFailure, UsageError
 from deploy.fleet_session import collect_status, session_settings, stop_fleet, watch_fleet
 from deploy.fleet_view import FleetView, status_doc, write_watch_results
@@ -162,8 +163,9 @@ def _common(p: argparse.ArgumentParser, timeout: float, waits_for: str) -> None:
 
 
 def add_parser(sub: Any) -> None:
-    p = sub.add_parser("fleet", help="see and stop a running fleet from outside (operator)")
+    p = sub.add_parser("fleet", help="make a secure fleet; see and stop a running one (operator)")
     actions = p.add_subparsers(dest="action_name", required=True, metavar="ACTION")
+    add_init_parser(actions)
     status = actions.add_parser("status", help="who is alive, steps, counters (one snapshot)")
     _common(status, 2.0, "the robots' answers")
     status.add_argument("--json", action="store_true", help="a JSON document instead of a table")

@@ -87,7 +87,7 @@ def test_agent_config_valid_file_loads_with_relative_paths_resolved(tmp_path: Pa
     z = c.zenoh
     assert z.listen == ("tcp/127.0.0.1:7447",)
     assert z.connect == ("tcp/127.0.0.1:7448", "tcp/127.0.0.1:7449")
-    assert (z.gossip, z.lease_ms, z.shared_memory) == (False, 2000, False)
+    assert (z.gossip, z.lease_ms, z.shared_memory) == (False, 2000, None)  # None: not given
 
 
 def test_agent_config_world_extent_sets_the_limits(tmp_path: Path) -> None:
@@ -100,7 +100,11 @@ def test_agent_config_world_extent_sets_the_limits(tmp_path: Path) -> None:
 def test_agent_config_defaults(tmp_path: Path) -> None:
     c = load_agent_config(_write(tmp_path, MINIMAL), "r2")
     assert (c.fleet, c.seed, c.runtime.mode, c.journal) == ("default", 0, "realtime", None)
-    assert (c.runtime.simulation, c.runtime.window, c.zenoh.gossip) == (False, 64, True)
+    assert (c.runtime.simulation, c.runtime.window) == (False, 64)
+    doc = c.zenoh.document()  # fields left out take the defaults (no JSON5 file here)
+    assert doc["scouting"]["gossip"]["enabled"] is True
+    assert doc["transport"]["shared_memory"]["enabled"] is False
+    assert doc["transport"]["link"]["tx"]["lease"] == 3000
 
 
 BAD = [
@@ -136,6 +140,11 @@ BAD = [
     (_set("agent.seed", "-1"), "agent.seed"),
     (_set("agent.seed", "1.5"), "agent.seed"),
     (_set("agent.mode", '"fast"'), "agent.mode"),
+    (_set("zenoh.listen", '["tcp/10.0.0.1:7447"]'), "zenoh.insecure"),  # exposed, no TLS
+    (_set("zenoh.connect", '["tcp/robot7.local:7447"]'), "zenoh.insecure"),
+    (_set("zenoh.listen", '["tls/10.0.0.1:7447"]'), "zenoh.insecure"),  # tls/, no mTLS config
+    (_set("zenoh.insecure", '"yes"'), "zenoh.insecure"),
+    (_set("zenoh.config_file", '"missing.json5"'), "zenoh.config_file"),
     (_set("agent.gossip_period", "0"), "agent.gossip_period"),
     (_set("agent.gossip_period", "nan"), "agent.gossip_period"),
     (_set("agent.gossip_period", '"1"'), "agent.gossip_period"),

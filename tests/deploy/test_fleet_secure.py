@@ -1,0 +1,142 @@
+"""A fleet made by `semfleet fleet init` (issue 13, item 1): a real agent process started from its
+files, real Zenoh sessions over mutual TLS on loopback.
+
+An uncertified session and a session certified by another fleet's CA reach nothing; robot r2's
+own certificate can put on its own stack (the positive control: r1 counts those puts) but not on
+r1's stack, r1's frames or ``ctl/**``; the operator's certificate can ask for status and stop the
+agent.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from agents.control import Status, Stop, encode_control
+from agents.transport.base import Inbox, Keys
+from agents.transport.zenoh_transport import ZenohSettings, ZenohTransport
+from deploy.commands.scenario import model_text
+from deploy.fleet_init import FleetSpec, init_fleet, loopback_spec
+from deploy.launch import free_ports
+from protocol.estimate import EstimateMessage, decode_estimate
+from sim.loader import load_scenario
+
+pytestmark = pytest.mark.slow
+
+FLEET = "vault"
+KEYS = Keys(FLEET)
+ROBOTS = ("r1", "r2", "r3")
+GARBAGE = b"\x93not a stack"
+PUTS = 5
+
+
+def _spec(port: int) -> FleetSpec:
+    s = load_scenario("paper")
+    starts = {r: tuple(float(v) for v in s.robot(r).start) for r in ROBOTS}
+    return loopback_spec(FLEET, ROBOTS, "op", starts, model_text(s), port)  # type: ignore[arg-type]
+
+
+@pytest.fixture
+def fleet(tmp_path: Path):  # type: ignore[no-untyped-def]
+    ports = free_ports(4)
+    folders = init_fleet(_spec(ports[0]), tmp_path / "fleet")
+    other = init_fleet(_spec(ports[0]), tmp_path / "other")  # same names, another CA
+    log = open(tmp_path / "r1.log", "wb")  # noqa: SIM115 — closed below
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "deploy.cli", "agent", "--robot", "r1", "--config",
+         str(folders["r1"] / "agent.toml")],
+        stdout=log,
+        stderr=subprocess.STDOUT,
+        env={**os.environ, "OPENBLAS_NUM_THREADS": "1"},
+    )  # fmt: skip
+    try:
+        yield folders, other, f"tls/127.0.0.1:{ports[0]}", proc
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        proc.wait()
+        log.close()
+
+
+def _session(folder: Path, endpoint: str) -> ZenohTransport:
+    """A peer session with ``folder``'s identity that dials ``endpoint`` only."""
+    return ZenohTransport(
+        ZenohSettings(connect=(endpoint,), config_file=folder / "zenoh.json5", extra={
+            "listen/endpoints": [], "connect/endpoints": [endpoint], "mode": "peer"})
+    )  # fmt: skip
+
+
+async def _status(operator: ZenohTransport, inbox: Inbox) -> EstimateMessage:
+    async with asyncio.timeout(60):
+        while True:
+            operator.publish(KEYS.ctl("status"), encode_control(Status()))
+            try:
+                m = await asyncio.wait_for(inbox.get(), 1.0)
+            except TimeoutError:
+                continue
+            return decode_estimate(m.payload)
+
+
+async def _put_repeatedly(session: ZenohTransport, puts: list[tuple[str, bytes]]) -> None:
+    for _ in range(PUTS):
+        for key, payload in puts:
+            session.publish(key, payload)
+        await asyncio.sleep(0.2)
+
+
+def test_only_the_owners_identity_puts_on_its_keys_and_only_the_operator_controls(
+    fleet,  # type: ignore[no-untyped-def]
+) -> None:
+    folders, other, endpoint, proc = fleet
+
+    async def scenario() -> None:
+        operator = _session(folders["op"], endpoint)
+        estimates = Inbox(64)
+        operator.subscribe(KEYS.estimate("r1"), estimates)
+        await operator.open()
+        before = (await _status(operator, estimates)).counters
+        attacks = {
+            "r2": _session(folders["r2"], endpoint),
+            "foreign CA": _session(other["r2"], endpoint),
+            "uncertified": ZenohTransport(
+                ZenohSettings(connect=("tcp" + endpoint[3:],), gossip=False)
+            ),
+        }
+        for session in attacks.values():
+            await session.open()
+        await asyncio.sleep(1.5)  # let r1's subscriptions reach the certified sessions
+        forged = [
+            (KEYS.stack("r1"), GARBAGE),
+            (KEYS.frames("r1"), GARBAGE),
+            (KEYS.ctl("stop"), encode_control(Stop("attack"))),
+            (KEYS.ctl("status"), encode_control(Status())),
+        ]
+        await asyncio.gather(
+            _put_repeatedly(attacks["r2"], [*forged, (KEYS.stack("r2"), GARBAGE)]),
+            _put_repeatedly(attacks["foreign CA"], [*forged, (KEYS.stack("r2"), GARBAGE)]),
+            _put_repeatedly(attacks["uncertified"], [*forged, (KEYS.stack("r2"), GARBAGE)]),
+        )
+        await asyncio.sleep(1.0)
+        assert proc.poll() is None, "an attacker's ctl/stop stopped the agent"
+        after = (await _status(operator, estimates)).counters
+        for session in attacks.values():
+            await session.close()
+        # r2's puts on its own stack arrive (so its link works) and are counted as invalid;
+        # nothing else of any attacker reaches r1.
+        assert after["stacks_invalid"] - before["stacks_invalid"] == PUTS
+        assert after["stacks_received"] - before["stacks_received"] == PUTS
+        for name in ("frames_invalid", "frames_processed", "control_invalid"):
+            assert after[name] == before[name], name
+        # status requests: the operator's only (at least the two above), never an attacker's 15
+        assert after["status_requests"] - before["status_requests"] < PUTS
+        operator.publish(KEYS.ctl("stop"), encode_control(Stop("test")))
+        await asyncio.to_thread(proc.wait, 20)
+        await operator.close()
+
+    asyncio.run(scenario())
+    assert proc.returncode == 0
