@@ -44,7 +44,7 @@ from agents.node import RobotNode
 from agents.transport.base import Keys
 from estimator.models import SensorFrame
 from protocol.codec import StackMessage
-from protocol.errors import RemoteProtocolError
+from protocol.errors import RemoteProtocolError, SenderMismatch
 from protocol.estimate import EstimateMessage, encode_estimate
 from protocol.frames import decode_frame, encode_frame
 from protocol.stack import Stack
@@ -394,6 +394,13 @@ class AgentCore:
             return []
         if message.sender == self.robot:
             return []
+        if sender_key is not None and message.sender != sender_key:
+            # Each robot publishes only on its own key (access control enforces it on a secure
+            # fleet): a stack whose sender is another robot is forged or misrouted.
+            exc = SenderMismatch(f"sent by {message.sender!r} on the key of {sender_key}", "sender")
+            self.node.reject(exc)
+            self._log_invalid(sender_key, exc)
+            return []
         message = self._without_refused(message)
         if self.settings.mode == "lockstep":
             k = self.node.k
@@ -622,6 +629,8 @@ class AgentCore:
             "stacks_merged": c.stacks_merged,
             "stacks_unchanged": c.stacks_unchanged,
             "stacks_invalid": c.invalid,
+            "stacks_badly_signed": c.errors_by_type.get("BadSignature", 0),
+            "stacks_misaddressed": c.errors_by_type.get("SenderMismatch", 0),
             "slots_rejected": c.rejected_slots,
             "slots_foreign": c.foreign_slots,
             "own_slot_invalid": c.own_slot_invalid,

@@ -16,6 +16,7 @@ from collections.abc import Iterable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
 from numpy.typing import ArrayLike
 
 from estimator.distributed import DistributedBelief, FusionStats, SlotError
@@ -23,8 +24,9 @@ from estimator.hybrid import BeliefConfig, BeliefModel, HybridBelief
 from estimator.models import SensorFrame
 from estimator.slots import summarise
 from estimator.summary import LocalSummary
-from protocol.codec import Limits, StackMessage, decode, encode
+from protocol.codec import Limits, StackMessage, decode, encode, sign_slot
 from protocol.errors import LocalProtocolError, RemoteProtocolError
+from protocol.signing import SigningKeys
 from protocol.stack import Slot, Stack
 
 log = logging.getLogger(__name__)
@@ -53,6 +55,15 @@ class NodeCounters:
     bytes_sent: int = 0
     last_error: str = ""
     errors_by_type: dict[str, int] = field(default_factory=dict)
+
+
+@dataclass(frozen=True, slots=True)
+class Signing:
+    """A fleet that signs its slots (docs/wire.md, "Signed slots"): this robot's Ed25519 key,
+    and every roster robot's public key (its own included)."""
+
+    key: Ed25519PrivateKey
+    keys: SigningKeys
 
 
 class BeliefError(RuntimeError):
@@ -118,8 +129,12 @@ class RobotNode:
         limits: Limits | None = None,
         local: LocalTrack | None = None,
         roster: frozenset[str] | None = None,
+        signing: Signing | None = None,
     ) -> None:
         self.robot = robot
+        if signing is not None and signing.keys.get(robot) != signing.key.public_key():
+            raise ValueError(f"{robot}'s signing key is not the one its roster holds for it")
+        self.signing = signing
         if local is None:
             local = LocalTrack(HybridBelief(model, {robot: start}, config), rng_local)
         if local.robot != robot:
@@ -157,7 +172,7 @@ class RobotNode:
         self.counters.stacks_received += 1
         self.counters.bytes_received += len(data)
         try:
-            return decode(data, self.limits)
+            return decode(data, self.limits, None if self.signing is None else self.signing.keys)
         except RemoteProtocolError as exc:
             self._count_error(exc)
             return None
@@ -288,9 +303,23 @@ class RobotNode:
         if self._own_slot_stale:
             summary = self.track.summary()
             if summary is not None:
-                self.stack = self.stack.with_slot(Slot(self.robot, self.k, summary))
+                self.stack = self.stack.with_slot(self._signed(Slot(self.robot, self.k, summary)))
             self._own_slot_stale = False
         return self.stack
+
+    def _signed(self, slot: Slot) -> Slot:
+        """The own slot, signed when the fleet signs its slots (left unsigned if the limits
+        refuse it: ``encoded_stack`` then leaves it out and counts it)."""
+        if self.signing is None:
+            return slot
+        try:
+            return sign_slot(slot, self.signing.key, self.limits)
+        except LocalProtocolError:
+            return slot
+
+    def reject(self, exc: RemoteProtocolError) -> None:
+        """Count a received stack refused by the shell (e.g. a sender that is not its key's)."""
+        self._count_error(exc)
 
     def outgoing(self) -> bytes | None:
         """The encoded stack to gossip, or None while the node has nothing to share."""

@@ -3,11 +3,16 @@
 
 from __future__ import annotations
 
+import base64
 import math
 from dataclasses import dataclass
 from pathlib import Path
 
+from cryptography.hazmat.primitives import serialization
+from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey, Ed25519PublicKey
+
 from agents.core import GOSSIP_PERIOD_S, WINDOW_STEPS, CoreSettings
+from agents.node import Signing
 from agents.transport.zenoh_transport import ZenohConfigError, ZenohSettings
 from protocol.codec import Limits
 from protocol.validate import valid_id
@@ -39,6 +44,7 @@ class AgentConfig:
     journal: Path | None
     zenoh: ZenohSettings
     limits: Limits
+    signing: Signing | None = None
 
 
 _AGENT_KEYS = {
@@ -80,10 +86,44 @@ def _check_security(z: FieldReader, settings: ZenohSettings, insecure: bool) -> 
         )
 
 
+def _read_signing(sec: FieldReader, base: Path, robot: str, roster: list[str]) -> Signing:
+    """``[security]``: this robot's Ed25519 signing key and the roster of public keys (both
+    written by ``semfleet fleet init``); every robot of the agent's roster must have a key."""
+    sec.check_keys({"signing_key", "roster"})
+    key_path = base / sec.string("signing_key")
+    try:
+        key = serialization.load_pem_private_key(key_path.read_bytes(), None)
+    except OSError as exc:
+        raise sec.fail("signing_key", f"{key_path}: {exc.strerror}") from None
+    except (ValueError, TypeError) as exc:
+        raise sec.fail("signing_key", f"{key_path}: not a PEM private key ({exc})") from None
+    if not isinstance(key, Ed25519PrivateKey):
+        raise sec.fail("signing_key", f"{key_path}: not an Ed25519 key")
+    roster_path = base / sec.string("roster")
+    label = str(roster_path)
+    doc = FieldReader(label, parse_toml(read_file(roster_path, "roster"), label), "")
+    doc.check_keys({"fleet", "robots"})
+    robots = doc.table("robots")
+    keys = {}
+    for r in roster:
+        if not robots.has(r):
+            raise sec.fail("roster", f"{roster_path} has no signing key for {r}")
+        entry = robots.table(r)
+        entry.check_keys({"signing_key"})
+        try:
+            raw = base64.b64decode(entry.string("signing_key"), validate=True)
+            keys[r] = Ed25519PublicKey.from_public_bytes(raw)
+        except ValueError:
+            raise entry.fail("signing_key", "not a base64 Ed25519 public key") from None
+    if keys[robot].public_bytes_raw() != key.public_key().public_bytes_raw():
+        raise sec.fail("signing_key", f"not the key {roster_path} holds for {robot}")
+    return Signing(key, keys)
+
+
 def _read_agent_config(path: Path, robot: str) -> AgentConfig:
     label = str(path)
     top = FieldReader(label, parse_toml(read_file(path, "agent config"), label), "")
-    top.check_keys({"agent", "zenoh"})
+    top.check_keys({"agent", "zenoh", "security"})
     a = top.table("agent") if top.has("agent") else FieldReader(label, {}, "agent")
     z = top.table("zenoh") if top.has("zenoh") else FieldReader(label, {}, "zenoh")
     a.check_keys(_AGENT_KEYS)
@@ -141,7 +181,11 @@ def _read_agent_config(path: Path, robot: str) -> AgentConfig:
         config_file=base / z.string("config_file") if z.has("config_file") else None,
     )
     _check_security(z, zenoh_settings, z.boolean("insecure") if z.has("insecure") else False)
+    signing = None
+    if top.has("security"):
+        signing = _read_signing(top.table("security"), base, robot, roster)
     return AgentConfig(
+        signing=signing,
         robot=robot,
         fleet=fleet,
         model_path=model_path,

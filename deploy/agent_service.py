@@ -43,6 +43,7 @@ def node_factory(config: AgentConfig) -> Callable[[], RobotNode]:
         BeliefConfig(),
         roster=config.roster,
         limits=config.limits,
+        signing=config.signing,
     )
 
 

@@ -13,7 +13,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from agents.links import AllOf, LinkModel, Partition, Proximity, RandomDrop, Schedule
-from agents.node import LocalTrack, RobotNode
+from agents.node import LocalTrack, RobotNode, Signing
 from estimator.hybrid import BeliefConfig, BeliefModel
 from protocol.codec import Limits
 from sim.loader import COMM_MODES
@@ -101,6 +101,7 @@ def make_node(
     downdate: str = "remove",
     roster: frozenset[str] | None = None,
     limits: Limits | None = None,
+    signing: Signing | None = None,
 ) -> RobotNode:
     """The node of ``robot`` starting at ``start`` (3,) in run ``seed``, exactly as
     :func:`make_nodes` builds it with ``rng_for = lambda r: belief_rng(seed, [r])``; ``roster``
@@ -108,7 +109,16 @@ def make_node(
     sends (default: the wire defaults with the model's class count)."""
     rng_for = lambda r: belief_rng(seed, [r])  # noqa: E731
     return _node(
-        robot, start, model, rng_for, config, fusion, downdate, roster=roster, limits=limits
+        robot,
+        start,
+        model,
+        rng_for,
+        config,
+        fusion,
+        downdate,
+        roster=roster,
+        limits=limits,
+        signing=signing,
     )
 
 
@@ -149,6 +159,7 @@ def _node(
     local: LocalTrack | None = None,
     roster: frozenset[str] | None = None,
     limits: Limits | None = None,
+    signing: Signing | None = None,
 ) -> RobotNode:
     return RobotNode(
         robot,
@@ -162,4 +173,5 @@ def _node(
         local=local,
         roster=roster,
         limits=limits,
+        signing=signing,
     )

@@ -256,6 +256,7 @@ def _agent_toml(spec: FleetSpec, robot: str) -> str:
             "journal": f"{robot}.journal",
         },
         "zenoh": {"config_file": "zenoh.json5"},
+        "security": {"signing_key": "signing.key", "roster": "roster.toml"},
     }
     header = (
         f"# Agent {robot} of fleet {spec.fleet}; run from this folder:\n"

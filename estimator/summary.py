@@ -42,3 +42,8 @@ class Slot:
     owner: str
     stamp: int
     summary: LocalSummary
+    # Wire version 2 (docs/wire.md, "Signed slots"): the owner's epoch (reserved, 0) and its
+    # Ed25519 signature over the slot's canonical bytes; None for an unsigned slot. The estimator
+    # never reads them: a relay re-sends the owner's signature with the slot.
+    epoch: int = 0
+    signature: bytes | None = None

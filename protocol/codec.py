@@ -17,29 +17,34 @@ from typing import Any
 
 import msgpack
 import numpy as np
+from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
 from numpy.typing import NDArray
 
 from estimator.models.frames import MAX_STEP
 from estimator.summary import LocalSummary, Realisation
 from protocol.errors import (
+    BadSignature,
     InvalidValue,
     LimitExceeded,
     LocalProtocolError,
     RemoteProtocolError,
     UnsupportedVersion,
 )
+from protocol.signing import SIGNATURE_BYTES, SigningKeys, canonical_bytes, sign, verify
 from protocol.stack import Slot, Stack
 from protocol.validate import as_int, as_map, decode_document, need, robot_id, valid_id
 
 Array = NDArray[np.float64]
 
-VERSION = 1
+VERSION = 1  # unsigned slots
+SIGNED_VERSION = 2  # owner-signed slots (docs/wire.md, "Signed slots")
 STACK = "stack"
 _F64 = np.dtype("<f8")
 _MAX_STAMP = MAX_STEP  # a stamp is its owner's step
 _MAX_OBJECT_ID = 2**32 - 1
 _TOP_KEYS = frozenset({"v", "type", "sender", "k", "pos", "slots"})
 _SLOT_KEYS = frozenset({"owner", "stamp", "objects", "real"})
+_SIGNED_SLOT_KEYS = _SLOT_KEYS | {"epoch", "sig"}
 _REAL_KEYS = frozenset({"c", "phi", "lin", "info", "eta"})
 
 
@@ -268,8 +273,10 @@ def encode(message: StackMessage, limits: Limits | None = None) -> bytes:
     )
     slots = message.stack.slots
     _local(len(slots) <= lim.max_slots, "slots", f"{len(slots)} > {lim.max_slots}")
+    signed = {s.signature is not None for s in slots}
+    _local(len(signed) <= 1, "slots", "signed and unsigned slots in one stack")
     doc = {
-        "v": VERSION,
+        "v": SIGNED_VERSION if signed == {True} else VERSION,
         "type": STACK,
         "sender": message.sender,
         "k": step,
@@ -366,16 +373,39 @@ def _encode_slot(slot: Slot, where: str, lim: Limits) -> dict[str, Any]:
         }
         for i, r in enumerate(rs)
     ]
-    return {"owner": slot.owner, "stamp": int(slot.stamp), "objects": ids, "real": reals}
+    out: dict[str, Any] = {"owner": slot.owner, "stamp": int(slot.stamp), "objects": ids}
+    out["real"] = reals
+    if slot.signature is not None:
+        _local(slot.epoch == 0, f"{where}.epoch", "reserved: must be 0")
+        sig_ok = isinstance(slot.signature, bytes) and len(slot.signature) == SIGNATURE_BYTES
+        _local(sig_ok, f"{where}.sig", f"expected {SIGNATURE_BYTES} bytes")
+        out["epoch"] = 0
+        out["sig"] = slot.signature
+    return out
+
+
+def sign_slot(slot: Slot, key: Ed25519PrivateKey, limits: Limits | None = None) -> Slot:
+    """``slot`` signed by its owner's ``key`` (wire version 2). Raises LocalProtocolError, as
+    ``encode`` would, for a slot the limits refuse."""
+    unsigned = Slot(slot.owner, slot.stamp, slot.summary)
+    wire = _encode_slot(unsigned, "slot", limits or Limits())
+    data = canonical_bytes(slot.owner, 0, wire["stamp"], wire["objects"], wire["real"])
+    return Slot(slot.owner, slot.stamp, slot.summary, 0, sign(key, data))
 
 
 # --------------------------------------------------------------------------- decode
 
 
-def decode(data: bytes, limits: Limits | None = None) -> StackMessage:
-    """Parse and validate a stack message. Raises only :class:`RemoteProtocolError` subclasses."""
+def decode(
+    data: bytes, limits: Limits | None = None, keys: SigningKeys | None = None
+) -> StackMessage:
+    """Parse and validate a stack message. Raises only :class:`RemoteProtocolError` subclasses.
+
+    ``keys`` (owner → Ed25519 public key): the fleet signs its slots, and every slot must be
+    signed by its owner's key (:class:`BadSignature` otherwise: unsigned, unknown owner, or a
+    signature that does not verify). Without ``keys`` signatures are kept, not checked."""
     lim = limits or Limits()
-    return decode_document(data, lim.max_message_bytes, lambda doc: _decode_doc(doc, lim))
+    return decode_document(data, lim.max_message_bytes, lambda doc: _decode_doc(doc, lim, keys))
 
 
 def _floats(blobs: list[Any], where: str, name: str, count: int) -> Array:
@@ -387,11 +417,12 @@ def _floats(blobs: list[Any], where: str, name: str, count: int) -> Array:
     return np.frombuffer(b"".join(blobs), dtype=_F64).astype(float).reshape(len(blobs), count)
 
 
-def _decode_doc(doc: Any, lim: Limits) -> StackMessage:
+def _decode_doc(doc: Any, lim: Limits, keys: SigningKeys | None) -> StackMessage:
     need(isinstance(doc, dict), "message", f"expected a map, got {type(doc).__name__}")
     version = doc.get("v")
-    if "v" in doc and (type(version) is not int or version != VERSION):
-        raise UnsupportedVersion(f"schema version {doc['v']!r} (this side speaks {VERSION})", "v")
+    if "v" in doc and (type(version) is not int or version not in (VERSION, SIGNED_VERSION)):
+        speaks = f"{VERSION} and {SIGNED_VERSION}"
+        raise UnsupportedVersion(f"schema version {doc['v']!r} (this side speaks {speaks})", "v")
     top = as_map(doc, "message", _TOP_KEYS)
     if top["type"] != STACK:
         raise UnsupportedVersion(f"message type {top['type']!r}", "type")
@@ -416,15 +447,32 @@ def _decode_doc(doc: Any, lim: Limits) -> StackMessage:
         f"{len(raw_slots)} > {lim.max_slots}",
         LimitExceeded,
     )
-    slots = [_decode_slot(raw, f"slots[{i}]", lim) for i, raw in enumerate(raw_slots)]
+    signed = version == SIGNED_VERSION
+    if keys is not None and not signed and raw_slots:
+        raise BadSignature("unsigned slots (wire version 1): this fleet signs its slots", "v")
+    slots = [
+        _decode_slot(raw, f"slots[{i}]", lim, keys if signed else None, signed)
+        for i, raw in enumerate(raw_slots)
+    ]
     owners = [s.owner for s in slots]
     need(len(set(owners)) == len(owners), "slots", f"duplicate owners {owners}", InvalidValue)
     return StackMessage(sender, position, Stack(tuple(slots)), step)
 
 
-def _decode_slot(raw: Any, where: str, lim: Limits) -> Slot:
-    s = as_map(raw, where, _SLOT_KEYS)
+def _decode_slot(raw: Any, where: str, lim: Limits, keys: SigningKeys | None, signed: bool) -> Slot:
+    s = as_map(raw, where, _SIGNED_SLOT_KEYS if signed else _SLOT_KEYS)
     owner = robot_id(s["owner"], f"{where}.owner")
+    signature = None
+    if signed:
+        need(s["epoch"] == 0 and type(s["epoch"]) is int, f"{where}.epoch", "reserved: must be 0")
+        signature = s["sig"]
+        need(
+            isinstance(signature, bytes) and len(signature) == SIGNATURE_BYTES,
+            f"{where}.sig",
+            f"expected {SIGNATURE_BYTES} bytes",
+        )
+        if keys is not None:
+            _check_signature(s, where, owner, signature, keys)
     stamp = as_int(s["stamp"], f"{where}.stamp", 0, _MAX_STAMP)
     objects = s["objects"]
     need(isinstance(objects, list), f"{where}.objects", "expected an array")
@@ -458,7 +506,21 @@ def _decode_slot(raw: Any, where: str, lim: Limits) -> Slot:
         Realisation(classes, phi, lin[i], info[i], arrays["eta"][i])
         for i, (classes, phi, _) in enumerate(heads)
     )
-    return Slot(owner, stamp, LocalSummary(ids, out))
+    return Slot(owner, stamp, LocalSummary(ids, out), 0, signature)
+
+
+def _check_signature(
+    s: dict[str, Any], where: str, owner: str, signature: bytes, keys: SigningKeys
+) -> None:
+    """The owner's signature over the slot as received (before its numbers are even read)."""
+    key = keys.get(owner)
+    if key is None:
+        raise BadSignature(f"no signing key for owner {owner!r} in the roster", f"{where}.owner")
+    if not (isinstance(s["objects"], list) and isinstance(s["real"], list)):
+        return  # malformed: the structural checks below name the field
+    data = canonical_bytes(owner, 0, s["stamp"], s["objects"], s["real"])
+    if not verify(key, data, signature):
+        raise BadSignature(f"the signature of {owner} does not verify", f"{where}.sig")
 
 
 def _decode_head(

@@ -35,3 +35,12 @@ class LimitExceeded(RemoteProtocolError):
 class InvalidValue(RemoteProtocolError):
     """Well-formed but meaningless under any configuration: non-finite numbers, asymmetric or
     indefinite matrices, angles beyond ±2π, bad ids."""
+
+
+class BadSignature(RemoteProtocolError):
+    """A slot that a fleet with signing keys cannot accept: unsigned, of an owner the roster does
+    not know, or whose owner's signature does not verify (forged or altered on the way)."""
+
+
+class SenderMismatch(RemoteProtocolError):
+    """A stack whose ``sender`` is not the robot of the key it was published on."""

@@ -1,5 +1,5 @@
-"""A fleet made by `semfleet fleet init` (issue 13, item 1): a real agent process started from its
-files, real Zenoh sessions over mutual TLS on loopback.
+"""A fleet made by `semfleet fleet init` (issue 13, items 1–2): a real agent process started from
+its files, real Zenoh sessions over mutual TLS on loopback, owner-signed slots.
 
 An uncertified session and a session certified by another fleet's CA reach nothing; robot r2's
 own certificate can put on its own stack (the positive control: r1 counts those puts) but not on
@@ -15,7 +15,10 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
+from cryptography.hazmat.primitives import serialization
+from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
 
 from agents.control import Status, Stop, encode_control
 from agents.transport.base import Inbox, Keys
@@ -23,7 +26,10 @@ from agents.transport.zenoh_transport import ZenohSettings, ZenohTransport
 from deploy.commands.scenario import model_text
 from deploy.fleet_init import FleetSpec, init_fleet, loopback_spec
 from deploy.launch import free_ports
+from estimator.summary import LocalSummary, Realisation
+from protocol.codec import Limits, StackMessage, decode, encode, sign_slot
 from protocol.estimate import EstimateMessage, decode_estimate
+from protocol.stack import Slot, Stack
 from sim.loader import load_scenario
 
 pytestmark = pytest.mark.slow
@@ -134,6 +140,66 @@ def test_only_the_owners_identity_puts_on_its_keys_and_only_the_operator_control
             assert after[name] == before[name], name
         # status requests: the operator's only (at least the two above), never an attacker's 15
         assert after["status_requests"] - before["status_requests"] < PUTS
+        operator.publish(KEYS.ctl("stop"), encode_control(Stop("test")))
+        await asyncio.to_thread(proc.wait, 20)
+        await operator.close()
+
+    asyncio.run(scenario())
+    assert proc.returncode == 0
+
+
+def _slot_of(owner: str, stamp: int) -> Slot:
+    info = np.eye(3) * 4.0
+    real = Realisation((0,), -0.2, np.array([[1.0, 2.0, 0.3]]), info, np.zeros(3))
+    return Slot(owner, stamp, LocalSummary((900,), (real,)))
+
+
+def _signing_key(folder: Path) -> Ed25519PrivateKey:
+    key = serialization.load_pem_private_key((folder / "signing.key").read_bytes(), None)
+    assert isinstance(key, Ed25519PrivateKey)
+    return key
+
+
+def test_a_relay_cannot_forge_or_alter_a_slot_and_a_sender_must_be_its_key(
+    fleet,  # type: ignore[no-untyped-def]
+) -> None:
+    folders, _, endpoint, proc = fleet
+    limits = Limits(num_classes=2)
+    genuine = sign_slot(_slot_of("r3", 4), _signing_key(folders["r3"]), limits)
+    altered = Slot("r3", 5, genuine.summary, 0, genuine.signature)  # stamp bumped by the relay
+    relayed = encode(StackMessage("r2", None, Stack((genuine,)), 4), limits)
+    tampered = encode(StackMessage("r2", None, Stack((altered,)), 4), limits)
+    unsigned = encode(StackMessage("r2", None, Stack((_slot_of("r2", 4),)), 4), limits)
+    misaddressed = encode(StackMessage("r3", None, Stack((genuine,)), 4), limits)
+    keys = {r: _signing_key(folders[r]).public_key() for r in ROBOTS}
+
+    async def scenario() -> None:
+        operator = _session(folders["op"], endpoint)
+        estimates, stacks = Inbox(64), Inbox(64)
+        operator.subscribe(KEYS.estimate("r1"), estimates)
+        operator.subscribe(KEYS.stack("r1"), stacks)
+        await operator.open()
+        before = (await _status(operator, estimates)).counters
+        relay = _session(folders["r2"], endpoint)
+        await relay.open()
+        await asyncio.sleep(1.5)
+        await _put_repeatedly(relay, [(KEYS.stack("r2"), tampered), (KEYS.stack("r2"), unsigned),
+                                      (KEYS.stack("r2"), misaddressed)])  # fmt: skip
+        await _put_repeatedly(relay, [(KEYS.stack("r2"), relayed)])
+        await asyncio.sleep(1.0)
+        after = (await _status(operator, estimates)).counters
+        assert after["stacks_badly_signed"] - before["stacks_badly_signed"] == 2 * PUTS
+        assert after["stacks_misaddressed"] - before["stacks_misaddressed"] == PUTS
+        assert after["stacks_merged"] - before["stacks_merged"] == 1  # the genuine relay, once
+        # r1 now relays r3's slot with r3's signature, and signs its own (none yet: no frames)
+        async with asyncio.timeout(20):
+            while True:
+                message = decode((await stacks.get()).payload, limits, keys)
+                if message.stack.by_owner().get("r3") is not None:
+                    break
+        assert message.sender == "r1"
+        assert message.stack.by_owner()["r3"].signature == genuine.signature
+        await relay.close()
         operator.publish(KEYS.ctl("stop"), encode_control(Stop("test")))
         await asyncio.to_thread(proc.wait, 20)
         await operator.close()

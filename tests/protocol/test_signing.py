@@ -1,0 +1,104 @@
+"""Owner-signed slots (wire version 2, docs/wire.md "Signed slots", issue 13 item 2): a relay can
+neither forge nor alter a slot; every changed byte of a slot fails; unsigned, unknown-owner and
+wrongly signed slots are refused when the receiver has keys."""
+
+from __future__ import annotations
+
+import msgpack
+import numpy as np
+import pytest
+from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
+
+from estimator.summary import LocalSummary, Realisation
+from protocol.codec import Limits, StackMessage, decode, encode, sign_slot
+from protocol.errors import BadSignature, LocalProtocolError, RemoteProtocolError
+from protocol.stack import Slot, Stack
+
+LIMITS = Limits(num_classes=3)
+KEYS = {r: Ed25519PrivateKey.generate() for r in ("r1", "r2", "r3")}
+PUBLIC = {r: k.public_key() for r, k in KEYS.items()}
+
+
+def _slot(owner: str, stamp: int, seed: int) -> Slot:
+    rng = np.random.default_rng(seed)
+    n = 2
+    reals = []
+    for c in ((0, 1), (2, 1)):
+        a = rng.normal(size=(3 * n, 3 * n))
+        info = a @ a.T + 3 * np.eye(3 * n)
+        lin = rng.uniform(-5, 5, (n, 3))
+        lin[:, 2] = rng.uniform(-3, 3, n)
+        reals.append(Realisation(c, float(rng.normal()), lin, info, rng.normal(size=3 * n)))
+    return Slot(owner, stamp, LocalSummary((7, 12), tuple(reals)))
+
+
+def _signed(owner: str, stamp: int = 41, seed: int = 0) -> Slot:
+    return sign_slot(_slot(owner, stamp, seed), KEYS[owner], LIMITS)
+
+
+def test_a_signed_stack_verifies_and_a_relay_re_sends_the_owners_signature() -> None:
+    stack = Stack((_signed("r1"), _signed("r2", 7, 1)))
+    data = encode(StackMessage("r2", None, stack, 7), LIMITS)
+    assert msgpack.unpackb(data)["v"] == 2
+    received = decode(data, LIMITS, PUBLIC)
+    # r3 relays what it received: re-encoded from the decoded slots, still the owners' signatures
+    relayed = encode(StackMessage("r3", (1.0, 2.0), received.stack, 9), LIMITS)
+    again = decode(relayed, LIMITS, PUBLIC)
+    for a, b in zip(stack, again.stack, strict=True):
+        assert (a.owner, a.stamp, a.signature) == (b.owner, b.stamp, b.signature)
+    assert encode(StackMessage("r2", None, again.stack, 7), LIMITS) == data
+
+
+def test_every_changed_byte_of_a_signed_slot_is_refused() -> None:
+    data = encode(StackMessage("r2", None, Stack((_signed("r1"),)), 3), LIMITS)
+    start = data.index(b"\xa5slots") + len(b"\xa5slots")
+    for offset in range(start, len(data)):
+        for flip in (0x01, 0x80):
+            bad = bytearray(data)
+            bad[offset] ^= flip
+            with pytest.raises(RemoteProtocolError):
+                decode(bytes(bad), LIMITS, PUBLIC)
+    # without keys a changed number decodes (nothing to check it against): the keys do the work
+    last = bytearray(data)
+    last[data.rindex(b"\xa3eta") + 4 + 2 + 10] ^= 0x01  # inside the last realisation's η
+    assert decode(bytes(last), LIMITS).stack.slots[0].owner == "r1"
+
+
+def test_forged_relayed_and_unsigned_slots_are_refused_with_keys() -> None:
+    genuine = _signed("r1")
+    # r2 signs a slot of r1 with its own key; r2 bumps r1's stamp and keeps r1's signature
+    forged = sign_slot(_slot("r1", 41, 0), KEYS["r2"], LIMITS)
+    bumped = Slot("r1", 9_999_999, genuine.summary, 0, genuine.signature)
+    unknown = sign_slot(_slot("r9", 1, 0), Ed25519PrivateKey.generate(), LIMITS)
+    for slot, field in (
+        (forged, "slots[0].sig"),
+        (bumped, "slots[0].sig"),
+        (unknown, "slots[0].owner"),
+    ):
+        data = encode(StackMessage("r2", None, Stack((slot,)), 3), LIMITS)
+        with pytest.raises(BadSignature) as err:
+            decode(data, LIMITS, PUBLIC)
+        assert err.value.field == field
+    unsigned = encode(StackMessage("r2", None, Stack((_slot("r1", 41, 0),)), 3), LIMITS)
+    with pytest.raises(BadSignature, match="unsigned"):
+        decode(unsigned, LIMITS, PUBLIC)
+    decode(unsigned, LIMITS)  # a fleet without keys takes it
+    empty = encode(StackMessage("r2", None, Stack(), 3), LIMITS)
+    assert len(decode(empty, LIMITS, PUBLIC).stack) == 0  # nothing to sign: a lock-step round
+
+
+def test_a_stamp_beyond_the_range_is_refused_before_any_signature() -> None:
+    doc = msgpack.unpackb(encode(StackMessage("r2", None, Stack((_signed("r1"),)), 3), LIMITS))
+    doc["slots"][0]["stamp"] = 2**63 - 1
+    with pytest.raises(RemoteProtocolError):
+        decode(msgpack.packb(doc), LIMITS, PUBLIC)
+    doc["slots"][0]["stamp"] = 41
+    doc["slots"][0]["epoch"] = 1
+    with pytest.raises(RemoteProtocolError, match="epoch"):
+        decode(msgpack.packb(doc), LIMITS, PUBLIC)
+
+
+def test_a_stack_is_all_signed_or_all_unsigned() -> None:
+    mixed = Stack((_signed("r1"), _slot("r2", 3, 1)))
+    with pytest.raises(LocalProtocolError, match="signed and unsigned"):
+        encode(StackMessage("r2", None, mixed, 3), LIMITS)
