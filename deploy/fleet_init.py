@@ -71,6 +71,9 @@ class FleetSpec:
     model_toml: str
     hosts: tuple[str, ...] = ("localhost", "127.0.0.1")
     days: int = 365
+    # A simulation's conductor is every robot's perception: it may also put on frames/<robot>.
+    # Never for a real fleet (fleet init), where frames come from each robot's own identity.
+    simulator: bool = False
 
     def __post_init__(self) -> None:
         names = (*self.robots, self.operator)
@@ -165,7 +168,9 @@ def zenoh_config(spec: FleetSpec, listen: str | None, connect: Sequence[str]) ->
     doc: dict[str, Any] = {
         "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
         "transport": {"link": {"tls": tls}},
-        "access_control": access_control(spec.fleet, spec.robots, spec.operator, listen is None),
+        "access_control": access_control(
+            spec.fleet, spec.robots, spec.operator, listen is None, spec.simulator
+        ),
     }
     if listen is not None:  # a robot; the operator's commands choose mode and endpoints
         doc["mode"] = "peer"
@@ -175,7 +180,7 @@ def zenoh_config(spec: FleetSpec, listen: str | None, connect: Sequence[str]) ->
 
 
 def access_control(
-    fleet: str, robots: Sequence[str], operator: str, viewer: bool = False
+    fleet: str, robots: Sequence[str], operator: str, viewer: bool = False, simulator: bool = False
 ) -> dict[str, Any]:
     """Zenoh access control of every member (see the module docstring). ``viewer``: the
     operator's own session, which also takes every robot's estimates, stacks and tokens from
@@ -189,6 +194,8 @@ def access_control(
         _rule("own-tokens", ("liveliness_token",), ["egress"], [f"{prefix}/**"]),
         _rule("operator", ("put",), ["ingress"], [f"{prefix}/ctl/**", f"{prefix}/sim/**"]),
     ]
+    if simulator:
+        rules[-1]["key_exprs"].append(f"{prefix}/frames/*")
     subjects: list[dict[str, Any]] = [
         {"id": "members", "cert_common_names": [*robots, operator]},
         {"id": f"cn-{operator}", "cert_common_names": [operator]},

@@ -160,6 +160,11 @@ class DistributedBelief(HybridBelief):
         self.fusion = fusion
         self.downdate = downdate
         self.stamps: dict[str, int] = {}
+        self._incoming: set[str] = set()  # owners of the batch being integrated
+
+    def information_sources(self) -> int:
+        """The owner and every robot whose slot D holds or is integrating."""
+        return 1 + len(set(self.stamps) | self._incoming)
 
     def wants(self, owner: str, stamp: int) -> bool:
         """Whether a slot version is new to this belief (never its own slot)."""
@@ -181,6 +186,13 @@ class DistributedBelief(HybridBelief):
             self.check(s)
         if not batch:
             return FusionStats((), (), 0, len(self.hypotheses))
+        self._incoming = set(owners)
+        try:
+            return self._integrate(batch, settle)
+        finally:
+            self._incoming = set()
+
+    def _integrate(self, batch: list[Slot], settle: bool) -> FusionStats:
         join, skipped = self._join(batch)
         used = tuple(s.owner for s in batch if s.owner not in skipped)
         if not used:

@@ -59,9 +59,10 @@ class BeliefConfig:
     ``class_floor``: (``"marginal"`` only) a class of an object with at least this marginal
     probability keeps its heaviest hypothesis, and the kept hypotheses are reweighted to the
     class marginals before pruning; ``max_hypotheses``: hard cap; ``robot_budget``: the
-    hypotheses one robot trajectory of the belief may keep (a robot's real-time budget: a belief
-    over R trajectories, such as the centralized reference, keeps at most R × ``robot_budget``,
-    never more than ``max_hypotheses``; ``None``: no budget); ``max_join``: the most
+    hypotheses per robot whose data the belief holds (a robot's local belief keeps at most this
+    many; the centralized belief of R robots, and a distributed belief that has integrated the
+    slots of R − 1 other robots, at most R times as many; never more than ``max_hypotheses``;
+    ``None``: no budget); ``max_join``: the most
     (hypothesis, realisation) pairs a fusion builds for one slot (the lightest hypotheses are
     left out first; bounds the work of a received slot before anything is built);
     ``max_fusion_bytes``: a slot whose information matrices, one per kept hypothesis, would
@@ -277,10 +278,15 @@ class HybridBelief:
 
     # -- keys and queries -------------------------------------------------------------------
 
+    def information_sources(self) -> int:
+        """How many robots' data this belief holds (the unit of ``BeliefConfig.robot_budget``):
+        here, its trajectories."""
+        return len(self.robots)
+
     @property
     def cap(self) -> int:
-        """The most hypotheses this belief keeps (``BeliefConfig.cap`` of its trajectories)."""
-        return self.config.cap(len(self.robots))
+        """The most hypotheses this belief keeps (``BeliefConfig.cap``)."""
+        return self.config.cap(self.information_sources())
 
     def pose_key(self, robot: str, k: int | None = None) -> int:
         """Key of ``robot``'s pose at step ``k`` (default: its latest step)."""
@@ -592,7 +598,7 @@ class HybridBelief:
     ) -> IntArray:
         """Indices of the candidates to keep (``estimator.pruning.select``): log-weights (K,) of
         candidates with class realisations (K, n)."""
-        rule = self.config.rule(len(self.robots))
+        rule = self.config.rule(self.information_sources())
         return select(log_weights, classes, self.model.num_classes, rule, reference)
 
     def _prune(self, log_weights: Array, classes: IntArray) -> tuple[IntArray, Array]:

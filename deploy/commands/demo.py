@@ -16,6 +16,7 @@ from rich.console import Console
 from rich.table import Table
 
 from deploy.args import seed
+from deploy.commands.launch import SECURE_HELP
 from deploy.launch import LaunchPlan, launch
 from deploy.launch.report import counters_table, write_outputs
 from deploy.scenario_show import render_show, save_ground_truth_plot
@@ -49,7 +50,9 @@ def run(args: argparse.Namespace, console: Console) -> int:
     render_show(scenario, console)
     out = Path(args.out)
     png = save_ground_truth_plot(scenario, out / "paper-ground-truth.png", [20, 40, 60])
-    plan = LaunchPlan(scenario, args.seed, list(scenario.robot_ids), out, mode="lockstep")
+    plan = LaunchPlan(
+        scenario, args.seed, list(scenario.robot_ids), out, mode="lockstep", secure=args.secure
+    )
     console.print(
         f"launching {len(plan.robots)} agent processes (Zenoh on loopback, lock-step, seed "
         f"{plan.seed}); logs in {out / 'logs'}"
@@ -69,4 +72,5 @@ def add_parser(sub: Any) -> None:
     p = sub.add_parser("demo", help="the paper's fleet as 3 agent processes over Zenoh")
     p.add_argument("--seed", type=seed, default=0, help="seed of the simulated run (default 0)")
     p.add_argument("--out", default="out/demo", help="folder for outputs (default out/demo)")
+    p.add_argument("--secure", action="store_true", help=SECURE_HELP)
     p.set_defaults(run=run)

@@ -94,6 +94,7 @@ def run_launch(args: argparse.Namespace, console: Console) -> int:
         period=args.period,
         comm=args.comm,
         steps=_steps(scenario, args.steps),
+        secure=args.secure,
     )
     console.print(
         f"launching {agents(len(plan.robots))} of {scenario.name} ({plan.mode}, seed "
@@ -123,6 +124,7 @@ def run_chaos(args: argparse.Namespace, console: Console) -> int:
         comm=args.comm,
         faults=faults,
         steps=_steps(scenario, args.steps),
+        secure=args.secure,
     )
     console.print(
         f"chaos on {scenario.name}, seed {plan.seed}: {faults.describe()} "
@@ -163,6 +165,12 @@ def run_chaos(args: argparse.Namespace, console: Console) -> int:
     return 0
 
 
+SECURE_HELP = (
+    "a throwaway secure fleet under OUT/fleet: mutual TLS on loopback, access control, "
+    "owner-signed slots (docs/deploy.md)"
+)
+
+
 def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scenario", required=True, help="bundled scenario name or TOML file")
     p.add_argument("--seed", type=seed, default=0, help="seed of the simulated world (default 0)")
@@ -176,6 +184,7 @@ def _common(p: argparse.ArgumentParser) -> None:
         help="override the scenario's communication mode",
     )
     p.add_argument("--steps", type=positive_int, default=None, help="run only the first N steps")
+    p.add_argument("--secure", action="store_true", help=SECURE_HELP)
 
 
 def add_parser(sub: Any) -> None:

@@ -12,6 +12,8 @@ success, an agent that died unplanned, SIGTERM, SIGHUP, Ctrl-C — every agent i
 from __future__ import annotations
 
 import asyncio
+import dataclasses
+import shutil
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -25,6 +27,7 @@ from agents.links import LinkModel
 from agents.transport.base import Keys
 from agents.transport.zenoh_transport import ZenohSettings, ZenohTransport, loopback_endpoint
 from deploy.fleet import link_model_for
+from deploy.fleet_init import FleetSpec, init_fleet
 from deploy.launch.chaos import KILL, Faults, Garbage
 from deploy.launch.conductor import Collected, Conductor, ConductorError
 from deploy.launch.errors import LaunchError, PlanError
@@ -44,6 +47,7 @@ from sim.sensors import Simulator
 
 LAUNCH_METHODS = ("local", "distributed")
 MODES = ("lockstep", "realtime")
+CONDUCTOR = "conductor"  # the operator identity of a secure launch's conductor
 STOP_SETTLE_S = 0.2  # after ctl/stop, before SIGTERM: agents that heard it exit on their own
 
 OnStep = Callable[[Conductor, int], None]
@@ -72,6 +76,9 @@ class LaunchPlan:
     # With observe_stacks: after the last estimates, keep the fleet gossiping up to this many
     # seconds until every robot's stack holds every robot's final slot (Conductor.linger).
     linger: float = 0.0
+    # A throwaway secure fleet (deploy.fleet_init) under out/fleet: mutual TLS on loopback,
+    # access control, owner-signed slots; the conductor holds the operator's identity.
+    secure: bool = False
 
     def __post_init__(self) -> None:
         s = self.scenario
@@ -92,6 +99,11 @@ class LaunchPlan:
     @property
     def run_steps(self) -> int:
         return self.steps or self.scenario.steps
+
+
+def _pose(start: Sequence[float]) -> tuple[float, float, float]:
+    x, y, theta = (float(v) for v in start)
+    return x, y, theta
 
 
 @dataclass(slots=True)
@@ -117,6 +129,7 @@ class Launcher:
         self.garbage = Garbage(plan.robots, plan.faults.garbage_rate, plan.seed)
         self._garbage_task: asyncio.Task[None] | None = None
         self.conductor: Conductor | None = None  # once the run has begun
+        self._fleet: dict[str, Path] | None = None  # a secure launch's member folders
         self.links: LinkModel = link_model_for(
             plan.scenario, plan.comm, plan.faults.drop, plan.seed, plan.faults.partitions
         )
@@ -134,13 +147,43 @@ class Launcher:
         journal_dir.mkdir(parents=True, exist_ok=True)
         for r in plan.robots:
             (journal_dir / f"{r}.log").unlink(missing_ok=True)
+        self._fleet = self._secure_fleet(agent_ports, conductor_port) if plan.secure else None
         for r in plan.robots:
             cfg = plan.out / "agents" / f"{r}.toml"
-            zenoh = self._zenoh_section(r, agent_ports, conductor_port)
-            write_agent_config(cfg, self._agent_section(r), zenoh)
+            if self._fleet is None:
+                zenoh = self._zenoh_section(r, agent_ports, conductor_port)
+                write_agent_config(cfg, self._agent_section(r), zenoh)
+            else:
+                folder = self._fleet[r].resolve()
+                security = {"signing_key": str(folder / "signing.key")}
+                security["roster"] = str(folder / "roster.toml")
+                zenoh = {"config_file": str(folder / "zenoh.json5")}
+                write_agent_config(cfg, self._agent_section(r), zenoh, security)
             log = plan.out / "logs" / f"{r}.log"
             self.supervisor.add(AgentProcess(r, cfg, log, agent_ports[r]))
         return conductor_port
+
+    def _secure_fleet(self, ports: Mapping[str, int], conductor_port: int) -> dict[str, Path]:
+        """The fleet's files under ``out/fleet`` (made anew for every launch): each agent listens
+        on its port with TLS and dials the conductor and the robots before it (or, with
+        ``zenoh_neighbours``, its neighbours before it; the conductor then dials every agent)."""
+        plan = self.plan
+        robots = plan.robots
+        listen = {r: f"tls/127.0.0.1:{ports[r]}" for r in robots}
+        conductor = f"tls/127.0.0.1:{conductor_port}"
+        neighbours = plan.zenoh_neighbours
+        if neighbours is None:
+            connect = {
+                r: (conductor, *(listen[p] for p in robots[:i])) for i, r in enumerate(robots)
+            }
+        else:
+            connect = {r: tuple(listen[p] for p in neighbours.get(r, ()) if p < r) for r in robots}
+        starts = {r: _pose(plan.scenario.robot(r).start) for r in robots}
+        model = dump_robot_model(plan.scenario.robot_model())
+        spec = FleetSpec(plan.fleet, tuple(robots), CONDUCTOR, listen, connect, starts, model)
+        spec = dataclasses.replace(spec, simulator=True)
+        shutil.rmtree(plan.out / "fleet", ignore_errors=True)
+        return init_fleet(spec, plan.out / "fleet")
 
     def _agent_section(self, robot: str) -> dict[str, Any]:
         plan = self.plan
@@ -184,6 +227,11 @@ class Launcher:
         )
         listen = (loopback_endpoint(conductor_port),)
         settings = ZenohSettings(listen=listen, connect=dial, gossip=neighbours is None)
+        if self._fleet is not None:
+            tls = tuple(e.replace("tcp/", "tls/", 1) for e in (*listen, *dial))
+            settings = ZenohSettings(
+                listen=tls[:1], connect=tls[1:], config_file=self._fleet[CONDUCTOR] / "zenoh.json5"
+            )
         return Conductor(
             plan.scenario,
             Simulator(plan.scenario, plan.seed).all_frames(),

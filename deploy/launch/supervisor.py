@@ -77,12 +77,20 @@ def free_ports(n: int) -> list[int]:
             s.close()
 
 
-def write_agent_config(path: Path, agent: Mapping[str, Any], zenoh: Mapping[str, Any]) -> None:
-    """An agent config file (docs/agents.md): ``[agent]`` and ``[zenoh]``, None values left out."""
+def write_agent_config(
+    path: Path,
+    agent: Mapping[str, Any],
+    zenoh: Mapping[str, Any],
+    security: Mapping[str, Any] | None = None,
+) -> None:
+    """An agent config file (docs/agents.md): ``[agent]``, ``[zenoh]`` and, given, ``[security]``;
+    None values left out."""
     doc = {
         "agent": {k: v for k, v in agent.items() if v is not None},
         "zenoh": {k: v for k, v in zenoh.items() if v is not None},
     }
+    if security is not None:
+        doc["security"] = dict(security)
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(tomli_w.dumps(doc), encoding="utf-8")
 

@@ -132,10 +132,13 @@ def _plan(out: Path, **kwargs: Any) -> LaunchPlan:
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize("secure", [False, True], ids=["plain", "secure"])
 def test_launch_lockstep_paper_equals_the_in_process_runner(
-    tmp_path: Path, reference: Reference
+    tmp_path: Path, reference: Reference, secure: bool
 ) -> None:
-    outcome = launch(_plan(tmp_path, steps=STEPS, keep_estimates=True))
+    # secure: mutual TLS, access control and owner-signed slots (issue 13) change nothing of
+    # the beliefs; every slot that was fused was verified (an unsigned one would be refused).
+    outcome = launch(_plan(tmp_path, steps=STEPS, keep_estimates=True, secure=secure))
     assert_estimates_match(outcome, reference, STEPS)
     for b in BELIEFS:
         for name in METRICS:
@@ -146,6 +149,9 @@ def test_launch_lockstep_paper_equals_the_in_process_runner(
     for r, c in outcome.collected.counters.items():
         assert c["frames_processed"] == STEPS and c["stacks_invalid"] == 0, (r, c)
         assert c["empty_joins"] == c["rebuilds"] == 0, (r, c)
+    if secure:
+        config = (tmp_path / "agents" / "r1.toml").read_text()
+        assert "[security]" in config and "zenoh.json5" in config
     # The run exercised fusion: by the end D holds more objects than L for every robot.
     for r in ROBOTS:
         final = outcome.collected.estimates[(r, STEPS)].beliefs
