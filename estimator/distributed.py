@@ -195,6 +195,7 @@ class DistributedBelief(HybridBelief):
     def _integrate(self, batch: list[Slot], settle: bool) -> FusionStats:
         join, skipped = self._join(batch)
         used = tuple(s.owner for s in batch if s.owner not in skipped)
+        self._incoming = set(used)  # the budget counts the robots D will hold
         if not used:
             return FusionStats((), tuple(sorted(skipped)), 0, len(self.hypotheses), len(skipped))
         candidates = len(join.parent)

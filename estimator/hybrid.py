@@ -81,7 +81,7 @@ class BeliefConfig:
     class_floor: float = 1e-4
     marginal_ratio: float = 150.0
     max_hypotheses: int = 300
-    robot_budget: int | None = 64
+    robot_budget: int | None = None
     max_join: int = 250_000
     max_fusion_bytes: int = 2**30
     object_prior_sigmas: tuple[float, float, float] = (100.0, 100.0, math.pi)

@@ -131,8 +131,8 @@ def add_parser(sub: Any) -> None:
         type=int,
         default=None,
         metavar="N",
-        help=f"hypotheses per robot trajectory of a belief (default {BeliefConfig().robot_budget} "
-        "with --hypotheses marginal, none with paper and exact; 0: none)",
+        help="hypotheses per robot whose data a belief holds (default: none; a speed knob that "
+        "costs the distributed belief its calibration, docs/estimator.md; 0: none)",
     )
     p.add_argument(
         "--snapshot-step",

@@ -224,3 +224,22 @@ def test_relayed_information_is_never_counted_twice(topology: str) -> None:
         v for per_object in ratios["double_count"].values() for v in per_object.values()
     ]
     assert np.median(overconfident) < 0.9, overconfident
+
+
+def test_a_budgeted_distributed_belief_grows_its_budget_with_the_robots_it_holds() -> None:
+    # BeliefConfig.robot_budget: D keeps at most budget × (1 + robots whose slots it holds).
+    s = _truncate(load_scenario("paper"), 20)
+    config = BeliefConfig(robot_budget=3)
+    nodes = make_nodes(s, belief_model(s), config, lambda r: belief_rng(4, [r]))
+    frames = Simulator(s, 4).all_frames()
+    most: dict[str, int] = {}
+
+    def on_step(robot: str, k: int, node, fused_ms: float, ms: float) -> None:  # type: ignore[no-untyped-def]
+        d = node.distributed
+        assert d.information_sources() == 1 + len(d.stamps)
+        assert len(d.hypotheses) <= 3 * d.information_sources()
+        assert len(node.local.hypotheses) <= 3
+        most[robot] = max(most.get(robot, 0), len(d.hypotheses))
+
+    run_fleet(nodes, frames, Schedule(((1, 20, "r1", "r2"), (1, 20, "r2", "r3"))), 20, on_step)
+    assert max(most.values()) > 3  # D outgrew a single robot's budget once it held slots

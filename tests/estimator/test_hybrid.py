@@ -135,6 +135,23 @@ def test_paper_robot_belief_stays_under_cap_with_top_hypothesis() -> None:
         assert belief.map_hypothesis().log_weight == max(h.log_weight for h in belief.hypotheses)
 
 
+def test_robot_budget_caps_a_belief_per_robot_whose_data_it_holds() -> None:
+    assert BeliefConfig().cap(3) == BeliefConfig().max_hypotheses  # no budget by default
+    budget = BeliefConfig(robot_budget=5)
+    assert (budget.cap(1), budget.cap(3)) == (5, 15)
+    assert BeliefConfig(robot_budget=200).cap(3) == 300  # never beyond max_hypotheses
+    assert BeliefConfig.paper().robot_budget is None and BeliefConfig.exact().robot_budget is None
+    s = load_scenario("paper")
+    frames = Simulator(s, 3).frames("r1")
+    belief = HybridBelief(belief_model(s), {"r1": s.robot("r1").start}, budget)
+    rng = np.random.default_rng(0)
+    most = 0
+    for f in frames[:35]:
+        belief.step([f], rng)
+        most = max(most, len(belief.hypotheses))
+    assert most == 5  # the budget binds, and holds
+
+
 def test_without_detections_the_estimate_is_odometry_only_smoothing() -> None:
     s = tiny_scenario(ONE_OBJECT, steps=20, sensing=0.01)
     belief, frames = _run(s, 4, BeliefConfig())
