@@ -21,7 +21,7 @@ from typing import Any, NoReturn
 from agents.journal import JournalError
 from agents.transport.base import TransportError
 from deploy.agent_config import AgentConfigError
-from deploy.commands import agent, demo, fleet, replay, scenario, study, ufastslam
+from deploy.commands import agent, demo, fleet, replay, router, scenario, study, ufastslam
 from deploy.commands import launch as launch_command
 from deploy.errors import (
     EXIT_FAILURE,
@@ -100,6 +100,7 @@ def build_parser() -> argparse.ArgumentParser:
     agent.add_parser(sub)
     fleet.add_parser(sub)
     replay.add_parser(sub)
+    router.add_parser(sub)
     return parser
 
 

@@ -20,8 +20,8 @@ peers never forward for each other), per the certificate common name of the link
 from __future__ import annotations
 
 import base64
+import dataclasses
 import datetime
-import ipaddress
 import json
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -30,25 +30,17 @@ from typing import Any
 
 import tomli_w
 from cryptography import x509
-from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec, ed25519
-from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
+from cryptography.x509.oid import NameOID
 
-from agents.transport.base import Keys
+from deploy.access_control import access_control
+from deploy.certificates import ca_certificate, cert_pem, key_pem, member_certificate
 from protocol.validate import valid_id
 
 # Key files are written owner-read/write only; certificates and the roster are public.
 SECRET_MODE = 0o600
 PUBLIC_MODE = 0o644
 DEFAULT_PORT = 7447
-DECLARATIONS = (
-    "declare_subscriber",
-    "declare_queryable",
-    "declare_liveliness_subscriber",
-    "liveliness_query",
-    "query",
-    "reply",
-)
 
 
 class FleetInitError(ValueError):
@@ -74,9 +66,14 @@ class FleetSpec:
     # A simulation's conductor is every robot's perception: it may also put on frames/<robot>.
     # Never for a real fleet (fleet init), where frames come from each robot's own identity.
     simulator: bool = False
+    # Zenoh routers (name → listen endpoint) for links between sites: trusted infrastructure that
+    # relays every member's messages (slots stay owner-signed end to end). Each router dials the
+    # routers before it; robots dial what ``connect`` says (their site's router, their site's
+    # robots): a Zenoh router forwards between routers and for clients, not between its peers.
+    routers: Mapping[str, str] = dataclasses.field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        names = (*self.robots, self.operator)
+        names = (*self.robots, self.operator, *self.routers)
         bad = [n for n in names if not valid_id(n)]
         if bad:
             raise FleetInitError(f"invalid id {bad[0]!r} (1–32 of A–Z a–z 0–9 _ -)")
@@ -87,7 +84,7 @@ class FleetSpec:
         missing = [r for r in self.robots if r not in self.starts or r not in self.listen]
         if missing:
             raise FleetInitError(f"no start pose or listen endpoint for {missing[0]}")
-        for r, endpoint in self.listen.items():
+        for r, endpoint in (*self.listen.items(), *self.routers.items()):
             if not endpoint.startswith("tls/"):
                 raise FleetInitError(f"listen endpoint of {r} must be tls/HOST:PORT: {endpoint}")
         if not 1 <= self.days <= 3650:
@@ -119,26 +116,36 @@ def init_fleet(spec: FleetSpec, out: Path) -> dict[str, Path]:
     now = datetime.datetime.now(datetime.UTC)
     ca_key = ec.generate_private_key(ec.SECP256R1())
     ca_name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, f"semfleet {spec.fleet} CA")])
-    ca_cert = _ca_certificate(ca_key, ca_name, now, spec.days)
-    _write(out / "ca" / "ca.pem", _cert_pem(ca_cert), PUBLIC_MODE)
-    _write(out / "ca" / "ca.key", _key_pem(ca_key), SECRET_MODE)
+    ca_cert = ca_certificate(ca_key, ca_name, now, spec.days)
+    _write(out / "ca" / "ca.pem", cert_pem(ca_cert), PUBLIC_MODE)
+    _write(out / "ca" / "ca.key", key_pem(ca_key), SECRET_MODE)
     signing = {r: ed25519.Ed25519PrivateKey.generate() for r in spec.robots}
     roster = roster_toml(spec.fleet, {r: k.public_key() for r, k in signing.items()})
     _write(out / "roster.toml", roster, PUBLIC_MODE)
     folders: dict[str, Path] = {}
-    for name in (*spec.robots, spec.operator):
-        folder = out / ("operator" if name == spec.operator else f"robots/{name}")
+    for name in (*spec.robots, spec.operator, *spec.routers):
+        if name == spec.operator:
+            folder = out / "operator"
+        elif name in spec.routers:
+            folder = out / "routers" / name
+        else:
+            folder = out / "robots" / name
         key = ec.generate_private_key(ec.SECP256R1())
-        hosts = _hosts(spec.hosts, spec.listen.get(name))
-        cert = _member_certificate(key, name, ca_key, ca_name, hosts, now, spec.days)
-        _write(folder / "ca.pem", _cert_pem(ca_cert), PUBLIC_MODE)
-        _write(folder / "tls.pem", _cert_pem(cert), PUBLIC_MODE)
-        _write(folder / "tls.key", _key_pem(key), SECRET_MODE)
+        hosts = _hosts(spec.hosts, spec.listen.get(name, spec.routers.get(name)))
+        cert = member_certificate(key, name, ca_key, ca_name, hosts, now, spec.days)
+        _write(folder / "ca.pem", cert_pem(ca_cert), PUBLIC_MODE)
+        _write(folder / "tls.pem", cert_pem(cert), PUBLIC_MODE)
+        _write(folder / "tls.key", key_pem(key), SECRET_MODE)
         _write(folder / "roster.toml", roster, PUBLIC_MODE)
-        zenoh_doc = zenoh_config(spec, spec.listen.get(name), spec.connect.get(name, ()))
+        if name in spec.routers:  # each router dials the routers listed before it
+            before = list(spec.routers)[: list(spec.routers).index(name)]
+            dial = tuple(spec.routers[r] for r in before)
+            zenoh_doc = zenoh_config(spec, spec.routers[name], dial, "router")
+        else:
+            zenoh_doc = zenoh_config(spec, spec.listen.get(name), spec.connect.get(name, ()))
         _write(folder / "zenoh.json5", _json5(zenoh_doc, name, spec.fleet), PUBLIC_MODE)
         if name in signing:
-            _write(folder / "signing.key", _key_pem(signing[name]), SECRET_MODE)
+            _write(folder / "signing.key", key_pem(signing[name]), SECRET_MODE)
             _write(folder / "model.toml", spec.model_toml, PUBLIC_MODE)
             _write(folder / "agent.toml", _agent_toml(spec, name), PUBLIC_MODE)
         folders[name] = folder
@@ -154,7 +161,9 @@ def roster_toml(fleet: str, keys: Mapping[str, ed25519.Ed25519PublicKey]) -> str
     return tomli_w.dumps({"fleet": fleet, "robots": robots})
 
 
-def zenoh_config(spec: FleetSpec, listen: str | None, connect: Sequence[str]) -> dict[str, Any]:
+def zenoh_config(
+    spec: FleetSpec, listen: str | None, connect: Sequence[str], mode: str = "peer"
+) -> dict[str, Any]:
     """The Zenoh configuration of one member (paths relative to its folder)."""
     tls = {
         "root_ca_certificate": "ca.pem",
@@ -169,66 +178,19 @@ def zenoh_config(spec: FleetSpec, listen: str | None, connect: Sequence[str]) ->
         "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
         "transport": {"link": {"tls": tls}},
         "access_control": access_control(
-            spec.fleet, spec.robots, spec.operator, listen is None, spec.simulator
+            spec.fleet,
+            spec.robots,
+            spec.operator,
+            listen is None,
+            spec.simulator,
+            list(spec.routers),
         ),
     }
-    if listen is not None:  # a robot; the operator's commands choose mode and endpoints
-        doc["mode"] = "peer"
+    if listen is not None:  # a robot or router; the operator's commands choose mode and endpoints
+        doc["mode"] = mode
         doc["listen"] = {"endpoints": [listen]}
         doc["connect"] = {"endpoints": list(connect)}
     return doc
-
-
-def access_control(
-    fleet: str, robots: Sequence[str], operator: str, viewer: bool = False, simulator: bool = False
-) -> dict[str, Any]:
-    """Zenoh access control of every member (see the module docstring). ``viewer``: the
-    operator's own session, which also takes every robot's estimates, stacks and tokens from
-    whichever member it is linked to (a robot routes for a client operator, so they arrive over
-    that robot's link); it never acts on them."""
-    keys = Keys(fleet)
-    prefix = keys.prefix
-    rules: list[dict[str, Any]] = [
-        _rule("declare", DECLARATIONS, ["ingress", "egress"], [f"{prefix}/**"]),
-        _rule("own-puts", ("put", "delete"), ["egress"], [f"{prefix}/**"]),
-        _rule("own-tokens", ("liveliness_token",), ["egress"], [f"{prefix}/**"]),
-        _rule("operator", ("put",), ["ingress"], [f"{prefix}/ctl/**", f"{prefix}/sim/**"]),
-    ]
-    if simulator:
-        rules[-1]["key_exprs"].append(f"{prefix}/frames/*")
-    subjects: list[dict[str, Any]] = [
-        {"id": "members", "cert_common_names": [*robots, operator]},
-        {"id": f"cn-{operator}", "cert_common_names": [operator]},
-    ]
-    policies: list[dict[str, Any]] = [
-        {"id": "members", "rules": ["declare", "own-puts", "own-tokens"], "subjects": ["members"]},
-        {"id": "operator", "rules": ["operator"], "subjects": [f"cn-{operator}"]},
-    ]
-    if viewer:
-        seen = [f"{prefix}/estimate/*", f"{prefix}/stack/*"]
-        rules.append(_rule("view", ("put",), ["ingress"], seen))
-        rules.append(
-            _rule("view-tokens", ("liveliness_token",), ["ingress"], [f"{prefix}/alive/*"])
-        )
-        policies[0]["rules"] += ["view", "view-tokens"]
-    for r in robots:
-        own = [
-            keys.stack(r),
-            keys.estimate(r),
-            keys.frames(r),
-            f"{prefix}/ctl/need/{r}",
-        ]
-        rules.append(_rule(f"puts-{r}", ("put",), ["ingress"], own))
-        rules.append(_rule(f"token-{r}", ("liveliness_token",), ["ingress"], [keys.alive(r)]))
-        subjects.append({"id": f"cn-{r}", "cert_common_names": [r]})
-        policies.append({"id": r, "rules": [f"puts-{r}", f"token-{r}"], "subjects": [f"cn-{r}"]})
-    return {
-        "enabled": True,
-        "default_permission": "deny",
-        "rules": rules,
-        "subjects": subjects,
-        "policies": policies,
-    }
 
 
 def _hosts(base: Sequence[str], listen: str | None) -> tuple[str, ...]:
@@ -241,16 +203,6 @@ def _hosts(base: Sequence[str], listen: str | None) -> tuple[str, ...]:
         if host not in ("0.0.0.0", "::", "") and host not in hosts:
             hosts.append(host)
     return tuple(hosts)
-
-
-def _rule(rid: str, messages: Sequence[str], flows: list[str], key_exprs: list[str]) -> dict:
-    return {
-        "id": rid,
-        "messages": list(messages),
-        "flows": flows,
-        "permission": "allow",
-        "key_exprs": key_exprs,
-    }
 
 
 def _agent_toml(spec: FleetSpec, robot: str) -> str:
@@ -280,84 +232,6 @@ def _json5(doc: dict[str, Any], name: str, fleet: str) -> str:
         "// resolved against this file's folder by semfleet (not by Zenoh itself).\n"
     )
     return header + json.dumps(doc, indent=2) + "\n"
-
-
-def _ca_certificate(
-    key: ec.EllipticCurvePrivateKey, name: x509.Name, now: datetime.datetime, days: int
-) -> x509.Certificate:
-    usage = x509.KeyUsage(
-        digital_signature=True,
-        content_commitment=False,
-        key_encipherment=False,
-        data_encipherment=False,
-        key_agreement=False,
-        key_cert_sign=True,
-        crl_sign=True,
-        encipher_only=False,
-        decipher_only=False,
-    )
-    return (
-        _builder(name, name, key.public_key(), now, days)
-        .add_extension(x509.BasicConstraints(ca=True, path_length=0), critical=True)
-        .add_extension(usage, critical=True)
-        .sign(key, hashes.SHA256())
-    )
-
-
-def _member_certificate(
-    key: ec.EllipticCurvePrivateKey,
-    common_name: str,
-    ca_key: ec.EllipticCurvePrivateKey,
-    ca_name: x509.Name,
-    hosts: Sequence[str],
-    now: datetime.datetime,
-    days: int,
-) -> x509.Certificate:
-    subject = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, common_name)])
-    names: list[x509.GeneralName] = []
-    for host in hosts:
-        try:
-            names.append(x509.IPAddress(ipaddress.ip_address(host)))
-        except ValueError:
-            names.append(x509.DNSName(host))
-    usage = x509.ExtendedKeyUsage(
-        [ExtendedKeyUsageOID.SERVER_AUTH, ExtendedKeyUsageOID.CLIENT_AUTH]
-    )
-    return (
-        _builder(subject, ca_name, key.public_key(), now, days)
-        .add_extension(x509.SubjectAlternativeName(names), critical=False)
-        .add_extension(usage, critical=False)
-        .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
-        .sign(ca_key, hashes.SHA256())
-    )
-
-
-def _builder(
-    subject: x509.Name,
-    issuer: x509.Name,
-    public_key: ec.EllipticCurvePublicKey,
-    now: datetime.datetime,
-    days: int,
-) -> x509.CertificateBuilder:
-    return (
-        x509.CertificateBuilder()
-        .subject_name(subject)
-        .issuer_name(issuer)
-        .public_key(public_key)
-        .serial_number(x509.random_serial_number())
-        .not_valid_before(now - datetime.timedelta(minutes=5))
-        .not_valid_after(now + datetime.timedelta(days=days))
-    )
-
-
-def _cert_pem(cert: x509.Certificate) -> str:
-    return cert.public_bytes(serialization.Encoding.PEM).decode("ascii")
-
-
-def _key_pem(key: ec.EllipticCurvePrivateKey | ed25519.Ed25519PrivateKey) -> str:
-    return key.private_bytes(
-        serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8, serialization.NoEncryption()
-    ).decode("ascii")
 
 
 def _write(path: Path, text: str, mode: int) -> None:

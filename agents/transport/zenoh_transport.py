@@ -6,6 +6,10 @@ callbacks run on its own threads: they only copy the payload and hand it to the 
 ``call_soon_threadsafe``; a slow callback would stall every subscription of the session. Puts use
 ``CongestionControl.DROP``: gossip is latest-wins, and a blocked put could stall the loop for
 seconds. Zenoh peers never forward for each other, so multi-hop relay is the stacks' job.
+
+Over 300 lines for a reason: the session's settings (the merge of a JSON5 file with the fields,
+the mutual-TLS and loopback checks) and the session itself are the one place that knows Zenoh's
+configuration keys, and this is the only module allowed to import ``zenoh``.
 """
 
 from __future__ import annotations

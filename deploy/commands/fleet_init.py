@@ -28,11 +28,21 @@ def run_init(args: argparse.Namespace, console: Console) -> int:
             spec = _with_listen(spec, dict(_assignment(t, "--listen") for t in args.listen))
         if args.host or args.days != spec.days:
             spec = _replace(spec, hosts=(*spec.hosts, *args.host), days=args.days)
+        if args.router:
+            routers = dict(_assignment(t, "--router") for t in args.router)
+            for endpoint in routers.values():
+                zenoh_endpoint(endpoint, "--router")
+            spec = _replace(spec, routers=routers)
+        if args.connect:
+            spec = _with_connect(spec, dict(_assignment(t, "--connect") for t in args.connect))
         folders = init_fleet(spec, Path(args.output))
     except FleetInitError as exc:
         raise UsageError(str(exc)) from None
     out = Path(args.output)
-    console.print(f"wrote fleet {spec.fleet} to {out}: CA, roster, {len(robots)} robots, operator")
+    extra = f", {len(spec.routers)} routers" if spec.routers else ""
+    console.print(
+        f"wrote fleet {spec.fleet} to {out}: CA, roster, {len(robots)} robots, operator{extra}"
+    )
     for name, folder in folders.items():
         console.print(f"  {name}: {folder}")
     console.print(f"secret: {out}/ca/ca.key (keep offline), every tls.key and signing.key")
@@ -104,6 +114,18 @@ def _with_listen(spec: FleetSpec, listen: dict[str, str]) -> FleetSpec:
     return _replace(spec, listen=listen, connect=connect)
 
 
+def _with_connect(spec: FleetSpec, given: dict[str, str]) -> FleetSpec:
+    """``--connect ROBOT=E1,E2``: what those robots dial instead of the robots before them."""
+    unknown = [r for r in given if r not in spec.robots]
+    if unknown:
+        raise UsageError(f"--connect: {unknown[0]} is not one of --robots")
+    connect = dict(spec.connect)
+    for robot, value in given.items():
+        endpoints = tuple(e.strip() for e in value.split(",") if e.strip())
+        connect[robot] = tuple(zenoh_endpoint(e, "--connect") for e in endpoints)
+    return _replace(spec, connect=connect)
+
+
 def _replace(spec: FleetSpec, **changes: Any) -> FleetSpec:
     fields = {name: getattr(spec, name) for name in FleetSpec.__dataclass_fields__}
     fields.update(changes)
@@ -148,6 +170,22 @@ def add_init_parser(actions: Any) -> None:
         action="append",
         default=[],
         help="a DNS name or address every certificate names (repeatable)",
+    )
+    p.add_argument(
+        "--router",
+        action="append",
+        default=[],
+        metavar="NAME=ENDPOINT",
+        help="a Zenoh router of the fleet and its listen endpoint (repeatable; each router dials "
+        "the routers before it; `semfleet router`, docs/deploy.md)",
+    )
+    p.add_argument(
+        "--connect",
+        action="append",
+        default=[],
+        metavar="ROBOT=ENDPOINT,…",
+        help="what a robot dials (repeatable; default: every robot listed before it), e.g. its "
+        "site's router and robots",
     )
     p.add_argument("--days", type=int, default=365, help="certificate validity (default 365)")
     p.set_defaults(run=run_init)

@@ -7,6 +7,10 @@ The launcher allocates loopback ports, writes one agent config per robot, starts
 :class:`deploy.study.RunResult` (methods ``local`` and ``distributed``). Whatever happens —
 success, an agent that died unplanned, SIGTERM, SIGHUP, Ctrl-C — every agent is stopped before
 :meth:`Launcher.run` returns or raises.
+
+Over 300 lines for a reason: the plan, the files the launcher writes for every agent (plain or as
+a throwaway secure fleet) and the run that uses them share the same ports and paths; the agents,
+the conductor and the chaos already live in their own modules.
 """
 
 from __future__ import annotations

@@ -200,3 +200,29 @@ def test_an_exposed_agent_without_mutual_tls_runs_only_when_it_says_insecure(
     assert load_agent_config(path, "r1").zenoh.off_loopback() == ["tcp/192.0.2.7:7447"]
     path.write_text(base + 'listen = ["tcp/127.0.0.1:7447"]\n')
     assert load_agent_config(path, "r1").zenoh.off_loopback() == []
+
+
+def test_router_refuses_an_exposed_endpoint_without_mutual_tls_and_needs_a_listen_endpoint(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert main(["router", "--listen", "tcp/192.0.2.7:7447"]) == 2
+    assert "not on loopback" in capsys.readouterr().err
+    assert main(["router", "--connect", "tcp/127.0.0.1:7447"]) == 2
+    assert "needs a listen endpoint" in capsys.readouterr().err
+    assert main(["router", "--config", str(tmp_path / "missing.json5")]) == 2
+    assert "no such file" in capsys.readouterr().err
+    conflict = _json5(tmp_path, {"listen": {"endpoints": ["tcp/127.0.0.1:17702"]}})
+    assert main(["router", "--config", str(conflict), "--listen", "tcp/127.0.0.1:17703"]) == 2
+    assert "listen/endpoints" in capsys.readouterr().err
+
+
+def test_fleet_init_routers_dial_the_routers_before_them(tmp_path: Path) -> None:
+    args = ["fleet", "init", "--fleet", "lab", "--robots", "r1,r2", "--scenario", "paper",
+            "--router", "a=tls/127.0.0.1:17710", "--router", "b=tls/127.0.0.1:17711",
+            "--connect", "r2=tls/127.0.0.1:17711", "-o", str(tmp_path / "f")]  # fmt: skip
+    assert main(args) == 0
+    b = ZenohSettings(config_file=tmp_path / "f" / "routers" / "b" / "zenoh.json5", mode="router")
+    assert b.document()["connect"]["endpoints"] == ["tls/127.0.0.1:17710"]
+    assert b.document()["mode"] == "router" and b.mutual_tls()
+    r2 = load_agent_config(tmp_path / "f" / "robots" / "r2" / "agent.toml", "r2")
+    assert r2.zenoh.document()["connect"]["endpoints"] == ["tls/127.0.0.1:17711"]
