@@ -15,12 +15,21 @@ from bench import (
     bench_belief,
     bench_crowd,
     bench_models,
+    bench_secure,
     bench_study,
     bench_ufastslam,
 )
 
 # The study last: it takes the longest and wants a machine the other benchmarks left alone.
-MODULES = (bench_models, bench_belief, bench_crowd, bench_ufastslam, bench_agents, bench_study)
+MODULES = (
+    bench_models,
+    bench_belief,
+    bench_crowd,
+    bench_ufastslam,
+    bench_agents,
+    bench_secure,
+    bench_study,
+)
 
 _HEADER = ("benchmark", "N", "ms", "baseline ms", "speed-up", "throughput /s", "note")
 

@@ -76,12 +76,20 @@ def _paper_stacks(count: int) -> tuple[list[bytes], RobotNode]:
 
 
 async def _latencies(
-    blobs: list[bytes], receiver: RobotNode
+    blobs: list[bytes],
+    receiver: RobotNode,
+    sessions: tuple[ZenohTransport, ZenohTransport] | None = None,
+    sender: str = "r9",
 ) -> tuple[list[float], list[float], list[float]]:
-    """Raw put → callback, and put → merged with the decode inside it timed on its own (ms)."""
-    a_port, b_port = free_ports(2)
-    a = ZenohTransport(settings_for(a_port, [], gossip=False))
-    b = ZenohTransport(settings_for(b_port, [a_port], gossip=False))
+    """Raw put → callback, and put → merged with the decode inside it timed on its own (ms).
+    ``sessions``: the publishing and the receiving session (default: plain TCP on loopback);
+    ``sender``: the robot whose keys the publisher uses (its stack, its estimate for raw puts)."""
+    if sessions is None:
+        a_port, b_port = free_ports(2)
+        a = ZenohTransport(settings_for(a_port, [], gossip=False))
+        b = ZenohTransport(settings_for(b_port, [a_port], gossip=False))
+    else:
+        a, b = sessions
     keys = Keys("bench")
     inbox = Inbox(len(blobs) + 1)
     arrivals: list[float] = []
@@ -96,22 +104,22 @@ async def _latencies(
     gossip_ms: list[float] = []
     decode_ms: list[float] = []
     try:
-        b.subscribe(keys.stack("r9"), inbox)
+        b.subscribe(keys.stack(sender), inbox)
         await a.open()
         await b.open()
-        b.subscribe_raw(keys.ctl("raw"), raw)
+        b.subscribe_raw(keys.estimate(sender), raw)
         await asyncio.sleep(1.0)  # let the declarations reach the publisher (pitfall 9)
         # Two separate passes over the same payloads (interleaving them lets one message's
         # transmission overlap the other's measurement); the first 10 of each are warm-up.
         for data in blobs:  # raw: put → the subscriber's callback on Zenoh's thread
             got.clear()
             t0 = time.perf_counter()
-            a.publish(keys.ctl("raw"), data)
+            a.publish(keys.estimate(sender), data)
             await asyncio.wait_for(got.wait(), 5)
             raw_ms.append(1e3 * (arrivals[-1] - t0))
         for data in blobs:  # gossip: put → inbox on the loop → decode → merge
             t0 = time.perf_counter()
-            a.publish(keys.stack("r9"), data)
+            a.publish(keys.stack(sender), data)
             message = await asyncio.wait_for(inbox.get(), 5)
             t1 = time.perf_counter()
             decoded = receiver.decode_stack(message.payload)
