@@ -2,13 +2,14 @@
 
 A slot's canonical bytes are the msgpack array ``["semfleet-slot-v2", owner, epoch, stamp,
 objects, real]`` with ``objects`` and ``real`` exactly as they appear in the slot map. The owner
-signs them; a receiver recomputes them from the slot it decoded and verifies the signature against
-the owner's public key from its roster. A relay re-sends the slot with the owner's signature: it
+signs their SHA-256 digest with Ed25519; a receiver recomputes them from the slot it decoded and
+verifies the signature against the owner's public key from its roster. A relay re-sends the slot with the owner's signature: it
 can neither forge nor alter anyone's slot. Pure: keys are passed in, nothing is read from files.
 """
 
 from __future__ import annotations
 
+import hashlib
 from collections.abc import Mapping
 from typing import Any
 
@@ -31,13 +32,19 @@ def canonical_bytes(
     return bytes(msgpack.packb(doc, use_bin_type=True))
 
 
+def digest(data: bytes) -> bytes:
+    """What the Ed25519 signature covers: SHA-256 of the canonical bytes (one pass over a slot,
+    where Ed25519 alone hashes a long message with SHA-512 twice to sign and once to verify)."""
+    return hashlib.sha256(data).digest()
+
+
 def sign(key: Ed25519PrivateKey, data: bytes) -> bytes:
-    return key.sign(data)
+    return key.sign(digest(data))
 
 
 def verify(key: Ed25519PublicKey, data: bytes, signature: bytes) -> bool:
     try:
-        key.verify(signature, data)
+        key.verify(signature, digest(data))
     except InvalidSignature:
         return False
     return True
