@@ -3,8 +3,9 @@
 A slot's canonical bytes are the msgpack array ``["semfleet-slot-v2", owner, epoch, stamp,
 objects, real]`` with ``objects`` and ``real`` exactly as they appear in the slot map. The owner
 signs their SHA-256 digest with Ed25519; a receiver recomputes them from the slot it decoded and
-verifies the signature against the owner's public key from its roster. A relay re-sends the slot with the owner's signature: it
-can neither forge nor alter anyone's slot. Pure: keys are passed in, nothing is read from files.
+verifies the signature against the owner's public key from its roster. A relay re-sends the slot
+with the owner's signature: it can neither forge nor alter anyone's slot. Pure: keys are passed
+in, nothing is read from files.
 """
 
 from __future__ import annotations
