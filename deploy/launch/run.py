@@ -83,6 +83,14 @@ class LaunchPlan:
     # A throwaway secure fleet (deploy.fleet_init) under out/fleet: mutual TLS on loopback,
     # access control, owner-signed slots; the conductor holds the operator's identity.
     secure: bool = False
+    # Drive the world for agents started elsewhere (a lab test of a real network): the conductor
+    # listens on ``conductor_listen``, the agent configs written under out/agents dial
+    # ``conductor_advertise``; no agent process is started here, and the run waits up to
+    # ``wait_agents`` seconds for every agent's token.
+    conductor_only: bool = False
+    conductor_listen: str | None = None
+    conductor_advertise: str | None = None
+    wait_agents: float = 90.0
 
     def __post_init__(self) -> None:
         s = self.scenario
@@ -99,6 +107,15 @@ class LaunchPlan:
         if self.steps is not None and not 1 <= self.steps <= s.steps:
             raise PlanError(f"steps: {self.steps} outside 1..{s.steps} (scenario {s.name})")
         self.faults.check(self.robots, self.run_steps, self.mode == "lockstep")
+        if self.conductor_only:
+            if self.secure or self.zenoh_neighbours is not None:
+                raise PlanError("conductor only: not with secure fleets or Zenoh topologies yet")
+            if self.faults.kills or self.faults.restarts:
+                raise PlanError("conductor only: the agents run elsewhere, no kills or restarts")
+            if not (self.conductor_listen and self.conductor_advertise):
+                raise PlanError("conductor only: needs the endpoint to listen on and to advertise")
+        if not 1.0 <= self.wait_agents <= 86_400:
+            raise PlanError(f"wait for agents {self.wait_agents}: must be in 1..86400 s")
 
     @property
     def run_steps(self) -> int:
@@ -210,6 +227,12 @@ class Launcher:
         self, robot: str, ports: Mapping[str, int], conductor_port: int
     ) -> dict[str, Any]:
         neighbours = self.plan.zenoh_neighbours
+        if self.plan.conductor_only:
+            # An agent on another machine dials the conductor; gossip scouting links it to the
+            # other agents the conductor knows of. Off loopback this lab harness runs without TLS.
+            advertise = self.plan.conductor_advertise
+            exposed = bool(ZenohSettings(connect=(str(advertise),)).off_loopback())
+            return {"connect": [advertise], "gossip": True, "insecure": exposed or None}
         listen = [loopback_endpoint(ports[robot])]
         if neighbours is None:
             return {
@@ -230,6 +253,8 @@ class Launcher:
             else tuple(loopback_endpoint(self.agents[r].port) for r in plan.robots)
         )
         listen = (loopback_endpoint(conductor_port),)
+        if plan.conductor_listen is not None:
+            listen = (plan.conductor_listen,)
         settings = ZenohSettings(listen=listen, connect=dial, gossip=neighbours is None)
         if self._fleet is not None:
             tls = tuple(e.replace("tcp/", "tls/", 1) for e in (*listen, *dial))
@@ -275,10 +300,11 @@ class Launcher:
         schedule: dict[int, list[tuple[str, str]]] = {}
         for k, kind, robot in plan.faults.schedule():
             schedule.setdefault(k, []).append((kind, robot))
-        for r in plan.robots:
-            self.supervisor.start(r)
+        if not plan.conductor_only:
+            for r in plan.robots:
+                self.supervisor.start(r)
         await conductor.open()
-        await conductor.wait_alive(90.0, self.supervisor.check)
+        await conductor.wait_alive(plan.wait_agents, self.supervisor.check)
         if plan.faults.garbage_rate > 0:
             self._garbage_task = asyncio.create_task(
                 self.garbage.run(conductor.transport, conductor.keys)

@@ -15,6 +15,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -527,3 +528,52 @@ def test_launch_stops_with_a_clear_error_when_an_agent_dies_unplanned(tmp_path: 
     assert time.monotonic() - start < 60  # no waiting for the step timeout (120 s)
     for r, agent in launcher.agents.items():  # every other agent was stopped on the way out
         assert agent.proc is not None and agent.proc.poll() is not None, r
+
+
+@pytest.mark.slow
+def test_launch_conductor_only_drives_agents_started_elsewhere(
+    tmp_path: Path, reference: Reference
+) -> None:
+    # `semfleet launch --conductor-only`: no agent is started by the launch; the agents are
+    # started from the configs it writes (here on this machine, as another machine would), and
+    # the lock-step run is still the in-process runner's.
+    endpoint = f"tcp/127.0.0.1:{free_ports(1)[0]}"
+    only = {"conductor_listen": endpoint, "conductor_advertise": endpoint, "wait_agents": 60.0}
+    plan = _plan(tmp_path, steps=STEPS, keep_estimates=True, conductor_only=True, **only)
+    done: dict[str, Any] = {}
+
+    def conduct() -> None:
+        try:
+            done["outcome"] = launch(plan)
+        except BaseException as exc:  # re-raised in the test's thread
+            done["error"] = exc
+
+    thread = threading.Thread(target=conduct)
+    thread.start()
+    configs = [tmp_path / "agents" / f"{r}.toml" for r in ROBOTS]
+    deadline = time.monotonic() + 60
+    while not all(c.exists() for c in configs) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    time.sleep(0.2)  # the last config is complete
+    procs = [
+        subprocess.Popen(
+            [sys.executable, "-m", "deploy.cli", "agent", "--robot", r, "--config", str(c)],
+            stdout=(tmp_path / f"elsewhere-{r}.log").open("wb"),
+            stderr=subprocess.STDOUT,
+        )
+        for r, c in zip(ROBOTS, configs, strict=True)
+    ]
+    try:
+        thread.join(600)
+        if "error" in done:
+            raise done["error"]
+        outcome = done["outcome"]
+        assert not outcome.agents or all(a.proc is None for a in outcome.agents.values())
+        assert_estimates_match(outcome, reference, STEPS)
+        for p in procs:
+            assert p.wait(20) == 0
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+                p.wait()
