@@ -8,6 +8,7 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
+from cryptography.exceptions import UnsupportedAlgorithm
 from cryptography.hazmat.primitives import serialization
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey, Ed25519PublicKey
 
@@ -95,7 +96,7 @@ def _read_signing(sec: FieldReader, base: Path, robot: str, roster: list[str]) -
         key = serialization.load_pem_private_key(key_path.read_bytes(), None)
     except OSError as exc:
         raise sec.fail("signing_key", f"{key_path}: {exc.strerror}") from None
-    except (ValueError, TypeError) as exc:
+    except (ValueError, TypeError, UnsupportedAlgorithm) as exc:
         raise sec.fail("signing_key", f"{key_path}: not a PEM private key ({exc})") from None
     if not isinstance(key, Ed25519PrivateKey):
         raise sec.fail("signing_key", f"{key_path}: not an Ed25519 key")

@@ -132,8 +132,8 @@ def read_json5(path: Path) -> dict[str, Any]:
         doc = json5.loads(path.read_text(encoding="utf-8"))
     except OSError as exc:
         raise ZenohConfigError(f"{path}: {exc.strerror}") from None
-    except ValueError as exc:
-        raise ZenohConfigError(f"{path}: not JSON5: {exc}") from None
+    except (ValueError, RecursionError) as exc:  # RecursionError: nesting too deep to read
+        raise ZenohConfigError(f"{path}: not JSON5: {type(exc).__name__}: {exc}") from None
     if not isinstance(doc, dict):
         raise ZenohConfigError(f"{path}: expected a JSON5 object at the top")
     tls = _get(doc, "transport/link/tls")

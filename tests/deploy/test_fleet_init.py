@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import base64
 import json
+import shutil
 import stat
 import tomllib
 from pathlib import Path
@@ -226,3 +227,28 @@ def test_fleet_init_routers_dial_the_routers_before_them(tmp_path: Path) -> None
     assert b.document()["mode"] == "router" and b.mutual_tls()
     r2 = load_agent_config(tmp_path / "f" / "robots" / "r2" / "agent.toml", "r2")
     assert r2.zenoh.document()["connect"]["endpoints"] == ["tls/127.0.0.1:17711"]
+
+
+def test_hostile_security_files_are_one_line_errors(fleet: Path, tmp_path: Path) -> None:
+    deep = tmp_path / "deep.json5"
+    deep.write_text("[" * 100_000 + "]" * 100_000)
+    with pytest.raises(ZenohConfigError, match="not JSON5"):
+        ZenohSettings(config_file=deep).document()
+    folder = tmp_path / "r1"
+    shutil.copytree(fleet / "robots" / "r1", folder)
+    (folder / "signing.key").write_text(
+        "-----BEGIN PRIVATE KEY-----\nAAAA\n-----END PRIVATE KEY-----\n"
+    )
+    with pytest.raises(AgentConfigError) as err:
+        load_agent_config(folder / "agent.toml", "r1")
+    assert err.value.field == "security.signing_key"
+    shutil.copy(fleet / "robots" / "r2" / "signing.key", folder / "signing.key")
+    with pytest.raises(AgentConfigError, match="not the key"):  # another robot's key
+        load_agent_config(folder / "agent.toml", "r1")
+    shutil.copy(fleet / "robots" / "r1" / "tls.key", folder / "signing.key")
+    with pytest.raises(AgentConfigError, match="not an Ed25519 key"):  # the TLS key (ECDSA)
+        load_agent_config(folder / "agent.toml", "r1")
+    (folder / "roster.toml").write_text('fleet = "lab"\n[robots.r1]\nsigning_key = "%%%"\n')
+    shutil.copy(fleet / "robots" / "r1" / "signing.key", folder / "signing.key")
+    with pytest.raises(AgentConfigError, match="not a base64"):
+        load_agent_config(folder / "agent.toml", "r1")
