@@ -18,16 +18,17 @@ from pathlib import Path
 
 import pytest
 
-from agents.control import Status, Stop, encode_control
+from agents.control import Stop, encode_control
 from agents.perception import RobotLink
 from agents.transport.base import Inbox, Keys
 from agents.transport.zenoh_transport import ZenohSettings, ZenohTransport
 from deploy.commands.scenario import model_text
 from deploy.fleet_init import FleetSpec, init_fleet
 from deploy.launch import free_ports
-from protocol.estimate import EstimateMessage, decode_estimate
+from protocol.estimate import EstimateMessage
 from sim.loader import load_scenario
 from sim.sensors import Simulator
+from tests.deploy.secure_helpers import ask_status, identity_settings
 
 pytestmark = pytest.mark.slow
 
@@ -45,25 +46,6 @@ def _spawn(args: list[str], log: Path) -> subprocess.Popen[bytes]:
         stderr=subprocess.STDOUT,
         env={**os.environ, "OPENBLAS_NUM_THREADS": "1"},
     )
-
-
-def _settings(folder: Path, endpoint: str) -> ZenohSettings:
-    """A session with ``folder``'s identity that dials ``endpoint`` only."""
-    extra = {"listen/endpoints": [], "connect/endpoints": [endpoint], "mode": "peer"}
-    return ZenohSettings(config_file=folder / "zenoh.json5", extra=extra)
-
-
-async def _status(operator: ZenohTransport, inbox: Inbox, robot: str) -> EstimateMessage:
-    async with asyncio.timeout(60):
-        while True:
-            operator.publish(KEYS.ctl("status"), encode_control(Status()))
-            try:
-                m = await asyncio.wait_for(inbox.get(), 1.0)
-            except TimeoutError:
-                continue
-            est = decode_estimate(m.payload)
-            if est.robot == robot and est.k == STEPS:
-                return est
 
 
 def test_two_agents_linked_only_through_a_router_fuse_each_others_slots(tmp_path: Path) -> None:
@@ -94,7 +76,9 @@ def test_two_agents_linked_only_through_a_router_fuse_each_others_slots(tmp_path
     frames = Simulator(s, SEED).all_frames()
 
     async def feed(robot: str) -> None:
-        async with RobotLink(robot, FLEET, _settings(folders[robot], listen[robot])) as link:
+        async with RobotLink(
+            robot, FLEET, identity_settings(folders[robot], listen[robot])
+        ) as link:
             await link.wait_for_agent()
             for f in frames[robot][:STEPS]:
                 link.publish_frame(f)
@@ -112,7 +96,12 @@ def test_two_agents_linked_only_through_a_router_fuse_each_others_slots(tmp_path
         operator.subscribe(KEYS.estimate("*"), estimates)
         await operator.open()
         try:
-            return {r: await _status(operator, estimates, r) for r in ROBOTS}
+            return {
+                r: await ask_status(
+                    operator, estimates, KEYS, lambda e, r=r: e.robot == r and e.k == STEPS
+                )
+                for r in ROBOTS
+            }
         finally:
             operator.publish(KEYS.ctl("stop"), encode_control(Stop("test")))
             await asyncio.sleep(0.5)

@@ -28,9 +28,9 @@ from deploy.fleet_init import FleetSpec, init_fleet, loopback_spec
 from deploy.launch import free_ports
 from estimator.summary import LocalSummary, Realisation
 from protocol.codec import Limits, StackMessage, decode, encode, sign_slot
-from protocol.estimate import EstimateMessage, decode_estimate
 from protocol.stack import Slot, Stack
 from sim.loader import load_scenario
+from tests.deploy.secure_helpers import ask_status, identity_settings
 
 pytestmark = pytest.mark.slow
 
@@ -70,22 +70,7 @@ def fleet(tmp_path: Path):  # type: ignore[no-untyped-def]
 
 
 def _session(folder: Path, endpoint: str) -> ZenohTransport:
-    """A peer session with ``folder``'s identity that dials ``endpoint`` only."""
-    return ZenohTransport(
-        ZenohSettings(connect=(endpoint,), config_file=folder / "zenoh.json5", extra={
-            "listen/endpoints": [], "connect/endpoints": [endpoint], "mode": "peer"})
-    )  # fmt: skip
-
-
-async def _status(operator: ZenohTransport, inbox: Inbox) -> EstimateMessage:
-    async with asyncio.timeout(60):
-        while True:
-            operator.publish(KEYS.ctl("status"), encode_control(Status()))
-            try:
-                m = await asyncio.wait_for(inbox.get(), 1.0)
-            except TimeoutError:
-                continue
-            return decode_estimate(m.payload)
+    return ZenohTransport(identity_settings(folder, endpoint))
 
 
 async def _put_repeatedly(session: ZenohTransport, puts: list[tuple[str, bytes]]) -> None:
@@ -105,7 +90,7 @@ def test_only_the_owners_identity_puts_on_its_keys_and_only_the_operator_control
         estimates = Inbox(64)
         operator.subscribe(KEYS.estimate("r1"), estimates)
         await operator.open()
-        before = (await _status(operator, estimates)).counters
+        before = (await ask_status(operator, estimates, KEYS)).counters
         attacks = {
             "r2": _session(folders["r2"], endpoint),
             "foreign CA": _session(other["r2"], endpoint),
@@ -129,7 +114,7 @@ def test_only_the_owners_identity_puts_on_its_keys_and_only_the_operator_control
         )
         await asyncio.sleep(1.0)
         assert proc.poll() is None, "an attacker's ctl/stop stopped the agent"
-        after = (await _status(operator, estimates)).counters
+        after = (await ask_status(operator, estimates, KEYS)).counters
         for session in attacks.values():
             await session.close()
         # r2's puts on its own stack arrive (so its link works) and are counted as invalid;
@@ -179,7 +164,7 @@ def test_a_relay_cannot_forge_or_alter_a_slot_and_a_sender_must_be_its_key(
         operator.subscribe(KEYS.estimate("r1"), estimates)
         operator.subscribe(KEYS.stack("r1"), stacks)
         await operator.open()
-        before = (await _status(operator, estimates)).counters
+        before = (await ask_status(operator, estimates, KEYS)).counters
         relay = _session(folders["r2"], endpoint)
         await relay.open()
         await asyncio.sleep(1.5)
@@ -187,7 +172,7 @@ def test_a_relay_cannot_forge_or_alter_a_slot_and_a_sender_must_be_its_key(
                                       (KEYS.stack("r2"), misaddressed)])  # fmt: skip
         await _put_repeatedly(relay, [(KEYS.stack("r2"), relayed)])
         await asyncio.sleep(1.0)
-        after = (await _status(operator, estimates)).counters
+        after = (await ask_status(operator, estimates, KEYS)).counters
         assert after["stacks_badly_signed"] - before["stacks_badly_signed"] == 2 * PUTS
         assert after["stacks_misaddressed"] - before["stacks_misaddressed"] == PUTS
         assert after["stacks_merged"] - before["stacks_merged"] == 1  # the genuine relay, once
