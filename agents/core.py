@@ -53,6 +53,13 @@ log = logging.getLogger(__name__)
 
 MODES = ("lockstep", "realtime")
 MAX_REFUSED = 4096  # slot versions remembered as refused (oldest forgotten first)
+# How far ahead of the receiver's clock a slot's version may be (docs/wire.md, "Versions and
+# epochs"): an epoch is its owner's start in ms, so a stamp (a step) can be at most what the owner
+# could have stepped since then at MAX_STEP_RATE, with CLOCK_SKEW_S for unsynchronised clocks and
+# STAMP_SLACK steps for a fleet that starts at a step other than 0.
+MAX_STEP_RATE = 100.0  # steps per second: 50× a 2 Hz robot, above any lock-step simulation here
+CLOCK_SKEW_S = 300.0
+STAMP_SLACK = 10_000
 GOSSIP_PERIOD_S = 0.5  # the one default gossip period (agent configs, launches)
 WINDOW_STEPS = 64  # the one default of how far ahead frames, orders, rounds and links are kept
 
@@ -131,6 +138,7 @@ class Halt:
 
 
 Action = Publish | Append | Commit | Quarantine | CutJournal | Halt
+Version = tuple[str, tuple[int, int]]  # a slot version: owner, (epoch, stamp)
 
 
 @dataclass(slots=True)
@@ -151,6 +159,7 @@ class CoreCounters:
     frames_degraded: int = 0
     steps_stuck: int = 0
     slots_refused: int = 0
+    slots_implausible: int = 0
     restores: int = 0
     estimates_sent: int = 0
     need_requests: int = 0
@@ -181,8 +190,11 @@ class AgentCore:
         keys: Keys,
         settings: CoreSettings | None = None,
         committed: Callable[[], Sequence[Record]] | None = None,
+        wall_clock: Callable[[], float] | None = None,
     ) -> None:
         self.make_node = make_node
+        # Seconds since the Unix epoch, for the version bound (:meth:`_plausible`); None: no bound.
+        self.wall_clock = wall_clock
         self.node = make_node()
         self.robot = self.node.robot
         self.keys = keys
@@ -195,10 +207,10 @@ class AgentCore:
         self._orders: dict[int, StepOrder] = {}
         self._rounds: dict[tuple[str, int], tuple[StackMessage, bytes]] = {}
         self._links: dict[int, dict[str, tuple[str, ...]]] = {}
-        self._refused: collections.OrderedDict[tuple[str, int], None] = collections.OrderedDict()
+        self._refused: collections.OrderedDict[Version, None] = collections.OrderedDict()
         self._bad_frames: collections.OrderedDict[int, None] = collections.OrderedDict()
         self._uncommitted: list[Append] = []
-        self._merged_since_commit: list[tuple[str, int]] = []
+        self._merged_since_commit: list[Version] = []
         self._last_estimate: bytes | None = None
         self._last_need = -math.inf
         self._step_us = (0, 0)
@@ -401,7 +413,7 @@ class AgentCore:
             self.node.reject(exc)
             self._log_invalid(sender_key, exc)
             return []
-        message = self._without_refused(message)
+        message = self._plausible(self._without_refused(message))
         if self.settings.mode == "lockstep":
             k = self.node.k
             if not k <= message.step <= k + self.settings.window:
@@ -433,16 +445,36 @@ class AgentCore:
     def _without_refused(self, message: StackMessage) -> StackMessage:
         if not self._refused:
             return message
-        kept = [s for s in message.stack if (s.owner, s.stamp) not in self._refused]
+        kept = [s for s in message.stack if (s.owner, s.version) not in self._refused]
         if len(kept) == len(message.stack):
             return message
         self.counters.slots_refused += len(message.stack) - len(kept)
         return StackMessage(message.sender, message.position, Stack(tuple(kept)), message.step)
 
+    def _plausible(self, message: StackMessage) -> StackMessage:
+        """Without the slots whose version is ahead of what their owner can have made by now:
+        an epoch after the receiver's clock, or a stamp beyond ``MAX_STEP_RATE`` steps per
+        second since the epoch began (both with ``CLOCK_SKEW_S``). Such a version would block
+        every genuine one of its owner until the owner moved past it."""
+        if self.wall_clock is None:
+            return message
+        now_ms = 1000.0 * (self.wall_clock() + CLOCK_SKEW_S)
+        kept = [
+            s
+            for s in message.stack
+            if s.epoch <= now_ms
+            and s.stamp <= MAX_STEP_RATE * (now_ms - s.epoch) / 1000 + STAMP_SLACK
+        ]
+        if len(kept) == len(message.stack):
+            return message
+        self.counters.slots_implausible += len(message.stack) - len(kept)
+        self._log_invalid(message.sender, ValueError("a slot version ahead of its owner's clock"))
+        return StackMessage(message.sender, message.position, Stack(tuple(kept)), message.step)
+
     def _merge(self, message: StackMessage, payload: bytes) -> list[Action]:
-        before = self.node.stack.stamps()
+        before = self.node.stack.versions()
         if self.node.merge(message):
-            after = self.node.stack.stamps()
+            after = self.node.stack.versions()
             self._merged_since_commit += [(o, s) for o, s in after.items() if before.get(o) != s]
             self._uncommitted.append(Append("stack", payload))
         return []
@@ -562,7 +594,7 @@ class AgentCore:
         self._merged_since_commit = []
         self._restore(self.committed())
 
-    def _refuse(self, version: tuple[str, int]) -> None:
+    def _refuse(self, version: Version) -> None:
         self._refused[version] = None
         self.counters.slots_refused += 1
         while len(self._refused) > MAX_REFUSED:
@@ -635,6 +667,8 @@ class AgentCore:
             "slots_foreign": c.foreign_slots,
             "own_slot_invalid": c.own_slot_invalid,
             "slots_refused": a.slots_refused,
+            "slots_implausible": a.slots_implausible,
+            "own_superseded": c.own_superseded,
             "empty_joins": c.empty_joins,
             "rebuilds": c.rebuilds,
             "ignored_out_of_range": a.ignored_out_of_range,

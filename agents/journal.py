@@ -4,8 +4,9 @@ The agent appends every own sensor frame and every accepted stack message, alrea
 in wire form, then commits once per step; replaying the records in order reproduces the belief.
 The file is a sequence of records ``[u32 LE payload length][u32 LE crc32 of payload][payload]``
 with payload = msgpack ``[kind, body]``. The first record, kind ``"header"``, holds the format
-version and the caller's identity (robot id, seed, scenario hash...): a journal is never reused
-by another robot or run.
+version, the caller's identity (robot id, seed, scenario hash...): a journal is never reused
+by another robot or run — and the epoch the caller gave when the journal was made (0 in a
+journal made before epochs; docs/wire.md, "Versions and epochs").
 
 Why a log and not SQLite: a step is one sequential ``write`` and one ``fsync``, with no page
 cache, B-tree or WAL checkpoint in between; the records are opaque bytes that only get replayed
@@ -219,12 +220,13 @@ def _link_unique(src: Path, name: Path) -> Path:
             candidate = name.with_name(f"{name.name}.{n}")
 
 
-def _create(path: Path, identity: dict[str, str | int]) -> None:
+def _create(path: Path, identity: dict[str, str | int], epoch: int) -> None:
     """Make ``path`` a journal holding only its header, unless a journal is already there."""
     missing = [p for p in (path.parent, *path.parent.parents) if not p.exists()]
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    header = msgpack.packb({"format": FORMAT, "identity": identity}, use_bin_type=True)
+    doc = {"format": FORMAT, "identity": identity, "epoch": epoch}
+    header = msgpack.packb(doc, use_bin_type=True)
     _write_synced(tmp, _frame([HEADER, header]))
     try:
         os.link(tmp, path)  # unlike a rename, never replaces a journal created meanwhile
@@ -255,12 +257,19 @@ class Journal:
     ``truncated_bytes``: the bytes open cut off after the intact prefix, all of them copied to
     the side file ``set_aside`` (None when nothing was cut). ``quarantined`` and
     ``quarantine_failures`` count this session's :meth:`quarantine` calls that reached the disk
-    and that did not."""
+    and that did not; ``epoch`` the one in the header."""
 
     def __init__(
-        self, path: Path, fd: int, size: int, truncated_bytes: int, set_aside: Path | None
+        self,
+        path: Path,
+        fd: int,
+        size: int,
+        truncated_bytes: int,
+        set_aside: Path | None,
+        epoch: int = 0,
     ) -> None:
         self.path = path
+        self.epoch = epoch
         self.truncated_bytes = truncated_bytes
         self.set_aside = set_aside
         self.quarantined = 0
@@ -270,8 +279,11 @@ class Journal:
         self._pending = bytearray()
 
     @classmethod
-    def open(cls, path: Path, identity: Mapping[str, str | int]) -> tuple[Journal, list[Record]]:
-        """Open (or create) the journal of ``identity`` at ``path`` and read its records.
+    def open(
+        cls, path: Path, identity: Mapping[str, str | int], epoch: int = 0
+    ) -> tuple[Journal, list[Record]]:
+        """Open (or create, with ``epoch`` in its header) the journal of ``identity`` at ``path``
+        and read its records.
 
         Bytes after the intact prefix are copied to a side file before they are cut off (see the
         module docstring). Raises :class:`JournalError` if ``path`` is not a journal, belongs to
@@ -280,8 +292,10 @@ class Journal:
         """
         ident = _check_identity(identity)
         path = Path(path)
+        if not (isinstance(epoch, int) and 0 <= epoch <= _MAX_INDEX):
+            raise ValueError(f"epoch {epoch!r}: expected an integer in 0..{_MAX_INDEX}")
         if not path.exists():
-            _create(path, ident)
+            _create(path, ident, epoch)
         fd = os.open(path, os.O_RDWR | os.O_APPEND)
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
@@ -289,12 +303,12 @@ class Journal:
             os.close(fd)
             raise JournalError(f"{path} is in use by another process") from None
         try:
-            records, end, data = _read(path, ident)
+            records, end, data, stored = _read(path, ident)
             side = _recover(path, fd, data, end) if end < len(data) else None
         except BaseException:
             os.close(fd)
             raise
-        return cls(path, fd, end, len(data) - end, side), records
+        return cls(path, fd, end, len(data) - end, side, stored), records
 
     def append(self, kind: str, body: bytes | bytearray | memoryview) -> None:
         """Queue a record; it reaches the disk with the next :meth:`commit`."""
@@ -485,8 +499,9 @@ def read_quarantine(path: Path) -> list[QuarantinedRecord]:
     return records
 
 
-def _read(path: Path, identity: dict[str, str | int]) -> tuple[list[Record], int, bytes]:
-    """Records after the header, the offset after the last intact one, and the file's bytes."""
+def _read(path: Path, identity: dict[str, str | int]) -> tuple[list[Record], int, bytes, int]:
+    """Records after the header, the offset after the last intact one, the file's bytes and the
+    header's epoch."""
     data = path.read_bytes()
     first = _parse(data, 0)
     header = _header(first[0]) if first else None
@@ -494,6 +509,9 @@ def _read(path: Path, identity: dict[str, str | int]) -> tuple[list[Record], int
         raise JournalError(f"{path} is not a semfleet journal (no valid header)")
     if header.get("format") != FORMAT or not isinstance(header.get("identity"), dict):
         raise JournalError(f"{path}: not a journal of format {FORMAT}")
+    epoch = header.get("epoch", 0)
+    if type(epoch) is not int or not 0 <= epoch <= _MAX_INDEX:
+        raise JournalError(f"{path}: header epoch {epoch!r} is not an integer in 0..{_MAX_INDEX}")
     stored = header["identity"]
     for key in sorted(set(stored) | set(identity), key=str):
         mine, theirs = identity.get(key), stored.get(key)
@@ -508,7 +526,7 @@ def _read(path: Path, identity: dict[str, str | int]) -> tuple[list[Record], int
     while (parsed := _parse(data, end)) is not None and parsed[0].kind != HEADER:
         records.append(parsed[0])
         end = parsed[1]
-    return records, end, data
+    return records, end, data, epoch
 
 
 def _header(record: Record) -> dict[str, Any] | None:

@@ -24,7 +24,7 @@ from estimator.hybrid import BeliefConfig, BeliefModel, HybridBelief
 from estimator.models import SensorFrame
 from estimator.slots import summarise
 from estimator.summary import LocalSummary
-from protocol.codec import Limits, StackMessage, decode, encode, sign_slot
+from protocol.codec import MAX_EPOCH, Limits, StackMessage, decode, encode, sign_slot
 from protocol.errors import LocalProtocolError, RemoteProtocolError
 from protocol.signing import SigningKeys
 from protocol.stack import Slot, Stack
@@ -39,7 +39,9 @@ class NodeCounters:
     slots refused because their owner is outside the roster (or the stack is full),
     ``own_slot_invalid`` times the own slot could not be sent (outside the limits),
     ``empty_joins`` slots whose join with D was empty and ``rebuilds`` the times D was rebuilt
-    from L and the held slots because of one."""
+    from L and the held slots because of one; ``own_superseded`` the times a received stack held
+    a version of the own slot newer than the node's (a lost journal's earlier life, or a forgery
+    on an unsigned fleet): the node then moves to a higher epoch."""
 
     stacks_received: int = 0
     stacks_merged: int = 0
@@ -50,6 +52,7 @@ class NodeCounters:
     own_slot_invalid: int = 0
     empty_joins: int = 0
     rebuilds: int = 0
+    own_superseded: int = 0
     bytes_received: int = 0
     stacks_sent: int = 0
     bytes_sent: int = 0
@@ -130,8 +133,12 @@ class RobotNode:
         local: LocalTrack | None = None,
         roster: frozenset[str] | None = None,
         signing: Signing | None = None,
+        epoch: int = 0,
     ) -> None:
         self.robot = robot
+        # The own slot's epoch (docs/wire.md, "Versions and epochs"): the shell gives the one of
+        # its journal; it only grows, when a stack shows a newer version of the own slot.
+        self.epoch = epoch
         if signing is not None and signing.keys.get(robot) != signing.key.public_key():
             raise ValueError(f"{robot}'s signing key is not the one its roster holds for it")
         self.signing = signing
@@ -180,8 +187,11 @@ class RobotNode:
     def merge(self, message: StackMessage) -> bool:
         """Merge a decoded stack (newest version per owner, never the own slot); True if it
         brought a newer slot."""
+        epoch = self.epoch
         merged = self.stack.merge(self._admitted(message.stack), own=self.robot)
-        if merged.stamps() == self.stack.stamps():
+        if merged.versions() == self.stack.versions():
+            if self.epoch != epoch:
+                return True  # the stack moved the own epoch: a replay must see it again
             self.counters.stacks_unchanged += 1
             return False
         self.stack = merged
@@ -192,11 +202,12 @@ class RobotNode:
     def _admitted(self, stack: Stack) -> list[Slot]:
         """The slots of a received stack this node may hold: owners in the roster, and no more
         owners in all than a stack may carry (so that the own stack always encodes)."""
-        held = self.stack.stamps()
-        room = self.limits.max_slots - len(held | {self.robot: 0})
+        held = self.stack.versions()
+        room = self.limits.max_slots - len(held | {self.robot: (0, 0)})
         out = []
         for s in stack:
             if s.owner == self.robot:
+                self._check_own(s)
                 continue
             if self.roster is not None and s.owner not in self.roster:
                 self.counters.foreign_slots += 1
@@ -204,7 +215,7 @@ class RobotNode:
             if s.owner not in held and room <= 0:
                 self.counters.foreign_slots += 1
                 continue
-            if s.stamp <= held.get(s.owner, -1):
+            if s.version <= held.get(s.owner, (-1, -1)):
                 continue  # not newer: the merge keeps the version held
             if not self._fits(s):
                 continue  # never held, so never relayed either
@@ -212,6 +223,25 @@ class RobotNode:
                 room -= 1
             out.append(s)
         return out
+
+    def _check_own(self, slot: Slot) -> None:
+        """A received version of the own slot newer than any this node made (its current
+        version is (epoch, k)) was made by an earlier life of this robot that lost its journal,
+        or forged on a fleet that does not sign: the node's slots move to an epoch above it, so
+        that its peers take them again."""
+        if slot.version <= (self.epoch, self.k) or slot.epoch >= MAX_EPOCH:
+            return  # (no epoch above the largest; the agent core refuses such slots first)
+        self.counters.own_superseded += 1
+        self.epoch = slot.epoch + 1
+        self._own_slot_stale = True
+        self._encoded = None
+        log.warning(
+            "%s: peers hold a version (%d, %d) of its slot it never made: epoch now %d",
+            self.robot,
+            slot.epoch,
+            slot.stamp,
+            self.epoch,
+        )
 
     def on_frame(self, frame: SensorFrame) -> StepReport:
         """One robot step: integrate changed slots into D, local step on L and on D, rebuild the
@@ -252,7 +282,7 @@ class RobotNode:
         A slot whose join with D is empty (D pruned a class combination the slot needs) is counted
         and makes the next ``on_frame`` rebuild D, so that no peer's information is lost.
         """
-        incoming = self._checked(self.stack.newer_than(self.distributed.stamps, own=self.robot))
+        incoming = self._checked(self.stack.newer_than(self.distributed.versions, own=self.robot))
         # D is stepped right after (on_frame), which updates iSAM2 again: no settling here.
         stats = self.distributed.integrate(incoming, settle=False)
         if stats.empty_joins and self.distributed.fusion == "consistent":
@@ -303,7 +333,8 @@ class RobotNode:
         if self._own_slot_stale:
             summary = self.track.summary()
             if summary is not None:
-                self.stack = self.stack.with_slot(self._signed(Slot(self.robot, self.k, summary)))
+                own = Slot(self.robot, self.k, summary, self.epoch)
+                self.stack = self.stack.with_slot(self._signed(own))
             self._own_slot_stale = False
         return self.stack
 

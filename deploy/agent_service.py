@@ -10,6 +10,7 @@ import asyncio
 import json
 import logging
 import signal
+import time
 import zlib
 from collections.abc import Callable
 from functools import partial
@@ -29,9 +30,9 @@ from sim.robot_model import dump_robot_model
 log = logging.getLogger("semfleet.agent")
 
 
-def node_factory(config: AgentConfig) -> Callable[[], RobotNode]:
+def node_factory(config: AgentConfig, epoch: int = 0) -> Callable[[], RobotNode]:
     """Builds the agent's node at step 0: L and D seeded exactly like the in-process runner's,
-    holding the slots of the roster's robots only."""
+    holding the slots of the roster's robots only, its own slots of ``epoch``."""
     model = belief_model(config.model)
 
     return partial(
@@ -44,6 +45,7 @@ def node_factory(config: AgentConfig) -> Callable[[], RobotNode]:
         roster=config.roster,
         limits=config.limits,
         signing=config.signing,
+        epoch=epoch,
     )
 
 
@@ -62,12 +64,20 @@ def journal_identity(config: AgentConfig) -> dict[str, str | int]:
 
 
 def build_agent(config: AgentConfig, transport: ZenohTransport) -> Agent:
-    """The core (its node from the robot model), its journal replayed, the agent."""
+    """The core (its node from the robot model), its journal replayed, the agent.
+
+    The own slots' epoch is the journal's: the time (ms since the Unix epoch) the journal was
+    made, or this start's for an agent without one. A robot that lost its journal so starts
+    again above every version it made before (docs/wire.md, "Versions and epochs")."""
     journal = None
     records: list[Record] = []
+    epoch = time.time_ns() // 1_000_000
     if config.journal is not None:
-        journal, records = Journal.open(config.journal, journal_identity(config))
-    core = AgentCore(node_factory(config), Keys(config.fleet), config.runtime)
+        journal, records = Journal.open(config.journal, journal_identity(config), epoch)
+        epoch = journal.epoch
+    core = AgentCore(
+        node_factory(config, epoch), Keys(config.fleet), config.runtime, wall_clock=time.time
+    )
     agent = Agent(core, transport, journal)
     agent.replay(records)
     return agent

@@ -102,11 +102,13 @@ def make_node(
     roster: frozenset[str] | None = None,
     limits: Limits | None = None,
     signing: Signing | None = None,
+    epoch: int = 0,
 ) -> RobotNode:
     """The node of ``robot`` starting at ``start`` (3,) in run ``seed``, exactly as
     :func:`make_nodes` builds it with ``rng_for = lambda r: belief_rng(seed, [r])``; ``roster``
     limits the slots it holds to those robots' (None: any owner); ``limits`` what it accepts and
-    sends (default: the wire defaults with the model's class count)."""
+    sends (default: the wire defaults with the model's class count); ``epoch`` its own slots'
+    epoch (docs/wire.md, "Versions and epochs")."""
     rng_for = lambda r: belief_rng(seed, [r])  # noqa: E731
     return _node(
         robot,
@@ -119,6 +121,7 @@ def make_node(
         roster=roster,
         limits=limits,
         signing=signing,
+        epoch=epoch,
     )
 
 
@@ -160,6 +163,7 @@ def _node(
     roster: frozenset[str] | None = None,
     limits: Limits | None = None,
     signing: Signing | None = None,
+    epoch: int = 0,
 ) -> RobotNode:
     return RobotNode(
         robot,
@@ -174,4 +178,5 @@ def _node(
         roster=roster,
         limits=limits,
         signing=signing,
+        epoch=epoch,
     )

@@ -159,16 +159,22 @@ class DistributedBelief(HybridBelief):
         self.owner = owner
         self.fusion = fusion
         self.downdate = downdate
-        self.stamps: dict[str, int] = {}
+        # Owner → (epoch, stamp) of the slot version D used (Slot.version).
+        self.versions: dict[str, tuple[int, int]] = {}
         self._incoming: set[str] = set()  # owners of the batch being integrated
+
+    @property
+    def stamps(self) -> dict[str, int]:
+        """Owner → stamp of the slot version D used (for people; compare ``versions``)."""
+        return {o: v[1] for o, v in self.versions.items()}
 
     def information_sources(self) -> int:
         """The owner and every robot whose slot D holds or is integrating."""
-        return 1 + len(set(self.stamps) | self._incoming)
+        return 1 + len(set(self.versions) | self._incoming)
 
-    def wants(self, owner: str, stamp: int) -> bool:
-        """Whether a slot version is new to this belief (never its own slot)."""
-        return owner != self.owner and stamp > self.stamps.get(owner, -1)
+    def wants(self, owner: str, version: tuple[int, int]) -> bool:
+        """Whether a slot version (epoch, stamp) is new to this belief (never its own slot)."""
+        return owner != self.owner and version > self.versions.get(owner, (-1, -1))
 
     def integrate(self, slots: Sequence[Slot], settle: bool = True) -> FusionStats:
         """Integrate every slot that is newer than the version used before (Eq. 12, 17).
@@ -178,7 +184,7 @@ class DistributedBelief(HybridBelief):
         whose join with D's hypotheses is empty is left out and counted in ``empty_joins``: the
         caller decides whether to :meth:`rebuild` (the RobotNode does).
         """
-        batch = [s for s in slots if self.wants(s.owner, s.stamp)]
+        batch = [s for s in slots if self.wants(s.owner, s.version)]
         owners = [s.owner for s in batch]
         if len(set(owners)) != len(owners):
             raise SlotError(f"two versions of one robot's slot in one batch: {owners}")
@@ -219,7 +225,7 @@ class DistributedBelief(HybridBelief):
         self._normalise()
         for s in batch:
             if s.owner not in skipped:
-                self.stamps[s.owner] = s.stamp
+                self.versions[s.owner] = s.version
         return FusionStats(used, tuple(sorted(skipped)), candidates, len(children), len(skipped))
 
     def rebuild(
@@ -245,7 +251,7 @@ class DistributedBelief(HybridBelief):
             )
             for h in local.hypotheses
         ]
-        self.stamps = {}
+        self.versions = {}
         stats = self.integrate([s for s in held if s.owner != self.owner], settle)
         return FusionStats(
             stats.integrated,

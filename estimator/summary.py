@@ -42,8 +42,14 @@ class Slot:
     owner: str
     stamp: int
     summary: LocalSummary
-    # Wire version 2 (docs/wire.md, "Signed slots"): the owner's epoch (reserved, 0) and its
-    # Ed25519 signature over the slot's canonical bytes; None for an unsigned slot. The estimator
-    # never reads them: a relay re-sends the owner's signature with the slot.
+    # The owner's epoch (docs/wire.md, "Versions and epochs"): a robot that lost its journal
+    # starts its stamps again under a higher epoch, so a version is (epoch, stamp). Wire version
+    # 2 adds the owner's Ed25519 signature over the slot's canonical bytes (None: unsigned). The
+    # estimator never reads the signature: a relay re-sends it with the slot.
     epoch: int = 0
     signature: bytes | None = None
+
+    @property
+    def version(self) -> tuple[int, int]:
+        """(epoch, stamp): a newer version is a greater one."""
+        return (self.epoch, self.stamp)

@@ -44,7 +44,9 @@ _MAX_STAMP = MAX_STEP  # a stamp is its owner's step
 _MAX_OBJECT_ID = 2**32 - 1
 _TOP_KEYS = frozenset({"v", "type", "sender", "k", "pos", "slots"})
 _SLOT_KEYS = frozenset({"owner", "stamp", "objects", "real"})
+_EPOCH_SLOT_KEYS = _SLOT_KEYS | {"epoch"}  # version 1: "epoch" only when it is not 0
 _SIGNED_SLOT_KEYS = _SLOT_KEYS | {"epoch", "sig"}
+MAX_EPOCH = 2**53 - 1  # an epoch is a count of milliseconds (docs/wire.md, "Versions and epochs")
 _REAL_KEYS = frozenset({"c", "phi", "lin", "info", "eta"})
 
 
@@ -375,11 +377,14 @@ def _encode_slot(slot: Slot, where: str, lim: Limits) -> dict[str, Any]:
     ]
     out: dict[str, Any] = {"owner": slot.owner, "stamp": int(slot.stamp), "objects": ids}
     out["real"] = reals
+    epoch = slot.epoch
+    epoch_ok = isinstance(epoch, int) and not isinstance(epoch, bool) and 0 <= epoch <= MAX_EPOCH
+    _local(epoch_ok, f"{where}.epoch", f"must be an integer in 0..{MAX_EPOCH}, got {epoch!r}")
+    if epoch or slot.signature is not None:
+        out["epoch"] = int(epoch)
     if slot.signature is not None:
-        _local(slot.epoch == 0, f"{where}.epoch", "reserved: must be 0")
         sig_ok = isinstance(slot.signature, bytes) and len(slot.signature) == SIGNATURE_BYTES
         _local(sig_ok, f"{where}.sig", f"expected {SIGNATURE_BYTES} bytes")
-        out["epoch"] = 0
         out["sig"] = slot.signature
     return out
 
@@ -387,10 +392,10 @@ def _encode_slot(slot: Slot, where: str, lim: Limits) -> dict[str, Any]:
 def sign_slot(slot: Slot, key: Ed25519PrivateKey, limits: Limits | None = None) -> Slot:
     """``slot`` signed by its owner's ``key`` (wire version 2). Raises LocalProtocolError, as
     ``encode`` would, for a slot the limits refuse."""
-    unsigned = Slot(slot.owner, slot.stamp, slot.summary)
+    unsigned = Slot(slot.owner, slot.stamp, slot.summary, slot.epoch)
     wire = _encode_slot(unsigned, "slot", limits or Limits())
-    data = canonical_bytes(slot.owner, 0, wire["stamp"], wire["objects"], wire["real"])
-    return Slot(slot.owner, slot.stamp, slot.summary, 0, sign(key, data))
+    data = canonical_bytes(slot.owner, slot.epoch, wire["stamp"], wire["objects"], wire["real"])
+    return Slot(slot.owner, slot.stamp, slot.summary, slot.epoch, sign(key, data))
 
 
 # --------------------------------------------------------------------------- decode
@@ -460,11 +465,15 @@ def _decode_doc(doc: Any, lim: Limits, keys: SigningKeys | None) -> StackMessage
 
 
 def _decode_slot(raw: Any, where: str, lim: Limits, keys: SigningKeys | None, signed: bool) -> Slot:
-    s = as_map(raw, where, _SIGNED_SLOT_KEYS if signed else _SLOT_KEYS)
+    if signed:
+        keys_of_slot = _SIGNED_SLOT_KEYS
+    else:
+        keys_of_slot = _EPOCH_SLOT_KEYS if isinstance(raw, dict) and "epoch" in raw else _SLOT_KEYS
+    s = as_map(raw, where, keys_of_slot)
     owner = robot_id(s["owner"], f"{where}.owner")
+    epoch = as_int(s.get("epoch", 0), f"{where}.epoch", 0, MAX_EPOCH)
     signature = None
     if signed:
-        need(s["epoch"] == 0 and type(s["epoch"]) is int, f"{where}.epoch", "reserved: must be 0")
         signature = s["sig"]
         need(
             isinstance(signature, bytes) and len(signature) == SIGNATURE_BYTES,
@@ -506,7 +515,7 @@ def _decode_slot(raw: Any, where: str, lim: Limits, keys: SigningKeys | None, si
         Realisation(classes, phi, lin[i], info[i], arrays["eta"][i])
         for i, (classes, phi, _) in enumerate(heads)
     )
-    return Slot(owner, stamp, LocalSummary(ids, out), 0, signature)
+    return Slot(owner, stamp, LocalSummary(ids, out), epoch, signature)
 
 
 def _check_signature(
@@ -518,7 +527,7 @@ def _check_signature(
         raise BadSignature(f"no signing key for owner {owner!r} in the roster", f"{where}.owner")
     if not (isinstance(s["objects"], list) and isinstance(s["real"], list)):
         return  # malformed: the structural checks below name the field
-    data = canonical_bytes(owner, 0, s["stamp"], s["objects"], s["real"])
+    data = canonical_bytes(owner, s["epoch"], s["stamp"], s["objects"], s["real"])
     if not verify(key, data, signature):
         raise BadSignature(f"the signature of {owner} does not verify", f"{where}.sig")
 

@@ -1,4 +1,5 @@
-"""Slots and stacks, and the merge rule (design doc §5)."""
+"""Slots and stacks, and the merge rule (design doc §5): the newest *version* of each owner's
+slot, a version being (epoch, stamp) (docs/wire.md, "Versions and epochs")."""
 
 from __future__ import annotations
 
@@ -32,8 +33,12 @@ class Stack:
         return {s.owner: s for s in self.slots}
 
     def stamps(self) -> dict[str, int]:
-        """Owner → stamp of the version held."""
+        """Owner → stamp of the version held (for people; compare :meth:`versions`)."""
         return {s.owner: s.stamp for s in self.slots}
+
+    def versions(self) -> dict[str, tuple[int, int]]:
+        """Owner → (epoch, stamp) of the version held."""
+        return {s.owner: s.version for s in self.slots}
 
     def with_slot(self, slot: Slot) -> Stack:
         """This stack with ``slot`` replacing its owner's version (used for one's own slot)."""
@@ -41,18 +46,21 @@ class Stack:
         return Stack((*others, slot))
 
     def merge(self, incoming: Iterable[Slot], own: str) -> Stack:
-        """Keep the newest version of every slot; never take a version of ``own``'s slot from
-        someone else. Idempotent, commutative and associative on versions (an owner's stamp
-        identifies its content); on equal stamps the version already held is kept."""
+        """Keep the newest version (epoch, stamp) of every slot; never take a version of
+        ``own``'s slot from someone else. Idempotent, commutative and associative on versions (an
+        owner's version identifies its content); on equal versions the one held is kept."""
         held = self.by_owner()
         for slot in incoming:
             if slot.owner == own:
                 continue
             current = held.get(slot.owner)
-            if current is None or slot.stamp > current.stamp:
+            if current is None or slot.version > current.version:
                 held[slot.owner] = slot
         return Stack(tuple(held.values()))
 
-    def newer_than(self, used: Mapping[str, int], own: str) -> list[Slot]:
-        """Slots (never ``own``'s) whose stamp is newer than the version ``used`` records."""
-        return [s for s in self.slots if s.owner != own and s.stamp > used.get(s.owner, -1)]
+    def newer_than(self, used: Mapping[str, tuple[int, int]], own: str) -> list[Slot]:
+        """Slots (never ``own``'s) whose version is newer than the one ``used`` records."""
+        return [s for s in self.slots if s.owner != own and s.version > used.get(s.owner, NONE)]
+
+
+NONE = (-1, -1)  # older than every version

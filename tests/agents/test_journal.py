@@ -136,8 +136,30 @@ def test_journal_file_layout_matches_docs(tmp_path: Path) -> None:
         payloads.append(msgpack.unpackb(payload, raw=False))
     kind, header = payloads[0]
     assert kind == "header"
-    assert msgpack.unpackb(header, raw=False) == {"format": 1, "identity": IDENTITY}
+    assert msgpack.unpackb(header, raw=False) == {"format": 1, "identity": IDENTITY, "epoch": 0}
     assert payloads[1] == ["frame", b"abc"]
+
+
+def test_journal_keeps_the_epoch_it_was_made_with(tmp_path: Path) -> None:
+    """The epoch given when a journal is made is the one every reopen returns (the robot's slots
+    keep their versions across restarts); a journal made before epochs has epoch 0."""
+    path = tmp_path / "r1.journal"
+    journal, _ = Journal.open(path, IDENTITY, 1_764_000_000_000)
+    journal.close()
+    journal, _ = Journal.open(path, IDENTITY, 1_999_000_000_000)
+    journal.close()
+    assert journal.epoch == 1_764_000_000_000
+    old = tmp_path / "old.journal"
+    header = msgpack.packb({"format": 1, "identity": IDENTITY}, use_bin_type=True)
+    payload = msgpack.packb(["header", header], use_bin_type=True)
+    old.write_bytes(len(payload).to_bytes(4, "little") + zlib.crc32(payload).to_bytes(4, "little"))
+    with old.open("ab") as f:
+        f.write(payload)
+    journal, records = Journal.open(old, IDENTITY, 5)
+    journal.close()
+    assert journal.epoch == 0 and records == []
+    with pytest.raises(ValueError, match="epoch"):
+        Journal.open(tmp_path / "bad.journal", IDENTITY, -1)
 
 
 def test_journal_reopen_appends_after_existing_records(tmp_path: Path) -> None:

@@ -265,18 +265,27 @@ def test_node_never_takes_its_own_slot_from_a_relayed_stack(
     _assert_same_belief(node.distributed, node.local, "r1")
 
 
-def test_node_ignores_a_forged_newer_version_of_its_own_slot(
+def test_node_never_takes_its_own_slot_from_a_peer_and_moves_above_a_newer_version(
     frames: dict[str, list[SensorFrame]],
 ) -> None:
+    """A peer holding a version of r1's slot newer than r1 made (an earlier life of r1 that lost
+    its journal, or a forgery on an unsigned fleet): r1 keeps its own slot and moves to the next
+    epoch, so that its next versions replace that one everywhere (docs/wire.md)."""
     node = _node("r1")
     _advance(node, frames, 4)
     summary = node.current_stack().by_owner()["r1"].summary
+    older = encode(StackMessage("r2", None, Stack((Slot("r1", 3, summary),))))
+    assert not node.on_stack(older) and node.epoch == 0  # one it made: nothing to do
     forged = encode(StackMessage("r2", None, Stack((Slot("r1", 100, summary),))))
-    assert not node.on_stack(forged)
-    assert node.stack.stamps() == {"r1": 4}
+    assert node.on_stack(forged)  # True: a replay of the journal must see this stack again
+    assert node.stack.stamps() == {"r1": 4} and node.counters.own_superseded == 1
+    assert node.epoch == 1 and _own_slot(node).version == (1, 4)
+    assert not node.on_stack(forged) and node.counters.own_superseded == 1  # once is enough
     node.on_frame(frames["r1"][4])
-    assert _own_slot(node).stamp == 5
+    assert _own_slot(node).version == (1, 5)
     assert node.distributed.stamps == {}
+    relayed = Stack((Slot("r1", 100, summary),)).merge([_own_slot(node)], own="r2")
+    assert relayed.versions() == {"r1": (1, 5)}
 
 
 def _peer_after_6_and_its_stack_after_3(

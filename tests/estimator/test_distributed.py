@@ -178,7 +178,8 @@ def test_integrating_the_same_version_twice_changes_nothing() -> None:
     assert first.integrated == ("r3",) and second.integrated == ()
     assert d.object_ids == ids
     np.testing.assert_array_equal(d.weights(), weights)
-    assert not d.wants("r3", 19) and not d.wants("r2", 99)
+    assert not d.wants("r3", (0, 19)) and not d.wants("r2", (0, 99))
+    assert d.wants("r3", (0, 21)) and d.wants("r3", (1, 1))  # a later epoch, lower stamp
 
 
 def _min_cov_ratio(d: HybridBelief, central: HybridBelief) -> dict[int, float]:

@@ -4,6 +4,8 @@ wrongly signed slots are refused when the receiver has keys."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import msgpack
 import numpy as np
 import pytest
@@ -93,9 +95,28 @@ def test_a_stamp_beyond_the_range_is_refused_before_any_signature() -> None:
     with pytest.raises(RemoteProtocolError):
         decode(msgpack.packb(doc), LIMITS, PUBLIC)
     doc["slots"][0]["stamp"] = 41
-    doc["slots"][0]["epoch"] = 1
+    doc["slots"][0]["epoch"] = 2**53
     with pytest.raises(RemoteProtocolError, match="epoch"):
         decode(msgpack.packb(doc), LIMITS, PUBLIC)
+
+
+def test_the_epoch_is_signed_a_relay_cannot_move_a_slot_to_another_epoch() -> None:
+    slot = sign_slot(dataclasses.replace(_slot("r1", 3, 0), epoch=1_764_000_000_000), KEYS["r1"])
+    data = encode(StackMessage("r2", None, Stack((slot,)), 3), LIMITS)
+    received = decode(data, LIMITS, PUBLIC).stack.by_owner()["r1"]
+    assert received.version == (1_764_000_000_000, 3)
+    doc = msgpack.unpackb(data)
+    for epoch in (0, 1_764_000_000_001):  # back to no epoch, or one past: both forged
+        doc["slots"][0]["epoch"] = epoch
+        with pytest.raises(BadSignature, match="does not verify"):
+            decode(msgpack.packb(doc), LIMITS, PUBLIC)
+    # An unsigned fleet carries the epoch too (only when it is not 0): the same version arrives.
+    unsigned = dataclasses.replace(slot, signature=None)
+    doc = msgpack.unpackb(encode(StackMessage("r2", None, Stack((unsigned,)), 3), LIMITS))
+    assert doc["v"] == 1 and doc["slots"][0]["epoch"] == 1_764_000_000_000
+    assert decode(msgpack.packb(doc), LIMITS).stack.by_owner()["r1"].version == received.version
+    plain = encode(StackMessage("r2", None, Stack((_slot("r1", 3, 0),)), 3), LIMITS)
+    assert "epoch" not in msgpack.unpackb(plain)["slots"][0]
 
 
 def test_a_stack_is_all_signed_or_all_unsigned() -> None:

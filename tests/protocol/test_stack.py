@@ -1,8 +1,9 @@
 """Stacks and their merge rule (design doc §5): the newest version per owner wins, one's own slot
 is never taken from a peer, and the rule is idempotent, commutative and associative.
 
-Slots compare by identity (``eq=False``), so every (owner, stamp) pair maps to one shared Slot
-object: an owner's stamp identifies its content, the premise of commutativity.
+Slots compare by identity (``eq=False``), so every (owner, epoch, stamp) maps to one shared Slot
+object: an owner's version identifies its content, the premise of commutativity. A version is
+(epoch, stamp): a robot that lost its journal starts its stamps again under a higher epoch.
 """
 
 from __future__ import annotations
@@ -24,37 +25,58 @@ PROPERTY = settings(derandomize=True, deadline=None, max_examples=500)
 
 
 @functools.cache
-def version(owner: str, stamp: int) -> Slot:
-    """The one Slot object holding ``owner``'s summary at its step ``stamp``."""
+def version(owner: str, stamp: int, epoch: int = 0) -> Slot:
+    """The one Slot object holding ``owner``'s summary at its step ``stamp`` of ``epoch``."""
     real = Realisation((stamp % 2,), float(stamp), np.zeros((1, 3)), np.eye(3), np.zeros(3))
-    return Slot(owner, stamp, LocalSummary((stamp,), (real,)))
+    return Slot(owner, stamp, LocalSummary((stamp,), (real,)), epoch)
 
 
-def stack_of(stamps: dict[str, int]) -> Stack:
-    return Stack(tuple(version(o, s) for o, s in stamps.items()))
+def stack_of(stamps: dict[str, int] | dict[str, tuple[int, int]]) -> Stack:
+    """From owner → stamp, or owner → (epoch, stamp)."""
+    return Stack(
+        tuple(
+            version(o, v[1], v[0]) if isinstance(v, tuple) else version(o, v)
+            for o, v in stamps.items()
+        )
+    )
 
 
-VERSIONS = st.builds(version, st.sampled_from(OWNERS), st.integers(0, 6))
+# Later epochs with lower stamps are in every draw: a stamp alone would order them wrongly.
+EPOCH_STAMP = st.tuples(st.integers(0, 2), st.integers(0, 6))
+VERSIONS = st.builds(lambda o, v: version(o, v[1], v[0]), st.sampled_from(OWNERS), EPOCH_STAMP)
 BATCHES = st.lists(VERSIONS, max_size=10)
-STACKS = st.dictionaries(st.sampled_from(OWNERS), st.integers(0, 6)).map(stack_of)
+STACKS = st.dictionaries(st.sampled_from(OWNERS), EPOCH_STAMP).map(stack_of)
 
 
-def _newest(held: Stack, incoming: list[Slot], own: str) -> dict[str, int]:
-    """Reference rule: the largest stamp seen per owner, and only the held one for ``own``."""
-    out = held.stamps()
+def _newest(held: Stack, incoming: list[Slot], own: str) -> dict[str, tuple[int, int]]:
+    """Reference rule: the greatest (epoch, stamp) seen per owner — the epoch first — and only
+    the held one for ``own``."""
+    out = held.versions()
     for slot in incoming:
         if slot.owner != own:
-            out[slot.owner] = max(out.get(slot.owner, -1), slot.stamp)
+            e, s = out.get(slot.owner, (-1, -1))
+            if slot.epoch > e or (slot.epoch == e and slot.stamp > s):
+                out[slot.owner] = (slot.epoch, slot.stamp)
     return out
 
 
 @PROPERTY
 @given(held=STACKS, incoming=BATCHES)
-def test_stack_merge_keeps_newest_stamp_per_owner(held: Stack, incoming: list[Slot]) -> None:
+def test_stack_merge_keeps_newest_version_per_owner(held: Stack, incoming: list[Slot]) -> None:
     merged = held.merge(incoming, OWN)
     expected = _newest(held, incoming, OWN)
-    assert merged.stamps() == expected
-    assert all(slot is version(slot.owner, slot.stamp) for slot in merged)
+    assert merged.versions() == expected
+    assert all(slot is version(slot.owner, slot.stamp, slot.epoch) for slot in merged)
+
+
+def test_a_later_epoch_wins_over_a_higher_stamp() -> None:
+    """A robot that lost its journal restarts at stamp 1 under a higher epoch: its new slot
+    replaces the old one everywhere, and the old one never comes back."""
+    old, new = version("b", 40, 7), version("b", 1, 8)
+    assert Stack((old,)).merge([new], OWN).by_owner()["b"] is new
+    assert Stack((new,)).merge([old], OWN).by_owner()["b"] is new
+    assert [s.owner for s in Stack((new,)).newer_than({"b": (7, 40)}, OWN)] == ["b"]
+    assert Stack((old,)).newer_than({"b": (8, 1)}, OWN) == []
 
 
 @PROPERTY
@@ -140,33 +162,42 @@ def test_stack_rejects_duplicate_owners() -> None:
 @PROPERTY
 @given(stamps=st.dictionaries(st.sampled_from(OWNERS), st.integers(0, 6)), data=st.data())
 def test_stack_orders_slots_by_owner(stamps: dict[str, int], data: st.DataObject) -> None:
-    slots = data.draw(st.permutations([version(o, s) for o, s in stamps.items()]))
+    slots = data.draw(st.permutations([version(o, s, s % 3) for o, s in stamps.items()]))
     stack = Stack(tuple(slots))
     assert [s.owner for s in stack] == sorted(stamps)
     assert len(stack) == len(stamps)
     assert stack.stamps() == stamps
+    assert stack.versions() == {o: (s % 3, s) for o, s in stamps.items()}
     assert stack.by_owner() == {s.owner: s for s in slots}
 
 
 @PROPERTY
 @given(
     stack=STACKS,
-    used=st.dictionaries(st.sampled_from(OWNERS), st.integers(-1, 7)),
+    used=st.dictionaries(st.sampled_from(OWNERS), st.tuples(st.integers(0, 2), st.integers(-1, 7))),
     own=st.sampled_from(OWNERS),
 )
 def test_stack_newer_than_lists_unused_versions(
-    stack: Stack, used: dict[str, int], own: str
+    stack: Stack, used: dict[str, tuple[int, int]], own: str
 ) -> None:
-    expected = [s for s in stack if s.owner != own and s.stamp > used.get(s.owner, -1)]
+    def newer(s: Slot) -> bool:
+        e, k = used.get(s.owner, (-1, -1))
+        return s.epoch > e or (s.epoch == e and s.stamp > k)
+
+    expected = [s for s in stack if s.owner != own and newer(s)]
     assert stack.newer_than(used, own) == expected
 
 
 def test_stack_newer_than_examples() -> None:
     stack = stack_of({"a": 3, "b": 0, "c": 2, "d": 5})
     assert [s.owner for s in stack.newer_than({}, "a")] == ["b", "c", "d"]
-    assert [s.owner for s in stack.newer_than({"b": 0, "c": 1, "d": 5}, "a")] == ["c"]
-    assert stack.newer_than({"b": 0, "c": 2, "d": 5}, "a") == []
-    assert [s.owner for s in stack.newer_than({"b": 0, "c": 2, "d": 5}, "e")] == ["a"]
+    assert [s.owner for s in stack.newer_than({"b": (0, 0), "c": (0, 1), "d": (0, 5)}, "a")] == [
+        "c"
+    ]
+    assert stack.newer_than({"b": (0, 0), "c": (0, 2), "d": (0, 5)}, "a") == []
+    assert [s.owner for s in stack.newer_than({"b": (0, 0), "c": (0, 2), "d": (0, 5)}, "e")] == [
+        "a"
+    ]
 
 
 @PROPERTY
