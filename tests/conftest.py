@@ -7,10 +7,18 @@ and shutdown grace periods. Their assertions do not depend on wall-clock speed, 
 whose cores are all taken by the estimator tests a 12-step realtime relay can legitimately fall a
 step behind before the run ends. Everything else (maths, codecs, lock-step fleets, studies) is
 deterministic and runs in parallel.
+
+The session fixture ``netns_machine`` is the bootstrap of the network-namespace tests
+(tests/deploy/test_netns.py): on a root Debian machine it installs nftables with apt-get when
+`nft` is missing; elsewhere those tests skip with a one-line reason.
 """
 
 from __future__ import annotations
 
+import os
+import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -27,6 +35,7 @@ SERIAL_MODULES = {
     "deploy/test_launch_cmd.py",
     "deploy/test_launch_supervisor.py",
     "deploy/test_launch_table.py",
+    "deploy/test_netns.py",
     "deploy/test_replay.py",
 }
 # The modules whose tests take most of the suite's time (measured with --durations, slowest
@@ -55,3 +64,58 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
             item.add_marker(pytest.mark.serial)
     rank = {m: i for i, m in enumerate(LONGEST_FIRST)}
     items.sort(key=lambda item: rank.get(item.path.relative_to(HERE).as_posix(), len(rank)))
+
+
+# --------------------------------------------------------------------------- netns bootstrap
+
+SBIN_PATH = os.pathsep.join((os.environ.get("PATH", ""), "/usr/sbin", "/sbin"))
+APT_TIMEOUT_S = 600
+
+
+def _apt_install(package: str) -> str | None:
+    """``apt-get install -y package`` (after an ``apt-get update`` if the first try fails);
+    None when installed, else the last line apt-get wrote."""
+    env = {**os.environ, "DEBIAN_FRONTEND": "noninteractive"}
+    last = ""
+    for update in (False, True):
+        if update:
+            subprocess.run(
+                ["apt-get", "update"], capture_output=True, env=env, timeout=APT_TIMEOUT_S
+            )
+        done = subprocess.run(
+            ["apt-get", "install", "-y", "-o", "DPkg::Lock::Timeout=120", package],
+            capture_output=True,
+            text=True,
+            env=env,
+            timeout=APT_TIMEOUT_S,
+        )
+        if done.returncode == 0:
+            return None
+        last = (done.stderr.strip().splitlines() or ["no message"])[-1]
+    return last
+
+
+@pytest.fixture(scope="session")
+def netns_machine() -> None:
+    """What `semfleet chaos --net netns` needs, or a skip with a one-line reason: Linux, root,
+    iproute2's `ip`, network namespaces, and nftables' `nft` — which this bootstrap installs
+    with apt-get when it is missing on a root machine that has apt-get (Debian)."""
+    if not sys.platform.startswith("linux"):
+        pytest.skip("netns: network namespaces are Linux only")
+    if os.geteuid() != 0:
+        pytest.skip("netns: needs root (namespaces, a bridge, nftables rules)")
+    ip = shutil.which("ip", path=SBIN_PATH)
+    if ip is None:
+        pytest.skip("netns: no `ip` (iproute2)")
+    if shutil.which("nft", path=SBIN_PATH) is None:
+        if shutil.which("apt-get") is None:
+            pytest.skip("netns: no `nft` (nftables) and no apt-get to install it")
+        failure = _apt_install("nftables")
+        if failure is not None or shutil.which("nft", path=SBIN_PATH) is None:
+            pytest.skip(f"netns: apt-get install nftables failed: {failure}")
+    probe = f"semfleet-probe-{os.getpid()}"
+    made = subprocess.run([ip, "netns", "add", probe], capture_output=True, text=True)
+    subprocess.run([ip, "netns", "delete", probe], capture_output=True)
+    if made.returncode != 0:
+        reason = (made.stderr.strip().splitlines() or ["no message"])[0]
+        pytest.skip(f"netns: cannot create a network namespace: {reason}")

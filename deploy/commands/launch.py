@@ -17,6 +17,7 @@ from deploy.args import positive_int, seed, zenoh_endpoint
 from deploy.errors import UsageError
 from deploy.fleet import COMM_MODES
 from deploy.launch import LAUNCH_METHODS, Faults, LaunchPlan, launch
+from deploy.launch.netns import require as require_netns
 from deploy.launch.report import agents, counters_table, write_outputs
 from deploy.study import run_single
 from estimator.hybrid import BeliefConfig
@@ -147,17 +148,22 @@ def run_chaos(args: argparse.Namespace, console: Console) -> int:
         faults=faults,
         steps=_steps(scenario, args.steps),
         secure=args.secure,
+        net=args.net,
     )
+    if plan.net == "netns":
+        require_netns()
+    where = ", on real packets between network namespaces" if plan.net == "netns" else ""
     console.print(
         f"chaos on {scenario.name}, seed {plan.seed}: {faults.describe()} "
-        f"(realtime, period {plan.period:g} s)"
+        f"(realtime, period {plan.period:g} s{where})"
     )
     outcome = launch(plan, console=console)
     for e in outcome.events:
         console.print(f"- {e}")
     console.print(f"- garbage stacks published: {outcome.garbage_sent}")
     console.print(counters_table(outcome))
-    doc = write_outputs(plan, outcome, console, {"chaos": {"events": outcome.events}})
+    chaos = {"events": outcome.events, "net": plan.net, "dropped": outcome.dropped}
+    doc = write_outputs(plan, outcome, console, {"chaos": chaos})
     steps = plan.run_steps
     # Frames are pure functions of (seed, robot, step): the first steps of the scenario are the
     # same run, and the steps after them (48 of the paper's 60 for --steps 12) cost minutes.
@@ -251,4 +257,11 @@ def add_parser(sub: Any) -> None:
         "--garbage", type=float, default=0.0, metavar="RATE", help="garbage stacks per second"
     )
     c.add_argument("--out", default="out/chaos", help="folder for results, logs, journals")
+    c.add_argument(
+        "--net",
+        choices=("loopback", "netns"),
+        default="loopback",
+        help="netns (root): each agent in its own network namespace, loss, partitions and "
+        "range applied to real packets with nftables (docs/deploy.md)",
+    )
     c.set_defaults(run=run_chaos)

@@ -1,5 +1,5 @@
 """`semfleet launch` and `semfleet chaos`: one conductor and one agent process per robot, on
-loopback Zenoh.
+loopback Zenoh (or, for ``chaos --net netns``, on a bridge between network namespaces).
 
 - :mod:`deploy.launch.run` — the plan, the launcher that runs it and :func:`launch`;
 - :mod:`deploy.launch.supervisor` — ports, agent configs, agent processes, shutdown on signals;
@@ -7,6 +7,9 @@ loopback Zenoh.
   simulated links, the estimates that come back;
 - :mod:`deploy.launch.scoring` — those estimates against ground truth, in the study's metrics;
 - :mod:`deploy.launch.chaos` — faults (loss, partitions, kills, restarts) and garbage stacks;
+- :mod:`deploy.launch.netns` (with :mod:`deploy.launch.netns_records`) — ``--net netns``: one
+  network namespace per agent on a bridge, and its removal whatever ends the run;
+- :mod:`deploy.launch.packet_faults` — link verdicts as nftables rules on real packets;
 - :mod:`deploy.launch.table` — the live table.
 """
 

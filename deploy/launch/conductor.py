@@ -93,9 +93,12 @@ class Conductor:
         retry_period: float = 0.5,
         keep_estimates: bool = False,
         observe_stacks: bool = False,
+        on_links: Callable[[int, dict[str, tuple[str, ...]]], None] | None = None,
     ) -> None:
         """``keep_estimates``: keep every decoded estimate in ``collected.estimates``;
-        ``observe_stacks``: log (time, robot, {owner: stamp}) of every stack heard."""
+        ``observe_stacks``: log (time, robot, {owner: stamp}) of every stack heard;
+        ``on_links(k, verdict)``: a realtime run's links of step k, before they are published
+        (a netns run applies them to real packets)."""
         self.scenario = scenario
         self.frames = frames
         self.robots = list(robots)
@@ -105,6 +108,7 @@ class Conductor:
         self.retry_period = retry_period
         self.keep_estimates = keep_estimates
         self.observe_stacks = observe_stacks
+        self.on_links = on_links
         self.stacks = Inbox(100_000)
         self.estimates = Inbox(100_000)
         self.control = Inbox(10_000)
@@ -141,8 +145,10 @@ class Conductor:
     def _publish_links(self, k: int) -> None:
         """Realtime simulations: who hears whom at step k, decided here on the true poses and
         obeyed only by agents configured as simulated (``simulation = true``)."""
-        links = StepOrder(k, links_at(self.links, self.frames, self.robots, k))
-        self.transport.publish(self.keys.sim_links(), encode_control(links))
+        verdict = links_at(self.links, self.frames, self.robots, k)
+        if self.on_links is not None:
+            self.on_links(k, verdict)
+        self.transport.publish(self.keys.sim_links(), encode_control(StepOrder(k, verdict)))
 
     def pump(self) -> None:
         """Handle everything that arrived: liveliness, frame requests, estimates."""

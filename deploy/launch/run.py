@@ -8,6 +8,11 @@ The launcher allocates loopback ports, writes one agent config per robot, starts
 success, an agent that died unplanned, SIGTERM, SIGHUP, Ctrl-C — every agent is stopped before
 :meth:`Launcher.run` returns or raises.
 
+With ``net = "netns"`` every agent runs in its own network namespace on a bridge
+(:mod:`deploy.launch.netns`), the agents are not simulated (``simulation = false``: they never
+see a link verdict) and the conductor turns each step's verdict into nftables rules on real
+packets (:mod:`deploy.launch.packet_faults`); the network is removed in the same ``finally``.
+
 Over 300 lines for a reason: the plan, the files the launcher writes for every agent (plain or as
 a throwaway secure fleet) and the run that uses them share the same ports and paths; the agents,
 the conductor and the chaos already live in their own modules.
@@ -35,6 +40,8 @@ from deploy.fleet_init import FleetSpec, init_fleet
 from deploy.launch.chaos import KILL, Faults, Garbage
 from deploy.launch.conductor import Collected, Conductor, ConductorError
 from deploy.launch.errors import LaunchError, PlanError
+from deploy.launch.netns import Network
+from deploy.launch.packet_faults import describe_cuts
 from deploy.launch.supervisor import (
     AgentProcess,
     SignalStop,
@@ -51,6 +58,7 @@ from sim.sensors import Simulator
 
 LAUNCH_METHODS = ("local", "distributed")
 MODES = ("lockstep", "realtime")
+NETS = ("loopback", "netns")
 CONDUCTOR = "conductor"  # the operator identity of a secure launch's conductor
 STOP_SETTLE_S = 0.2  # after ctl/stop, before SIGTERM: agents that heard it exit on their own
 
@@ -91,6 +99,9 @@ class LaunchPlan:
     conductor_listen: str | None = None
     conductor_advertise: str | None = None
     wait_agents: float = 90.0
+    # "loopback": every process on 127.0.0.1, links simulated (sim/links); "netns": one network
+    # namespace per agent, loss, partitions and range applied to real packets (root only).
+    net: str = "loopback"
 
     def __post_init__(self) -> None:
         s = self.scenario
@@ -116,6 +127,15 @@ class LaunchPlan:
                 raise PlanError("conductor only: needs the endpoint to listen on and to advertise")
         if not 1.0 <= self.wait_agents <= 86_400:
             raise PlanError(f"wait for agents {self.wait_agents}: must be in 1..86400 s")
+        if self.net not in NETS:
+            raise PlanError(f"net {self.net!r}: expected one of {', '.join(NETS)}")
+        if self.net == "netns":
+            # Lock-step orders carry the links themselves; a conductor-only or Zenoh-topology
+            # launch has its own idea of who dials whom.
+            if self.mode != "realtime":
+                raise PlanError("--net netns: realtime runs only (the agents obey real packets)")
+            if self.conductor_only or self.zenoh_neighbours is not None:
+                raise PlanError("--net netns: not with --conductor-only or a Zenoh topology")
 
     @property
     def run_steps(self) -> int:
@@ -135,6 +155,8 @@ class LaunchOutcome:
     agents: dict[str, AgentProcess]
     events: list[str]
     garbage_sent: int
+    # A netns run: packets each robot's namespace dropped, {robot: {"lost": n, "cut": n}}.
+    dropped: dict[str, dict[str, int]] = field(default_factory=dict)
 
 
 class Launcher:
@@ -151,9 +173,13 @@ class Launcher:
         self._garbage_task: asyncio.Task[None] | None = None
         self.conductor: Conductor | None = None  # once the run has begun
         self._fleet: dict[str, Path] | None = None  # a secure launch's member folders
+        self.network: Network | None = None  # a netns run's, while it exists
+        # Per packet in a netns run (nftables), per stack and step in a simulated one.
+        drop = 0.0 if plan.net == "netns" else plan.faults.drop
         self.links: LinkModel = link_model_for(
-            plan.scenario, plan.comm, plan.faults.drop, plan.seed, plan.faults.partitions
+            plan.scenario, plan.comm, drop, plan.seed, plan.faults.partitions
         )
+        self.dropped: dict[str, dict[str, int]] = {}  # a netns run's nftables counters
 
     def _prepare(self) -> int:
         """Ports, the robot model and one config per agent under ``out/agents``; returns the
@@ -181,17 +207,23 @@ class Launcher:
                 zenoh = {"config_file": str(folder / "zenoh.json5")}
                 write_agent_config(cfg, self._agent_section(r), zenoh, security)
             log = plan.out / "logs" / f"{r}.log"
-            self.supervisor.add(AgentProcess(r, cfg, log, agent_ports[r]))
+            prefix = () if self.network is None else self.network.exec_prefix(r)
+            self.supervisor.add(AgentProcess(r, cfg, log, agent_ports[r], prefix=prefix))
         return conductor_port
 
     def _secure_fleet(self, ports: Mapping[str, int], conductor_port: int) -> dict[str, Path]:
         """The fleet's files under ``out/fleet`` (made anew for every launch): each agent listens
         on its port with TLS and dials the conductor and the robots before it (or, with
-        ``zenoh_neighbours``, its neighbours before it; the conductor then dials every agent)."""
+        ``zenoh_neighbours``, its neighbours before it; the conductor then dials every agent).
+        In a netns run on the bridge's addresses, which the certificates name."""
         plan = self.plan
         robots = plan.robots
-        listen = {r: f"tls/127.0.0.1:{ports[r]}" for r in robots}
-        conductor = f"tls/127.0.0.1:{conductor_port}"
+        host, conductor_host = {r: "127.0.0.1" for r in robots}, "127.0.0.1"
+        if self.network is not None:
+            host, conductor_host = self.network.layout.addresses, self.network.layout.host
+        listen = {r: f"tls/{host[r]}:{ports[r]}" for r in robots}
+        conductor = f"tls/{conductor_host}:{conductor_port}"
+        hosts = tuple(dict.fromkeys(("localhost", "127.0.0.1", conductor_host)))
         neighbours = plan.zenoh_neighbours
         if neighbours is None:
             connect = {
@@ -202,7 +234,7 @@ class Launcher:
         starts = {r: _pose(plan.scenario.robot(r).start) for r in robots}
         model = dump_robot_model(plan.scenario.robot_model())
         spec = FleetSpec(plan.fleet, tuple(robots), CONDUCTOR, listen, connect, starts, model)
-        spec = dataclasses.replace(spec, simulator=True)
+        spec = dataclasses.replace(spec, simulator=True, hosts=hosts)
         shutil.rmtree(plan.out / "fleet", ignore_errors=True)
         return init_fleet(spec, plan.out / "fleet")
 
@@ -219,14 +251,25 @@ class Launcher:
             "journal": f"../journal/{robot}.log",
             "publish_local": plan.publish_local,
             # Loss, partitions and range are the simulator's: it publishes who hears whom
-            # (sim/links), which only a simulated agent obeys.
-            "simulation": True,
+            # (sim/links), which only a simulated agent obeys; in a netns run they happen to
+            # the agents' packets instead.
+            "simulation": self.network is None,
         }
 
     def _zenoh_section(
         self, robot: str, ports: Mapping[str, int], conductor_port: int
     ) -> dict[str, Any]:
         neighbours = self.plan.zenoh_neighbours
+        if self.network is not None:
+            # Each agent listens on its namespace's address and dials the conductor and the
+            # agents before it: the side that dials re-dials after a cut heals. Plain TCP on a
+            # bridge no other host can reach.
+            lay = self.network.layout
+            listen = [f"tcp/{lay.address(robot)}:{ports[robot]}"]
+            before = self.plan.robots[: self.plan.robots.index(robot)]
+            dial = [f"tcp/{lay.host}:{conductor_port}"]
+            dial += [f"tcp/{lay.address(p)}:{ports[p]}" for p in before]
+            return {"listen": listen, "connect": dial, "gossip": True, "insecure": True}
         if self.plan.conductor_only:
             # An agent on another machine dials the conductor; gossip scouting links it to the
             # other agents the conductor knows of. Off loopback this lab harness runs without TLS.
@@ -255,6 +298,8 @@ class Launcher:
         listen = (loopback_endpoint(conductor_port),)
         if plan.conductor_listen is not None:
             listen = (plan.conductor_listen,)
+        if self.network is not None:
+            listen = (f"tcp/{self.network.layout.host}:{conductor_port}",)
         settings = ZenohSettings(listen=listen, connect=dial, gossip=neighbours is None)
         if self._fleet is not None:
             tls = tuple(e.replace("tcp/", "tls/", 1) for e in (*listen, *dial))
@@ -270,7 +315,15 @@ class Launcher:
             self.links,
             keep_estimates=plan.keep_estimates,
             observe_stacks=plan.observe_stacks,
+            on_links=None if self.network is None else self._enforce,
         )
+
+    def _enforce(self, k: int, verdict: Mapping[str, tuple[str, ...]]) -> None:
+        """A netns run: step k's verdict as nftables rules on the agents' packets."""
+        assert self.network is not None
+        if self.network.enforce(verdict, self.plan.faults.drop):
+            cuts = describe_cuts(verdict, self.plan.robots)
+            self.events.append(f"step {k}: nftables rules: cut {cuts}")
 
     # -- the run -----------------------------------------------------------------------------
 
@@ -279,10 +332,12 @@ class Launcher:
         Raises :class:`LaunchError` if the run fails, :class:`~deploy.launch.Stopped` (or
         ``KeyboardInterrupt`` for SIGINT) if a signal stopped it — each after every agent was
         stopped."""
-        conductor = self.conductor = self._conductor(self._prepare())
-        start = time.perf_counter()
         with SignalStop() as signals:
             try:
+                if self.plan.net == "netns":  # recorded first, removed in the finally below
+                    self.network = Network.create(self.plan.robots)
+                conductor = self.conductor = self._conductor(self._prepare())
+                start = time.perf_counter()
                 await self._drive(conductor, on_step)
             except ConductorError as exc:
                 raise LaunchError(str(exc)) from None
@@ -291,9 +346,14 @@ class Launcher:
                     raise
             finally:
                 signals.hold()
-                await self._shutdown(conductor, signals)
+                try:
+                    if self.conductor is not None:
+                        await self._shutdown(self.conductor, signals)
+                finally:
+                    self._remove_network()
             signals.raise_if_stopped()
-        return self._outcome(conductor, time.perf_counter() - start)
+        assert self.conductor is not None
+        return self._outcome(self.conductor, time.perf_counter() - start)
 
     async def _drive(self, conductor: Conductor, on_step: OnStep | None) -> None:
         plan = self.plan
@@ -333,11 +393,28 @@ class Launcher:
     async def _shutdown(self, conductor: Conductor, signals: SignalStop) -> None:
         if self._garbage_task is not None:
             self._garbage_task.cancel()
+        if self.network is not None:  # the run is over: sessions close at once, journals too
+            self.network.heal()
         if signals.received is not None:
             conductor.stop_agents(f"launcher stopped by {signals.received.name}")
         await asyncio.sleep(STOP_SETTLE_S)
         self.supervisor.stop_all()
         await conductor.transport.close()
+
+    def _remove_network(self) -> None:
+        """After every agent stopped: the nftables counters, then the network itself."""
+        network, self.network = self.network, None
+        if network is None:
+            return
+        try:
+            self.dropped = network.dropped()
+        finally:
+            left = network.remove()
+        lost = sum(d["lost"] for d in self.dropped.values())
+        cut = sum(d["cut"] for d in self.dropped.values())
+        self.events.append(f"nftables dropped {lost} packets at random and {cut} on cut links")
+        if left:
+            raise LaunchError(f"netns run {network.layout.run}: could not remove {', '.join(left)}")
 
     def _outcome(self, conductor: Conductor, wall: float) -> LaunchOutcome:
         c = conductor.collected
@@ -351,7 +428,9 @@ class Launcher:
             calibration={m: c.calibration[m][:, :steps] for m in LAUNCH_METHODS},
             robots=tuple(self.plan.robots),  # the conductor's robot axis
         )
-        return LaunchOutcome(result, c, wall, self.agents, self.events, self.garbage.sent)
+        return LaunchOutcome(
+            result, c, wall, self.agents, self.events, self.garbage.sent, self.dropped
+        )
 
 
 def launch(plan: LaunchPlan, console: Console | None = None) -> LaunchOutcome:

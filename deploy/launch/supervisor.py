@@ -136,6 +136,9 @@ class AgentProcess:
     proc: subprocess.Popen[bytes] | None = None
     expected_exit: bool = False
     starts: int = 0
+    # A command the agent runs under, e.g. ``ip netns exec NS``: one that execs the agent in
+    # place (same pid, so signals and the parent-death signal still reach the agent itself).
+    prefix: tuple[str, ...] = ()
 
     def running(self) -> bool:
         return self.proc is not None and self.proc.poll() is None
@@ -158,7 +161,7 @@ class Supervisor:
         if a.running():  # a second agent of one robot would find the journal taken and exit
             raise LaunchError(f"agent {robot} is already running (pid {a.proc.pid})")  # type: ignore[union-attr]
         a.log.parent.mkdir(parents=True, exist_ok=True)
-        cmd = [sys.executable, "-m", "deploy.cli", "agent", "--robot", robot]
+        cmd = [*a.prefix, sys.executable, "-m", "deploy.cli", "agent", "--robot", robot]
         cmd += ["--config", str(a.config.absolute())]  # whoever looks knows which run it is
         with open(a.log, "ab") as log:
             a.proc = subprocess.Popen(
