@@ -363,19 +363,22 @@ def test_interrupted_netns_chaos_leaves_nothing_behind(
     assert _owned_by(proc.pid) == []
 
 
-def test_sweep_removes_what_a_sigkilled_netns_chaos_left(
+def test_the_next_netns_run_sweeps_what_a_sigkilled_one_left(
     tmp_path: Path, clean_machine: None
 ) -> None:
     """Nothing runs in a SIGKILLed launcher: its agents die of their parent-death signal, its
-    network stays until the next netns run sweeps it (here: the sweep itself)."""
+    network stays until the next netns run, which sweeps it before it creates its own."""
     proc = _start_chaos(tmp_path)
     (record,) = _owned_by(proc.pid)
     os.kill(proc.pid, signal.SIGKILL)
     proc.communicate(timeout=30)
     assert leftovers(record, require().ip)  # what SIGKILL leaves
-    assert record["run"] in sweep(require().ip)
+    network = Network.create(("r1",))
+    assert network.remove() == []
+    assert record["run"] in network.swept
     assert leftovers(record, require().ip) == []
     assert _owned_by(proc.pid) == []
+    assert sweep(require().ip) == []  # nothing else was left
 
 
 def test_network_create_that_fails_half_way_removes_what_it_made(
