@@ -4,6 +4,7 @@ scipy). Pure functions of arrays."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Mapping
 
@@ -154,6 +155,20 @@ def mixture_position_nees(weights: Array, pose: Array, cov: Array, truth_xy: Arr
     return nees(truth_xy - mean, total)
 
 
+def with_truth(snap: BeliefSnapshot, true_objects: Mapping[int, object]) -> BeliefSnapshot:
+    """``snap`` restricted to the objects that have a ground truth (itself if all of them do)."""
+    keep = [i for i, j in enumerate(snap.object_ids) if j in true_objects]
+    if len(keep) == len(snap.object_ids):
+        return snap
+    return dataclasses.replace(
+        snap,
+        object_ids=tuple(snap.object_ids[i] for i in keep),
+        classes=snap.classes[:, keep],
+        object_pose=snap.object_pose[:, keep],
+        object_cov=snap.object_cov[:, keep],
+    )
+
+
 def evaluate(
     snap: BeliefSnapshot,
     num_classes: int,
@@ -163,8 +178,11 @@ def evaluate(
     """Every metric of :data:`METRICS` for one robot of one belief at one step.
 
     ``true_pose`` (3,) is the robot's true pose; ``true_objects`` maps object id → (pose (3,),
-    class index). Object metrics are NaN while the belief knows no object.
+    class index). Object metrics are NaN while the belief knows no object. Objects the belief
+    holds but the world does not (a phantom: a forged slot or frame) have no error to measure and
+    are left out of the object metrics (:func:`with_truth`).
     """
+    snap = with_truth(snap, true_objects)
     w = snap.weights
     top = int(np.argmax(w))
     out: dict[str, float] = {"hypotheses": float(len(w))}
@@ -206,6 +224,7 @@ def evaluate_calibration(
 ) -> Array:
     """:func:`calibration_stats` (3, :data:`ECE_BINS`) of one robot's belief at one step, the
     poolable counterpart of ``evaluate(...)["class_ece"]``; zeros while no object is known."""
+    snap = with_truth(snap, true_objects)
     true_classes = np.array([true_objects[j][1] for j in snap.object_ids], dtype=np.int64)
     prob = class_marginals(snap.weights, snap.classes, num_classes)
     return calibration_stats(prob, true_classes)

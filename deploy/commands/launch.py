@@ -17,6 +17,8 @@ from deploy.args import positive_int, seed, zenoh_endpoint
 from deploy.errors import UsageError
 from deploy.fleet import COMM_MODES
 from deploy.launch import LAUNCH_METHODS, Faults, LaunchPlan, launch
+from deploy.launch.attack_report import attack_list, run_attacks_command
+from deploy.launch.attacks import ATTACKS
 from deploy.launch.netns import require as require_netns
 from deploy.launch.report import agents, counters_table, write_outputs
 from deploy.study import run_single
@@ -131,6 +133,8 @@ def run_launch(args: argparse.Namespace, console: Console) -> int:
 
 
 def run_chaos(args: argparse.Namespace, console: Console) -> int:
+    if args.attack is not None:
+        return run_attacks_command(args, console)
     scenario = load_scenario(args.scenario)
     kills, restarts = tuple(args.kill), tuple(args.restart)
     for r, _ in (*kills, *restarts):
@@ -255,6 +259,13 @@ def add_parser(sub: Any) -> None:
     c.add_argument("--restart", type=robot_at, action="append", default=[], metavar="ID@STEP")
     c.add_argument(
         "--garbage", type=float, default=0.0, metavar="RATE", help="garbage stacks per second"
+    )
+    c.add_argument(
+        "--attack",
+        type=attack_list,
+        default=None,
+        metavar="LIST",
+        help=f"attack the fleet instead: {','.join(ATTACKS)} or all (docs/deploy.md)",
     )
     c.add_argument("--out", default="out/chaos", help="folder for results, logs, journals")
     c.add_argument(

@@ -461,3 +461,26 @@ def test_evaluate_calibration_no_objects_is_zero() -> None:
         np.zeros((2, 0, 3, 3)),
     )
     assert_close(evaluate_calibration(empty, 2, TRUE_OBJECTS), np.zeros((3, ECE_BINS)))
+
+
+def test_an_object_the_world_does_not_have_is_left_out_of_the_object_metrics() -> None:
+    """A phantom (a forged slot or frame put it in the belief) has no truth to measure it by:
+    the metrics are those of the belief without it, never a crash of the scorer."""
+    snap = _snapshot()
+    truth = {4: TRUE_OBJECTS[4]}  # object 9 is a phantom here
+    alone = BeliefSnapshot(
+        object_ids=(4,),
+        weights=snap.weights,
+        classes=snap.classes[:, :1],
+        robot_pose=snap.robot_pose,
+        robot_cov=snap.robot_cov,
+        object_pose=snap.object_pose[:, :1],
+        object_cov=snap.object_cov[:, :1],
+    )
+    got = evaluate(snap, 2, TRUE_POSE, truth)
+    want = evaluate(alone, 2, TRUE_POSE, truth)
+    assert got.keys() == want.keys()
+    for name in got:
+        assert_close(got[name], want[name], what=name)
+    assert got["object_error"] != evaluate(snap, 2, TRUE_POSE, TRUE_OBJECTS)["object_error"]
+    assert_close(evaluate_calibration(snap, 2, truth), evaluate_calibration(alone, 2, truth))

@@ -1,0 +1,105 @@
+"""Adversarial chaos (issue 13, item 6): every attack achieves nothing on a secure fleet — estimates
+equal to the clean run's, forgeries that reach an agent counted — and the same attacks on an
+insecure fleet show what each would have done, so a regression either way fails here. Real agent
+processes, real Zenoh over mutual TLS on loopback, real attacker sessions.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from deploy.launch.attack_run import AttackReport, run_attacks
+from deploy.launch.attacks import ATTACKS, parse_attacks, roles
+from deploy.launch.run import LaunchPlan
+from sim.loader import load_scenario
+
+PAPER = load_scenario("paper")
+STEPS = 8  # r2 and r3 hear each other from step 2 on: relayed forgeries can reach someone
+SEED = 1
+
+
+def _plan(out: Path, secure: bool) -> LaunchPlan:
+    robots = list(PAPER.robot_ids)
+    return LaunchPlan(PAPER, SEED, robots, out, mode="lockstep", steps=STEPS, secure=secure)
+
+
+def test_attack_names_and_roles() -> None:
+    assert parse_attacks("all") == ATTACKS
+    assert parse_attacks("garbage,stamp") == ("stamp", "garbage")  # in ATTACKS order
+    with pytest.raises(ValueError, match="unknown attacks \\['flood'\\]"):
+        parse_attacks("stamp,flood")
+    # The victim is the robot the others hear most, the accomplice the next one.
+    links = [{"a": ("b",), "b": ("c",), "c": ("b",)}, {"a": ("c", "b")}]
+    assert roles(links, ["a", "b", "c"]) == ("b", "c")
+    assert roles([], ["a", "b", "c"]) == ("a", "b")
+
+
+@pytest.mark.slow
+def test_every_attack_achieves_nothing_on_a_secure_fleet(tmp_path: Path) -> None:
+    report = run_attacks(_plan(tmp_path, secure=True), ATTACKS)
+    assert report.compared == len(PAPER.robot_ids) * STEPS and not report.failure
+    assert report.differing == [] and report.stopped_early == []
+    assert report.achieved_nothing(), report.achieved
+    uncertified, member = report.attackers
+    assert "uncertified" in uncertified.identity.label and member.identity.robot == "r3"
+    # The uncertified session never reached an agent; the member's did, and sent every attack.
+    assert uncertified.seen_alive == set() and member.seen_alive == set(PAPER.robot_ids)
+    assert all(member.sent[a] > 0 for a in ATTACKS), member.sent
+    # What reached the agents through the member's own keys was refused and counted.
+    total = {k: sum(c.get(k, 0) for c in report.counters.values()) for k in report.counters["r1"]}
+    assert total["stacks_badly_signed"] > 0 and total["stacks_invalid"] > 0
+    assert total["own_superseded"] == total["slots_implausible"] == 0
+
+
+def _insecure(tmp_path: Path, attack: str) -> AttackReport:
+    return run_attacks(_plan(tmp_path / attack, secure=False), (attack,))
+
+
+@pytest.mark.slow
+def test_the_same_attacks_on_an_insecure_fleet_show_what_each_would_have_done(
+    tmp_path: Path,
+) -> None:
+    got = {a: _insecure(tmp_path, a) for a in ATTACKS}
+    for attack, report in got.items():
+        (session,) = report.attackers
+        assert session.seen_alive == set(PAPER.robot_ids), attack
+        (achieved,) = report.achieved
+        print(attack, achieved.effects, achieved.counted, len(report.differing))
+    victim = "r2"  # the robot the others hear most in these steps
+    effects = {a: " ".join(r.achieved[0].effects) for a, r in got.items()}
+    assert "forged object in" in effects["impersonate"] and got["impersonate"].differing
+    assert f"{victim} had to move to a new epoch" in effects["stamp"]
+    assert got["stamp"].counters[victim]["own_superseded"] >= 1
+    assert "stopped r1, r2, r3" in effects["stop"] and got["stop"].failure
+    assert f"forged object in {victim} D, {victim} L" in effects["frames"]
+    # Garbage does nothing anywhere: the fail-soft core counts and drops it.
+    assert effects["garbage"] == "" and got["garbage"].identical
+    assert got["garbage"].achieved[0].counted.startswith("stacks_invalid")
+
+
+@pytest.mark.slow
+def test_chaos_attack_command_prints_the_table_and_refuses_other_faults(tmp_path: Path) -> None:
+    cmd = [sys.executable, "-m", "deploy.cli", "chaos", "--scenario", "paper", "--steps", "6"]
+    run = subprocess.run(
+        [*cmd, "--secure", "--attack", "stop", "--out", str(tmp_path)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert run.returncode == 0, run.stderr
+    assert "uncertified (the fleet's CA, no certificate): saw 0 of 3" in run.stdout
+    row = next(line for line in run.stdout.splitlines() if line.split()[:2] == ["secure", "stop"])
+    assert row.split()[2:] == ["nothing", "—", "18/18"]
+    bad = subprocess.run(
+        [*cmd, "--attack", "stop", "--drop", "0.2"], capture_output=True, text=True, timeout=60
+    )
+    assert bad.returncode == 2
+    assert (
+        bad.stderr.strip()
+        .splitlines()[-1]
+        .endswith("--attack: not with --drop (attacks run on a clean fleet)")
+    )
