@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import Any
 
@@ -112,7 +113,7 @@ def dump_scenario(s: Scenario) -> str:
         f"description = {_q(s.description)}",
         f"steps = {s.steps}",
         "",
-        *model_tables(s.robot_model()),
+        *model_tables(dataclasses.replace(s.robot_model(), classifier=s.classifier), s),
         "",
     ]
     comm = s.communication
@@ -137,21 +138,30 @@ def dump_scenario(s: Scenario) -> str:
     return "\n".join(out) + "\n"
 
 
-def model_tables(model: RobotModel) -> list[str]:
+def model_tables(model: RobotModel, scenario: Scenario | None = None) -> list[str]:
     """The lines of the ``[classes]``, ``[classifier]``, ``[noise]`` and ``[sensor]`` tables,
-    written alike in a scenario and a robot model file."""
-    c = model.classifier
+    written alike in a scenario and a robot model file; a ``scenario``'s
+    ``[classifier.estimator]`` too."""
     out = ["[classes]", f"count = {model.num_classes}", f"prior = {_nums(model.class_prior)}"]
-    out += ["", "[classifier]", f"model = {_q(c.model)}"]
+    out += ["", "[classifier]", *_classifier_lines(model.classifier)]
+    if scenario is not None and scenario.estimator_classifier is not None:
+        out += ["", "[classifier.estimator]", *_classifier_lines(scenario.estimator_classifier)]
+    out += ["", "[noise]", f"odometry_var = {_noise(model.odometry_noise)}"]
+    out += [f"geometric_var = {_noise(model.geometric_noise)}"]
+    return [*out, "", "[sensor]", *_sensor_lines(model.sensor)]
+
+
+def _classifier_lines(c: ClassifierSpec) -> list[str]:
+    out = [f"model = {_q(c.model)}"]
     if c.model == "aliased":
         out += [
             f"alias = [{', '.join(str(a + 1) for a in c.alias)}]",
             f"best_view_deg = {_nums(c.best_view_deg)}",
             f"noise_std = {_num(c.noise_std)}",
         ]
-    out += ["", "[noise]", f"odometry_var = {_noise(model.odometry_noise)}"]
-    out += [f"geometric_var = {_noise(model.geometric_noise)}"]
-    return [*out, "", "[sensor]", *_sensor_lines(model.sensor)]
+    if c.model == "learned":
+        out.append(f"file = {_q(c.file)}")  # absolute: valid wherever the text is written
+    return out
 
 
 def _value(value: Any) -> str:

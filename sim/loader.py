@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from estimator.models import ROBOT_ID, ROBOT_ID_RULE, GaussianNoise
+from sim.learned_file import LearnedFileError, load_learned
 from sim.scenario import (
     FORMAT_VERSION,
     ClassifierSpec,
@@ -36,7 +37,7 @@ from sim.scenario import (
 
 _ID_PATTERN = ROBOT_ID
 COMM_MODES = ("schedule", "range", "both")
-_CLASSIFIER_MODELS = ("paper", "aliased")
+_CRAFTED_MODELS = ("paper", "aliased")  # "learned" too: its file comes from `classifier fit`
 _PRIOR_TOLERANCE = 1e-6
 _MAX_INT = 2**32 - 1  # ids, steps and counts; ids travel as unsigned 32-bit integers on the wire
 _MAX_FLOAT_INT = 2**53
@@ -100,7 +101,9 @@ def load_scenario(
         text_source, *inline = text_source.split(":")
         names = inline + names
     label, text = read_source(text_source)
-    return parse_scenario(text, label, names, overrides or {})
+    path = Path(label)
+    folder = path.parent if path.is_file() else None  # a bundled scenario has no folder
+    return parse_scenario(text, label, names, overrides or {}, folder)
 
 
 def parse_scenario(
@@ -108,10 +111,12 @@ def parse_scenario(
     label: str = "<string>",
     variants: Iterable[str] = (),
     overrides: Mapping[str, Any] | None = None,
+    folder: Path | None = None,
 ) -> Scenario:
     """Validate TOML text into a :class:`Scenario`; ``label`` names the file in errors.
 
-    Every variant defined in the file is validated, whether applied or not.
+    Every variant defined in the file is validated, whether applied or not. Relative file
+    paths in it (``classifier.file``) are relative to ``folder``, by default the current one.
     """
     raw = parse_toml(text, label)
     top = FieldReader(label, raw, "")
@@ -131,14 +136,15 @@ def parse_scenario(
     for key, value in (overrides or {}).items():
         _apply_override(raw, label, key, value, "override")
         origins[key] = "override"
-    scenario = _build_attributed(raw, label, origins)
+    scenario = _build_attributed(raw, label, origins, folder)
     for v in defined:
         if v.name in applied:
             continue
         trial = copy.deepcopy(raw)
         for key, value in v.settings:
             _apply_override(trial, label, key, value, f"variant {v.name}")
-        _build_attributed(trial, label, {key: f"variant {v.name}" for key, _ in v.settings})
+        blame = {key: f"variant {v.name}" for key, _ in v.settings}
+        _build_attributed(trial, label, blame, folder)
     return _replace_variants(scenario, defined, tuple(applied))
 
 
@@ -148,10 +154,12 @@ def _replace_variants(
     return dataclasses.replace(s, variants=defined, applied_variants=applied)
 
 
-def _build_attributed(raw: dict[str, Any], label: str, origins: Mapping[str, str]) -> Scenario:
+def _build_attributed(
+    raw: dict[str, Any], label: str, origins: Mapping[str, str], folder: Path | None
+) -> Scenario:
     """Build, and blame a variant or override for an invalid value it set."""
     try:
-        return _build(raw, label)
+        return _build(raw, label, folder)
     except ScenarioError as exc:
         field = exc.field or ""
         for key, origin in origins.items():
@@ -313,7 +321,7 @@ def _type_name(value: Any) -> str:
     }.get(type(value), type(value).__name__)
 
 
-def _build(raw: dict[str, Any], label: str) -> Scenario:
+def _build(raw: dict[str, Any], label: str, folder: Path | None) -> Scenario:
     top = FieldReader(label, raw, "")
     check_format(top)
     top.check_keys(
@@ -323,7 +331,8 @@ def _build(raw: dict[str, Any], label: str) -> Scenario:
     name = top.string("name")
     description = top.string("description") if top.has("description") else ""
     steps = top.integer("steps", minimum=1, maximum=_MAX_STEPS)
-    model = robot_model_tables(top, "scenario")
+    model = robot_model_tables(top, "scenario", folder)
+    estimator = _estimator_classifier(top.table("classifier"), model.num_classes, folder)
     robots = _robots(top, steps, model.sensor)
     objects = _objects(top, model.num_classes)
     robot_ids = [r.id for r in robots]
@@ -342,14 +351,16 @@ def _build(raw: dict[str, Any], label: str) -> Scenario:
         classifier=model.classifier,
         sensor=model.sensor,
         communication=communication,
+        estimator_classifier=estimator,
     )
 
 
-def robot_model_tables(top: FieldReader, owner: str) -> RobotModel:
+def robot_model_tables(top: FieldReader, owner: str, folder: Path | None = None) -> RobotModel:
     """The tables a scenario and a robot model file share (``MODEL_TABLES``), in this order;
-    ``owner`` ("scenario", "model") names the whole file in errors."""
+    ``owner`` ("scenario", "model") names the whole file in errors; relative file paths are
+    relative to ``folder`` (None: the current folder)."""
     num_classes, prior = _classes(top.table("classes"))
-    classifier = _classifier(top.table("classifier"), num_classes, owner)
+    classifier = _classifier(top.table("classifier"), num_classes, owner, folder)
     odometry, geometric = _noise(top.table("noise"))
     sensor = _sensor(top.table("sensor"))
     return RobotModel(num_classes, prior, classifier, odometry, geometric, sensor)
@@ -366,10 +377,25 @@ def _classes(f: FieldReader) -> tuple[int, tuple[float, ...]]:
     return m, tuple(prior)
 
 
-def _classifier(f: FieldReader, m: int, owner: str) -> ClassifierSpec:
+def _classifier(
+    f: FieldReader, m: int, owner: str, folder: Path | None, nested: bool = False
+) -> ClassifierSpec:
     model = f.string("model")
-    if model not in _CLASSIFIER_MODELS:
-        raise f.fail("model", f"unknown model {model!r} (known: {', '.join(_CLASSIFIER_MODELS)})")
+    if model not in (*_CRAFTED_MODELS, "learned"):
+        known = ", ".join(_CRAFTED_MODELS)
+        raise f.fail(
+            "model", f"unknown model {model!r} (known: {known}), or 'learned' with a model file"
+        )
+    if f.has("estimator"):
+        if owner != "scenario" or nested:
+            where = "a scenario's [classifier]" if nested else "a scenario"
+            raise f.fail("estimator", f"only in {where}: here [classifier] is the robot's model")
+        # [classifier.estimator] is read by _estimator_classifier; the keys of the model
+        # itself are checked (and listed in errors) exactly as in a robot model file.
+        f = FieldReader(f.label, {k: v for k, v in f.raw.items() if k != "estimator"}, f.path)
+    if model == "learned":
+        f.check_keys({"model", "file"})
+        return _learned(f, m, owner, folder)
     if model == "paper":
         f.check_keys({"model"})
         if m != 2:
@@ -390,6 +416,31 @@ def _classifier(f: FieldReader, m: int, owner: str) -> ClassifierSpec:
     best = f.vector("best_view_deg", m)
     noise_std = f.number("noise_std", positive=True)
     return ClassifierSpec("aliased", tuple(alias), tuple(best), noise_std)
+
+
+def _estimator_classifier(f: FieldReader, m: int, folder: Path | None) -> ClassifierSpec | None:
+    if not f.has("estimator"):
+        return None
+    return _classifier(f.table("estimator"), m, "scenario", folder, nested=True)
+
+
+def _learned(f: FieldReader, m: int, owner: str, folder: Path | None) -> ClassifierSpec:
+    """A learned model file, read and validated now: a path relative to ``folder``, kept
+    absolute (a robot model written elsewhere still names the same file)."""
+    name = f.string("file")
+    if not name:
+        raise f.fail("file", "must name a learned model file (.npz)")
+    path = Path(name).expanduser()
+    path = (path if path.is_absolute() else (folder or Path.cwd()) / path).resolve()
+    try:
+        learned, digest = load_learned(path)
+    except LearnedFileError as exc:
+        raise f.fail("file", str(exc)) from None
+    if learned.num_classes != m:
+        raise f.fail(
+            "file", f"{path}: the model has {learned.num_classes} classes, the {owner} {m}"
+        )
+    return ClassifierSpec("learned", file=str(path), digest=digest)
 
 
 def _noise(f: FieldReader) -> tuple[GaussianNoise, GaussianNoise]:

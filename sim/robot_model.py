@@ -27,15 +27,17 @@ __all__ = ["RobotModel", "dump_robot_model", "load_robot_model", "parse_robot_mo
 def load_robot_model(path: str | Path) -> RobotModel:
     """Read and validate the robot model file ``path``."""
     path = Path(path)
-    return parse_robot_model(read_file(path, "robot model file"), str(path))
+    return parse_robot_model(read_file(path, "robot model file"), str(path), path.parent)
 
 
-def parse_robot_model(text: str, label: str = "<string>") -> RobotModel:
-    """Validate TOML text into a :class:`RobotModel`; ``label`` names the file in errors."""
+def parse_robot_model(text: str, label: str = "<string>", folder: Path | None = None) -> RobotModel:
+    """Validate TOML text into a :class:`RobotModel`; ``label`` names the file in errors;
+    relative file paths (``classifier.file``) are relative to ``folder`` (None: the current
+    folder)."""
     top = FieldReader(label, parse_toml(text, label), "")
     check_format(top)
     top.check_keys({"format", *MODEL_TABLES})
-    return robot_model_tables(top, "model")
+    return robot_model_tables(top, "model", folder)
 
 
 def dump_robot_model(model: RobotModel) -> str:

@@ -10,6 +10,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from estimator.models import AliasedClassifier, ClassifierModel, GaussianNoise, paper_classifier
+from sim.learned_file import LearnedFileError, load_learned
 
 Array = NDArray[np.float64]
 
@@ -85,16 +86,26 @@ class Communication:
 
 @dataclass(frozen=True, slots=True)
 class ClassifierSpec:
-    """Which classifier model generates (and by default explains) the semantic scores."""
+    """Which classifier model generates (and by default explains) the semantic scores.
+
+    ``model = "learned"``: ``file`` is the model file's absolute path and ``digest`` the SHA-256
+    of the bytes the loader validated; :meth:`build` refuses a file replaced since."""
 
     model: str
     alias: tuple[int, ...] = ()
     best_view_deg: tuple[float, ...] = ()
     noise_std: float = 0.0
+    file: str = ""
+    digest: str = ""
 
     def build(self) -> ClassifierModel:
         if self.model == "paper":
             return paper_classifier()
+        if self.model == "learned":
+            try:
+                return load_learned(self.file, self.digest)[0]
+            except LearnedFileError as exc:
+                raise ScenarioError(str(exc), "classifier.file") from None
         m = len(self.alias)
         best = tuple(math.radians(b) for b in self.best_view_deg)
         return AliasedClassifier(self.alias, best, np.eye(m) / self.noise_std)
@@ -134,6 +145,8 @@ class Scenario:
     communication: Communication
     variants: tuple[Variant, ...] = ()
     applied_variants: tuple[str, ...] = ()
+    # [classifier.estimator]: the robots' model when it is not the one generating the scores.
+    estimator_classifier: ClassifierSpec | None = None
 
     @property
     def robot_ids(self) -> tuple[str, ...]:
@@ -151,12 +164,13 @@ class Scenario:
 
     def robot_model(self, robot_id: str | None = None) -> RobotModel:
         """The robot model of this world's robots: the one of ``robot_id`` (with its own sensor),
-        or with the default ``[sensor]`` when None."""
+        or with the default ``[sensor]`` when None. Its classifier is ``[classifier.estimator]``
+        when the scenario has one, else the generating ``[classifier]``."""
         sensor = self.sensor if robot_id is None else self.robot(robot_id).sensor
         return RobotModel(
             self.num_classes,
             self.class_prior,
-            self.classifier,
+            self.estimator_classifier or self.classifier,
             self.odometry_noise,
             self.geometric_noise,
             sensor,

@@ -8,6 +8,7 @@ from estimator.models.classifier import (
     viewpoint,
 )
 from estimator.models.frames import MAX_STEP, ROBOT_ID, ROBOT_ID_RULE, Detection, SensorFrame
+from estimator.models.learned import LearnedClassifier
 from estimator.models.noise import GaussianNoise
 
 __all__ = [
@@ -19,6 +20,7 @@ __all__ = [
     "Detection",
     "FirstComponents",
     "GaussianNoise",
+    "LearnedClassifier",
     "SensorFrame",
     "paper_classifier",
     "viewpoint",
