@@ -21,7 +21,17 @@ from typing import Any, NoReturn
 from agents.journal import JournalError
 from agents.transport.base import TransportError
 from deploy.agent_config import AgentConfigError
-from deploy.commands import agent, demo, fleet, replay, router, scenario, study, ufastslam
+from deploy.commands import (
+    agent,
+    classifier,
+    demo,
+    fleet,
+    replay,
+    router,
+    scenario,
+    study,
+    ufastslam,
+)
 from deploy.commands import launch as launch_command
 from deploy.errors import (
     EXIT_FAILURE,
@@ -93,6 +103,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"semfleet {_version()}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     scenario.add_parser(sub)
+    classifier.add_parser(sub)
     study.add_parser(sub)
     demo.add_parser(sub)
     ufastslam.add_parser(sub)
