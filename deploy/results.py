@@ -5,7 +5,9 @@ A :class:`ResultsArchive` is what ``results.json`` and ``results.npz`` hold: the
 the hybrid-belief study (``semfleet study``, ``launch``, ``chaos``, ``demo``) and the UFastSLAM
 study (``semfleet ufastslam``), a summary entry per method, the study's own settings and the
 arrays behind the summaries. :func:`study_archive` builds the hybrid-belief study's archive from
-its runs; ``deploy.ufastslam_study.ufastslam_archive`` the UFastSLAM study's.
+its runs, and :func:`study_runs` gives those runs back from the archive's files (what
+``semfleet study merge`` combines); ``deploy.ufastslam_study.ufastslam_archive`` makes the
+UFastSLAM study's archive.
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ from __future__ import annotations
 import json
 import math
 import warnings
+import zipfile
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -21,6 +24,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from deploy.errors import UsageError
 from deploy.study import RunResult
 from estimator.metrics import METRICS, ece_from_stats
 
@@ -98,6 +102,22 @@ def read_results(path: Path) -> dict[str, Any]:
     return doc
 
 
+def read_folder(folder: Path) -> tuple[dict[str, Any], dict[str, NDArray[Any]]]:
+    """A results folder's results.json (as :func:`read_results`) and results.npz arrays; a file
+    that is missing or not a results file is a ``UsageError`` naming it."""
+    path = folder / "results.json"
+    try:
+        doc = read_results(path)
+    except ValueError as exc:  # not JSON, or another format
+        raise UsageError(str(exc) if str(path) in str(exc) else f"{path}: {exc}") from None
+    try:
+        with np.load(folder / "results.npz") as npz:
+            arrays = {k: npz[k] for k in npz.files}
+    except (ValueError, zipfile.BadZipFile) as exc:
+        raise UsageError(f"{folder / 'results.npz'}: not a results archive ({exc})") from None
+    return doc, arrays
+
+
 # ---- the hybrid-belief study ---------------------------------------------------------------
 
 
@@ -151,13 +171,27 @@ def method_summary(results: Sequence[RunResult], method: str) -> dict[str, Any]:
 
 
 def study_arrays(results: Sequence[RunResult], methods: Sequence[str]) -> dict[str, NDArray[Any]]:
-    """``METHOD/METRIC`` (runs, robots, steps), step times, class-ECE bin statistics and the
-    fleets' fusion times, empty joins and rebuilds."""
+    """``METHOD/METRIC`` (runs, robots, steps), the estimated robot poses ``METHOD/robot_pose``
+    and the true ones ``true_robot_pose`` (runs, robots, steps, 3) where the runs recorded them,
+    step times, wall times per run, class-ECE bin statistics, the fleets' fusion times, empty
+    joins and rebuilds and the sizes of their delivered stacks (``METHOD/stack_bytes``, every
+    run's in turn, ``METHOD/stacks_delivered`` of them per run)."""
     arrays: dict[str, NDArray[Any]] = {}
     for method in methods:
         for metric, values in stack_runs(results, method).items():
             arrays[f"{method}/{metric}"] = values
+        if all("robot_pose" in r.metrics[method] for r in results):
+            arrays[f"{method}/robot_pose"] = np.stack(
+                [r.metrics[method]["robot_pose"] for r in results]
+            )
         arrays[f"{method}/step_ms"] = np.array([r.step_ms[method] for r in results])
+        arrays[f"{method}/wall_s"] = np.array([r.wall_s[method] for r in results])
+        if all(method in r.stack_bytes for r in results):
+            sizes = [r.stack_bytes[method] for r in results]
+            arrays[f"{method}/stack_bytes"] = np.array(
+                [b for s in sizes for b in s], dtype=np.int64
+            )
+            arrays[f"{method}/stacks_delivered"] = np.array([len(s) for s in sizes], dtype=np.int64)
         if method in results[0].fusion_ms:
             arrays[f"{method}/fusion_ms"] = np.array([r.fusion_ms[method] for r in results])
         if all(method in r.calibration for r in results):
@@ -166,7 +200,63 @@ def study_arrays(results: Sequence[RunResult], methods: Sequence[str]) -> dict[s
             for key in ("empty_joins", "rebuilds"):
                 counts = [getattr(r, key)[method] for r in results]
                 arrays[f"{method}/{key}"] = np.array(counts, dtype=np.int64)
+    truth = [m for m in methods if all("true_robot_pose" in r.metrics[m] for r in results)]
+    if truth:  # the same for every method: stored once
+        arrays["true_robot_pose"] = np.stack(
+            [r.metrics[truth[0]]["true_robot_pose"] for r in results]
+        )
     return arrays
+
+
+def study_runs(doc: Mapping[str, Any], arrays: Mapping[str, NDArray[Any]]) -> list[RunResult]:
+    """The runs behind a hybrid-belief archive (its results.json ``doc`` and results.npz
+    ``arrays``), without their belief snapshots: :func:`study_archive` makes the very same
+    archive again from them. A ``KeyError`` names an array the file lacks (written before the
+    wall times and stack sizes were archived, issue 15)."""
+    methods = list(doc["methods"])
+    truth = arrays.get("true_robot_pose")
+    offsets = {
+        m: np.concatenate([[0], np.cumsum(arrays[f"{m}/stacks_delivered"])])
+        for m in methods
+        if f"{m}/stack_bytes" in arrays
+    }
+    runs = []
+    for i, seed in enumerate(doc["seeds"]):
+        metrics: dict[str, dict[str, Array]] = {}
+        listed: dict[str, dict[str, list[Any]]] = {
+            k: {} for k in ("fusion_ms", "stack_bytes", "empty_joins", "rebuilds")
+        }
+        for m in methods:
+            metrics[m] = {name: arrays[f"{m}/{name}"][i] for name in METRICS}
+            if f"{m}/robot_pose" in arrays:
+                metrics[m]["robot_pose"] = arrays[f"{m}/robot_pose"][i]
+            if truth is not None:
+                metrics[m]["true_robot_pose"] = truth[i]
+            for key in ("fusion_ms", "empty_joins", "rebuilds"):
+                if f"{m}/{key}" in arrays:
+                    listed[key][m] = arrays[f"{m}/{key}"][i].tolist()
+            if m in offsets:
+                sizes = arrays[f"{m}/stack_bytes"][offsets[m][i] : offsets[m][i + 1]]
+                listed["stack_bytes"][m] = sizes.tolist()
+        runs.append(
+            RunResult(
+                int(seed),
+                metrics,
+                {m: arrays[f"{m}/step_ms"][i].tolist() for m in methods},
+                {m: float(arrays[f"{m}/wall_s"][i]) for m in methods},
+                calibration={
+                    m: arrays[f"{m}/calibration"][i]
+                    for m in methods
+                    if f"{m}/calibration" in arrays
+                },
+                fusion_ms=listed["fusion_ms"],
+                stack_bytes=listed["stack_bytes"],
+                empty_joins=listed["empty_joins"],
+                rebuilds=listed["rebuilds"],
+                robots=tuple(doc["robots"]),
+            )
+        )
+    return runs
 
 
 def stack_runs(results: Sequence[RunResult], method: str) -> dict[str, Array]:

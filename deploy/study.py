@@ -3,7 +3,8 @@
 Every run is an independent process (``spawn``: GTSAM's iSAM2 cannot be pickled or forked safely)
 that simulates the scenario's frames once and feeds the very same frames to every method.
 :func:`run_study` returns one :class:`RunResult` per seed; ``deploy.results.study_archive`` turns
-them into the results archive. :func:`run_seeded` is the process pool of both studies.
+them into the results archive. :func:`run_seeded` is the process pool of both studies;
+``deploy.cluster.run_on_cluster`` runs the same calls on a Dask cluster instead.
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ from agents.node import LocalTrack, RobotNode
 from deploy.build import belief_model, belief_rng, link_model_for, make_nodes
 from deploy.errors import RunFailure
 from deploy.fleet import FleetStats, StepCallback, run_fleets
+from deploy.fleet_view import mixture_moments
 from estimator.hybrid import BeliefConfig, BeliefModel, BeliefSnapshot, HybridBelief
 from estimator.metrics import ECE_BINS, METRICS, evaluate, evaluate_calibration
 from estimator.models import SensorFrame
@@ -33,12 +35,17 @@ Array = NDArray[np.float64]
 
 METHODS = ("local", "distributed", "double_count", "centralized")
 FLEET_METHODS = {"distributed": "consistent", "double_count": "double_count"}
+# What a run records per robot and step next to the metrics, (robots, steps, 3) each: the
+# belief's estimate of the robot's pose (the hypotheses' weighted mean) and the true pose.
+TRACKS = ("robot_pose", "true_robot_pose")
 
 
 @dataclass(frozen=True, slots=True)
 class RunResult:
     """One seeded run: ``metrics[method][metric]`` (robots, steps) arrays, the wall time of every
     belief step in ms per method, and optional belief snapshots ``snapshots[method][robot]``.
+    ``metrics[method]`` also holds the :data:`TRACKS` a :class:`Recorder` keeps, (robots, steps,
+    3) x, y, θ, where the run recorded them (a run built by hand may not).
 
     ``calibration[method]`` (robots, steps, 3, ECE_BINS) holds the class-ECE bin statistics
     (``estimator.metrics.calibration_stats``); the fleets' ``fusion_ms``, ``empty_joins`` and
@@ -72,13 +79,19 @@ def run_study(
     snapshot_step: int | None,
     advance: Callable[[], None] = lambda: None,
     comm: str | None = None,
+    cluster: str | None = None,
 ) -> list[RunResult]:
-    """Run every seed in its own spawned process, at most ``jobs`` at once; results in seed
-    order. Only the first seed keeps belief snapshots (at ``snapshot_step``)."""
+    """Run every seed in its own spawned process, at most ``jobs`` at once, or as tasks of the
+    Dask cluster whose scheduler is at ``cluster``; results in seed order. Only the first seed
+    keeps belief snapshots (at ``snapshot_step``)."""
     calls = {
         seed: (run_single, scenario, methods, seed, config, snapshot_step if i == 0 else None, comm)
         for i, seed in enumerate(seeds)
     }
+    if cluster is not None:
+        from deploy.cluster import run_on_cluster  # dask is an optional extra
+
+        return run_on_cluster(calls, cluster, advance)
     return run_seeded(calls, jobs, advance)
 
 
@@ -241,10 +254,12 @@ def true_objects(scenario: Scenario) -> dict[int, tuple[Array, int]]:
 
 
 class Recorder:
-    """Collects one method's metrics (robots, steps), class-ECE bin statistics (robots, steps, 3,
-    bins), step times, the requested snapshots and, for a fleet, its :class:`FleetStats`. A
-    launch scores its agents' published snapshots with it too (:meth:`score`), so a launch and a
-    study are measured by the same code. ``robots``: how many rows (default: the scenario's)."""
+    """Collects one method's metrics (robots, steps) and :data:`TRACKS` (robots, steps, 3) in
+    ``arrays``, class-ECE bin statistics (robots, steps, 3, bins), step times, the requested
+    snapshots and, for a fleet, its :class:`FleetStats`. A launch scores its agents' published
+    snapshots with it too (:meth:`score`), so a launch and a study are measured by the same code.
+    ``robots``: the robot of every row (default: the scenario's robots). ``true_robot_pose`` is
+    the truth of every step ``frames`` hold, ``robot_pose`` NaN until a step is scored."""
 
     def __init__(
         self,
@@ -252,12 +267,17 @@ class Recorder:
         frames: Mapping[str, Sequence[SensorFrame]],
         truth_objects: dict[int, tuple[Array, int]],
         snapshot_step: int | None = None,
-        robots: int | None = None,
+        robots: Sequence[str] | None = None,
     ) -> None:
         self.scenario, self.frames, self.truth = scenario, frames, truth_objects
         self.snapshot_step = snapshot_step
-        shape = (len(scenario.robots) if robots is None else robots, scenario.steps)
-        self.arrays = {m: np.full(shape, np.nan) for m in METRICS}
+        rows = scenario.robot_ids if robots is None else tuple(robots)
+        shape = (len(rows), scenario.steps)
+        self.arrays: dict[str, Array] = {m: np.full(shape, np.nan) for m in METRICS}
+        self.arrays.update((name, np.full((*shape, 3), np.nan)) for name in TRACKS)
+        for i, robot in enumerate(rows):
+            poses = [f.true_pose for f in frames[robot][: scenario.steps]]
+            self.arrays["true_robot_pose"][i, : len(poses)] = np.reshape(poses, (-1, 3))
         self.calibration = np.zeros((*shape, 3, ECE_BINS))
         self.step_ms: list[float] = []
         self.fusion_ms: list[float] = []
@@ -286,7 +306,11 @@ class Recorder:
 
     def score(self, i: int, robot: str, k: int, snap: BeliefSnapshot) -> None:
         """Row ``i`` (``robot``), step k: ``snap`` against the ground truth, every metric and
-        the class-ECE bin statistics."""
+        the class-ECE bin statistics, and the estimated robot pose: x, y the hypotheses'
+        weighted mean, θ their weighted circular mean (as ``robot_pose`` of estimates.json)."""
+        self.arrays["robot_pose"][i, k - 1] = mixture_moments(
+            snap.weights, snap.robot_pose, snap.robot_cov
+        )[0]
         true_pose = self.frames[robot][k - 1].true_pose
         num_classes = self.scenario.num_classes
         for name, value in evaluate(snap, num_classes, true_pose, self.truth).items():

@@ -1,5 +1,8 @@
-"""`semfleet study`: the paper's Monte Carlo comparison, as parallel seeded processes. Parses the
-options, runs :func:`deploy.study.run_study`, writes its archive and plots, prints the tables."""
+"""`semfleet study`: the paper's Monte Carlo comparison, as parallel seeded processes (or tasks of
+a Dask cluster), all of its seeds or one shard of them. Parses the options, runs
+:func:`deploy.study.run_study`, writes its archive and plots, prints the tables.
+`semfleet study merge DIR... --out DIR` combines the shards (:func:`deploy.shards.merge_shards`).
+"""
 
 from __future__ import annotations
 
@@ -16,6 +19,7 @@ from deploy.fleet import COMM_MODES
 from deploy.output import runs_progress
 from deploy.results import study_archive, write_archive
 from deploy.scenario_args import scenario_from_args
+from deploy.shards import Shard, merge_shards, shard_entry, study_key, write_merged_plots
 from deploy.study import METHODS, run_study
 from deploy.study_report import render_summary, write_plots
 from estimator.hybrid import BeliefConfig
@@ -32,7 +36,24 @@ def _methods(text: str) -> list[str]:
     return list(dict.fromkeys(methods))
 
 
-def run(args: argparse.Namespace, console: Console) -> int:
+def _shard(text: str) -> Shard:
+    try:
+        return Shard.parse(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def run(args: argparse.Namespace, console: Console, own: dict[str, tuple[str, Any]]) -> int:
+    """``own``: the study's options, dest → (option, default), which `study merge` refuses."""
+    if args.merge is not None:
+        return run_merge(args, console, own)
+    if args.folders:
+        raise UsageError(
+            f"unexpected {args.folders[0]!r}: only `semfleet study merge DIR... --out DIR` "
+            "takes folders"
+        )
+    if args.scenario is None:
+        raise UsageError("--scenario is required (or: semfleet study merge DIR... --out DIR)")
     scenario = scenario_from_args(args)
     robot = args.snapshot_robot or scenario.robot_ids[0]
     if robot not in scenario.robot_ids:
@@ -49,25 +70,33 @@ def run(args: argparse.Namespace, console: Console) -> int:
     if args.seed + args.runs - 1 > MAX_SEED:
         raise UsageError(f"--seed {args.seed} with --runs {args.runs} runs past the largest seed")
     seeds = [args.seed + i for i in range(args.runs)]
+    ran = seeds if args.shard is None else args.shard.seeds(seeds)
+    if not ran:
+        raise UsageError(f"--shard {args.shard} of {plural(args.runs, 'run')} has no seeds")
     comm = args.comm or scenario.communication.mode
     writable_out(Path(args.out))  # before any run, not after all of them
+    where = plural(args.jobs, "job") if args.cluster is None else f"Dask cluster {args.cluster}"
+    which = f"seeds {seeds[0]}..{seeds[-1]}"
+    if args.shard is not None:
+        which = f"shard {args.shard}: {plural(len(ran), 'run')} of {which}"
     console.print(
         f"study: {scenario.name}, methods {', '.join(args.methods)}, "
-        f"{plural(args.runs, 'run')} (seeds {seeds[0]}..{seeds[-1]}), "
-        f"{plural(args.jobs, 'job')}, weights {args.weights}, "
+        f"{plural(args.runs, 'run')} ({which}), "
+        f"{where}, weights {args.weights}, "
         f"hypotheses {args.hypotheses}, communication {comm}"
     )
     with runs_progress(console) as progress:
-        task = progress.add_task("runs", total=len(seeds))
+        task = progress.add_task("runs", total=len(ran))
         results = run_study(
             scenario,
             args.methods,
-            seeds,
+            ran,
             config,
             args.jobs,
             step,
             lambda: progress.advance(task),
             args.comm,
+            args.cluster,
         )
     settings = {
         "weight_estimator": args.weights,
@@ -76,6 +105,9 @@ def run(args: argparse.Namespace, console: Console) -> int:
         "robot_budget": config.robot_budget,
         "communication": comm,
     }
+    if args.shard is not None:
+        key = study_key(scenario, args.methods, config, args.comm)
+        settings["shard"] = shard_entry(args.shard, seeds, step, robot, key)
     archive = study_archive(scenario.name, results, args.methods, settings)
     out = Path(args.out)
     write_archive(out, archive)
@@ -88,9 +120,46 @@ def run(args: argparse.Namespace, console: Console) -> int:
     return 0
 
 
+def run_merge(args: argparse.Namespace, console: Console, own: dict[str, tuple[str, Any]]) -> int:
+    given = [option for dest, (option, default) in own.items() if getattr(args, dest) != default]
+    if given:  # the shards decided them
+        raise UsageError(f"study merge takes DIR... and --out only, not {given[0]}")
+    if not args.folders:
+        raise UsageError("study merge: name the shards' folders (DIR...)")
+    folders = [Path(f) for f in args.folders]
+    out = Path(args.out)
+    if any(out.resolve() == f.resolve() for f in folders):
+        raise UsageError(f"--out {out} is one of the shards: merge into another folder")
+    merged = merge_shards(folders)
+    writable_out(out)
+    write_archive(out, merged.archive)
+    doc = merged.archive.document()
+    console.print(
+        f"study merge: {len(folders)} shards of {doc['scenario']}, "
+        f"{plural(doc['runs'], 'run')} (seeds {doc['seeds'][0]}..{doc['seeds'][-1]})"
+    )
+    render_summary(doc, console)
+    plots = write_merged_plots(out, merged)
+    console.print(
+        f"wrote {out / 'results.json'}, {out / 'results.npz'} and {len(plots)} plots in {out}"
+    )
+    return 0
+
+
 def add_parser(sub: Any) -> None:
-    p = sub.add_parser("study", help="Monte Carlo comparison of methods over seeded runs")
-    p.add_argument("--scenario", required=True, help="scenario file or bundled name (e.g. paper)")
+    p = sub.add_parser(
+        "study",
+        help="Monte Carlo comparison of methods over seeded runs; `study merge`: join shards",
+        usage="%(prog)s --scenario SCENARIO [options]\n       %(prog)s merge DIR... --out DIR",
+    )
+    p.add_argument(
+        "merge",
+        nargs="?",
+        choices=("merge",),
+        help="combine the folders of a study's shards (--shard) into one results folder",
+    )
+    p.add_argument("folders", nargs="*", metavar="DIR", help="with merge: the shards' folders")
+    p.add_argument("--scenario", help="scenario file or bundled name (e.g. paper); required")
     p.add_argument("--variant", action="append", default=[], metavar="NAME")
     p.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE", dest="overrides")
     p.add_argument(
@@ -102,6 +171,21 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--runs", type=positive_int, default=10)
     p.add_argument("--jobs", type=positive_int, default=2, help="parallel processes")
     p.add_argument("--seed", type=seed, default=0, help="runs use seeds S, S+1, …")
+    p.add_argument(
+        "--shard",
+        type=_shard,
+        default=None,
+        metavar="I/N",
+        help="run only shard I of N (0 <= I < N): the seed indices i with i %% N == I; "
+        "`study merge` joins the shards' folders",
+    )
+    p.add_argument(
+        "--cluster",
+        default=None,
+        metavar="ADDRESS",
+        help="run the seeds on the Dask cluster whose scheduler is at ADDRESS "
+        "(e.g. tcp://10.0.0.5:8786; needs pip install 'semfleet[cluster]'); --jobs is ignored",
+    )
     p.add_argument("--out", default="out/study", help="output folder")
     p.add_argument("--weights", choices=WEIGHT_ESTIMATORS, default="geo_conditioned")
     p.add_argument(
@@ -143,4 +227,10 @@ def add_parser(sub: Any) -> None:
     p.add_argument(
         "--snapshot-robot", default=None, help="robot of the hypothesis plot (default: first)"
     )
-    p.set_defaults(run=run)
+    defaults = vars(p.parse_args([]))
+    own = {
+        a.dest: (a.option_strings[-1], defaults[a.dest])
+        for a in p._actions
+        if a.option_strings and a.dest not in ("help", "out")
+    }
+    p.set_defaults(run=lambda args, console: run(args, console, own))

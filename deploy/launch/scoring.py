@@ -18,9 +18,11 @@ BELIEFS = ("local", "distributed")
 
 
 class Scorer:
-    """Scores beliefs against ground truth: ``metrics[belief][metric]`` (robots, steps) and the
-    class-ECE bin statistics ``calibration[belief]`` (robots, steps, 3, ECE_BINS), for the beliefs
-    of :data:`BELIEFS`; a step never recorded stays NaN (metrics) or zero (bins)."""
+    """Scores beliefs against ground truth: ``metrics[belief][metric]`` (robots, steps), with the
+    recorder's tracks (``deploy.study.TRACKS``, (robots, steps, 3): the estimated and the true
+    robot pose), and the class-ECE bin statistics ``calibration[belief]`` (robots, steps, 3,
+    ECE_BINS), for the beliefs of :data:`BELIEFS`; a step never recorded stays NaN (metrics,
+    estimated pose) or zero (bins)."""
 
     def __init__(
         self,
@@ -30,7 +32,7 @@ class Scorer:
     ) -> None:
         truth = true_objects(scenario)
         self.index = {r: i for i, r in enumerate(robots)}
-        self.recorders = {b: Recorder(scenario, frames, truth, robots=len(robots)) for b in BELIEFS}
+        self.recorders = {b: Recorder(scenario, frames, truth, robots=robots) for b in BELIEFS}
         self.metrics = {b: rec.arrays for b, rec in self.recorders.items()}
         self.calibration = {b: rec.calibration for b, rec in self.recorders.items()}
 

@@ -208,7 +208,8 @@ def test_study_archive_records_robots_and_settings() -> None:
     doc = archive.document()
     assert doc["robots"] == ["r1", "r2"]
     assert doc["communication"] == "range" and doc["launch"] == {"mode": "lockstep"}
-    assert set(archive.arrays) == {f"local/{k}" for k in (*METRICS, "step_ms", "calibration")}
+    keys = (*METRICS, "step_ms", "wall_s", "calibration")
+    assert set(archive.arrays) == {f"local/{k}" for k in keys}
 
 
 def test_study_archive_refuses_robots_that_are_not_the_robot_axis() -> None:

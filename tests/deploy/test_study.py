@@ -78,7 +78,12 @@ def read_npz(out: Path) -> dict[str, np.ndarray]:
 
 
 def metric_arrays(arrays: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-    return {k: v for k, v in arrays.items() if "/" in k and not k.endswith("/step_ms")}
+    """Every array a run's seed decides: all but the seeds and the wall-clock times."""
+    return {
+        k: v
+        for k, v in arrays.items()
+        if k != "seeds" and not k.endswith(("/step_ms", "/wall_s", "/fusion_ms"))
+    }
 
 
 @pytest.fixture(scope="module")
@@ -176,8 +181,8 @@ def test_study_results_json_is_strict(
 def test_study_results_npz_shapes(two_runs: tuple[subprocess.CompletedProcess[str], Path]) -> None:
     _, out = two_runs
     arrays = read_npz(out)
-    keys = (*METRICS, "step_ms", "calibration")
-    expected = {f"{m}/{k}" for m in METHODS for k in keys} | {"seeds"}
+    keys = (*METRICS, "robot_pose", "step_ms", "wall_s", "calibration")
+    expected = {f"{m}/{k}" for m in METHODS for k in keys} | {"seeds", "true_robot_pose"}
     assert set(arrays) == expected
     for method in METHODS:
         for metric in METRICS:
@@ -257,7 +262,8 @@ def test_study_reruns_are_identical(
     args = ("--methods", "local,centralized", "--runs", "1", "--jobs", "1", "--seed", "6")
     study(world, tmp_path / "a", *args)
     a = metric_arrays(read_npz(tmp_path / "a"))
-    assert set(a) == {f"{m}/{k}" for m in METHODS for k in (*METRICS, "calibration")}
+    keys = (*METRICS, "robot_pose", "calibration")
+    assert set(a) == {f"{m}/{k}" for m in METHODS for k in keys} | {"true_robot_pose"}
     both = metric_arrays(read_npz(two_runs[1]))
     for key in a:
         np.testing.assert_array_equal(a[key][0], both[key][1], err_msg=key)
