@@ -32,6 +32,7 @@ from deploy.commands import (
     study,
     ufastslam,
 )
+from deploy.commands import export as export_command
 from deploy.commands import launch as launch_command
 from deploy.errors import (
     EXIT_FAILURE,
@@ -105,6 +106,7 @@ def build_parser() -> argparse.ArgumentParser:
     scenario.add_parser(sub)
     classifier.add_parser(sub)
     study.add_parser(sub)
+    export_command.add_parser(sub)
     demo.add_parser(sub)
     ufastslam.add_parser(sub)
     launch_command.add_parser(sub)
