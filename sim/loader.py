@@ -437,9 +437,9 @@ def _learned(f: FieldReader, m: int, owner: str, folder: Path | None) -> Classif
     except LearnedFileError as exc:
         raise f.fail("file", str(exc)) from None
     if learned.num_classes != m:
-        raise f.fail(
-            "file", f"{path}: the model has {learned.num_classes} classes, the {owner} {m}"
-        )
+        classes = learned.num_classes
+        reason = f"{path}: holds a model of {classes} classes, the {owner} has {m}"
+        raise f.fail("file", reason)
     return ClassifierSpec("learned", file=str(path), digest=digest)
 
 

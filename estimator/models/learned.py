@@ -237,7 +237,8 @@ def _parse(arrays: Mapping[str, Any]) -> LearnedClassifier:
     if np.any(bound > MAX_LOG_SCALE):
         c = int(np.argmax(bound))
         raise LearnedModelError(
-            "scale_weights", f"class {c + 1}: the log scale can reach {bound[c]:.3g}, beyond ±30"
+            "scale_weights",
+            f"class {c + 1}: |scale_offset| + Σ|scale_weights| = {bound[c]:.3g}, beyond ±30",
         )
     means = tuple(PeriodicGP(inducing[c], weights[c], length[c], offset[c]) for c in range(m))
     scales = tuple(
