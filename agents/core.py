@@ -669,6 +669,8 @@ class AgentCore:
             "slots_refused": a.slots_refused,
             "slots_implausible": a.slots_implausible,
             "own_superseded": c.own_superseded,
+            "slots_decoded": c.slots_decoded,
+            "slots_skipped": c.slots_skipped,
             "empty_joins": c.empty_joins,
             "rebuilds": c.rebuilds,
             "ignored_out_of_range": a.ignored_out_of_range,

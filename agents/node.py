@@ -24,7 +24,15 @@ from estimator.hybrid import BeliefConfig, BeliefModel, HybridBelief
 from estimator.models import SensorFrame
 from estimator.slots import summarise
 from estimator.summary import LocalSummary
-from protocol.codec import MAX_EPOCH, Limits, StackMessage, decode, encode, sign_slot
+from protocol.codec import (
+    MAX_EPOCH,
+    Limits,
+    StackMessage,
+    decode,
+    encode,
+    sign_slot,
+    with_wire,
+)
 from protocol.errors import LocalProtocolError, RemoteProtocolError
 from protocol.signing import SigningKeys
 from protocol.stack import Slot, Stack
@@ -41,7 +49,9 @@ class NodeCounters:
     ``empty_joins`` slots whose join with D was empty and ``rebuilds`` the times D was rebuilt
     from L and the held slots because of one; ``own_superseded`` the times a received stack held
     a version of the own slot newer than the node's (a lost journal's earlier life, or a forgery
-    on an unsigned fleet): the node then moves to a higher epoch."""
+    on an unsigned fleet): the node then moves to a higher epoch. ``slots_decoded`` counts the
+    slots whose bodies were parsed, ``slots_skipped`` those left unparsed: versions the node
+    already held or had passed (docs/wire.md, "Decoding only what is new")."""
 
     stacks_received: int = 0
     stacks_merged: int = 0
@@ -53,6 +63,8 @@ class NodeCounters:
     empty_joins: int = 0
     rebuilds: int = 0
     own_superseded: int = 0
+    slots_decoded: int = 0
+    slots_skipped: int = 0
     bytes_received: int = 0
     stacks_sent: int = 0
     bytes_sent: int = 0
@@ -178,11 +190,22 @@ class RobotNode:
         """Decode a received stack (counted); None, counted by error type, if it is invalid."""
         self.counters.stacks_received += 1
         self.counters.bytes_received += len(data)
+        keys = None if self.signing is None else self.signing.keys
         try:
-            return decode(data, self.limits, None if self.signing is None else self.signing.keys)
+            message = decode(data, self.limits, keys, self._wants)
         except RemoteProtocolError as exc:
             self._count_error(exc)
             return None
+        self.counters.slots_decoded += len(message.stack)
+        self.counters.slots_skipped += len(message.skipped)
+        return message
+
+    def _wants(self, owner: str, epoch: int, stamp: int) -> bool:
+        """Whether a received slot version can change anything here: newer than the version held
+        (or, for the own slot, than the node's own (epoch, step)); the others are not parsed."""
+        if owner == self.robot:
+            return (epoch, stamp) > (self.epoch, self.k)
+        return (epoch, stamp) > self.stack.versions().get(owner, (-1, -1))
 
     def merge(self, message: StackMessage) -> bool:
         """Merge a decoded stack (newest version per owner, never the own slot); True if it
@@ -334,16 +357,17 @@ class RobotNode:
             summary = self.track.summary()
             if summary is not None:
                 own = Slot(self.robot, self.k, summary, self.epoch)
-                self.stack = self.stack.with_slot(self._signed(own))
+                self.stack = self.stack.with_slot(self._encoded_once(own))
             self._own_slot_stale = False
         return self.stack
 
-    def _signed(self, slot: Slot) -> Slot:
-        """The own slot, signed when the fleet signs its slots (left unsigned if the limits
-        refuse it: ``encoded_stack`` then leaves it out and counts it)."""
-        if self.signing is None:
-            return slot
+    def _encoded_once(self, slot: Slot) -> Slot:
+        """The own slot, signed when the fleet signs its slots, with its bytes made once for
+        every stack that carries it until the next step (left as it is if the limits refuse it:
+        ``encoded_stack`` then leaves it out and counts it)."""
         try:
+            if self.signing is None:
+                return with_wire(slot, self.limits)
             return sign_slot(slot, self.signing.key, self.limits)
         except LocalProtocolError:
             return slot

@@ -48,8 +48,34 @@ class Slot:
     # estimator never reads the signature: a relay re-sends it with the slot.
     epoch: int = 0
     signature: bytes | None = None
+    # The slot's bytes as the codec validated or made them (a relay re-sends them untouched);
+    # the estimator never reads them.
+    wire: WireForm | None = None
 
     @property
     def version(self) -> tuple[int, int]:
         """(epoch, stamp): a newer version is a greater one."""
         return (self.epoch, self.stamp)
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class WireForm:
+    """A slot's msgpack bytes (``data``) and the fields they were made from: valid for a slot
+    only while its owner, version, signature and summary object are still these (a slot changed
+    with ``dataclasses.replace`` is encoded anew)."""
+
+    owner: str
+    epoch: int
+    stamp: int
+    signature: bytes | None
+    summary: LocalSummary
+    data: bytes
+
+    def fits(self, slot: Slot) -> bool:
+        return (
+            slot.summary is self.summary
+            and slot.owner == self.owner
+            and slot.epoch == self.epoch
+            and slot.stamp == self.stamp
+            and slot.signature == self.signature
+        )

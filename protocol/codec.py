@@ -11,7 +11,9 @@ sides of every field, and the limits they share, are kept side by side in this o
 
 from __future__ import annotations
 
+import dataclasses
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -21,16 +23,25 @@ from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
 from numpy.typing import NDArray
 
 from estimator.models.frames import MAX_STEP
-from estimator.summary import LocalSummary, Realisation
+from estimator.summary import LocalSummary, Realisation, WireForm
 from protocol.errors import (
     BadSignature,
     InvalidValue,
     LimitExceeded,
     LocalProtocolError,
+    MalformedMessage,
     RemoteProtocolError,
     UnsupportedVersion,
 )
-from protocol.signing import SIGNATURE_BYTES, SigningKeys, canonical_bytes, sign, verify
+from protocol.scan import SlotFrame, scan
+from protocol.signing import (
+    SIGNATURE_BYTES,
+    SigningKeys,
+    canonical_bytes,
+    digest_of_parts,
+    sign,
+    verify_digest,
+)
 from protocol.stack import Slot, Stack
 from protocol.validate import as_int, as_map, decode_document, need, robot_id, valid_id
 
@@ -110,6 +121,8 @@ class StackMessage:
     position: tuple[float, float] | None
     stack: Stack
     step: int = 0
+    # Owners of the slots ``decode`` left out, unparsed (versions the receiver did not want).
+    skipped: tuple[str, ...] = ()
 
 
 def _tri(n: int) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
@@ -277,15 +290,22 @@ def encode(message: StackMessage, limits: Limits | None = None) -> bytes:
     _local(len(slots) <= lim.max_slots, "slots", f"{len(slots)} > {lim.max_slots}")
     signed = {s.signature is not None for s in slots}
     _local(len(signed) <= 1, "slots", "signed and unsigned slots in one stack")
-    doc = {
+    head = {
         "v": SIGNED_VERSION if signed == {True} else VERSION,
         "type": STACK,
         "sender": message.sender,
         "k": step,
         "pos": pos,
-        "slots": [_encode_slot(s, f"slots[{i}]", lim) for i, s in enumerate(slots)],
     }
-    blob = bytes(msgpack.packb(doc, use_bin_type=True))
+    # What msgpack.packb of the whole map would write, with each slot's bytes spliced in: a
+    # slot that carries its wire form (received and validated, or made once) is not re-encoded.
+    packer = msgpack.Packer(use_bin_type=True)
+    parts = [packer.pack_map_header(len(head) + 1)]
+    for key, value in head.items():
+        parts += [packer.pack(key), packer.pack(value)]
+    parts += [packer.pack("slots"), packer.pack_array_header(len(slots))]
+    parts += [_slot_bytes(s, f"slots[{i}]", lim, packer) for i, s in enumerate(slots)]
+    blob = b"".join(parts)
     size_ok = len(blob) <= lim.max_message_bytes
     _local(size_ok, "message", f"{len(blob)} bytes > {lim.max_message_bytes}")
     return blob
@@ -303,6 +323,20 @@ def _raise_local(problem: Problem | None) -> None:
 
 def _is_int(value: Any) -> bool:
     return isinstance(value, int | np.integer) and not isinstance(value, bool | np.bool_)
+
+
+def _slot_bytes(slot: Slot, where: str, lim: Limits, packer: msgpack.Packer) -> bytes:
+    if slot.wire is not None and slot.wire.fits(slot):
+        return slot.wire.data
+    return bytes(packer.pack(_encode_slot(slot, where, lim)))
+
+
+def with_wire(slot: Slot, limits: Limits | None = None) -> Slot:
+    """``slot`` with its bytes made once (:class:`LocalProtocolError` if the limits refuse
+    it): every stack that carries it then splices them in instead of encoding it again."""
+    data = bytes(msgpack.packb(_encode_slot(slot, "slot", limits or Limits()), use_bin_type=True))
+    wire = WireForm(slot.owner, slot.epoch, slot.stamp, slot.signature, slot.summary, data)
+    return dataclasses.replace(slot, wire=wire)
 
 
 def _encode_slot(slot: Slot, where: str, lim: Limits) -> dict[str, Any]:
@@ -395,22 +429,47 @@ def sign_slot(slot: Slot, key: Ed25519PrivateKey, limits: Limits | None = None) 
     unsigned = Slot(slot.owner, slot.stamp, slot.summary, slot.epoch)
     wire = _encode_slot(unsigned, "slot", limits or Limits())
     data = canonical_bytes(slot.owner, slot.epoch, wire["stamp"], wire["objects"], wire["real"])
-    return Slot(slot.owner, slot.stamp, slot.summary, slot.epoch, sign(key, data))
+    signature = sign(key, data)
+    wire["epoch"], wire["sig"] = slot.epoch, signature  # as _encode_slot writes a signed slot
+    packed = bytes(msgpack.packb(wire, use_bin_type=True))
+    form = WireForm(slot.owner, slot.epoch, slot.stamp, signature, slot.summary, packed)
+    return Slot(slot.owner, slot.stamp, slot.summary, slot.epoch, signature, form)
 
 
 # --------------------------------------------------------------------------- decode
 
 
+Wanted = Callable[[str, int, int], bool]  # (owner, epoch, stamp) → parse this slot?
+
+
 def decode(
-    data: bytes, limits: Limits | None = None, keys: SigningKeys | None = None
+    data: bytes,
+    limits: Limits | None = None,
+    keys: SigningKeys | None = None,
+    wanted: Wanted | None = None,
 ) -> StackMessage:
     """Parse and validate a stack message. Raises only :class:`RemoteProtocolError` subclasses.
 
     ``keys`` (owner → Ed25519 public key): the fleet signs its slots, and every slot must be
     signed by its owner's key (:class:`BadSignature` otherwise: unsigned, unknown owner, or a
-    signature that does not verify). Without ``keys`` signatures are kept, not checked."""
+    signature that does not verify). Without ``keys`` signatures are kept, not checked.
+
+    ``wanted(owner, epoch, stamp)``: a slot it refuses — a version the receiver already holds or
+    has passed — is left out after its header (and, with ``keys``, its signature) is checked:
+    its body is neither parsed nor validated (``StackMessage.skipped`` lists it). Every slot
+    that is returned carries its bytes as received (``Slot.wire``): a relay re-sends them
+    untouched."""
     lim = limits or Limits()
-    return decode_document(data, lim.max_message_bytes, lambda doc: _decode_doc(doc, lim, keys))
+    if (
+        isinstance(data, bytearray | memoryview)
+        and memoryview(data).nbytes <= lim.max_message_bytes
+    ):
+        data = bytes(data)
+
+    def parse(doc: Any) -> StackMessage:
+        return _decode_doc(doc, lim, keys, wanted, data)
+
+    return decode_document(data, lim.max_message_bytes, parse, unpack=scan)
 
 
 def _floats(blobs: list[Any], where: str, name: str, count: int) -> Array:
@@ -422,7 +481,9 @@ def _floats(blobs: list[Any], where: str, name: str, count: int) -> Array:
     return np.frombuffer(b"".join(blobs), dtype=_F64).astype(float).reshape(len(blobs), count)
 
 
-def _decode_doc(doc: Any, lim: Limits, keys: SigningKeys | None) -> StackMessage:
+def _decode_doc(
+    doc: Any, lim: Limits, keys: SigningKeys | None, wanted: Wanted | None, buf: bytes
+) -> StackMessage:
     need(isinstance(doc, dict), "message", f"expected a map, got {type(doc).__name__}")
     version = doc.get("v")
     if "v" in doc and (type(version) is not int or version not in (VERSION, SIGNED_VERSION)):
@@ -455,21 +516,37 @@ def _decode_doc(doc: Any, lim: Limits, keys: SigningKeys | None) -> StackMessage
     signed = version == SIGNED_VERSION
     if keys is not None and not signed and raw_slots:
         raise BadSignature("unsigned slots (wire version 1): this fleet signs its slots", "v")
-    slots = [
-        _decode_slot(raw, f"slots[{i}]", lim, keys if signed else None, signed)
-        for i, raw in enumerate(raw_slots)
-    ]
-    owners = [s.owner for s in slots]
+    slots, owners = [], []
+    for i, raw in enumerate(raw_slots):
+        owner, slot = _decode_slot(
+            raw, f"slots[{i}]", lim, keys if signed else None, signed, wanted, buf
+        )
+        owners.append(owner)
+        if slot is not None:
+            slots.append(slot)
     need(len(set(owners)) == len(owners), "slots", f"duplicate owners {owners}", InvalidValue)
-    return StackMessage(sender, position, Stack(tuple(slots)), step)
+    skipped = tuple(o for o in owners if o not in {s.owner for s in slots})
+    return StackMessage(sender, position, Stack(tuple(slots)), step, skipped)
 
 
-def _decode_slot(raw: Any, where: str, lim: Limits, keys: SigningKeys | None, signed: bool) -> Slot:
+def _decode_slot(
+    raw: Any,
+    where: str,
+    lim: Limits,
+    keys: SigningKeys | None,
+    signed: bool,
+    wanted: Wanted | None,
+    buf: bytes,
+) -> tuple[str, Slot | None]:
+    """The slot's owner, and the slot — None when ``wanted`` refuses its version."""
+    frame = raw if isinstance(raw, SlotFrame) else None
+    fields = frame.fields if frame is not None else raw
     if signed:
         keys_of_slot = _SIGNED_SLOT_KEYS
     else:
-        keys_of_slot = _EPOCH_SLOT_KEYS if isinstance(raw, dict) and "epoch" in raw else _SLOT_KEYS
-    s = as_map(raw, where, keys_of_slot)
+        has_epoch = isinstance(fields, dict) and "epoch" in fields
+        keys_of_slot = _EPOCH_SLOT_KEYS if has_epoch else _SLOT_KEYS
+    s = as_map(fields, where, keys_of_slot)
     owner = robot_id(s["owner"], f"{where}.owner")
     epoch = as_int(s.get("epoch", 0), f"{where}.epoch", 0, MAX_EPOCH)
     signature = None
@@ -480,9 +557,27 @@ def _decode_slot(raw: Any, where: str, lim: Limits, keys: SigningKeys | None, si
             f"{where}.sig",
             f"expected {SIGNATURE_BYTES} bytes",
         )
-        if keys is not None:
-            _check_signature(s, where, owner, signature, keys)
+        if keys is not None and keys.get(owner) is None:
+            raise BadSignature(
+                f"no signing key for owner {owner!r} in the roster", f"{where}.owner"
+            )
     stamp = as_int(s["stamp"], f"{where}.stamp", 0, _MAX_STAMP)
+    need(frame is not None, where, "expected a slot map")  # every one of a scan is a frame
+    assert frame is not None
+    bodies = {name: memoryview(buf)[a:b] for name, (a, b) in frame.spans.items()}
+    if signed and keys is not None:
+        # Every slot, wanted or not: a message that carries one forged slot is refused whole.
+        # Over the bytes as received, before a number is read (a relay re-sends these bytes).
+        found = digest_of_parts(owner, epoch, stamp, bodies["objects"], bodies["real"])
+        if not verify_digest(keys[owner], found, signature):  # type: ignore[arg-type]
+            raise BadSignature(f"the signature of {owner} does not verify", f"{where}.sig")
+    if wanted is not None and not wanted(owner, epoch, stamp):
+        return owner, None
+    for name, body in bodies.items():
+        try:
+            s[name] = msgpack.unpackb(body, raw=False, strict_map_key=True, use_list=True)
+        except Exception as exc:  # as unpacking the whole message would have failed
+            raise MalformedMessage(f"not msgpack ({type(exc).__name__}: {exc})", where) from None
     objects = s["objects"]
     need(isinstance(objects, list), f"{where}.objects", "expected an array")
     n = len(objects)
@@ -515,21 +610,9 @@ def _decode_slot(raw: Any, where: str, lim: Limits, keys: SigningKeys | None, si
         Realisation(classes, phi, lin[i], info[i], arrays["eta"][i])
         for i, (classes, phi, _) in enumerate(heads)
     )
-    return Slot(owner, stamp, LocalSummary(ids, out), epoch, signature)
-
-
-def _check_signature(
-    s: dict[str, Any], where: str, owner: str, signature: bytes, keys: SigningKeys
-) -> None:
-    """The owner's signature over the slot as received (before its numbers are even read)."""
-    key = keys.get(owner)
-    if key is None:
-        raise BadSignature(f"no signing key for owner {owner!r} in the roster", f"{where}.owner")
-    if not (isinstance(s["objects"], list) and isinstance(s["real"], list)):
-        return  # malformed: the structural checks below name the field
-    data = canonical_bytes(owner, s["epoch"], s["stamp"], s["objects"], s["real"])
-    if not verify(key, data, signature):
-        raise BadSignature(f"the signature of {owner} does not verify", f"{where}.sig")
+    summary = LocalSummary(ids, out)
+    wire = WireForm(owner, epoch, stamp, signature, summary, bytes(buf[frame.start : frame.end]))
+    return owner, Slot(owner, stamp, summary, epoch, signature, wire)
 
 
 def _decode_head(

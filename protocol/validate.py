@@ -21,19 +21,27 @@ def valid_id(value: object) -> bool:
     return isinstance(value, str) and ID_PATTERN.fullmatch(value) is not None
 
 
+def _unpackb(data: bytes) -> Any:
+    return msgpack.unpackb(data, raw=False, strict_map_key=True, use_list=True)
+
+
 def decode_document(
-    data: bytes, max_bytes: int, parse: Callable[[Any], T], field: str = "message"
+    data: bytes,
+    max_bytes: int,
+    parse: Callable[[Any], T],
+    field: str = "message",
+    unpack: Callable[[bytes], Any] = _unpackb,
 ) -> T:
-    """Unpack ``data`` (at most ``max_bytes``, checked before anything is read) as msgpack and
-    ``parse`` the document; ``field`` names the document as a whole in errors. Raises only
-    :class:`~protocol.errors.RemoteProtocolError` subclasses."""
+    """Unpack ``data`` (at most ``max_bytes``, checked before anything is read) as msgpack (with
+    ``unpack``) and ``parse`` the document; ``field`` names the document as a whole in errors.
+    Raises only :class:`~protocol.errors.RemoteProtocolError` subclasses."""
     if not isinstance(data, bytes | bytearray | memoryview):
         raise MalformedMessage(f"expected bytes, got {type(data).__name__}", field)
     size = memoryview(data).nbytes
     if size > max_bytes:
         raise LimitExceeded(f"{size} bytes > {max_bytes}", field)
     try:
-        doc = msgpack.unpackb(bytes(data), raw=False, strict_map_key=True, use_list=True)
+        doc = unpack(bytes(data))
     except Exception as exc:  # msgpack raises a dozen types for bad input; all mean "malformed"
         raise MalformedMessage(
             f"not a msgpack document ({type(exc).__name__}: {exc})", field

@@ -196,7 +196,8 @@ def test_node_on_stack_drops_invalid_input_and_keeps_what_it_had(
     assert node.on_stack(data)
     held = node.stack.by_owner()["r1"]
     stamps = node.stack.stamps()
-    bad = corrupt(data)
+    _advance(peer, frames, 4)  # a newer version: one the node parses (an older one it skips)
+    bad = corrupt(peer.outgoing())
     assert bad != data
     assert not node.on_stack(bad)
     c = node.counters
@@ -207,12 +208,36 @@ def test_node_on_stack_drops_invalid_input_and_keeps_what_it_had(
         1,
     )
     assert c.bytes_received == len(data) + len(bad)
+    assert c.slots_skipped == 0
     assert c.last_error
     assert node.stack.stamps() == stamps
     assert node.stack.by_owner()["r1"] is held
     # The node lives on and still fuses what it accepted before the bad message.
     node.on_frame(frames["r2"][2])
     assert node.distributed.stamps == {"r1": 3}
+
+
+def test_node_parses_each_slot_version_once_and_relays_the_bytes_it_received(
+    frames: dict[str, list[SensorFrame]],
+) -> None:
+    """Decoding only what is new: a version the node holds is skipped unparsed however often it
+    comes back, even corrupted (it is never used, so never relayed); the node relays a slot as
+    the very bytes its owner sent."""
+    peer, node = _node("r1"), _node("r2")
+    _advance(peer, frames, 3)
+    _advance(node, frames, 2)
+    data = peer.outgoing()
+    for _ in range(5):
+        node.on_stack(data)
+    c = node.counters
+    assert (c.slots_decoded, c.slots_skipped, c.invalid) == (1, 4, 0)
+    assert not node.on_stack(_with_nan(data))  # the held version, corrupted: not even parsed
+    assert (c.slots_decoded, c.slots_skipped, c.invalid) == (1, 5, 0)
+    owner_bytes = msgpack.unpackb(data, raw=False)["slots"][0]
+    relayed = msgpack.unpackb(node.outgoing(), raw=False)
+    assert [s for s in relayed["slots"] if s["owner"] == "r1"] == [owner_bytes]
+    assert node.stack.by_owner()["r1"].wire.data in data  # the very bytes, spliced in
+    assert node.stack.by_owner()["r1"].wire.data in node.outgoing()
 
 
 def test_node_nan_error_names_the_field(frames: dict[str, list[SensorFrame]]) -> None:
