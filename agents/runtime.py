@@ -11,6 +11,11 @@ gossip timer (the core's :meth:`~agents.core.AgentCore.on_timer`, which reads on
 published whole), liveliness and control. Journal writes happen in the worker too, in the order
 the core gives them, before the publications that acknowledge them.
 
+With a :class:`~agents.ros2.bridge.Ros2Link` (docs/ros2.md) the agent also speaks ROS 2 over
+rmw_zenoh: it holds the ROS graph's liveliness tokens, publishes every estimate's distributed
+belief as ROS 2 messages (converted on the loop, right after the estimate itself) and turns the
+robot's ROS 2 odometry and detections into frames (in the worker, ahead of the core).
+
 Modes (``agents.core.CoreSettings.mode``): ``realtime`` merges a stack as soon as it arrives and
 steps as soon as the next frame is there; ``lockstep`` merges exactly the peers a conductor's
 :class:`~agents.control.StepOrder` names and then steps, so the run repeats the in-process runner
@@ -25,6 +30,7 @@ import functools
 import logging
 import time
 from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING
 
 from agents.core import (
     Action,
@@ -40,6 +46,9 @@ from agents.core import (
 from agents.journal import Journal, Record
 from agents.node import RobotNode
 from agents.transport.base import Inbox, Message, Transport
+
+if TYPE_CHECKING:
+    from agents.ros2.bridge import Ros2Link
 
 log = logging.getLogger(__name__)
 
@@ -96,7 +105,7 @@ def execute_journal_actions(log: Journal | MemoryLog, actions: Sequence[Action])
 
 class Agent:
     """One robot of the fleet: ``core`` on ``transport``, its records in ``journal`` (or in
-    memory). ``clock`` gives the ``now`` of every event."""
+    memory). ``clock`` gives the ``now`` of every event; ``ros2``, if given, its ROS 2 side."""
 
     def __init__(
         self,
@@ -104,6 +113,7 @@ class Agent:
         transport: Transport,
         journal: Journal | None = None,
         clock: Callable[[], float] = time.monotonic,
+        ros2: Ros2Link | None = None,
     ) -> None:
         self.core = core
         self.robot = core.robot
@@ -118,7 +128,10 @@ class Agent:
         self.control = Inbox(1024, CONTROL_INBOX_BYTES)
         self.frames = Inbox(4096, FRAME_INBOX_BYTES)
         self.stacks = Inbox(1024, STACK_INBOX_BYTES)
-        self.inboxes = (self.control, self.frames, self.stacks)
+        self.ros2 = ros2
+        self.ros2_in = Inbox(4096, FRAME_INBOX_BYTES)
+        ros2_inboxes = (self.ros2_in,) if ros2 is not None else ()
+        self.inboxes = (self.control, self.frames, self.stacks, *ros2_inboxes)
         self.stop_reason = ""
         self.worker_busy_s = 0.0
         self.loop_lag_max_s = 0.0  # the longest the loop was held beyond a 10 ms tick
@@ -153,6 +166,12 @@ class Agent:
         t.subscribe(keys.frames(self.robot), self.frames)
         t.subscribe(keys.stack("*"), self.stacks)
         t.declare_alive(keys.alive(self.robot))
+        if self.ros2 is not None:
+            self.ros2.bridge.next_step = self.node.k + 1  # after a replay: the journal's next step
+            for expr in self.ros2.bridge.inputs:
+                t.subscribe(expr, self.ros2_in)
+            for token in self.ros2.bridge.tokens():
+                t.declare_alive(token)
         try:
             await t.open()
             self._carry_out(await self._in_worker(lambda: self.core.start(self.clock())))
@@ -212,10 +231,12 @@ class Agent:
             self.loop_lag_max_s = max(self.loop_lag_max_s, time.perf_counter() - t0 - tick)
 
     def _shell_counters(self) -> dict[str, int]:
+        ros2 = self.ros2.bridge.counter_values() if self.ros2 is not None else {}
         return {
             "inbox_dropped": sum(i.dropped for i in self.inboxes),
             "loop_lag_max_us": round(1e6 * self.loop_lag_max_s),
             "gossip_gap_max_us": round(1e6 * self.gossip_gap_max_s),
+            **ros2,
         }
 
     async def _main(self) -> None:
@@ -243,8 +264,17 @@ class Agent:
 
     def _handle(self, messages: list[Message]) -> list[Action]:
         """In the worker: every message through the core, journal actions carried out here (in
-        order, before the publications that follow them); the rest goes back to the loop."""
-        puts = [(m.key, m.payload) for m in messages if m.kind == "put"]
+        order, before the publications that follow them); the rest goes back to the loop. ROS 2
+        samples become the frames they complete, in their place."""
+        puts = []
+        frames_key = self.keys.frames(self.robot)
+        for m in messages:
+            if m.kind != "put":
+                continue
+            if self.ros2 is not None and self.ros2.bridge.input_type(m.key) is not None:
+                puts += [(frames_key, f) for f in self.ros2.bridge.on_input(m.key, m.payload)]
+            else:
+                puts.append((m.key, m.payload))
         return self._execute(self.core.on_messages(puts, self.clock()))
 
     def _execute(self, actions: Sequence[Action]) -> list[Action]:
@@ -256,6 +286,9 @@ class Agent:
         for a in actions:
             if isinstance(a, Publish):
                 self.transport.publish(a.key, a.payload)
+                if self.ros2 is not None and a.key == self.keys.estimate(self.robot):
+                    for sample in self.ros2.bridge.on_estimate(a.payload, time.time_ns()):
+                        self.ros2.publish(sample.key, sample.payload, sample.attachment)
             elif isinstance(a, Halt):
                 self.stop(a.reason)
             else:

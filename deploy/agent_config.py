@@ -14,6 +14,9 @@ from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey,
 
 from agents.core import GOSSIP_PERIOD_S, WINDOW_STEPS, CoreSettings
 from agents.node import Signing
+from agents.ros2.bridge import Ros2Settings
+from agents.ros2.messages import Ros2Unavailable, types_for
+from agents.ros2.wire import DISTROS, valid_ros_name
 from agents.transport.zenoh_transport import ZenohConfigError, ZenohSettings
 from protocol.codec import Limits
 from protocol.validate import valid_id
@@ -46,6 +49,7 @@ class AgentConfig:
     zenoh: ZenohSettings
     limits: Limits
     signing: Signing | None = None
+    ros2: Ros2Settings | None = None
 
 
 _AGENT_KEYS = {
@@ -55,6 +59,14 @@ _AGENT_KEYS = {
 _ZENOH_KEYS = {
     "listen", "connect", "gossip", "shared_memory", "lease_ms", "config_file", "insecure",
 }  # fmt: skip
+_ROS2_TOPICS = (
+    "odometry_topic", "pose_topic", "markers_topic", "odometry_in", "detections_in",
+)  # fmt: skip
+_ROS2_KEYS = {
+    "enable", "domain_id", "distro", "namespace", "node", "frame_id", "child_frame_id",
+    "class_names", *_ROS2_TOPICS,
+}  # fmt: skip
+MAX_DOMAIN_ID = 232  # the highest ROS 2 domain id
 MAX_EXTENT = 1e7  # metres: a UTM-like frame; beyond, float64 poses lose millimetres
 
 
@@ -121,10 +133,54 @@ def _read_signing(sec: FieldReader, base: Path, robot: str, roster: list[str]) -
     return Signing(key, keys)
 
 
+def _read_ros2(r: FieldReader, robot: str, num_classes: int) -> Ros2Settings | None:
+    """``[ros2]`` (docs/ros2.md): None unless ``enable = true``; the ``rosbags`` extra must then
+    be installed."""
+    r.check_keys(_ROS2_KEYS)
+    if not (r.boolean("enable") if r.has("enable") else False):
+        return None
+    distro = r.string("distro") if r.has("distro") else "jazzy"
+    if distro not in DISTROS:
+        raise r.fail("distro", f"{distro!r} (known: {', '.join(DISTROS)})")
+    names: dict[str, str] = {}
+    for name in ("namespace", "node", *_ROS2_TOPICS):
+        if r.has(name):
+            value = r.string(name)
+            empty_ok = name in ("odometry_in", "detections_in")
+            root = name == "namespace" and value == "/"
+            if not (valid_ros_name(value) or (empty_ok and value == "") or root):
+                raise r.fail(name, f"{value!r} is not a ROS 2 name")
+            names[name] = value
+    if names.get("node", "").count("/"):
+        raise r.fail("node", "a node name has no '/'")
+    classes: tuple[str, ...] = ()
+    if r.has("class_names"):
+        field = r.array("class_names")
+        classes = tuple(field.string(i) for i in range(len(field.raw)))
+        if len(classes) != num_classes or len(set(classes)) != num_classes:
+            raise r.fail(
+                "class_names", f"expected {num_classes} distinct names (the model's classes)"
+            )
+    try:
+        types_for(distro)
+    except Ros2Unavailable as exc:
+        raise r.fail("enable", str(exc)) from None
+    return Ros2Settings(
+        namespace=names.pop("namespace", f"/{robot}"),
+        node=names.pop("node", f"semfleet_{robot}"),
+        domain_id=r.integer("domain_id", 0, MAX_DOMAIN_ID) if r.has("domain_id") else 0,
+        distro=distro,
+        frame_id=r.string("frame_id") if r.has("frame_id") else "map",
+        child_frame_id=r.string("child_frame_id") if r.has("child_frame_id") else "base_link",
+        class_names=classes,
+        **names,
+    )
+
+
 def _read_agent_config(path: Path, robot: str) -> AgentConfig:
     label = str(path)
     top = FieldReader(label, parse_toml(read_file(path, "agent config"), label), "")
-    top.check_keys({"agent", "zenoh", "security"})
+    top.check_keys({"agent", "zenoh", "security", "ros2"})
     a = top.table("agent") if top.has("agent") else FieldReader(label, {}, "agent")
     z = top.table("zenoh") if top.has("zenoh") else FieldReader(label, {}, "zenoh")
     a.check_keys(_AGENT_KEYS)
@@ -185,7 +241,11 @@ def _read_agent_config(path: Path, robot: str) -> AgentConfig:
     signing = None
     if top.has("security"):
         signing = _read_signing(top.table("security"), base, robot, roster)
+    ros2 = None
+    if top.has("ros2"):
+        ros2 = _read_ros2(top.table("ros2"), robot, model.num_classes)
     return AgentConfig(
+        ros2=ros2,
         signing=signing,
         robot=robot,
         fleet=fleet,

@@ -9,6 +9,7 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
+import secrets
 import signal
 import time
 import zlib
@@ -19,6 +20,7 @@ from typing import Any
 from agents.core import AgentCore
 from agents.journal import Journal, Record
 from agents.node import RobotNode
+from agents.ros2.bridge import Ros2Bridge, Ros2Link
 from agents.runtime import Agent
 from agents.transport.base import Keys
 from agents.transport.zenoh_transport import ZenohTransport
@@ -78,9 +80,22 @@ def build_agent(config: AgentConfig, transport: ZenohTransport) -> Agent:
     core = AgentCore(
         node_factory(config, epoch), Keys(config.fleet), config.runtime, wall_clock=time.time
     )
-    agent = Agent(core, transport, journal)
+    agent = Agent(core, transport, journal, ros2=ros2_link(config, transport))
     agent.replay(records)
     return agent
+
+
+def ros2_link(config: AgentConfig, transport: ZenohTransport) -> Ros2Link | None:
+    """The agent's ROS 2 side (docs/ros2.md) if its config has ``[ros2] enable = true``. The ROS
+    graph's session id is a fresh random one: rmw_zenoh reads it as an opaque id."""
+    if config.ros2 is None:
+        return None
+    bridge = Ros2Bridge(config.ros2, config.robot, config.model.num_classes, secrets.token_hex(16))
+
+    def publish(key: str, payload: bytes, attachment: bytes) -> None:
+        transport.publish(key, payload, attachment)
+
+    return Ros2Link(bridge, publish)
 
 
 class JsonLines(logging.Formatter):

@@ -230,7 +230,9 @@ class ZenohTransport:
         if self._session is not None:
             self._declare_subscriber(key_expr, inbox)
 
-    def publish(self, key: str, payload: bytes) -> None:
+    def publish(self, key: str, payload: bytes, attachment: bytes | None = None) -> None:
+        """Put ``payload`` on ``key``; ``attachment``, if given, travels with it (rmw_zenoh's
+        per-sample metadata, agents/ros2/wire.py)."""
         if self._session is None:
             return
         publisher = self._publishers.get(key)
@@ -240,7 +242,7 @@ class ZenohTransport:
             )
             self._publishers[key] = publisher
         try:
-            publisher.put(payload)
+            publisher.put(payload, attachment=attachment)
             self.sent += 1
         except zenoh.ZError as exc:  # a closing session; gossip is retried on the next period
             self.send_errors += 1
