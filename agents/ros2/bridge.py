@@ -256,9 +256,8 @@ class Ros2Bridge:
             self.next_step += 1
             self._stamps[k] = det.stamp_ns
             self._stamps.pop(k - MAX_STAMPS, None)
-            truth = np.full(3, np.nan)
-            frames.append(
-                SensorFrame(self.robot, k, between(previous, odo.pose), det.detections, truth)
-            )
+            motion = between(previous, odo.pose)
+            # A robot knows no true pose: all NaN, which the frame codec sends as nil.
+            frames.append(SensorFrame(self.robot, k, motion, det.detections, np.full(3, np.nan)))
             self.counters.frames_built += 1
         return frames
