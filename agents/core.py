@@ -29,6 +29,7 @@ committed, what is refused) would be spread over modules that all mutate the sam
 from __future__ import annotations
 
 import collections
+import dataclasses
 import logging
 import math
 import time
@@ -52,6 +53,8 @@ from protocol.stack import Stack
 log = logging.getLogger(__name__)
 
 MODES = ("lockstep", "realtime")
+DIGEST_LIFE = 3  # gossip periods a peer's digest counts for (real time): then it is out of reach
+STACK_GOSSIP = ("delta", "full")
 MAX_REFUSED = 4096  # slot versions remembered as refused (oldest forgotten first)
 # How far ahead of the receiver's clock a slot's version may be (docs/wire.md, "Versions and
 # epochs"): an epoch is its owner's start in ms, so a stamp (a step) can be at most what the owner
@@ -81,10 +84,15 @@ class CoreSettings:
     invalid_log_period: float = 5.0
     publish_local: bool = True
     simulation: bool = False
+    # "delta": a stack carries the held slots some peer lacks, by the digests (``have``) peers
+    # send; "full": every held slot, every time (docs/wire.md, "Delta gossip").
+    stack_gossip: str = "delta"
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
             raise ValueError(f"mode {self.mode!r} (known: {', '.join(MODES)})")
+        if self.stack_gossip not in STACK_GOSSIP:
+            raise ValueError(f"stack gossip {self.stack_gossip!r} (known: delta, full)")
         if not (self.gossip_period > 0 and self.retry_period > 0):
             raise ValueError("gossip and retry periods must be positive")
         if self.window < 1 or self.max_control_bytes < 64:
@@ -177,6 +185,10 @@ class _Outgoing:
     stack: bytes | None = None
     previous: bytes | None = None
     need_from: int | None = None
+    # Delta gossip in real time: the digest alone, sent on a tick when ``stack`` holds nothing
+    # new (``fresh`` False: already published).
+    digest: bytes | None = None
+    fresh: bool = True
 
 
 class AgentCore:
@@ -216,6 +228,14 @@ class AgentCore:
         self._step_us = (0, 0)
         self._out = _Outgoing()
         self._now = 0.0
+        # Delta gossip: every peer's latest digest and when it came; when each held version came
+        # and when each was last sent (owner → (version, time)).
+        self._digests: dict[str, tuple[dict[str, tuple[int, int]], float]] = {}
+        self._got: dict[str, float] = {}
+        self._sent: dict[str, tuple[tuple[int, int], float]] = {}
+        self._out_include: set[str] = set()  # the owners of the slots in ``_out.stack``
+        self._tick_last: bytes | None = None  # the timer thread's own: the last stack it sent
+        self.tick_bytes = 0  # bytes of stacks and digests the timer sent (timer thread only)
 
     # -- lifecycle ---------------------------------------------------------------------------
 
@@ -310,6 +330,13 @@ class AgentCore:
                 self._on_links(payload)
             actions += self._step_all()
         self._refresh()
+        out = self._out
+        if out.fresh and out.digest is not None and out.stack is not None and self._out_include:
+            # Delta gossip in real time: what a peer turned out to lack goes now, not at the
+            # next tick (a tick then carries the digest alone).
+            self._out = dataclasses.replace(out, fresh=False)
+            self.node.mark_sent(len(out.stack))
+            actions.append(Publish(self.keys.stack(self.robot), out.stack))
         return actions
 
     def on_timer(self, now: float) -> list[Action]:
@@ -321,7 +348,12 @@ class AgentCore:
         if self.settings.mode == "lockstep" and out.previous is not None:
             actions.append(Publish(self.keys.stack(self.robot), out.previous))
         if out.stack is not None:
-            actions.append(Publish(self.keys.stack(self.robot), out.stack))
+            data = out.stack
+            if out.digest is not None and (not out.fresh or out.stack is self._tick_last):
+                data = out.digest  # nothing new since it was sent: the digest alone
+            self._tick_last = out.stack
+            self.tick_bytes += len(data)
+            actions.append(Publish(self.keys.stack(self.robot), data))
         if out.need_from is not None:
             actions += self._need(out.need_from, now)
         return actions
@@ -414,6 +446,11 @@ class AgentCore:
             self._log_invalid(sender_key, exc)
             return []
         message = self._plausible(self._without_refused(message))
+        heard = self.settings.mode == "lockstep" or not self.settings.simulation
+        if message.have is not None and (heard or self._heard(message.sender)):
+            # What the sender holds: what it lacks is sent to it (a simulated agent takes the
+            # digests of the robots it hears only, as a radio would).
+            self._digests[message.sender] = (message.have, self._now)
         if self.settings.mode == "lockstep":
             k = self.node.k
             if not k <= message.step <= k + self.settings.window:
@@ -475,7 +512,10 @@ class AgentCore:
         before = self.node.stack.versions()
         if self.node.merge(message):
             after = self.node.stack.versions()
-            self._merged_since_commit += [(o, s) for o, s in after.items() if before.get(o) != s]
+            changed = [(o, s) for o, s in after.items() if before.get(o) != s]
+            self._merged_since_commit += changed
+            for owner, _ in changed:
+                self._got[owner] = self._now
             self._uncommitted.append(Append("stack", payload))
         return []
 
@@ -618,7 +658,57 @@ class AgentCore:
     def _refresh(self) -> None:
         """Publish, whole, what the timer may read."""
         # Always, even empty: a lock-step peer ordered to hear us at round 1 needs our round 0.
-        self._out = _Outgoing(self.node.encoded_stack(), self._out.previous, self._frames_missing())
+        data, digest, fresh = self._stack_payload()
+        self._out = _Outgoing(data, self._out.previous, self._frames_missing(), digest, fresh)
+
+    def _stack_payload(self) -> tuple[bytes, bytes | None, bool]:
+        """The stack to gossip now, its digest alone (delta gossip in real time) and whether the
+        stack holds a slot not sent before (docs/wire.md, "Delta gossip").
+
+        Lock-step: every held slot that some roster peer lacks by its latest digest (a peer not
+        heard from yet lacks everything), so that each round merges exactly what a full stack
+        would bring. Real time: a slot goes to a peer whose digest lacks it only once that peer
+        had its chance — a digest that came a gossip period after the slot came here (from its
+        owner, whom the peer may hear itself) and after this agent last sent it; the own slot's
+        new version goes at once. A peer that joined (an empty digest) so gets a whole stack."""
+        node = self.node
+        if self.settings.stack_gossip == "full":
+            return node.encoded_stack(), None, True
+        stack = node.current_stack()
+        period = self.settings.gossip_period
+        strict = self.settings.mode == "lockstep"
+        digests = dict(self._digests)
+        if not strict:  # a peer not heard for DIGEST_LIFE periods is out of reach
+            horizon = self._now - DIGEST_LIFE * period
+            digests = {p: d for p, d in digests.items() if d[1] >= horizon}
+        if strict and node.roster is not None:
+            for peer in node.roster - {self.robot} - set(digests):
+                digests[peer] = ({}, -math.inf)
+        include: set[str] = set()
+        if not strict and self._out.fresh and self._tick_last is not self._out.stack:
+            include |= self._out_include & set(stack.by_owner())  # computed, not sent yet
+        for slot in stack:
+            version = slot.version
+            sent_version, sent_at = self._sent.get(slot.owner, ((-1, -1), -math.inf))
+            for peer, (have, heard_at) in digests.items():
+                if peer == slot.owner or have.get(slot.owner, (-1, -1)) >= version:
+                    continue
+                if strict:
+                    include.add(slot.owner)
+                    break
+                resend = sent_version != version or heard_at > sent_at + period
+                chance = (
+                    slot.owner == self.robot or heard_at > self._got.get(slot.owner, 0.0) + period
+                )
+                if resend and chance:
+                    include.add(slot.owner)
+                    break
+        for owner in include:
+            self._sent[owner] = (stack.by_owner()[owner].version, self._now)
+        self._out_include = include
+        data = node.encoded_delta(include)
+        digest = None if strict else node.encoded_delta(())
+        return data, digest, bool(include)
 
     # -- output ------------------------------------------------------------------------------
 
@@ -634,8 +724,8 @@ class AgentCore:
         return [Publish(self.keys.ctl("need", self.robot), payload)]
 
     def _publish_stack(self, previous: bytes | None = None) -> list[Action]:
-        data = self.node.encoded_stack()
-        self._out = _Outgoing(data, previous, self._out.need_from)
+        data, digest, _ = self._stack_payload()
+        self._out = _Outgoing(data, previous, self._out.need_from, digest, fresh=False)
         self.node.mark_sent(len(data))
         return [Publish(self.keys.stack(self.robot), data)]
 
@@ -675,6 +765,7 @@ class AgentCore:
             "rebuilds": c.rebuilds,
             "ignored_out_of_range": a.ignored_out_of_range,
             "bytes_sent": c.bytes_sent,
+            "bytes_sent_ticks": self.tick_bytes,
             "bytes_received": c.bytes_received,
             "frames_processed": a.frames_processed,
             "frames_invalid": a.invalid_frames,

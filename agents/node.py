@@ -12,7 +12,7 @@ keeps that order in one place.
 from __future__ import annotations
 
 import logging
-from collections.abc import Iterable
+from collections.abc import Collection, Iterable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -400,6 +400,25 @@ class RobotNode:
                 message = StackMessage(self.robot, None, others, self.k)
                 self._encoded = encode(message, self.limits)
         return self._encoded
+
+    def encoded_delta(self, owners: Collection[str]) -> bytes:
+        """A delta stack (docs/wire.md, "Delta gossip"): the held slots of ``owners`` only — what
+        some peer lacks — and the digest of every version held (``have``). The own slot is left
+        out, and counted, when the limits refuse it, as in :meth:`encoded_stack`."""
+        stack = self.current_stack()
+        have = stack.versions()
+        chosen = tuple(s for s in stack if s.owner in owners)
+        try:
+            return encode(
+                StackMessage(self.robot, self.position, Stack(chosen), self.k, have=have),
+                self.limits,
+            )
+        except LocalProtocolError as exc:
+            self.counters.own_slot_invalid += 1
+            self.counters.last_error = str(exc)
+            log.error("%s: own slot or position not sendable: %s", self.robot, exc)
+            others = Stack(tuple(s for s in chosen if s.owner != self.robot))
+            return encode(StackMessage(self.robot, None, others, self.k, have=have), self.limits)
 
     def mark_sent(self, size: int) -> None:
         """Tell the node a stack of ``size`` bytes went out (for its counters)."""

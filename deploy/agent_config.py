@@ -12,7 +12,7 @@ from cryptography.exceptions import UnsupportedAlgorithm
 from cryptography.hazmat.primitives import serialization
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey, Ed25519PublicKey
 
-from agents.core import GOSSIP_PERIOD_S, WINDOW_STEPS, CoreSettings
+from agents.core import GOSSIP_PERIOD_S, STACK_GOSSIP, WINDOW_STEPS, CoreSettings
 from agents.node import Signing
 from agents.ros2.bridge import Ros2Settings
 from agents.ros2.messages import Ros2Unavailable, types_for
@@ -54,7 +54,7 @@ class AgentConfig:
 
 _AGENT_KEYS = {
     "fleet", "model", "start", "roster", "seed", "mode", "gossip_period", "journal",
-    "publish_local", "simulation", "window", "world_extent",
+    "publish_local", "simulation", "window", "world_extent", "stack_gossip",
 }  # fmt: skip
 _ZENOH_KEYS = {
     "listen", "connect", "gossip", "shared_memory", "lease_ms", "config_file", "insecure",
@@ -214,8 +214,12 @@ def _read_agent_config(path: Path, robot: str) -> AgentConfig:
     period = a.number("gossip_period") if a.has("gossip_period") else GOSSIP_PERIOD_S
     if not 0.01 <= period <= 3600:
         raise a.fail("gossip_period", "must be in 0.01..3600 s")
+    stack_gossip = a.string("stack_gossip") if a.has("stack_gossip") else "delta"
+    if stack_gossip not in STACK_GOSSIP:
+        raise a.fail("stack_gossip", f"{stack_gossip!r} (known: {', '.join(STACK_GOSSIP)})")
     runtime = CoreSettings(
         mode=mode,
+        stack_gossip=stack_gossip,
         gossip_period=period,
         window=a.integer("window", 1, 100_000) if a.has("window") else WINDOW_STEPS,
         publish_local=a.boolean("publish_local") if a.has("publish_local") else True,

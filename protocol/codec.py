@@ -123,6 +123,10 @@ class StackMessage:
     step: int = 0
     # Owners of the slots ``decode`` left out, unparsed (versions the receiver did not want).
     skipped: tuple[str, ...] = ()
+    # Delta gossip (docs/wire.md): the sender's digest, owner → (epoch, stamp) of every slot it
+    # holds (its own included), when ``slots`` carries only what its peers lack; None in a full
+    # stack.
+    have: dict[str, tuple[int, int]] | None = None
 
 
 def _tri(n: int) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
@@ -290,21 +294,32 @@ def encode(message: StackMessage, limits: Limits | None = None) -> bytes:
     _local(len(slots) <= lim.max_slots, "slots", f"{len(slots)} > {lim.max_slots}")
     signed = {s.signature is not None for s in slots}
     _local(len(signed) <= 1, "slots", "signed and unsigned slots in one stack")
-    head = {
+    head: dict[str, Any] = {
         "v": SIGNED_VERSION if signed == {True} else VERSION,
         "type": STACK,
         "sender": message.sender,
         "k": step,
         "pos": pos,
     }
+    have: list[list[Any]] | None = None
+    if message.have is not None:
+        entries = sorted(message.have.items())
+        _local(len(entries) <= lim.max_slots, "have", f"{len(entries)} > {lim.max_slots}")
+        for o, (e, k) in entries:
+            ok = valid_id(o) and 0 <= e <= MAX_EPOCH and 0 <= k <= _MAX_STAMP
+            _local(ok, "have", f"invalid entry {[o, e, k]!r}")
+        have = [[o, int(e), int(k)] for o, (e, k) in entries]
     # What msgpack.packb of the whole map would write, with each slot's bytes spliced in: a
     # slot that carries its wire form (received and validated, or made once) is not re-encoded.
     packer = msgpack.Packer(use_bin_type=True)
     parts = [packer.pack_map_header(len(head) + 1)]
     for key, value in head.items():
         parts += [packer.pack(key), packer.pack(value)]
+    parts[0] = packer.pack_map_header(len(head) + 1 + (have is not None))
     parts += [packer.pack("slots"), packer.pack_array_header(len(slots))]
     parts += [_slot_bytes(s, f"slots[{i}]", lim, packer) for i, s in enumerate(slots)]
+    if have is not None:
+        parts += [packer.pack("have"), packer.pack(have)]
     blob = b"".join(parts)
     size_ok = len(blob) <= lim.max_message_bytes
     _local(size_ok, "message", f"{len(blob)} bytes > {lim.max_message_bytes}")
@@ -489,7 +504,7 @@ def _decode_doc(
     if "v" in doc and (type(version) is not int or version not in (VERSION, SIGNED_VERSION)):
         speaks = f"{VERSION} and {SIGNED_VERSION}"
         raise UnsupportedVersion(f"schema version {doc['v']!r} (this side speaks {speaks})", "v")
-    top = as_map(doc, "message", _TOP_KEYS)
+    top = as_map(doc, "message", _TOP_KEYS | ({"have"} if "have" in doc else set()))
     if top["type"] != STACK:
         raise UnsupportedVersion(f"message type {top['type']!r}", "type")
     sender = robot_id(top["sender"], "sender")
@@ -526,7 +541,21 @@ def _decode_doc(
             slots.append(slot)
     need(len(set(owners)) == len(owners), "slots", f"duplicate owners {owners}", InvalidValue)
     skipped = tuple(o for o in owners if o not in {s.owner for s in slots})
-    return StackMessage(sender, position, Stack(tuple(slots)), step, skipped)
+    have = _decode_have(top["have"], lim) if "have" in top else None
+    return StackMessage(sender, position, Stack(tuple(slots)), step, skipped, have)
+
+
+def _decode_have(raw: Any, lim: Limits) -> dict[str, tuple[int, int]]:
+    need(isinstance(raw, list), "have", "expected an array")
+    need(len(raw) <= lim.max_slots, "have", f"{len(raw)} > {lim.max_slots}", LimitExceeded)
+    out: dict[str, tuple[int, int]] = {}
+    for i, entry in enumerate(raw):
+        where = f"have[{i}]"
+        need(isinstance(entry, list) and len(entry) == 3, where, "expected [owner, epoch, stamp]")
+        owner = robot_id(entry[0], where)
+        need(owner not in out, where, f"owner {owner!r} twice", InvalidValue)
+        out[owner] = (as_int(entry[1], where, 0, MAX_EPOCH), as_int(entry[2], where, 0, _MAX_STAMP))
+    return out
 
 
 def _decode_slot(

@@ -177,7 +177,11 @@ class Conductor:
             except RemoteProtocolError:
                 continue
             if message.sender == robot:
-                self.collected.stack_log.append((now, robot, message.stack.stamps()))
+                # What the robot holds: a delta stack's digest, or a full stack's slots.
+                held = message.stack.stamps()
+                if message.have is not None:
+                    held = {owner: stamp for owner, (_, stamp) in message.have.items()}
+                self.collected.stack_log.append((now, robot, held))
 
     def _on_estimate(self, data: bytes) -> None:
         try:

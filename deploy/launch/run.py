@@ -77,6 +77,7 @@ class LaunchPlan:
     mode: str = "lockstep"
     period: float = 0.5
     gossip_period: float = GOSSIP_PERIOD_S
+    stack_gossip: str = "delta"  # or "full" (docs/wire.md, "Delta gossip")
     comm: str | None = None
     faults: Faults = field(default_factory=Faults)
     fleet: str = "launch"
@@ -248,6 +249,7 @@ class Launcher:
             "seed": plan.seed,
             "mode": plan.mode,
             "gossip_period": plan.gossip_period,
+            "stack_gossip": plan.stack_gossip,
             "journal": f"../journal/{robot}.log",
             "publish_local": plan.publish_local,
             # Loss, partitions and range are the simulator's: it publishes who hears whom

@@ -44,7 +44,8 @@ class Agent:
 
         self.log = MemoryLog()
         wall = None if clock is None else (lambda: clock)
-        self.core = AgentCore(make, KEYS, CoreSettings(), self.log.records, wall_clock=wall)
+        settings = CoreSettings(stack_gossip="full")  # every publication a whole stack
+        self.core = AgentCore(make, KEYS, settings, self.log.records, wall_clock=wall)
         self.stacks: list[bytes] = []
 
     def _run(self, actions):  # type: ignore[no-untyped-def]

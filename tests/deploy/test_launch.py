@@ -133,13 +133,19 @@ def _plan(out: Path, **kwargs: Any) -> LaunchPlan:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("secure", [False, True], ids=["plain", "secure"])
+@pytest.mark.parametrize(
+    ("secure", "gossip"),
+    [(False, "delta"), (True, "delta"), (False, "full")],
+    ids=["plain", "secure", "full-stacks"],
+)
 def test_launch_lockstep_paper_equals_the_in_process_runner(
-    tmp_path: Path, reference: Reference, secure: bool
+    tmp_path: Path, reference: Reference, secure: bool, gossip: str
 ) -> None:
     # secure: mutual TLS, access control and owner-signed slots (issue 13) change nothing of
     # the beliefs; every slot that was fused was verified (an unsigned one would be refused).
-    outcome = launch(_plan(tmp_path, steps=STEPS, keep_estimates=True, secure=secure))
+    # Delta gossip (the default) and full stacks: the same beliefs, round by round.
+    plan = _plan(tmp_path, steps=STEPS, keep_estimates=True, secure=secure, stack_gossip=gossip)
+    outcome = launch(plan)
     assert_estimates_match(outcome, reference, STEPS)
     for b in BELIEFS:
         for name in METRICS:
