@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from protocol.codec import StackMessage, decode, encode, sign_slot, with_wire
-from protocol.errors import BadSignature, InvalidValue
+from protocol.errors import BadSignature, InvalidValue, LocalProtocolError, RemoteProtocolError
 from protocol.scan import BODY, SlotFrame, scan
 from protocol.signing import canonical_bytes, digest, digest_of_parts
 from protocol.stack import Stack
@@ -112,3 +112,26 @@ def test_a_decoded_slot_is_re_sent_as_the_bytes_received_until_it_changes() -> N
     assert own.wire is not None and own.wire.data in encode(
         StackMessage("r1", None, Stack((own,)), 4), LIMITS
     )
+
+
+def test_a_digest_travels_with_a_delta_stack_and_a_bad_one_is_refused() -> None:
+    slot = _slot("r1", 3, 0)
+    have = {"r1": (0, 3), "r2": (17, 5), "r3": (0, 0)}
+    data = encode(StackMessage("r1", None, Stack((slot,)), 3, have=have), LIMITS)
+    assert decode(data, LIMITS).have == have
+    assert msgpack.unpackb(data, raw=False)["have"] == [["r1", 0, 3], ["r2", 17, 5], ["r3", 0, 0]]
+    assert decode(encode(StackMessage("r1", None, Stack((slot,)), 3), LIMITS)).have is None
+    doc = msgpack.unpackb(data, raw=False)
+    for bad, field in (
+        ([["r1", 0, 3], ["r1", 0, 4]], "have[1]"),  # an owner twice
+        ([["r1", -1, 3]], "have[0]"),
+        ([["r1", 0]], "have[0]"),
+        ("r1", "have"),
+        ([["bad id!", 0, 1]], "have[0]"),
+    ):
+        doc["have"] = bad
+        with pytest.raises(RemoteProtocolError) as err:
+            decode(bytes(msgpack.packb(doc, use_bin_type=True)), LIMITS)
+        assert err.value.field == field, (bad, err.value)
+    with pytest.raises(LocalProtocolError, match="have"):
+        encode(StackMessage("r1", None, Stack(), 3, have={"r1": (0, -2)}), LIMITS)
