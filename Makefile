@@ -16,7 +16,7 @@ venv: $(STAMP)
 $(STAMP): pyproject.toml
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e '.[test,dev,cluster,learn,ros2]'
+	$(BIN)/python -m pip install --quiet -e '.[test,dev,cluster,learn,ros2,view]'
 	@touch $(STAMP)
 
 demo: $(STAMP)

@@ -17,8 +17,10 @@ from rich.table import Table
 
 from deploy.args import seed
 from deploy.commands.launch import SECURE_HELP
-from deploy.launch import LaunchPlan, launch
+from deploy.launch import LaunchPlan
 from deploy.launch.report import counters_table, write_outputs
+from deploy.launch.rerun_view import add_options as add_view_options
+from deploy.launch.rerun_view import launch_recorded
 from deploy.scenario_show import render_show, save_ground_truth_plot
 from sim.loader import load_scenario
 
@@ -51,13 +53,19 @@ def run(args: argparse.Namespace, console: Console) -> int:
     out = Path(args.out)
     png = save_ground_truth_plot(scenario, out / "paper-ground-truth.png", [20, 40, 60])
     plan = LaunchPlan(
-        scenario, args.seed, list(scenario.robot_ids), out, mode="lockstep", secure=args.secure
+        scenario,
+        args.seed,
+        list(scenario.robot_ids),
+        out,
+        mode="lockstep",
+        secure=args.secure,
+        keep_estimates=bool(args.view or args.record),
     )
     console.print(
         f"launching {len(plan.robots)} agent processes (Zenoh on loopback, lock-step, seed "
         f"{plan.seed}); logs in {out / 'logs'}"
     )
-    outcome = launch(plan, console)
+    outcome = launch_recorded(plan, console, args, f"demo seed {plan.seed}")
     console.print(counters_table(outcome))
     doc = write_outputs(plan, outcome, console, {"demo": True})
     console.print(final_table(doc, scenario.steps))
@@ -73,4 +81,5 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--seed", type=seed, default=0, help="seed of the simulated run (default 0)")
     p.add_argument("--out", default="out/demo", help="folder for outputs (default out/demo)")
     p.add_argument("--secure", action="store_true", help=SECURE_HELP)
+    add_view_options(p)
     p.set_defaults(run=run)

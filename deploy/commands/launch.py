@@ -16,11 +16,13 @@ from agents.links import Partition
 from deploy.args import positive_int, seed, zenoh_endpoint
 from deploy.errors import UsageError
 from deploy.fleet import COMM_MODES
-from deploy.launch import LAUNCH_METHODS, Faults, LaunchPlan, launch
+from deploy.launch import LAUNCH_METHODS, Faults, LaunchPlan
 from deploy.launch.attack_report import attack_list, run_attacks_command
 from deploy.launch.attacks import ATTACKS
 from deploy.launch.netns import require as require_netns
 from deploy.launch.report import agents, counters_table, write_outputs
+from deploy.launch.rerun_view import add_options as add_view_options
+from deploy.launch.rerun_view import launch_recorded
 from deploy.study import run_single
 from estimator.hybrid import BeliefConfig
 from estimator.models import ROBOT_ID
@@ -113,6 +115,7 @@ def run_launch(args: argparse.Namespace, console: Console) -> int:
         conductor_listen=args.conductor_listen if args.conductor_only else None,
         conductor_advertise=_advertise(args) if args.conductor_only else None,
         wait_agents=args.wait_agents,
+        keep_estimates=bool(args.view or args.record),
     )
     if plan.conductor_only:
         console.print(
@@ -125,7 +128,7 @@ def run_launch(args: argparse.Namespace, console: Console) -> int:
         f"launching {agents(len(plan.robots))} of {scenario.name} ({plan.mode}, seed "
         f"{plan.seed}) on loopback Zenoh; logs in {plan.out / 'logs'}"
     )
-    outcome = launch(plan, console=console)
+    outcome = launch_recorded(plan, console, args, f"launch {scenario.name} seed {plan.seed}")
     console.print(counters_table(outcome))
     console.print(f"run took {outcome.wall_s:.1f} s")
     write_outputs(plan, outcome, console, {"launch": {"mode": plan.mode, "wall_s": outcome.wall_s}})
@@ -134,6 +137,8 @@ def run_launch(args: argparse.Namespace, console: Console) -> int:
 
 def run_chaos(args: argparse.Namespace, console: Console) -> int:
     if args.attack is not None:
+        if args.view or args.record:
+            raise UsageError("--view/--record: not with --attack (one run per attack)")
         return run_attacks_command(args, console)
     scenario = load_scenario(args.scenario)
     kills, restarts = tuple(args.kill), tuple(args.restart)
@@ -153,6 +158,7 @@ def run_chaos(args: argparse.Namespace, console: Console) -> int:
         steps=_steps(scenario, args.steps),
         secure=args.secure,
         net=args.net,
+        keep_estimates=bool(args.view or args.record),
     )
     if plan.net == "netns":
         require_netns()
@@ -161,7 +167,7 @@ def run_chaos(args: argparse.Namespace, console: Console) -> int:
         f"chaos on {scenario.name}, seed {plan.seed}: {faults.describe()} "
         f"(realtime, period {plan.period:g} s{where})"
     )
-    outcome = launch(plan, console=console)
+    outcome = launch_recorded(plan, console, args, f"chaos {scenario.name} seed {plan.seed}")
     for e in outcome.events:
         console.print(f"- {e}")
     console.print(f"- garbage stacks published: {outcome.garbage_sent}")
@@ -217,6 +223,7 @@ def _common(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--steps", type=positive_int, default=None, help="run only the first N steps")
     p.add_argument("--secure", action="store_true", help=SECURE_HELP)
+    add_view_options(p)
 
 
 def add_parser(sub: Any) -> None:

@@ -435,14 +435,19 @@ class Launcher:
         )
 
 
-def launch(plan: LaunchPlan, console: Console | None = None) -> LaunchOutcome:
-    """Run ``plan`` with a live table on ``console`` (if given)."""
+def launch(
+    plan: LaunchPlan, console: Console | None = None, on_step: OnStep | None = None
+) -> LaunchOutcome:
+    """Run ``plan`` with a live table on ``console`` (if given); ``on_step(conductor, k)`` after
+    every step (a recording, :mod:`deploy.launch.rerun_view`)."""
     launcher = Launcher(plan)
     if console is None:
-        return asyncio.run(launcher.run())
+        return asyncio.run(launcher.run(on_step))
     with live_display(console) as live:
 
-        def show(conductor: Conductor, _k: int = 0) -> None:
+        def show(conductor: Conductor, k: int = 0) -> None:
+            if on_step is not None and k:
+                on_step(conductor, k)
             live.update(progress_table(conductor, plan.robots, launcher.steps))
 
         outcome = asyncio.run(launcher.run(show))
