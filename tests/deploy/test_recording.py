@@ -135,6 +135,11 @@ def test_view_and_record_together_are_a_usage_error(capsys: pytest.CaptureFixtur
     assert exc.value.code == 2 and "not allowed with argument" in capsys.readouterr().err
 
 
+def test_chaos_attack_refuses_record(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["chaos", "--scenario", "paper", "--attack", "all", "--record", "x.rrd"]) == 2
+    assert "--view/--record: not with --attack" in capsys.readouterr().err
+
+
 def test_record_into_an_unwritable_place_is_a_usage_error(tmp_path: Path) -> None:
     (tmp_path / "file").write_text("", encoding="utf-8")
     scenario = load_scenario("paper")
