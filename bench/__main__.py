@@ -14,6 +14,7 @@ from bench import (
     bench_agents,
     bench_belief,
     bench_crowd,
+    bench_gossip,
     bench_models,
     bench_secure,
     bench_study,
@@ -27,6 +28,7 @@ MODULES = (
     bench_crowd,
     bench_ufastslam,
     bench_agents,
+    bench_gossip,
     bench_secure,
     bench_study,
 )

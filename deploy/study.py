@@ -5,6 +5,10 @@ that simulates the scenario's frames once and feeds the very same frames to ever
 :func:`run_study` returns one :class:`RunResult` per seed; ``deploy.results.study_archive`` turns
 them into the results archive. :func:`run_seeded` is the process pool of both studies;
 ``deploy.cluster.run_on_cluster`` runs the same calls on a Dask cluster instead.
+
+Over 300 lines for a reason: one run (frames simulated once, every method fed the same frames),
+the Recorder that scores it and the pool that runs many seeds all fill one RunResult layout;
+split, that layout would be spread over modules that must change together.
 """
 
 from __future__ import annotations
