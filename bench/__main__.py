@@ -13,6 +13,7 @@ from bench import (
     Result,
     bench_agents,
     bench_belief,
+    bench_capacity,
     bench_crowd,
     bench_gossip,
     bench_models,
@@ -29,6 +30,7 @@ MODULES = (
     bench_ufastslam,
     bench_agents,
     bench_gossip,
+    bench_capacity,
     bench_secure,
     bench_study,
 )

@@ -9,8 +9,7 @@ one 2-core machine runs in realtime mode, with CPU and memory per agent.
   scouting off), realtime; the time from a new version of r1's slot in r1's stack to the same
   version in r4's stack, over 3 hops. Agents gossip on a timer, so a hop costs on average half a
   gossip period plus the transit.
-- Capacity: N agents (3, 10, 20) of a generated world in realtime mode at the step period; the
-  fraction of steps every agent kept up with, CPU % and peak RSS per agent from /proc.
+- Capacity: bench/bench_capacity.py.
 """
 
 from __future__ import annotations
@@ -34,14 +33,13 @@ from deploy.study import belief_model, belief_rng
 from estimator.hybrid import BeliefConfig
 from protocol.codec import StackMessage, encode
 from protocol.stack import Slot, Stack
-from sim.generate import dump_scenario, generate_scenario, line_world
+from sim.generate import line_world
 from sim.loader import load_scenario, parse_scenario
 from sim.sensors import Simulator
 
 PERIOD_S = 0.5  # the realtime step period (the scenario format has no rate; see docs/agents.md)
 GOSSIP_S = 0.25
 ROUNDS = 200
-AGENT_COUNTS = tuple(int(n) for n in os.environ.get("SEMFLEET_BENCH_AGENTS", "3,10,20").split(","))
 
 _notes: list[str] = []
 
@@ -220,53 +218,9 @@ def _relay_rows(tmp: Path) -> list[Result]:
     ]
 
 
-def _capacity_rows(tmp: Path) -> list[Result]:
-    rows = []
-    for n in AGENT_COUNTS:
-        s = generate_scenario(n, 3 * n, 3, seed=11, steps=20)
-        path = tmp / f"gen{n}.toml"
-        path.write_text(dump_scenario(s), encoding="utf-8")
-        s = parse_scenario(path.read_text(encoding="utf-8"), str(path))
-        plan = LaunchPlan(
-            s, 0, list(s.robot_ids), tmp / f"cap{n}", mode="realtime", period=PERIOD_S,
-            gossip_period=GOSSIP_S, fleet=f"cap{n}", publish_local=False,
-        )  # fmt: skip
-        start = time.perf_counter()
-        try:
-            outcome, usage = _run_launch(plan, sample=True)
-        except Exception as exc:  # a capacity probe may fail at high N: that is the figure
-            rows.append(
-                Result(f"realtime capacity: {n} agents", n, float("nan"), note=f"failed: {exc}")
-            )
-            continue
-        wall = time.perf_counter() - start
-        c = outcome.collected
-        kept = np.mean([c.last_step.get(r, 0) >= s.steps for r in s.robot_ids])
-        cpu = [
-            100 * (u["cpu"] - u["cpu0"]) / max(u["t"] - u["t0"], 1e-9)
-            for u in usage.values()
-            if "cpu" in u
-        ]
-        rss = [u["rss"] for u in usage.values()]
-        rows.append(
-            Result(
-                f"realtime capacity: {n} agents, period {PERIOD_S:g} s",
-                n,
-                1e3 * wall,
-                note=f"{100 * kept:.0f} % of agents finished all {s.steps} steps in time (mean "
-                f"last step {np.mean([c.last_step.get(r, 0) for r in s.robot_ids]):.1f}, 10 s "
-                f"after the last frame); CPU per "
-                f"agent {np.mean(cpu):.0f} % (max {np.max(cpu):.0f} %); peak RSS per agent "
-                f"{np.mean(rss):.0f} MB (max {np.max(rss):.0f} MB)",
-            )
-        )
-    return rows
-
-
 def run() -> list[Result]:
     _notes.clear()
     rows = _gossip_rows()
     with tempfile.TemporaryDirectory() as d:
         rows += _relay_rows(Path(d))
-        rows += _capacity_rows(Path(d))
     return rows

@@ -1,0 +1,108 @@
+"""Issue 14's capacity figures: N agents (5, 10, 20, 30) of a generated world in realtime mode at
+the step period — whether they keep up (the fraction of agents that finished every step, their
+mean last step 10 s after the last frame), CPU % and peak RSS per agent from /proc — and a
+lock-step launch of 50 agents that must complete. Target: 20 agents keep up at a 0.5 s step on 2
+cores (≤ 1 step behind at the end).
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from bench import Result
+from bench.bench_agents import GOSSIP_S, PERIOD_S, _run_launch
+from deploy.launch import LaunchPlan
+from sim.generate import dump_scenario, generate_scenario
+from sim.loader import parse_scenario
+
+AGENT_COUNTS = tuple(
+    int(n) for n in os.environ.get("SEMFLEET_BENCH_AGENTS", "5,10,20,30").split(",")
+)
+LOCKSTEP_AGENTS = int(os.environ.get("SEMFLEET_BENCH_LOCKSTEP_AGENTS", "50"))
+
+
+def notes() -> list[str]:
+    return []
+
+
+def _capacity_rows(tmp: Path) -> list[Result]:
+    rows = []
+    for n in AGENT_COUNTS:
+        s = generate_scenario(n, 3 * n, 3, seed=11, steps=20)
+        path = tmp / f"gen{n}.toml"
+        path.write_text(dump_scenario(s), encoding="utf-8")
+        s = parse_scenario(path.read_text(encoding="utf-8"), str(path))
+        plan = LaunchPlan(
+            s, 0, list(s.robot_ids), tmp / f"cap{n}", mode="realtime", period=PERIOD_S,
+            gossip_period=GOSSIP_S, fleet=f"cap{n}", publish_local=False,
+        )  # fmt: skip
+        start = time.perf_counter()
+        try:
+            outcome, usage = _run_launch(plan, sample=True)
+        except Exception as exc:  # a capacity probe may fail at high N: that is the figure
+            rows.append(
+                Result(f"realtime capacity: {n} agents", n, float("nan"), note=f"failed: {exc}")
+            )
+            continue
+        wall = time.perf_counter() - start
+        c = outcome.collected
+        kept = np.mean([c.last_step.get(r, 0) >= s.steps for r in s.robot_ids])
+        cpu = [
+            100 * (u["cpu"] - u["cpu0"]) / max(u["t"] - u["t0"], 1e-9)
+            for u in usage.values()
+            if "cpu" in u
+        ]
+        rss = [u["rss"] for u in usage.values()]
+        rows.append(
+            Result(
+                f"realtime capacity: {n} agents, period {PERIOD_S:g} s",
+                n,
+                1e3 * wall,
+                note=f"{100 * kept:.0f} % of agents finished all {s.steps} steps in time (mean "
+                f"last step {np.mean([c.last_step.get(r, 0) for r in s.robot_ids]):.1f}, 10 s "
+                f"after the last frame); CPU per "
+                f"agent {np.mean(cpu):.0f} % (max {np.max(cpu):.0f} %); peak RSS per agent "
+                f"{np.mean(rss):.0f} MB (max {np.max(rss):.0f} MB)",
+            )
+        )
+    return rows
+
+
+def _lockstep_rows(tmp: Path) -> list[Result]:
+    """A lock-step launch of LOCKSTEP_AGENTS agents of a generated world that must complete."""
+    n = LOCKSTEP_AGENTS
+    s = generate_scenario(n, 2 * n, 3, seed=12, steps=5)
+    path = tmp / f"lock{n}.toml"
+    path.write_text(dump_scenario(s), encoding="utf-8")
+    s = parse_scenario(path.read_text(encoding="utf-8"), str(path))
+    plan = LaunchPlan(
+        s, 0, list(s.robot_ids), tmp / f"lock{n}", mode="lockstep", fleet=f"lock{n}",
+        publish_local=False, wait_agents=600.0,
+    )  # fmt: skip
+    start = time.perf_counter()
+    try:
+        outcome, usage = _run_launch(plan, sample=True)
+    except Exception as exc:
+        return [Result(f"lock-step launch of {n} agents", n, float("nan"), note=f"failed: {exc}")]
+    wall = time.perf_counter() - start
+    done = sum(outcome.collected.last_step.get(r, 0) == s.steps for r in s.robot_ids)
+    rss = [u["rss"] for u in usage.values()]
+    return [
+        Result(
+            f"lock-step launch of {n} agents ({s.steps} steps)",
+            n,
+            1e3 * wall,
+            note=f"{done}/{n} agents finished every step; wall time includes starting {n} "
+            f"processes; peak RSS per agent {np.mean(rss):.0f} MB (max {np.max(rss):.0f} MB)",
+        )
+    ]
+
+
+def run() -> list[Result]:
+    with tempfile.TemporaryDirectory() as d:
+        return _capacity_rows(Path(d)) + _lockstep_rows(Path(d))
