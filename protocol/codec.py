@@ -37,9 +37,7 @@ from protocol.scan import SlotFrame, scan
 from protocol.signing import (
     SIGNATURE_BYTES,
     SigningKeys,
-    canonical_bytes,
     digest_of_parts,
-    sign,
     verify_digest,
 )
 from protocol.stack import Slot, Stack
@@ -443,10 +441,16 @@ def sign_slot(slot: Slot, key: Ed25519PrivateKey, limits: Limits | None = None) 
     ``encode`` would, for a slot the limits refuse."""
     unsigned = Slot(slot.owner, slot.stamp, slot.summary, slot.epoch)
     wire = _encode_slot(unsigned, "slot", limits or Limits())
-    data = canonical_bytes(slot.owner, slot.epoch, wire["stamp"], wire["objects"], wire["real"])
-    signature = sign(key, data)
-    wire["epoch"], wire["sig"] = slot.epoch, signature  # as _encode_slot writes a signed slot
-    packed = bytes(msgpack.packb(wire, use_bin_type=True))
+    # The bodies are packed once: hashed as they are (the canonical bytes' digest, as a receiver
+    # computes it) and spliced into the slot map, written as _encode_slot's signed slot would be.
+    packer = msgpack.Packer(use_bin_type=True)
+    objects, real = packer.pack(wire["objects"]), packer.pack(wire["real"])
+    found = digest_of_parts(slot.owner, slot.epoch, wire["stamp"], objects, real)
+    signature = key.sign(found)
+    head = [packer.pack_map_header(6)]
+    head += [packer.pack(v) for v in ("owner", slot.owner, "stamp", wire["stamp"], "objects")]
+    tail = [packer.pack(v) for v in ("epoch", slot.epoch, "sig", signature)]
+    packed = b"".join([*head, objects, packer.pack("real"), real, *tail])
     form = WireForm(slot.owner, slot.epoch, slot.stamp, signature, slot.summary, packed)
     return Slot(slot.owner, slot.stamp, slot.summary, slot.epoch, signature, form)
 

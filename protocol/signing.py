@@ -2,7 +2,7 @@
 
 A slot's canonical bytes are the msgpack array ``["semfleet-slot-v2", owner, epoch, stamp,
 objects, real]`` with ``objects`` and ``real`` exactly as they appear in the slot map. The owner
-signs their SHA-256 digest with Ed25519; a receiver recomputes them from the slot it decoded and
+signs their BLAKE3 digest with Ed25519; a receiver recomputes them from the slot it decoded and
 verifies the signature against the owner's public key from its roster. A relay re-sends the slot
 with the owner's signature: it can neither forge nor alter anyone's slot. Pure: keys are passed
 in, nothing is read from files.
@@ -10,10 +10,10 @@ in, nothing is read from files.
 
 from __future__ import annotations
 
-import hashlib
 from collections.abc import Mapping
 from typing import Any
 
+import blake3
 import msgpack
 from cryptography.exceptions import InvalidSignature
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey, Ed25519PublicKey
@@ -34,23 +34,25 @@ def canonical_bytes(
 
 
 def digest(data: bytes) -> bytes:
-    """What the Ed25519 signature covers: SHA-256 of the canonical bytes (one pass over a slot,
-    where Ed25519 alone hashes a long message with SHA-512 twice to sign and once to verify)."""
-    return hashlib.sha256(data).digest()
+    """What the Ed25519 signature covers: the 32-byte BLAKE3 hash of the canonical bytes (one
+    pass over a slot, where Ed25519 alone hashes a long message with SHA-512 twice to sign and
+    once to verify; BLAKE3 rather than SHA-256 because a slot can be a megabyte: measured here
+    0.13 ms against 0.60 ms for 1.1 MB, docs/wire.md)."""
+    return bytes(blake3.blake3(data).digest())
 
 
 def digest_of_parts(
     owner: str, epoch: int, stamp: int, objects: bytes | memoryview, real: bytes | memoryview
 ) -> bytes:
     """:func:`digest` of the canonical bytes, given ``objects`` and ``real`` already packed (the
-    bytes of a slot as received): the same SHA-256, without building the canonical bytes."""
+    bytes of a slot as received): the same hash, without building the canonical bytes."""
     packer = msgpack.Packer(use_bin_type=True)
-    h = hashlib.sha256(packer.pack_array_header(6))
+    h = blake3.blake3(packer.pack_array_header(6))
     for value in (CONTEXT, owner, epoch, stamp):
         h.update(packer.pack(value))
     h.update(objects)
     h.update(real)
-    return h.digest()
+    return bytes(h.digest())
 
 
 def sign(key: Ed25519PrivateKey, data: bytes) -> bytes:
