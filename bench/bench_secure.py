@@ -16,10 +16,11 @@ import time
 from collections.abc import Callable
 from functools import partial
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from cryptography.hazmat.primitives import serialization
-from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
+from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey, Ed25519PublicKey
 
 from agents.node import RobotNode, Signing
 from agents.transport.zenoh_transport import ZenohSettings, ZenohTransport
@@ -30,7 +31,8 @@ from deploy.fleet_init import init_fleet, loopback_spec
 from deploy.launch import free_ports
 from deploy.study import belief_model, belief_rng
 from protocol.codec import StackMessage, decode, encode, sign_slot
-from protocol.signing import SigningKeys
+from protocol.scan import scan
+from protocol.signing import SigningKeys, digest_of_parts, verify_digest
 from protocol.stack import Slot, Stack
 from sim.loader import load_scenario
 
@@ -112,35 +114,53 @@ def _secure_rows(tmp: Path) -> list[Result]:
 def _slot_rows(
     stack: Stack, public: SigningKeys, keys: dict[str, Ed25519PrivateKey]
 ) -> list[Result]:
-    """Signing and verifying each slot of the stack on its own (median of 20 each)."""
+    """Signing and verifying each slot of the stack (median of 50 each): the owner's work —
+    the digest of its packed bodies and the Ed25519 signature — and the receiver's — the digest
+    of the bytes as received and the Ed25519 verification; encoding and decoding the slot, which
+    an unsigned fleet does too, are given for scale."""
     rows = []
     for slot in stack:
-        unsigned = Slot(slot.owner, slot.stamp, slot.summary)
-        one = encode(StackMessage("r1", None, Stack((slot,)), 0))
-        plain = encode(StackMessage("r1", None, Stack((unsigned,)), 0))
-        sign_ms = _median_ms(partial(sign_slot, unsigned, keys[slot.owner]))
-        encode_ms = _median_ms(partial(encode, StackMessage("r1", None, Stack((unsigned,)), 0)))
-        verify_ms = _median_ms(partial(decode, one, None, public))
-        decode_ms = _median_ms(partial(decode, plain))
-        sign_cost, verify_cost = sign_ms - encode_ms, verify_ms - decode_ms
-        met = "met" if max(sign_cost, verify_cost) < TARGET_SLOT_MS else "NOT met"
+        data = encode(StackMessage("r1", None, Stack((slot,)), 0))
+        frame = scan(data)["slots"][0]
+        view = memoryview(data)
+        (oa, ob), (ra, rb) = frame.spans["objects"], frame.spans["real"]
+        key, pub = keys[slot.owner], public[slot.owner]
+        assert slot.signature is not None
+
+        parts = (slot.owner, slot.epoch, slot.stamp, view[oa:ob], view[ra:rb])
+        signing = partial(_sign_parts, key, parts)
+        verifying = partial(_verify_parts, pub, parts, slot.signature)
+        assert verifying()
+        sign_ms, verify_ms = _median_ms(signing, 50), _median_ms(verifying, 50)
+        encode_ms = _median_ms(partial(encode, StackMessage("r1", None, Stack((slot,)), 0)))
+        decode_ms = _median_ms(partial(decode, data))
+        met = "met" if max(sign_ms, verify_ms) < TARGET_SLOT_MS else "NOT met"
         rows.append(
             Result(
                 f"sign + verify one slot ({slot.owner})",
                 1,
-                sign_cost + verify_cost,
-                note=f"{len(one):,} bytes: signing adds {sign_cost:.3f} ms to encoding "
-                f"({encode_ms:.3f}), verifying {verify_cost:.3f} ms to decoding "
-                f"({decode_ms:.3f}); target each < {TARGET_SLOT_MS} ms {met}",
+                sign_ms + verify_ms,
+                note=f"{len(data):,} bytes: signing {sign_ms:.3f} ms, verifying {verify_ms:.3f} "
+                f"ms (BLAKE3 digest + Ed25519; for scale: a stack carrying it encodes in "
+                f"{encode_ms:.3f} ms, its bytes spliced in, and decodes in {decode_ms:.3f}); "
+                f"target each < {TARGET_SLOT_MS} ms {met}",
             )
         )
     return rows
 
 
-def _median_ms(fn: Callable[[], object]) -> float:
+def _sign_parts(key: Ed25519PrivateKey, parts: tuple[Any, ...]) -> bytes:
+    return key.sign(digest_of_parts(*parts))
+
+
+def _verify_parts(key: Ed25519PublicKey, parts: tuple[Any, ...], signature: bytes) -> bool:
+    return verify_digest(key, digest_of_parts(*parts), signature)
+
+
+def _median_ms(fn: Callable[[], object], repeats: int = 20) -> float:
     fn()
     times = []
-    for _ in range(20):
+    for _ in range(repeats):
         t = time.perf_counter()
         fn()
         times.append(1e3 * (time.perf_counter() - t))
