@@ -269,16 +269,11 @@ STUDY_CURVES = (
 )
 
 
-def write_study_plots(
-    out: Path,
-    doc: dict[str, Any],
-    scenario: Scenario,
-    results: Sequence[RunResult],
-    step: int,
-    robot: str,
+def write_curves_and_reliability(
+    out: Path, doc: dict[str, Any], results: Sequence[RunResult], step: int
 ) -> list[Path]:
-    """The curves of ``doc``'s means, the reliability diagram at ``step`` and the first run's
-    hypothesis snapshots of ``robot`` into ``out``; the paths written."""
+    """The curves of ``doc``'s means and the reliability diagram at ``step`` pooled over
+    ``results`` into ``out`` (a study's, or a merge of its shards); the paths written."""
     matplotlib.use("Agg")
     written = []
     for metric, ylabel, title, dof in STUDY_CURVES:
@@ -296,6 +291,20 @@ def write_study_plots(
         title = f"{doc['scenario']}: class calibration at k = {step}"
         plot_reliability(ax, ax_counts, at_step, title)
         written.append(save(fig, out / "reliability.png"))
+    return written
+
+
+def write_study_plots(
+    out: Path,
+    doc: dict[str, Any],
+    scenario: Scenario,
+    results: Sequence[RunResult],
+    step: int,
+    robot: str,
+) -> list[Path]:
+    """The curves of ``doc``'s means, the reliability diagram at ``step`` and the first run's
+    hypothesis snapshots of ``robot`` into ``out``; the paths written."""
+    written = write_curves_and_reliability(out, doc, results, step)
     world = World(scenario)
     for method, snaps in results[0].snapshots.items():
         if robot not in snaps:

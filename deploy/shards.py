@@ -185,29 +185,10 @@ def write_merged_plots(out: Path, merged: Merged) -> list[Path]:
     """The plots of ``deploy.plots.write_study_plots`` for the merged archive: the curves and
     the reliability diagram drawn from every run, and the hypothesis plots of the study's first
     seed copied from the shard that ran it (a merge has the runs' numbers, not their beliefs)."""
-    import matplotlib.pyplot as plt
-
-    from deploy.plots import STUDY_CURVES, plot_curves, plot_reliability, save
-    from deploy.results import pooled_calibration
-    from estimator.metrics import chi2_bounds
+    from deploy.plots import write_curves_and_reliability
 
     doc, step = merged.archive.document(), merged.snapshot_step
-    written = []
-    for metric, ylabel, title, dof in STUDY_CURVES:
-        fig, ax = plt.subplots(figsize=(7, 4.5))
-        curves = {m: e["mean"][metric] for m, e in doc["methods"].items()}
-        band = None if dof is None else chi2_bounds(dof, doc["runs"])
-        plot_curves(ax, curves, ylabel, f"{doc['scenario']}: {title}", band)
-        written.append(save(fig, out / f"{metric}.png"))
-    pooled = {m: pooled_calibration(merged.runs, m) for m in doc["methods"]}
-    at_step = {m: p[step - 1] for m, p in pooled.items() if p is not None}
-    if at_step:
-        fig, (ax, ax_counts) = plt.subplots(
-            2, 1, figsize=(6.5, 7), sharex=True, gridspec_kw={"height_ratios": [3, 1]}
-        )
-        title = f"{doc['scenario']}: class calibration at k = {step}"
-        plot_reliability(ax, ax_counts, at_step, title)
-        written.append(save(fig, out / "reliability.png"))
+    written = write_curves_and_reliability(out, doc, merged.runs, step)
     pattern = f"hypotheses_*_{merged.snapshot_robot}_k{step}.png"
     for png in sorted(merged.first.glob(pattern)):
         written.append(Path(shutil.copyfile(png, out / png.name)))
