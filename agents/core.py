@@ -450,7 +450,7 @@ class AgentCore:
         if message.have is not None and (heard or self._heard(message.sender)):
             # What the sender holds: what it lacks is sent to it (a simulated agent takes the
             # digests of the robots it hears only, as a radio would).
-            self._digests[message.sender] = (message.have, self._now)
+            self._note_digest(message.sender, message.have)
         if self.settings.mode == "lockstep":
             k = self.node.k
             if not k <= message.step <= k + self.settings.window:
@@ -487,6 +487,17 @@ class AgentCore:
             return message
         self.counters.slots_refused += len(message.stack) - len(kept)
         return StackMessage(message.sender, message.position, Stack(tuple(kept)), message.step)
+
+    def _note_digest(self, sender: str, have: dict[str, tuple[int, int]]) -> None:
+        """Keep ``sender``'s digest: only a roster robot's, and at most ``max_slots`` peers'
+        (the longest unheard forgotten first), so that made-up senders cannot grow it."""
+        roster = self.node.roster
+        if roster is not None and sender not in roster:
+            return
+        self._digests.pop(sender, None)
+        self._digests[sender] = (have, self._now)
+        while len(self._digests) > self.node.limits.max_slots:
+            del self._digests[next(iter(self._digests))]
 
     def _plausible(self, message: StackMessage) -> StackMessage:
         """Without the slots whose version is ahead of what their owner can have made by now:

@@ -112,3 +112,18 @@ def test_a_peer_that_joins_late_gets_every_slot_it_lacks_and_nothing_else_is_res
     # Sent once: the next tick carries the digest alone again.
     later = [a.payload for a in r1.on_timer(now + 0.1) if isinstance(a, Publish)]
     assert len(decode(later[0]).stack) == 0
+
+
+def test_digests_of_made_up_senders_are_bounded() -> None:
+    """A flood of stacks from ever new sender ids (each on its own key) cannot grow what an agent
+    keeps of its peers' digests beyond the stack's slot limit."""
+    from protocol.codec import StackMessage, encode
+    from protocol.stack import Stack
+
+    r1, _ = _core("r1")
+    for i in range(300):
+        sender = f"x{i}"
+        data = encode(StackMessage(sender, None, Stack(), 0, have={}))
+        r1.on_message(KEYS.stack(sender), data, float(i))
+    assert len(r1._digests) == r1.node.limits.max_slots
+    assert "x299" in r1._digests and "x0" not in r1._digests
