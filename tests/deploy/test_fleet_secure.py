@@ -176,11 +176,18 @@ def test_a_relay_cannot_forge_or_alter_a_slot_and_a_sender_must_be_its_key(
         assert after["stacks_badly_signed"] - before["stacks_badly_signed"] == 2 * PUTS
         assert after["stacks_misaddressed"] - before["stacks_misaddressed"] == PUTS
         assert after["stacks_merged"] - before["stacks_merged"] == 1  # the genuine relay, once
-        # r1 now relays r3's slot with r3's signature, and signs its own (none yet: no frames)
+        # r1 now relays r3's slot with r3's signature, and signs its own (none yet: no frames).
+        # Delta gossip: r1 sends a slot to a peer whose digest lacks it — r2 says it holds nothing.
+        asking = encode(StackMessage("r2", None, Stack(), 4, have={}), limits)
         async with asyncio.timeout(20):
             while True:
-                message = decode((await stacks.get()).payload, limits, keys)
-                if message.stack.by_owner().get("r3") is not None:
+                relay.publish(KEYS.stack("r2"), asking)
+                if not await stacks.wait(0.5):
+                    continue
+                found = [decode(m.payload, limits, keys) for m in stacks.drain()]
+                with_r3 = [m for m in found if m.stack.by_owner().get("r3") is not None]
+                if with_r3:
+                    message = with_r3[0]
                     break
         assert message.sender == "r1"
         assert message.stack.by_owner()["r3"].signature == genuine.signature
