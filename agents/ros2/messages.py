@@ -249,31 +249,43 @@ def markers_message(
         best = int(np.argmax(marginals[j]))
         colour = types.build("std_msgs/msg/ColorRGBA", r=0.1, g=0.6, b=1.0, a=1.0)
         markers.append(
-            types.build(
-                "visualization_msgs/msg/Marker",
-                header=head,
-                ns=f"{namespace}/ellipse",
-                id=int(oid),
-                type=4,  # LINE_STRIP
-                action=0,  # ADD
-                pose=planar_pose(types, 0.0, 0.0, 0.0),
-                scale=types.build("geometry_msgs/msg/Vector3", x=0.03, y=0.0, z=0.0),
-                color=colour,
-                points=points,
+            _marker(
+                types, head, f"{namespace}/ellipse", int(oid), 4,  # LINE_STRIP
+                planar_pose(types, 0.0, 0.0, 0.0), (0.03, 0.0, 0.0), colour, points=points,
             )
-        )
+        )  # fmt: skip
         markers.append(
-            types.build(
-                "visualization_msgs/msg/Marker",
-                header=head,
-                ns=f"{namespace}/class",
-                id=int(oid),
-                type=9,  # TEXT_VIEW_FACING
-                action=0,
-                pose=planar_pose(types, pose[0], pose[1], 0.0),
-                scale=types.build("geometry_msgs/msg/Vector3", x=0.0, y=0.0, z=0.25),
-                color=colour,
+            _marker(
+                types, head, f"{namespace}/class", int(oid), 9,  # TEXT_VIEW_FACING
+                planar_pose(types, pose[0], pose[1], 0.0), (0.0, 0.0, 0.25), colour,
                 text=f"{class_names[best]} {marginals[j, best]:.2f}",
             )
-        )
+        )  # fmt: skip
     return types.serialize(types.build(MARKERS, markers=markers), MARKERS)
+
+
+def _marker(
+    types: Ros2Types,
+    head: Any,
+    ns: str,
+    marker_id: int,
+    kind: int,
+    pose: Any,
+    scale: tuple[float, float, float],
+    colour: Any,
+    **fields: Any,
+) -> Any:
+    """One ADD ``visualization_msgs/msg/Marker`` of type ``kind``."""
+    x, y, z = scale
+    return types.build(
+        "visualization_msgs/msg/Marker",
+        header=head,
+        ns=ns,
+        id=marker_id,
+        type=kind,
+        action=0,  # ADD
+        pose=pose,
+        scale=types.build("geometry_msgs/msg/Vector3", x=x, y=y, z=z),
+        color=colour,
+        **fields,
+    )
