@@ -14,7 +14,15 @@ import pytest
 
 from deploy.cli import main
 from deploy.errors import UsageError
-from deploy.launch.rerun_view import ellipses, has_display, import_rerun, link_strips, open_log
+from deploy.launch.rerun_view import (
+    COUNTER_PLOTS,
+    RerunLog,
+    ellipses,
+    has_display,
+    import_rerun,
+    link_strips,
+    open_log,
+)
 from sim.loader import load_scenario
 from tests.deploy.test_launch import world_text
 from tests.tolerance import assert_close
@@ -85,6 +93,16 @@ def test_launch_record_holds_every_step_as_the_conductor_received_it(site: Path)
         assert set(rec[f"world/robots/{robot}/distributed/cov"]) == steps
         counters = rec[f"robots/{robot}/counters/frames_processed"]
         assert {k: counters[k]["Scalars:scalars"] for k in steps} == {k: [k] for k in steps}
+        # Every counter the layout's plots name is one the agents publish (a renamed counter
+        # would leave its plot empty).
+        for _, names in COUNTER_PLOTS:
+            for name in names:
+                assert set(rec[f"robots/{robot}/counters/{name}"]) == steps, name
+        # D's labels are shown, L's only on hover (they would hide D's).
+        for belief, shown in (("distributed", True), ("local", False)):
+            for part in ("", "/objects"):
+                cells = rec[f"world/robots/{robot}/{belief}{part}"][STEPS]
+                assert cells["Points3D:show_labels"] == [shown], (belief, part)
         for k in steps:
             # The D pose is the mixture mean the conductor scored from the estimate it received.
             want = results["distributed/robot_pose"][0, i, k - 1, :2]
@@ -182,3 +200,19 @@ def test_link_strips_label_both_ways_and_one_way() -> None:
     strips, labels = link_strips(verdict, positions)
     assert labels == ["a↔b", "c→b"]
     assert_close(strips[1], [[1.0, 0.0, 0.0], [2.0, 0.0, 0.0]])
+
+
+def test_the_fleet_view_looks_down_on_the_middle_of_the_world_from_above_it() -> None:
+    rr = import_rerun()
+    scenario = load_scenario("paper")
+    starts = np.array([r.start[:2] for r in scenario.robots])
+    points = np.concatenate([starts, scenario.object_poses()[:, :2]])
+    middle = (points.min(axis=0) + points.max(axis=0)) / 2.0
+    eye = RerunLog(rr, None, scenario, scenario.robot_ids)._eye()
+    target = np.array(eye.look_target.as_arrow_array().to_pylist()[0])
+    position = np.array(eye.position.as_arrow_array().to_pylist()[0])
+    assert_close(target, [*middle, 0.0], atol=1e-9, what="look target")
+    extent = float(np.max(points.max(axis=0) - points.min(axis=0)))
+    # Looking down (a slight tilt towards +y): everything within ±45° of the view axis.
+    assert position[2] >= extent and abs(position[0] - middle[0]) < 1e-9
+    assert 0.0 < middle[1] - position[1] < 0.1 * position[2]
