@@ -9,7 +9,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test lint bench venv clean
+.PHONY: demo test lint bench venv clean ros2-env
 
 venv: $(STAMP)
 
@@ -25,9 +25,22 @@ demo: $(STAMP)
 # Two phases: everything but the `serial` tests spread over the cores, then those alone
 # (tests/conftest.py says which and why). Each phase fails the target on a failure or on no test.
 PYTEST_JOBS ?= auto
-test: $(STAMP)
+test: $(STAMP) ros2-env
 	$(BIN)/python -m pytest -q -n $(PYTEST_JOBS) --dist worksteal -m "not serial"
 	$(BIN)/python -m pytest -q -m serial
+
+# ROS 2 itself (rclpy and the message packages, the PyPI `ros-*` wheels of ROS 2 Kilted) in a
+# virtual environment of its own, for tests/agents/test_ros2_reference.py: the test reads
+# semfleet's messages with it. Best effort: where the wheels cannot be installed those tests skip
+# with a one-line reason.
+ROS2_VENV  := .venv-ros2
+ROS2_STAMP := $(ROS2_VENV)/.installed
+ROS2_WHEELS := ros-rclpy ros-rmw-fastrtps-cpp ros-nav-msgs ros-geometry-msgs ros-visualization-msgs
+ros2-env:
+	@test -e $(ROS2_STAMP) || { $(PYTHON) -m venv $(ROS2_VENV) \
+	  && $(ROS2_VENV)/bin/python -m pip install --quiet $(ROS2_WHEELS) \
+	  && touch $(ROS2_STAMP); } \
+	  || echo "ros2-env: the ROS 2 wheels did not install; the ROS 2 reference tests will skip"
 
 lint: $(STAMP)
 	$(BIN)/ruff check .
@@ -38,4 +51,4 @@ bench: $(STAMP)
 	$(BIN)/python -m bench
 
 clean:
-	rm -rf $(VENV) build *.egg-info .pytest_cache .mypy_cache .ruff_cache
+	rm -rf $(VENV) $(ROS2_VENV) build *.egg-info .pytest_cache .mypy_cache .ruff_cache
