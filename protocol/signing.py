@@ -6,6 +6,11 @@ signs their BLAKE3 digest with Ed25519; a receiver recomputes them from the slot
 verifies the signature against the owner's public key from its roster. A relay re-sends the slot
 with the owner's signature: it can neither forge nor alter anyone's slot. Pure: keys are passed
 in, nothing is read from files.
+
+Keys are `cryptography`'s (files, certificates) and so is signing; a verification runs in
+libsodium (PyNaCl), whose Ed25519 verification took 0.043–0.057 ms here against OpenSSL's
+0.070–0.098 ms through `cryptography` (same keys, same signatures; libsodium also refuses
+non-canonical signatures and small-order keys).
 """
 
 from __future__ import annotations
@@ -15,11 +20,15 @@ from typing import Any
 
 import blake3
 import msgpack
-from cryptography.exceptions import InvalidSignature
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey, Ed25519PublicKey
+from nacl.bindings import crypto_sign_open
+from nacl.exceptions import BadSignatureError
 
 CONTEXT = "semfleet-slot-v2"
 SIGNATURE_BYTES = 64
+
+# The canonical bytes' first two items: the array header and the context.
+_HEAD = bytes(msgpack.Packer(use_bin_type=True).pack_array_header(6)) + msgpack.packb(CONTEXT)
 
 # owner → the Ed25519 public key that signs its slots
 SigningKeys = Mapping[str, Ed25519PublicKey]
@@ -46,10 +55,8 @@ def digest_of_parts(
 ) -> bytes:
     """:func:`digest` of the canonical bytes, given ``objects`` and ``real`` already packed (the
     bytes of a slot as received): the same hash, without building the canonical bytes."""
-    packer = msgpack.Packer(use_bin_type=True)
-    h = blake3.blake3(packer.pack_array_header(6))
-    for value in (CONTEXT, owner, epoch, stamp):
-        h.update(packer.pack(value))
+    head = _HEAD + msgpack.packb(owner) + msgpack.packb(epoch) + msgpack.packb(stamp)
+    h = blake3.blake3(head)
     h.update(objects)
     h.update(real)
     return bytes(h.digest())
@@ -64,8 +71,10 @@ def verify(key: Ed25519PublicKey, data: bytes, signature: bytes) -> bool:
 
 
 def verify_digest(key: Ed25519PublicKey, digest_: bytes, signature: bytes) -> bool:
+    if len(signature) != SIGNATURE_BYTES:
+        return False
     try:
-        key.verify(signature, digest_)
-    except InvalidSignature:
+        crypto_sign_open(bytes(signature) + digest_, key.public_bytes_raw())
+    except BadSignatureError:
         return False
     return True

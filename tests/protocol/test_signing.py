@@ -14,6 +14,7 @@ from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
 from estimator.summary import LocalSummary, Realisation
 from protocol.codec import Limits, StackMessage, decode, encode, sign_slot
 from protocol.errors import BadSignature, LocalProtocolError, RemoteProtocolError
+from protocol.signing import digest, verify_digest
 from protocol.stack import Slot, Stack
 
 LIMITS = Limits(num_classes=3)
@@ -36,6 +37,9 @@ def _slot(owner: str, stamp: int, seed: int) -> Slot:
 
 def _signed(owner: str, stamp: int = 41, seed: int = 0) -> Slot:
     return sign_slot(_slot(owner, stamp, seed), KEYS[owner], LIMITS)
+
+
+ED25519_ORDER = 2**252 + 27742317777372353535851937790883648493  # ℓ, the group order
 
 
 def test_a_signed_stack_verifies_and_a_relay_re_sends_the_owners_signature() -> None:
@@ -123,3 +127,22 @@ def test_a_stack_is_all_signed_or_all_unsigned() -> None:
     mixed = Stack((_signed("r1"), _slot("r2", 3, 1)))
     with pytest.raises(LocalProtocolError, match="signed and unsigned"):
         encode(StackMessage("r2", None, mixed, 3), LIMITS)
+
+
+def test_verification_accepts_exactly_the_owners_signature_of_the_digest() -> None:
+    """Signed by `cryptography` (OpenSSL), verified by libsodium: the same Ed25519. A malleated
+    signature (S + ℓ, the same point equation), a truncated one, another key's and another
+    digest's are refused."""
+    key = Ed25519PrivateKey.generate()
+    public = key.public_key()
+    other = Ed25519PrivateKey.generate().public_key()
+    for seed in range(3):
+        d = digest(np.random.default_rng(seed).bytes(100 + seed))
+        signature = key.sign(d)
+        assert verify_digest(public, d, signature)
+        assert not verify_digest(other, d, signature)
+        assert not verify_digest(public, digest(d), signature)
+        assert not verify_digest(public, d, signature[:-1])
+        assert not verify_digest(public, d, signature + b"\0")
+        s = int.from_bytes(signature[32:], "little") + ED25519_ORDER
+        assert not verify_digest(public, d, signature[:32] + s.to_bytes(32, "little"))
