@@ -30,6 +30,7 @@ from rich.console import Console
 from deploy.errors import RunFailure, UsageError
 from deploy.fleet_view import mixture_moments
 from deploy.launch.conductor import Collected, Conductor, links_at
+from deploy.launch.rerun_layout import fleet_blueprint
 from deploy.launch.run import LaunchOutcome, LaunchPlan, launch
 from estimator.pruning import class_marginals
 from estimator.snapshot import BeliefSnapshot
@@ -49,18 +50,6 @@ RECORD_FLUSH_S = 2.0
 _PALETTE = ((31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40), (148, 103, 189),
             (140, 86, 75), (227, 119, 194), (188, 189, 34), (23, 190, 207))  # fmt: skip
 _TRUTH = (200, 200, 200)
-# The agents' counters (docs/agents.md) in five plots per robot; the last one holds every counter
-# not named here: faults and recovery (rejections, invalid input, duplicates, resends, restores
-# ...), mostly zero, so that a rise is seen.
-COUNTER_PLOTS = (
-    ("timing (µs)", ("step_us_local", "step_us_distributed", "loop_lag_max_us",
-                     "gossip_gap_max_us")),
-    ("hypotheses", ("hypotheses_local", "hypotheses_distributed")),
-    ("gossip", ("stacks_sent", "stacks_received", "stacks_merged", "stacks_unchanged",
-                "slots_decoded", "slots_skipped", "frames_processed", "estimates_sent")),
-    ("bytes", ("bytes_sent", "bytes_sent_ticks", "bytes_received")),
-)  # fmt: skip
-EYE_HEIGHT = 1.0  # the top-down camera's height over the world's extent
 
 
 def import_rerun() -> ModuleType:
@@ -125,50 +114,8 @@ class RerunLog:
         self.trails: dict[tuple[str, str], dict[int, tuple[float, float]]] = {}
 
     def blueprint(self) -> Any:
-        """The fleet seen from above next to each robot's counters and D's class
-        probabilities."""
-        rrb, robots = self.rr.blueprint, self.robots
-        counters = [
-            rrb.Grid(*self._counter_views(r), name=f"{r} counters", grid_columns=2) for r in robots
-        ]
-        classes = [
-            rrb.TensorView(origin=f"robots/{r}/distributed/classes", name=f"{r} D classes")
-            for r in robots
-        ]
-        right = rrb.Vertical(rrb.Tabs(*counters), rrb.Tabs(*classes), row_shares=[3, 2])
-        fleet = rrb.Spatial3DView(origin="world", name="fleet", eye_controls=self._eye())
-        return rrb.Blueprint(
-            rrb.Horizontal(fleet, right, column_shares=[3, 2]),
-            rrb.SelectionPanel(state="collapsed"),
-        )
-
-    def _counter_views(self, robot: str) -> list[Any]:
-        rrb = self.rr.blueprint
-        origin = f"robots/{robot}/counters"
-        legend = rrb.PlotLegend(corner=rrb.Corner2D.LeftTop)
-        named = [c for _, names in COUNTER_PLOTS for c in names]
-        plots = [(t, [f"+ $origin/{c}" for c in names]) for t, names in COUNTER_PLOTS]
-        rest = ["+ $origin/**", "- $origin/step", *(f"- $origin/{c}" for c in named)]
-        return [
-            rrb.TimeSeriesView(origin=origin, contents=contents, name=title, plot_legend=legend)
-            for title, contents in [*plots, ("faults and recovery", rest)]
-        ]
-
-    def _eye(self) -> Any:
-        """A camera above the middle of the robots' starts and the objects, looking down with
-        +y up, high enough to see them all."""
-        s = self.scenario
-        starts = np.array([r.start[:2] for r in s.robots], dtype=float).reshape(-1, 2)
-        points = np.concatenate([starts, s.object_poses()[:, :2].reshape(-1, 2)])
-        lo, hi = points.min(axis=0), points.max(axis=0)
-        cx, cy = (lo + hi) / 2.0
-        height = EYE_HEIGHT * float(max(hi - lo)) + 3.0
-        return self.rr.blueprint.EyeControls3D(
-            kind=self.rr.blueprint.Eye3DKind.Orbital,
-            position=[cx, cy - 0.05 * height, height],  # a slight tilt: orbiting is defined
-            look_target=[cx, cy, 0.0],
-            eye_up=[0.0, 0.0, 1.0],
-        )
+        """The recording's default layout (deploy/launch/rerun_layout.py)."""
+        return fleet_blueprint(self.rr.blueprint, self.scenario, self.robots)
 
     def world(self) -> None:
         """What does not change: axes and the objects' true positions and classes."""

@@ -14,9 +14,8 @@ import pytest
 
 from deploy.cli import main
 from deploy.errors import UsageError
+from deploy.launch.rerun_layout import COUNTER_PLOTS, top_down_eye
 from deploy.launch.rerun_view import (
-    COUNTER_PLOTS,
-    RerunLog,
     ellipses,
     has_display,
     import_rerun,
@@ -208,7 +207,7 @@ def test_the_fleet_view_looks_down_on_the_middle_of_the_world_from_above_it() ->
     starts = np.array([r.start[:2] for r in scenario.robots])
     points = np.concatenate([starts, scenario.object_poses()[:, :2]])
     middle = (points.min(axis=0) + points.max(axis=0)) / 2.0
-    eye = RerunLog(rr, None, scenario, scenario.robot_ids)._eye()
+    eye = top_down_eye(rr.blueprint, scenario)
     target = np.array(eye.look_target.as_arrow_array().to_pylist()[0])
     position = np.array(eye.position.as_arrow_array().to_pylist()[0])
     assert_close(target, [*middle, 0.0], atol=1e-9, what="look target")
