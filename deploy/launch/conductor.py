@@ -230,7 +230,9 @@ class Conductor:
         step_timeout: float = 120.0,
     ) -> None:
         """Round by round: order round k, send frame k, wait for every agent's estimate of k
-        (re-sending what an agent may have missed every ``retry_period``)."""
+        (re-sending what an agent may have missed every ``retry_period``). A round fails when no
+        agent acknowledged it for ``step_timeout`` seconds: a slow round that keeps making
+        progress (many agents on few cores) is waited for; a stuck one is not."""
         for k in range(1, steps + 1):
             self.k = k
             self._order(k)
@@ -238,16 +240,22 @@ class Conductor:
                 self._publish_frames(r, k, k)
             deadline = time.monotonic() + step_timeout
             last_send = time.monotonic()
-            while any(self._acked[r] < k for r in self.robots):
+            late = [r for r in self.robots if self._acked[r] < k]
+            while late:
                 if check is not None:
                     check()
                 await self.estimates.wait(0.05)
                 self.pump()
                 now = time.monotonic()
-                if now > deadline:
-                    late = [r for r in self.robots if self._acked[r] < k]
-                    raise ConductorError(f"step {k}: no estimate from {late} in {step_timeout} s")
-                if now - last_send > self.retry_period:
+                still = [r for r in self.robots if self._acked[r] < k]
+                if len(still) < len(late):
+                    deadline = now + step_timeout  # progress
+                late = still
+                if late and now > deadline:
+                    raise ConductorError(
+                        f"step {k}: no estimate from {late} in the last {step_timeout} s"
+                    )
+                if late and now - last_send > self.retry_period:
                     last_send = now
                     self._order(k)
                     for r in self.robots:

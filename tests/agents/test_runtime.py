@@ -28,11 +28,11 @@ from agents.runtime import Agent
 from agents.transport import Inbox, Keys, MemoryBus, MemoryTransport
 from deploy.build import belief_model, belief_rng, make_node, make_nodes
 from deploy.fleet import run_fleet
-from deploy.launch.conductor import Conductor
+from deploy.launch.conductor import Conductor, ConductorError
 from estimator.hybrid import BeliefConfig, BeliefSnapshot
 from estimator.models import SensorFrame
 from protocol.codec import StackMessage, encode
-from protocol.estimate import EstimateMessage, decode_estimate
+from protocol.estimate import EstimateMessage, decode_estimate, encode_estimate
 from protocol.frames import encode_frame
 from sim.loader import parse_scenario
 from sim.sensors import Simulator
@@ -452,3 +452,44 @@ async def test_a_lockstep_peer_that_started_late_still_gets_the_round_0_stack(
             world.publish(KEYS.ctl("step"), encode_control(StepOrder(1, {"r3": ("r2",)})))
             world.publish(KEYS.frames("r3"), encode_frame(frames["r3"][0]))
             await _until(lambda: _stepped(late, 1))
+
+
+# --------------------------------------------------------------------------- conductor rounds
+
+
+async def _acknowledge(transport: MemoryTransport, robot: str, k: int, after: float) -> None:
+    """An agent that answers round ``k`` with an estimate ``after`` seconds from now."""
+    await asyncio.sleep(after)
+    snap = _nodes()[robot].distributed.snapshot(robot)
+    transport.publish(
+        KEYS.estimate(robot), encode_estimate(EstimateMessage(robot, k, {"distributed": snap}, {}))
+    )
+
+
+@pytest.mark.asyncio
+async def test_conductor_waits_for_a_slow_round_that_progresses_and_names_a_stuck_one(
+    frames: dict[str, list[SensorFrame]],
+) -> None:
+    """The step timeout counts from the last acknowledgement, not from the order: three agents
+    answering 0.3 s apart each (0.9 s in all) finish a round whose timeout is 0.5 s; a round
+    where one agent never answers fails 0.5 s after the last answer, naming that agent."""
+    bus = MemoryBus()
+    side = MemoryTransport(bus)
+    conductor = Conductor(SCENARIO, frames, ROBOTS, side, KEYS, CHAIN)
+    await conductor.open()
+    agent = MemoryTransport(bus)
+    await agent.open()
+    try:
+        slow = [_acknowledge(agent, r, 1, 0.3 * (i + 1)) for i, r in enumerate(ROBOTS)]
+        await asyncio.gather(conductor.run_lockstep(1, step_timeout=0.5), *slow)
+        assert [conductor.acked(r) for r in ROBOTS] == [1, 1, 1]
+        # Round 2: r3 never answers.
+        stuck = [_acknowledge(agent, r, 2, 0.3 * (i + 1)) for i, r in enumerate(ROBOTS[:2])]
+        t0 = asyncio.get_running_loop().time()
+        with pytest.raises(ConductorError, match=r"step 2: no estimate from \['r3'\]"):
+            await asyncio.gather(conductor.run_lockstep(2, step_timeout=0.5), *stuck)
+        waited = asyncio.get_running_loop().time() - t0
+        assert waited >= 0.6 + 0.5  # the last answer at 0.6 s, then the timeout
+    finally:
+        await agent.close()
+        await side.close()
