@@ -64,6 +64,7 @@ MAX_STEP_RATE = 100.0  # steps per second: 50× a 2 Hz robot, above any lock-ste
 CLOCK_SKEW_S = 300.0
 STAMP_SLACK = 10_000
 GOSSIP_PERIOD_S = 0.5  # the one default gossip period (agent configs, launches)
+LOCKSTEP_RESEND_MAX = 8  # periods: the longest a lock-step agent waits to re-send a stack
 WINDOW_STEPS = 64  # the one default of how far ahead frames, orders, rounds and links are kept
 
 
@@ -236,6 +237,11 @@ class AgentCore:
         self._out_include: set[str] = set()  # the owners of the slots in ``_out.stack``
         self._tick_last: bytes | None = None  # the timer thread's own: the last stack it sent
         self.tick_bytes = 0  # bytes of stacks and digests the timer sent (timer thread only)
+        # Lock-step re-sends (timer thread only): the pair last re-sent, the periods to wait
+        # before the next re-send of that same pair, and the periods waited so far.
+        self._resend_pair: tuple[bytes | None, bytes | None] = (None, None)
+        self._resend_wait = 1
+        self._resend_idle = 0
 
     # -- lifecycle ---------------------------------------------------------------------------
 
@@ -345,9 +351,15 @@ class AgentCore:
         out = self._out
         self._now = now
         actions: list[Action] = []
-        if self.settings.mode == "lockstep" and out.previous is not None:
-            actions.append(Publish(self.keys.stack(self.robot), out.previous))
-        if out.stack is not None:
+        if self.settings.mode == "lockstep" and self._lockstep_backoff(out):
+            pass  # unchanged since the last re-send, and not due yet
+        elif self.settings.mode == "lockstep":
+            if out.previous is not None:
+                actions.append(Publish(self.keys.stack(self.robot), out.previous))
+            if out.stack is not None:
+                self.tick_bytes += len(out.stack) + len(out.previous or b"")
+                actions.append(Publish(self.keys.stack(self.robot), out.stack))
+        elif out.stack is not None:
             data = out.stack
             if out.digest is not None and (not out.fresh or out.stack is self._tick_last):
                 data = out.digest  # nothing new since it was sent: the digest alone
@@ -357,6 +369,23 @@ class AgentCore:
         if out.need_from is not None:
             actions += self._need(out.need_from, now)
         return actions
+
+    def _lockstep_backoff(self, out: _Outgoing) -> bool:
+        """Whether this tick skips the lock-step re-send: a round's stacks go out when the round
+        ends, and the ticks only repair a loss, so an unchanged pair is re-sent after 1, 2, 4
+        ... up to ``LOCKSTEP_RESEND_MAX`` periods (exponential back-off) instead of every period
+        — with N agents every period would be N² stacks, which swamped 50 agents on 2 cores.
+        A new round starts over at one period. Timer thread only."""
+        pair = (out.stack, out.previous)
+        if pair != self._resend_pair:
+            self._resend_pair, self._resend_wait, self._resend_idle = pair, 1, 0
+            return False
+        self._resend_idle += 1
+        if self._resend_idle < self._resend_wait:
+            return True
+        self._resend_wait = min(2 * self._resend_wait, LOCKSTEP_RESEND_MAX)
+        self._resend_idle = 0
+        return False
 
     def next_timer(self, now: float) -> float:
         return now + self.settings.gossip_period

@@ -263,3 +263,30 @@ def test_an_own_slot_outside_the_limits_is_never_sent_and_the_rest_still_is(fram
     assert message.position is None
     assert [s.owner for s in message.stack] == ["r2"]
     assert node.counters.own_slot_invalid == 1
+
+
+def test_lockstep_ticks_back_off_while_the_stacks_are_unchanged(frames) -> None:  # type: ignore[no-untyped-def]
+    """A round's stacks go out when it ends; the ticks only repair a loss. With nothing new,
+    the pair (this round's, the previous round's) is re-sent after 1, 2, 4, 8, 8 ... periods;
+    a new round starts over at one period. Real time keeps a tick every period."""
+    d = Driver(mode="lockstep")
+    d.run(d.core.start(0.0))
+
+    def ticks(count: int) -> list[int]:
+        sent = []
+        for i in range(1, count + 1):
+            stacks = [a for a in d.core.on_timer(float(i)) if a.key == KEYS.stack("r1")]
+            if stacks:
+                sent.append(i)
+        return sent
+
+    assert ticks(40) == [1, 2, 4, 8, 16, 24, 32, 40]
+    d.send(KEYS.ctl("step"), encode_control(StepOrder(1, {"r1": ()})))
+    d.frame(frames["r1"][0])
+    assert d.core.node.k == 1  # a new round: its stack and the previous one
+    assert ticks(5) == [1, 2, 4]
+    r = Driver(mode="realtime")
+    r.run(r.core.start(0.0))
+    assert all(
+        [a for a in r.core.on_timer(float(i)) if a.key == KEYS.stack("r1")] for i in range(1, 12)
+    )
