@@ -37,6 +37,9 @@ log = logging.getLogger(__name__)
 Array = NDArray[np.float64]
 
 
+RESEND_MAX = 8  # a lock-step round's re-sends back off to this many retry periods
+
+
 class ConductorError(RuntimeError):
     """The run cannot go on (an agent is gone, a deadline passed)."""
 
@@ -230,16 +233,18 @@ class Conductor:
         step_timeout: float = 120.0,
     ) -> None:
         """Round by round: order round k, send frame k, wait for every agent's estimate of k
-        (re-sending what an agent may have missed every ``retry_period``). A round fails when no
-        agent acknowledged it for ``step_timeout`` seconds: a slow round that keeps making
-        progress (many agents on few cores) is waited for; a stuck one is not."""
+        (re-sending the order and the late agents' frames after ``retry_period``, then twice as
+        long each time up to ``RESEND_MAX`` × ``retry_period``: every agent answers a repeated
+        order with its estimate, so re-sending every period would flood a large fleet). A round
+        fails when no agent acknowledged it for ``step_timeout`` seconds: a slow round that keeps
+        making progress (many agents on few cores) is waited for; a stuck one is not."""
         for k in range(1, steps + 1):
             self.k = k
             self._order(k)
             for r in self.robots:
                 self._publish_frames(r, k, k)
             deadline = time.monotonic() + step_timeout
-            last_send = time.monotonic()
+            last_send, wait = time.monotonic(), self.retry_period
             late = [r for r in self.robots if self._acked[r] < k]
             while late:
                 if check is not None:
@@ -255,8 +260,8 @@ class Conductor:
                     raise ConductorError(
                         f"step {k}: no estimate from {late} in the last {step_timeout} s"
                     )
-                if late and now - last_send > self.retry_period:
-                    last_send = now
+                if late and now - last_send > wait:
+                    last_send, wait = now, min(2 * wait, RESEND_MAX * self.retry_period)
                     self._order(k)
                     for r in self.robots:
                         if self._acked[r] < k:

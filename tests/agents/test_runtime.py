@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from agents.control import Status, StepOrder, encode_control
+from agents.control import Status, StepOrder, decode_control, encode_control
 from agents.core import AgentCore, CoreSettings
 from agents.journal import Journal
 from agents.links import Schedule
@@ -475,9 +475,11 @@ async def test_conductor_waits_for_a_slow_round_that_progresses_and_names_a_stuc
     where one agent never answers fails 0.5 s after the last answer, naming that agent."""
     bus = MemoryBus()
     side = MemoryTransport(bus)
-    conductor = Conductor(SCENARIO, frames, ROBOTS, side, KEYS, CHAIN)
+    conductor = Conductor(SCENARIO, frames, ROBOTS, side, KEYS, CHAIN, retry_period=0.05)
     await conductor.open()
     agent = MemoryTransport(bus)
+    orders = Inbox(10_000)
+    agent.subscribe(KEYS.ctl("step"), orders)
     await agent.open()
     try:
         slow = [_acknowledge(agent, r, 1, 0.3 * (i + 1)) for i, r in enumerate(ROBOTS)]
@@ -490,6 +492,10 @@ async def test_conductor_waits_for_a_slow_round_that_progresses_and_names_a_stuc
             await asyncio.gather(conductor.run_lockstep(2, step_timeout=0.5), *stuck)
         waited = asyncio.get_running_loop().time() - t0
         assert waited >= 0.6 + 0.5  # the last answer at 0.6 s, then the timeout
+        # Re-sent orders back off (0.05, 0.1, 0.2, then every 0.4 s): not one every 0.05 s.
+        decoded = [decode_control(m.payload) for m in orders.drain()]
+        round2 = [o for o in decoded if isinstance(o, StepOrder) and o.k == 2]
+        assert 3 <= len(round2) - 1 <= 6, len(round2)
     finally:
         await agent.close()
         await side.close()
