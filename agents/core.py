@@ -242,6 +242,8 @@ class AgentCore:
         self._resend_pair: tuple[bytes | None, bytes | None] = (None, None)
         self._resend_wait = 1
         self._resend_idle = 0
+        # Re-sent acknowledgements: (round, when last re-sent, the wait before the next one).
+        self._ack_resend: tuple[int, float, float] = (-1, -math.inf, 0.0)
 
     # -- lifecycle ---------------------------------------------------------------------------
 
@@ -387,6 +389,23 @@ class AgentCore:
         self._resend_idle = 0
         return False
 
+    def _ack_due(self, k: int) -> bool:
+        """Whether a repeated order of round ``k`` is answered with the estimate again: at once
+        the first time, then after 1, 2, 4 ... gossip periods (a conductor re-orders a whole
+        fleet for one late agent, and every estimate can be megabytes)."""
+        last_k, last_t, wait = self._ack_resend
+        if k != last_k:
+            self._ack_resend = (k, self._now, self.settings.gossip_period)
+            return True
+        if self._now - last_t < wait:
+            return False
+        self._ack_resend = (
+            k,
+            self._now,
+            min(2 * wait, LOCKSTEP_RESEND_MAX * self.settings.gossip_period),
+        )
+        return True
+
     def next_timer(self, now: float) -> float:
         return now + self.settings.gossip_period
 
@@ -405,7 +424,7 @@ class AgentCore:
                 self._orders[order.k] = order
             elif order.k > k:
                 self.counters.orders_ahead += 1
-            elif order.k == k and self._last_estimate is not None:
+            elif order.k == k and self._last_estimate is not None and self._ack_due(k):
                 return self._publish_estimate(self._last_estimate)  # the conductor missed our ack
         elif isinstance(order, Status):
             self.counters.status_requests += 1

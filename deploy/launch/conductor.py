@@ -14,6 +14,7 @@ them), around one pump; the scoring itself is in :mod:`deploy.launch.scoring`.
 from __future__ import annotations
 
 import logging
+import math
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
@@ -123,6 +124,7 @@ class Conductor:
         self.collected = Collected(self.scorer.metrics, self.scorer.calibration)
         self._index = {r: i for i, r in enumerate(self.robots)}
         self._acked: dict[str, int] = {r: 0 for r in self.robots}
+        self._need_order_t = -math.inf  # when a frame request last made the order go again
 
     async def open(self) -> None:
         self.transport.subscribe(self.keys.estimate("*"), self.estimates)
@@ -166,7 +168,11 @@ class Conductor:
                 continue
             if isinstance(need, NeedFrames) and need.robot in self._index and self.k > 0:
                 self._publish_frames(need.robot, need.k, self.k)
-                if need.k <= self.k:
+                now = time.monotonic()
+                # The order too (a restarted agent lacks it), at most once a retry period: it
+                # goes to every agent, and each answers it with its estimate.
+                if need.k <= self.k and now - self._need_order_t >= self.retry_period:
+                    self._need_order_t = now
                     self._order(self.k)
         for m in self.estimates.drain():
             self._on_estimate(m.payload)

@@ -290,3 +290,21 @@ def test_lockstep_ticks_back_off_while_the_stacks_are_unchanged(frames) -> None:
     assert all(
         [a for a in r.core.on_timer(float(i)) if a.key == KEYS.stack("r1")] for i in range(1, 12)
     )
+
+
+def test_a_repeated_order_is_answered_with_the_estimate_at_backed_off_times(frames) -> None:  # type: ignore[no-untyped-def]
+    """The conductor re-orders the whole fleet for one late agent; an agent answers a repeated
+    order of its round at once, then after 1, 2, 4 ... gossip periods (0.5 s here)."""
+    d = Driver(mode="lockstep", gossip_period=0.5)
+    d.run(d.core.start(0.0))
+    order = encode_control(StepOrder(1, {"r1": ()}))
+    d.send(KEYS.ctl("step"), order)
+    d.frame(frames["r1"][0])
+    assert d.core.node.k == 1
+
+    def answered(now: float) -> bool:
+        actions = d.core.on_message(KEYS.ctl("step"), order, now)
+        return any(isinstance(a, Publish) and a.key == KEYS.estimate("r1") for a in actions)
+
+    times = [1.0, 1.1, 1.4, 1.5, 2.0, 2.4, 2.5, 3.0, 4.5, 4.6]
+    assert [t for t in times if answered(t)] == [1.0, 1.5, 2.5, 4.5]
