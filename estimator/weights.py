@@ -67,6 +67,33 @@ def _retract_samples(lin: Array, delta: Array) -> Array:
     return se2.retract(lin[None, :, :], delta.reshape(s, -1, 3))
 
 
+def sampled_viewpoints(
+    lin: Array, delta: Array, robot_var: IntArray, object_var: IntArray
+) -> Array:
+    """ψ of every detection at every sample: ``lin`` (..., v, 3), tangent samples ``delta``
+    (..., S, v, 3) → (..., S, D). The same maths as ``viewpoint`` of ``se2.retract`` (GTSAM's
+    p ∘ Expmap(δ)), fused: only the robots' positions and the objects' poses that ψ reads are
+    formed, and no angle is wrapped (ψ reads angles only through cos and sin)."""
+    lin = lin[..., None, :, :]
+    vx, vy, w = delta[..., 0], delta[..., 1], delta[..., 2]
+    small = np.abs(w) < se2.SMALL_ANGLE
+    w_safe = np.where(small, 1.0, w)
+    half_sin = np.sin(0.5 * w_safe)
+    # V(ω)·v with sin ω/ω and (1 − cos ω)/ω = 2 sin²(ω/2)/ω, their series near zero (as expmap).
+    a = np.where(small, 1.0 - w * w / 6.0, np.sin(w_safe) / w_safe)
+    b = np.where(small, w / 2.0 - w**3 / 24.0, 2.0 * half_sin * half_sin / w_safe)
+    tx, ty = a * vx - b * vy, b * vx + a * vy
+    theta = lin[..., 2]
+    c, s = np.cos(theta), np.sin(theta)
+    px = lin[..., 0] + c * tx - s * ty
+    py = lin[..., 1] + s * tx + c * ty
+    ot = theta[..., object_var] + w[..., object_var]
+    co, so = np.cos(ot), np.sin(ot)
+    dx = px[..., robot_var] - px[..., object_var]
+    dy = py[..., robot_var] - py[..., object_var]
+    return np.asarray(np.arctan2(-so * dx + co * dy, co * dx + so * dy))
+
+
 def semantic_log_likelihoods(model: ClassifierModel, poses: Array, terms: SemanticTerms) -> Array:
     """log P(z_d | poses, c) for every sample, detection and class: poses (S, v, 3) → (S, D, M)."""
     psi = viewpoint(poses[:, terms.robot_var, :], poses[:, terms.object_var, :])  # (S, D)
@@ -164,8 +191,8 @@ def geo_conditioned_batch(
     # δ = μ + L⁻ᵀε for the posterior information L Lᵀ; in rows, εᵀ L⁻¹.
     delta = mean[:, None, :] + eps @ np.linalg.inv(chol_post)
     lin = np.stack([g.lin for g in gs])  # (P, v, 3)
-    poses = se2.retract(lin[:, None, :, :], delta.reshape(p, num_samples, -1, 3))
-    psi = viewpoint(poses[:, :, terms.robot_var, :], poses[:, :, terms.object_var, :])
+    tangent = delta.reshape(p, num_samples, -1, 3)
+    psi = sampled_viewpoints(lin, tangent, terms.robot_var, terms.object_var)
     z = np.asarray(terms.z, dtype=float)
     log_lik = all_log_likelihoods(model, z, psi.reshape(p * num_samples, -1))
     base = np.broadcast_to(log_geo[:, None], (p, num_samples))

@@ -14,7 +14,7 @@ from numpy.typing import ArrayLike, NDArray
 Array = NDArray[np.float64]
 
 # Below this |θ| the closed forms of Expmap/Logmap lose precision; their Taylor series are used.
-_SMALL_ANGLE = 1e-6
+SMALL_ANGLE = 1e-6
 
 
 def wrap_angle(theta: ArrayLike) -> Array:
@@ -82,7 +82,7 @@ def transform_from(a: ArrayLike, points: ArrayLike) -> Array:
 def expmap(v: ArrayLike) -> Array:
     """Exponential map of tangent vectors (..., 3) → poses (..., 3)."""
     vx, vy, w = _split(v)
-    small = np.abs(w) < _SMALL_ANGLE
+    small = np.abs(w) < SMALL_ANGLE
     w_safe = np.where(small, 1.0, w)
     sin_w = np.where(small, 1.0 - w * w / 6.0, np.sin(w_safe) / w_safe)
     # (1 − cos ω)/ω written as 2 sin²(ω/2)/ω, which does not cancel for small ω.
@@ -95,7 +95,7 @@ def logmap(p: ArrayLike) -> Array:
     x, y, t = _split(p)
     t = wrap_angle(t)
     half = t / 2.0
-    small = np.abs(t) < _SMALL_ANGLE
+    small = np.abs(t) < SMALL_ANGLE
     half_safe = np.where(small, 1.0, half)
     # (θ/2)·cot(θ/2), with its series 1 − θ²/12 near zero.
     a = np.where(small, 1.0 - t * t / 12.0, half_safe / np.tan(half_safe))

@@ -19,7 +19,10 @@ from estimator.weights import (
     SemanticTerms,
     assignment_log_means,
     geo_conditioned,
+    geo_conditioned_batch,
+    geo_conditioned_samples,
     paper_mc,
+    sampled_viewpoints,
 )
 from tests.tolerance import assert_close
 
@@ -223,3 +226,49 @@ def test_geo_conditioned_low_variance_for_newly_seen_object(rng: np.random.Gener
         w = geo_conditioned(g, terms, BOTH_CLASSES, MODEL, 1000, np.random.default_rng(seed))
         odds.append(w[1] - w[0])
     assert_close(odds, np.full(3, np.mean(odds)), atol=0.05, rtol=0, what="log-odds by seed")
+
+
+def test_sampled_viewpoints_equal_the_viewpoints_of_retracted_poses(
+    rng: np.random.Generator,
+) -> None:
+    """The fused ψ of the weight integral against se2.retract then viewpoint, over headings all
+    round the circle, rotations beyond ±π and rotations at, below and just above the
+    small-angle switch of the exponential map."""
+    lin = np.concatenate(
+        [rng.uniform(-8.0, 8.0, (3, 5, 2)), rng.uniform(-7.0, 7.0, (3, 5, 1))], axis=2
+    )
+    delta = rng.normal(0.0, 0.4, (3, 200, 5, 3))
+    delta[..., 2] *= rng.choice([1.0, 10.0], size=delta.shape[:-1])
+    delta[0, :6, 1, 2] = [0.0, 1e-9, -1e-9, 0.99e-6, 1.01e-6, -1.01e-6]
+    robot_var, object_var = np.array([0, 0, 3, 3, 0]), np.array([1, 2, 4, 2, 4])
+    poses = se2.retract(lin[:, None], delta)
+    expected = viewpoint(poses[:, :, robot_var], poses[:, :, object_var])
+    got = sampled_viewpoints(lin, delta, robot_var, object_var)
+    assert got.shape == (3, 200, 5)
+    assert np.abs(np.angle(np.exp(1j * (got - expected)))).max() < 1e-12
+
+
+def test_geo_conditioned_batch_equals_one_parent_at_a_time() -> None:
+    """The vectorised evidence of several parents: what consecutive single-parent calls give
+    with the same random stream (two detections of two objects, parents at different poses)."""
+    rng = np.random.default_rng(5)
+    gs = []
+    for p in range(3):
+        robot = ROBOT + 0.3 * p * np.array([1.0, -0.5, 0.4])
+        obj2 = OBJECT + np.array([1.0, -2.0, -1.0])
+        info = _random_spd(9, rng)
+        g1 = _one_detection(robot, OBJECT, se2.between(robot, OBJECT), info[:6, :6])
+        g2 = _one_detection(robot, obj2, se2.between(robot, obj2) + 0.05, info[:6, :6])
+        jac = np.zeros((6, 9))
+        jac[:3, :6] = g1.jac
+        jac[3:, :3], jac[3:, 6:] = g2.jac[:, :3], g2.jac[:, 3:]
+        lin = np.array([robot, OBJECT, obj2])
+        gs.append(
+            InvolvedGaussian(lin, info, jac, np.concatenate([g1.rhs, g2.rhs]), 2 * GEO_LOG_NORM)
+        )
+    terms = SemanticTerms(np.array([0, 0]), np.array([1, 2]), np.array([[0.3, 0.7], [0.8, 0.1]]))
+    base, log_lik = geo_conditioned_batch(gs, terms, MODEL, 300, np.random.default_rng(9))
+    one = np.random.default_rng(9)
+    singles = [geo_conditioned_samples(g, terms, MODEL, 300, one) for g in gs]
+    assert_close(base, np.stack([s.base for s in singles]), rtol=1e-9)
+    assert_close(log_lik, np.stack([s.log_lik for s in singles]), rtol=1e-9, atol=1e-9)
