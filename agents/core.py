@@ -820,6 +820,7 @@ class AgentCore:
             "own_superseded": c.own_superseded,
             "slots_decoded": c.slots_decoded,
             "slots_skipped": c.slots_skipped,
+            "slots_reused": c.slots_reused,
             "empty_joins": c.empty_joins,
             "rebuilds": c.rebuilds,
             "ignored_out_of_range": a.ignored_out_of_range,

@@ -12,6 +12,7 @@ keeps that order in one place.
 from __future__ import annotations
 
 import logging
+from collections import OrderedDict
 from collections.abc import Collection, Iterable
 from dataclasses import dataclass, field, replace
 
@@ -51,7 +52,9 @@ class NodeCounters:
     a version of the own slot newer than the node's (a lost journal's earlier life, or a forgery
     on an unsigned fleet): the node then moves to a higher epoch. ``slots_decoded`` counts the
     slots whose bodies were parsed, ``slots_skipped`` those left unparsed: versions the node
-    already held or had passed (docs/wire.md, "Decoding only what is new")."""
+    already held or had passed, ``slots_reused`` those not parsed again because the node had
+    parsed the very same bytes before and not merged them yet (a lock-step agent buffers the
+    stacks of later rounds; docs/wire.md, "Decoding only what is new")."""
 
     stacks_received: int = 0
     stacks_merged: int = 0
@@ -65,6 +68,7 @@ class NodeCounters:
     own_superseded: int = 0
     slots_decoded: int = 0
     slots_skipped: int = 0
+    slots_reused: int = 0
     bytes_received: int = 0
     stacks_sent: int = 0
     bytes_sent: int = 0
@@ -170,6 +174,8 @@ class RobotNode:
         self.k = 0
         self._rng_distributed = rng_distributed
         self._encoded: bytes | None = None
+        # Slots parsed and not yet held, by version (see ``decode_stack``).
+        self._parsed: OrderedDict[tuple[str, int, int], Slot] = OrderedDict()
         self._own_slot_stale = False
         self._rebuild_due = False
 
@@ -192,13 +198,30 @@ class RobotNode:
         self.counters.bytes_received += len(data)
         keys = None if self.signing is None else self.signing.keys
         try:
-            message = decode(data, self.limits, keys, self._wants)
+            message = decode(data, self.limits, keys, self._wants, self._parsed_before)
         except RemoteProtocolError as exc:
             self._count_error(exc)
             return None
-        self.counters.slots_decoded += len(message.stack)
+        self.counters.slots_decoded += len(message.stack) - len(message.reused)
         self.counters.slots_skipped += len(message.skipped)
+        self.counters.slots_reused += len(message.reused)
+        self._keep_parsed(s for s in message.stack if s.owner not in message.reused)
         return message
+
+    def _parsed_before(self, owner: str, epoch: int, stamp: int) -> Slot | None:
+        return self._parsed.get((owner, epoch, stamp))
+
+    def _keep_parsed(self, slots: Iterable[Slot]) -> None:
+        """Remember the slots just parsed until they are held or passed, so that another copy of
+        the same bytes is not parsed again: at most ``2 × max_slots`` of them, the oldest
+        forgotten first (only references: a lock-step agent's buffered rounds hold them anyway)."""
+        for s in slots:
+            self._parsed[(s.owner, s.epoch, s.stamp)] = s
+        held = self.stack.versions()
+        for key in [k for k in self._parsed if (k[1], k[2]) <= held.get(k[0], (-1, -1))]:
+            del self._parsed[key]
+        while len(self._parsed) > 2 * self.limits.max_slots:
+            self._parsed.popitem(last=False)
 
     def _wants(self, owner: str, epoch: int, stamp: int) -> bool:
         """Whether a received slot version can change anything here: newer than the version held

@@ -125,6 +125,8 @@ class StackMessage:
     # holds (its own included), when ``slots`` carries only what its peers lack; None in a full
     # stack.
     have: dict[str, tuple[int, int]] | None = None
+    # Owners of the slots ``decode`` took, unparsed, from the receiver's ``parsed`` (same bytes).
+    reused: tuple[str, ...] = ()
 
 
 def _tri(n: int) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
@@ -459,6 +461,8 @@ def sign_slot(slot: Slot, key: Ed25519PrivateKey, limits: Limits | None = None) 
 
 
 Wanted = Callable[[str, int, int], bool]  # (owner, epoch, stamp) → parse this slot?
+# (owner, epoch, stamp) → a slot of that version this side parsed before, or None
+Parsed = Callable[[str, int, int], Slot | None]
 
 
 def decode(
@@ -466,6 +470,7 @@ def decode(
     limits: Limits | None = None,
     keys: SigningKeys | None = None,
     wanted: Wanted | None = None,
+    parsed: Parsed | None = None,
 ) -> StackMessage:
     """Parse and validate a stack message. Raises only :class:`RemoteProtocolError` subclasses.
 
@@ -477,7 +482,12 @@ def decode(
     has passed — is left out after its header (and, with ``keys``, its signature) is checked:
     its body is neither parsed nor validated (``StackMessage.skipped`` lists it). Every slot
     that is returned carries its bytes as received (``Slot.wire``): a relay re-sends them
-    untouched."""
+    untouched.
+
+    ``parsed(owner, epoch, stamp)``: a slot of this version that the receiver decoded before and
+    still keeps (a lock-step agent buffers the stacks of later rounds, and every copy of one
+    comes back): when its bytes equal the ones received, that very slot is returned instead of
+    parsing the body again (``StackMessage.reused`` lists it)."""
     lim = limits or Limits()
     if (
         isinstance(data, bytearray | memoryview)
@@ -486,7 +496,7 @@ def decode(
         data = bytes(data)
 
     def parse(doc: Any) -> StackMessage:
-        return _decode_doc(doc, lim, keys, wanted, data)
+        return _decode_doc(doc, lim, keys, (wanted, parsed), data)
 
     return decode_document(data, lim.max_message_bytes, parse, unpack=scan)
 
@@ -501,7 +511,11 @@ def _floats(blobs: list[Any], where: str, name: str, count: int) -> Array:
 
 
 def _decode_doc(
-    doc: Any, lim: Limits, keys: SigningKeys | None, wanted: Wanted | None, buf: bytes
+    doc: Any,
+    lim: Limits,
+    keys: SigningKeys | None,
+    hooks: tuple[Wanted | None, Parsed | None],
+    buf: bytes,
 ) -> StackMessage:
     need(isinstance(doc, dict), "message", f"expected a map, got {type(doc).__name__}")
     version = doc.get("v")
@@ -535,18 +549,20 @@ def _decode_doc(
     signed = version == SIGNED_VERSION
     if keys is not None and not signed and raw_slots:
         raise BadSignature("unsigned slots (wire version 1): this fleet signs its slots", "v")
-    slots, owners = [], []
+    slots, owners, reused = [], [], []
     for i, raw in enumerate(raw_slots):
-        owner, slot = _decode_slot(
-            raw, f"slots[{i}]", lim, keys if signed else None, signed, wanted, buf
+        owner, slot, again = _decode_slot(
+            raw, f"slots[{i}]", lim, keys if signed else None, signed, hooks, buf
         )
         owners.append(owner)
         if slot is not None:
             slots.append(slot)
+        if again:
+            reused.append(owner)
     need(len(set(owners)) == len(owners), "slots", f"duplicate owners {owners}", InvalidValue)
     skipped = tuple(o for o in owners if o not in {s.owner for s in slots})
     have = _decode_have(top["have"], lim) if "have" in top else None
-    return StackMessage(sender, position, Stack(tuple(slots)), step, skipped, have)
+    return StackMessage(sender, position, Stack(tuple(slots)), step, skipped, have, tuple(reused))
 
 
 def _decode_have(raw: Any, lim: Limits) -> dict[str, tuple[int, int]]:
@@ -568,10 +584,12 @@ def _decode_slot(
     lim: Limits,
     keys: SigningKeys | None,
     signed: bool,
-    wanted: Wanted | None,
+    hooks: tuple[Wanted | None, Parsed | None],
     buf: bytes,
-) -> tuple[str, Slot | None]:
-    """The slot's owner, and the slot — None when ``wanted`` refuses its version."""
+) -> tuple[str, Slot | None, bool]:
+    """The slot's owner, the slot — None when ``wanted`` refuses its version — and whether it is
+    one ``parsed`` gave back."""
+    wanted, parsed = hooks
     frame = raw if isinstance(raw, SlotFrame) else None
     fields = frame.fields if frame is not None else raw
     if signed:
@@ -605,7 +623,16 @@ def _decode_slot(
         if not verify_digest(keys[owner], found, signature):  # type: ignore[arg-type]
             raise BadSignature(f"the signature of {owner} does not verify", f"{where}.sig")
     if wanted is not None and not wanted(owner, epoch, stamp):
-        return owner, None
+        return owner, None, False
+    if parsed is not None:
+        before = parsed(owner, epoch, stamp)
+        if (
+            before is not None
+            and before.wire is not None
+            and before.wire.fits(before)
+            and before.wire.data == memoryview(buf)[frame.start : frame.end]
+        ):
+            return owner, before, True
     for name, body in bodies.items():
         try:
             s[name] = msgpack.unpackb(body, raw=False, strict_map_key=True, use_list=True)
@@ -645,7 +672,7 @@ def _decode_slot(
     )
     summary = LocalSummary(ids, out)
     wire = WireForm(owner, epoch, stamp, signature, summary, bytes(buf[frame.start : frame.end]))
-    return owner, Slot(owner, stamp, summary, epoch, signature, wire)
+    return owner, Slot(owner, stamp, summary, epoch, signature, wire), False
 
 
 def _decode_head(

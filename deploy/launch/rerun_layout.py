@@ -22,7 +22,8 @@ COUNTER_PLOTS = (
                      "gossip_gap_max_us")),
     ("hypotheses", ("hypotheses_local", "hypotheses_distributed")),
     ("gossip", ("stacks_sent", "stacks_received", "stacks_merged", "stacks_unchanged",
-                "slots_decoded", "slots_skipped", "frames_processed", "estimates_sent")),
+                "slots_decoded", "slots_skipped", "slots_reused", "frames_processed",
+                "estimates_sent")),
     ("bytes", ("bytes_sent", "bytes_sent_ticks", "bytes_received")),
 )  # fmt: skip
 EYE_HEIGHT = 1.0  # the top-down camera's height over the world's extent

@@ -28,7 +28,7 @@ from deploy.build import belief_model, make_node
 from estimator.distributed import DistributedBelief
 from estimator.hybrid import BeliefConfig
 from estimator.models import Detection, SensorFrame
-from protocol.codec import StackMessage, encode
+from protocol.codec import StackMessage, decode, encode
 from protocol.frames import encode_frame
 from sim.loader import load_scenario
 from sim.sensors import Simulator
@@ -308,3 +308,41 @@ def test_a_repeated_order_is_answered_with_the_estimate_at_backed_off_times(fram
 
     times = [1.0, 1.1, 1.4, 1.5, 2.0, 2.4, 2.5, 3.0, 4.5, 4.6]
     assert [t for t in times if answered(t)] == [1.0, 1.5, 2.5, 4.5]
+
+
+def test_a_lockstep_agent_parses_a_buffered_slot_version_once(frames) -> None:  # type: ignore[no-untyped-def]
+    """A stack for a later round waits in the buffer, and its copies keep coming (re-sends,
+    relays): the agent parses each slot version once and takes it from what it parsed for every
+    later copy with the same bytes; the round then merges what a fresh decode gives."""
+    peer = _factory("r2")()
+    while not peer.current_stack():
+        peer.on_frame(frames["r2"][peer.k])
+    data = peer.encoded_stack()  # r2's first slot, after its step K: for r1's round K + 1
+    big_k = peer.k
+    d = Driver(mode="lockstep")
+    d.run(d.core.start(0.0))
+
+    def round_(k: int, links: tuple[str, ...] = ()) -> None:
+        d.send(KEYS.ctl("step"), encode_control(StepOrder(k, {"r1": links})))
+        d.frame(frames["r1"][k - 1])
+        assert d.core.node.k == k
+
+    for k in range(1, big_k):
+        round_(k)
+    for _ in range(5):
+        d.send(KEYS.stack("r2"), data)
+    c = d.core.node.counters
+    assert (c.slots_decoded, c.slots_reused, c.slots_skipped, c.invalid) == (1, 4, 0, 0)
+    round_(big_k)
+    d.send(KEYS.stack("r2"), data)  # one more copy while its round is pending
+    round_(big_k + 1, ("r2",))
+    assert (c.slots_decoded, c.slots_reused) == (1, 5)
+    held = d.core.node.stack.by_owner()["r2"]
+    fresh = decode(data).stack.by_owner()["r2"]
+    assert held.version == fresh.version == (0, big_k)
+    assert held.wire is not None and fresh.wire is not None and held.wire.data == fresh.wire.data
+    assert d.core.node.distributed.stamps == {"r2": big_k}
+    # Held now: a later copy is skipped unparsed, and the parsed slot is let go.
+    d.send(KEYS.stack("r2"), data)
+    assert (c.slots_decoded, c.slots_reused, c.slots_skipped) == (1, 5, 1)
+    assert not d.core.node._parsed

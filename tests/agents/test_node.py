@@ -240,6 +240,31 @@ def test_node_parses_each_slot_version_once_and_relays_the_bytes_it_received(
     assert node.stack.by_owner()["r1"].wire.data in node.outgoing()
 
 
+def test_node_reuses_a_parsed_version_only_for_the_same_bytes(
+    frames: dict[str, list[SensorFrame]],
+) -> None:
+    """Before a decoded slot is merged (a lock-step round waits), another copy with the same
+    bytes is taken from what was parsed; a copy of that version with other bytes — corrupted, or
+    forged on a fleet that does not sign — is parsed and judged on its own."""
+    peer, node = _node("r1"), _node("r2")
+    _advance(peer, frames, 3)
+    _advance(node, frames, 2)
+    data = peer.outgoing()
+    assert data is not None
+    first = node.decode_stack(data)
+    again = node.decode_stack(data)
+    assert first is not None and again is not None
+    assert again.reused == ("r1",) and first.reused == ()
+    assert again.stack.by_owner()["r1"] is first.stack.by_owner()["r1"]
+    c = node.counters
+    assert (c.slots_decoded, c.slots_reused, c.invalid) == (1, 1, 0)
+    assert node.decode_stack(_with_nan(data)) is None  # same version, other bytes: parsed, refused
+    assert (c.slots_decoded, c.slots_reused, c.invalid) == (1, 1, 1)
+    assert node.merge(again)
+    assert node.decode_stack(data) is not None  # held now: skipped, not reused
+    assert (c.slots_decoded, c.slots_reused, c.slots_skipped) == (1, 1, 1)
+
+
 def test_node_nan_error_names_the_field(frames: dict[str, list[SensorFrame]]) -> None:
     peer, node = _node("r1"), _node("r2")
     _advance(peer, frames, 2)
