@@ -15,6 +15,7 @@ from bench import (
     bench_belief,
     bench_capacity,
     bench_crowd,
+    bench_draws,
     bench_gossip,
     bench_models,
     bench_secure,
@@ -26,6 +27,7 @@ from bench import (
 MODULES = (
     bench_models,
     bench_belief,
+    bench_draws,
     bench_crowd,
     bench_ufastslam,
     bench_agents,

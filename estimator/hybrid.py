@@ -386,13 +386,14 @@ class HybridBelief:
         per_parent = len(detections) * self.config.num_samples * self.model.num_classes
         size = max(1, _EVIDENCE_CHUNK // max(per_parent, 1))
         parts = []
+        eps = None  # the draws every parent shares (``geo_conditioned_batch``)
         for start in range(0, len(parents), size):
             chunk = parents[start : start + size]
             gs = [self._involved(h, detections) for h in chunk]
             if self.config.weight_estimator == "geo_conditioned":
-                base, log_lik = geo_conditioned_batch(
-                    gs, terms, self.model.classifier, self.config.num_samples, rng
-                )
+                if eps is None:
+                    eps = rng.standard_normal((self.config.num_samples, len(gs[0].info)))
+                base, log_lik = geo_conditioned_batch(gs, terms, self.model.classifier, eps)
             else:
                 z_geo = np.array([d.z_geo for _, d in detections])
                 geo_terms = (terms.robot_var, terms.object_var, z_geo, self._geo_cov)

@@ -165,12 +165,18 @@ def geo_conditioned_batch(
     gs: Sequence[InvolvedGaussian],
     terms: SemanticTerms,
     model: ClassifierModel,
-    num_samples: int,
-    rng: np.random.Generator,
+    eps: Array,
 ) -> tuple[Array, Array]:
     """:func:`geo_conditioned_samples` for several parents that share the detections ``terms``
     (same involved variables, same order), vectorised over the parents: ``base`` (P, S) and
-    ``log_lik`` (P, S, D, M). It draws exactly what P consecutive calls would draw."""
+    ``log_lik`` (P, S, D, M). ``eps`` (S, n): the standard normal draws, the same for every
+    parent (common random numbers): what each parent would get from
+    :func:`geo_conditioned_samples` with a generator that draws these ``eps``.
+
+    Pruning compares the weights of children of different parents, and parents differ little
+    in their Gaussians over the involved variables (docs/estimator.md, "Weights"): with the
+    same draws their Monte Carlo errors largely cancel in those comparisons, which independent
+    draws per parent would not."""
     info = np.stack([g.info for g in gs])
     jac = np.stack([g.jac for g in gs])
     rhs = np.stack([g.rhs for g in gs])
@@ -187,9 +193,11 @@ def geo_conditioned_batch(
     if len(terms.z) == 0:
         return log_geo[:, None], np.zeros((len(gs), 1, 0, m))
     p, n = mean.shape
-    eps = rng.standard_normal((p, num_samples, n))
+    num_samples = len(eps)
+    if eps.shape != (num_samples, n):
+        raise ValueError(f"eps has shape {eps.shape}, the parents need (S, {n})")
     # δ = μ + L⁻ᵀε for the posterior information L Lᵀ; in rows, εᵀ L⁻¹.
-    delta = mean[:, None, :] + eps @ np.linalg.inv(chol_post)
+    delta = mean[:, None, :] + eps[None, :, :] @ np.linalg.inv(chol_post)
     lin = np.stack([g.lin for g in gs])  # (P, v, 3)
     tangent = delta.reshape(p, num_samples, -1, 3)
     psi = sampled_viewpoints(lin, tangent, terms.robot_var, terms.object_var)

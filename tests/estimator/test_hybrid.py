@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from deploy.study import belief_model
+from estimator import hybrid
 from estimator.hybrid import BeliefConfig, HybridBelief
 from estimator.metrics import chi2_bounds, pose_nees
 from estimator.models import se2
@@ -184,3 +185,42 @@ def test_local_robot_pose_nees_is_inside_chi2_bounds() -> None:
             )
         lo, hi = chi2_bounds(3, runs)
         assert lo <= np.mean(nees) <= hi, (robot, np.mean(nees), (lo, hi))
+
+
+def test_every_parent_of_a_step_is_weighed_with_the_same_draws(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Common random numbers: the parents of a step share one set of Monte Carlo draws, also
+    across the chunks the evidence is computed in, so the chunk size changes nothing."""
+    s = load_scenario("paper")
+    frames = Simulator(s, 3).frames("r1")[:25]
+    draws: list[tuple[int, np.ndarray]] = []
+    real_batch = hybrid.geo_conditioned_batch
+
+    def spy(gs, terms, model, eps):  # type: ignore[no-untyped-def]
+        draws.append((len(frames_done), eps.copy()))
+        return real_batch(gs, terms, model, eps)
+
+    frames_done: list[int] = []
+
+    def run(chunk: int) -> HybridBelief:
+        monkeypatch.setattr(hybrid, "_EVIDENCE_CHUNK", chunk)
+        belief = HybridBelief(belief_model(s), {"r1": s.robot("r1").start}, BeliefConfig())
+        rng = np.random.default_rng(4)
+        frames_done.clear()
+        for f in frames:
+            belief.step([f], rng)
+            frames_done.append(f.k)
+        return belief
+
+    monkeypatch.setattr(hybrid, "geo_conditioned_batch", spy)
+    whole = run(10**9)
+    draws.clear()
+    apart = run(1)  # one parent per chunk
+    by_step: dict[int, list[np.ndarray]] = {}
+    for k, eps in draws:
+        by_step.setdefault(k, []).append(eps)
+    assert max(len(v) for v in by_step.values()) > 4  # several chunks in a step
+    assert all(np.array_equal(v[0], e) for v in by_step.values() for e in v)
+    assert [h.classes for h in apart.hypotheses] == [h.classes for h in whole.hypotheses]
+    assert [h.log_weight for h in apart.hypotheses] == [h.log_weight for h in whole.hypotheses]

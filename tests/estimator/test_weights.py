@@ -249,8 +249,8 @@ def test_sampled_viewpoints_equal_the_viewpoints_of_retracted_poses(
 
 
 def test_geo_conditioned_batch_equals_one_parent_at_a_time() -> None:
-    """The vectorised evidence of several parents: what consecutive single-parent calls give
-    with the same random stream (two detections of two objects, parents at different poses)."""
+    """The vectorised evidence of several parents: what a single-parent call gives each of them
+    with the same draws (two detections of two objects, parents at different poses)."""
     rng = np.random.default_rng(5)
     gs = []
     for p in range(3):
@@ -267,8 +267,8 @@ def test_geo_conditioned_batch_equals_one_parent_at_a_time() -> None:
             InvolvedGaussian(lin, info, jac, np.concatenate([g1.rhs, g2.rhs]), 2 * GEO_LOG_NORM)
         )
     terms = SemanticTerms(np.array([0, 0]), np.array([1, 2]), np.array([[0.3, 0.7], [0.8, 0.1]]))
-    base, log_lik = geo_conditioned_batch(gs, terms, MODEL, 300, np.random.default_rng(9))
-    one = np.random.default_rng(9)
-    singles = [geo_conditioned_samples(g, terms, MODEL, 300, one) for g in gs]
+    eps = np.random.default_rng(9).standard_normal((300, 9))
+    base, log_lik = geo_conditioned_batch(gs, terms, MODEL, eps)
+    singles = [geo_conditioned_samples(g, terms, MODEL, 300, np.random.default_rng(9)) for g in gs]
     assert_close(base, np.stack([s.base for s in singles]), rtol=1e-9)
     assert_close(log_lik, np.stack([s.log_lik for s in singles]), rtol=1e-9, atol=1e-9)
