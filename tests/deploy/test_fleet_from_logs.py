@@ -80,7 +80,7 @@ def test_three_agents_fed_only_by_replayed_logs_gossip_fuse_and_finish(tmp_path:
                 )
         for r in ROBOTS:
             replay = ["replay", "--robot", r, "--frames", str(fleet / f"{r}.jsonl")]
-            replay += ["--config", str(fleet / f"{r}.toml"), "--period", "0.1", "--wait"]
+            replay += ["--config", str(fleet / f"{r}.toml"), "--period", "0.25", "--wait"]
             with open(tmp_path / f"{r}.replay.log", "wb") as out:
                 replays[r] = subprocess.Popen(
                     _semfleet(*replay, "--timeout", "240"),
