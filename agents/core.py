@@ -534,7 +534,7 @@ class AgentCore:
         if len(kept) == len(message.stack):
             return message
         self.counters.slots_refused += len(message.stack) - len(kept)
-        return StackMessage(message.sender, message.position, Stack(tuple(kept)), message.step)
+        return dataclasses.replace(message, stack=Stack(tuple(kept)))  # the digest stays
 
     def _note_digest(self, sender: str, have: dict[str, tuple[int, int]]) -> None:
         """Keep ``sender``'s digest: only a roster robot's, and at most ``max_slots`` peers'
@@ -565,7 +565,7 @@ class AgentCore:
             return message
         self.counters.slots_implausible += len(message.stack) - len(kept)
         self._log_invalid(message.sender, ValueError("a slot version ahead of its owner's clock"))
-        return StackMessage(message.sender, message.position, Stack(tuple(kept)), message.step)
+        return dataclasses.replace(message, stack=Stack(tuple(kept)))  # the digest stays
 
     def _merge(self, message: StackMessage, payload: bytes) -> list[Action]:
         before = self.node.stack.versions()

@@ -145,3 +145,19 @@ def test_a_version_ahead_of_its_owners_clock_is_refused_counted_and_never_relaye
     unbounded = Agent("r2", EPOCH, clock=None)
     unbounded.hear("r3", _stack_with(Slot("r1", 1, summary, int(now_ms) + 1)))
     assert unbounded.core.counter_values()["slots_implausible"] == 0
+
+
+def test_a_message_with_an_implausible_slot_still_tells_what_its_sender_holds(frames) -> None:  # type: ignore[no-untyped-def]
+    """Delta gossip: the slot ahead of its owner's clock is refused, the sender's digest is
+    still taken (otherwise one bad relayed slot would hide what a peer lacks for good)."""
+    source = Agent("r1", EPOCH)
+    _steps(source, frames, 0, 2)
+    summary = decode(source.stacks[-1]).stack.by_owner()["r1"].summary
+    now_ms = 1000 * (NOW + CLOCK_SKEW_S)
+    bad = Slot("r1", 1, summary, int(now_ms) + 1)
+    have = {"r1": (bad.epoch, 1), "r3": (EPOCH, 4)}
+    r2 = Agent("r2", EPOCH)
+    r2.hear("r3", encode(StackMessage("r3", None, Stack((bad,)), 1, have=have)))
+    assert r2.core.counter_values()["slots_implausible"] == 1
+    assert r2.versions() == {}
+    assert r2.core._digests["r3"][0] == have
