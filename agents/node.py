@@ -213,15 +213,21 @@ class RobotNode:
 
     def _keep_parsed(self, slots: Iterable[Slot]) -> None:
         """Remember the slots just parsed until they are held or passed, so that another copy of
-        the same bytes is not parsed again: at most ``2 × max_slots`` of them, the oldest
-        forgotten first (only references: a lock-step agent's buffered rounds hold them anyway)."""
+        the same bytes is not parsed again (a lock-step agent's buffered rounds hold them
+        anyway). Bounded whatever arrives: roster owners only, at most ``2 × max_slots`` slots
+        and one message's worth of bytes (``max_message_bytes``), the oldest forgotten first."""
         for s in slots:
-            self._parsed[(s.owner, s.epoch, s.stamp)] = s
+            if s.wire is not None and (self.roster is None or s.owner in self.roster):
+                self._parsed[(s.owner, s.epoch, s.stamp)] = s
         held = self.stack.versions()
         for key in [k for k in self._parsed if (k[1], k[2]) <= held.get(k[0], (-1, -1))]:
             del self._parsed[key]
-        while len(self._parsed) > 2 * self.limits.max_slots:
-            self._parsed.popitem(last=False)
+        size = sum(len(s.wire.data) for s in self._parsed.values() if s.wire is not None)
+        while self._parsed and (
+            len(self._parsed) > 2 * self.limits.max_slots or size > self.limits.max_message_bytes
+        ):
+            _, gone = self._parsed.popitem(last=False)
+            size -= len(gone.wire.data) if gone.wire is not None else 0
 
     def _wants(self, owner: str, epoch: int, stamp: int) -> bool:
         """Whether a received slot version can change anything here: newer than the version held

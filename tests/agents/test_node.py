@@ -7,6 +7,8 @@ another robot's objects came over the wire.
 
 from __future__ import annotations
 
+import dataclasses
+
 import msgpack
 import numpy as np
 import pytest
@@ -263,6 +265,34 @@ def test_node_reuses_a_parsed_version_only_for_the_same_bytes(
     assert node.merge(again)
     assert node.decode_stack(data) is not None  # held now: skipped, not reused
     assert (c.slots_decoded, c.slots_reused, c.slots_skipped) == (1, 1, 1)
+
+
+def test_node_keeps_parsed_slots_within_a_message_of_bytes(
+    frames: dict[str, list[SensorFrame]],
+) -> None:
+    """What a node keeps parsed for later copies is bounded by one message's bytes, however many
+    new versions arrive (the oldest is forgotten first, then parsed again if it comes back)."""
+    peer, node = _node("r1"), _node("r2")
+    _advance(node, frames, 1)
+    sent = []
+    for k in range(2, 7):
+        _advance(peer, frames, k)
+        data = peer.outgoing()
+        if data is not None:
+            sent.append(data)
+    assert len(sent) >= 3
+    one = max(len(d) for d in sent)
+    node.limits = dataclasses.replace(node.limits, max_message_bytes=2 * one)
+    for data in sent:
+        assert node.decode_stack(data) is not None
+    kept = [s.wire.data for s in node._parsed.values() if s.wire is not None]
+    assert 1 <= len(kept) <= 2 and sum(len(b) for b in kept) <= 2 * one
+    c = node.counters
+    decoded = c.slots_decoded
+    assert node.decode_stack(sent[0]) is not None  # forgotten: parsed again
+    assert (c.slots_decoded, c.slots_reused) == (decoded + 1, 0)
+    assert node.decode_stack(sent[-1]) is not None  # still kept
+    assert (c.slots_decoded, c.slots_reused) == (decoded + 1, 1)
 
 
 def test_node_nan_error_names_the_field(frames: dict[str, list[SensorFrame]]) -> None:
