@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import multiprocessing
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Collection, Mapping, Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
@@ -84,12 +84,22 @@ def run_study(
     advance: Callable[[], None] = lambda: None,
     comm: str | None = None,
     cluster: str | None = None,
+    scored: Collection[int] | None = None,
 ) -> list[RunResult]:
     """Run every seed in its own spawned process, at most ``jobs`` at once, or as tasks of the
     Dask cluster whose scheduler is at ``cluster``; results in seed order. Only the first seed
-    keeps belief snapshots (at ``snapshot_step``)."""
+    keeps belief snapshots (at ``snapshot_step``). ``scored``: see :func:`run_single`."""
     calls = {
-        seed: (run_single, scenario, methods, seed, config, snapshot_step if i == 0 else None, comm)
+        seed: (
+            run_single,
+            scenario,
+            methods,
+            seed,
+            config,
+            snapshot_step if i == 0 else None,
+            comm,
+            scored,
+        )
         for i, seed in enumerate(seeds)
     }
     if cluster is not None:
@@ -140,9 +150,13 @@ def run_single(
     config: BeliefConfig,
     snapshot_step: int | None = None,
     comm: str | None = None,
+    scored: Collection[int] | None = None,
 ) -> RunResult:
     """Run every method on one seeded realisation of ``scenario``; ``comm`` overrides the
-    scenario's communication mode for the distributed methods."""
+    scenario's communication mode for the distributed methods. ``scored``: the steps at which
+    the beliefs are scored (default every step; the metrics of the others stay NaN). Scoring
+    queries every hypothesis' marginal covariances, about a fifth of a run's time: a caller that
+    reads only some steps' metrics saves it; the beliefs themselves do not change."""
     unknown = [m for m in methods if m not in METHODS]
     if unknown:
         raise ValueError(f"unknown methods {unknown} (known: {', '.join(METHODS)})")
@@ -155,7 +169,9 @@ def run_single(
     step_ms: dict[str, list[float]] = {}
     wall: dict[str, float] = {}
     snapshots: dict[str, dict[str, BeliefSnapshot]] = {}
-    recorders = {m: Recorder(scenario, frames, truth_objects, snapshot_step) for m in methods}
+    recorders = {
+        m: Recorder(scenario, frames, truth_objects, snapshot_step, scored=scored) for m in methods
+    }
     fleet_methods = [m for m in methods if m in FLEET_METHODS]
     if "local" in methods or fleet_methods:
         _run_shared_local(scenario, model, config, seed, comm, frames, recorders, fleet_methods)
@@ -168,6 +184,9 @@ def run_single(
             belief.step([frames[r][k - 1] for r in robots], rng)
             ms = 1e3 * (time.perf_counter() - t)
             rec.step_ms.append(ms)
+            if not rec.scores(k):
+                rec.wall_s += ms / 1e3
+                continue
             snaps = belief.snapshots(robots)
             for i, robot in enumerate(robots):
                 rec.record(belief, i, robot, k, ms if i == 0 else 0.0, snaps[robot])
@@ -263,7 +282,8 @@ class Recorder:
     snapshots and, for a fleet, its :class:`FleetStats`. A launch scores its agents' published
     snapshots with it too (:meth:`score`), so a launch and a study are measured by the same code.
     ``robots``: the robot of every row (default: the scenario's robots). ``true_robot_pose`` is
-    the truth of every step ``frames`` hold, ``robot_pose`` NaN until a step is scored."""
+    the truth of every step ``frames`` hold, ``robot_pose`` NaN until a step is scored.
+    ``scored``: the steps :meth:`record` scores (default every step; ``snapshot_step`` always)."""
 
     def __init__(
         self,
@@ -272,9 +292,11 @@ class Recorder:
         truth_objects: dict[int, tuple[Array, int]],
         snapshot_step: int | None = None,
         robots: Sequence[str] | None = None,
+        scored: Collection[int] | None = None,
     ) -> None:
         self.scenario, self.frames, self.truth = scenario, frames, truth_objects
         self.snapshot_step = snapshot_step
+        self.scored = None if scored is None else frozenset(scored)
         rows = scenario.robot_ids if robots is None else tuple(robots)
         shape = (len(rows), scenario.steps)
         self.arrays: dict[str, Array] = {m: np.full(shape, np.nan) for m in METRICS}
@@ -299,14 +321,22 @@ class Recorder:
         snap: BeliefSnapshot | None = None,
     ) -> None:
         """Evaluate ``belief`` (or its ``snap``, when taken already) for ``robot`` at step k;
-        ``step_ms`` and the evaluation itself are added to this method's wall time."""
+        ``step_ms`` and the evaluation itself are added to this method's wall time; a step that is
+        not :meth:`scores` only adds ``step_ms``."""
         t = time.perf_counter()
+        if not self.scores(k):
+            self.wall_s += step_ms / 1e3
+            return
         if snap is None:
             snap = belief.snapshot(robot)
         self.score(i, robot, k, snap)
         if k == self.snapshot_step:
             self.snapshots[robot] = snap
         self.wall_s += step_ms / 1e3 + time.perf_counter() - t
+
+    def scores(self, k: int) -> bool:
+        """Whether :meth:`record` scores step k."""
+        return self.scored is None or k in self.scored or k == self.snapshot_step
 
     def score(self, i: int, robot: str, k: int, snap: BeliefSnapshot) -> None:
         """Row ``i`` (``robot``), step k: ``snap`` against the ground truth, every metric and

@@ -307,6 +307,27 @@ def test_run_single_one_robot_local_equals_centralized() -> None:
         np.testing.assert_array_equal(local, central, err_msg=metric)
 
 
+def test_run_single_scores_only_the_steps_asked_for_and_the_same_values_there() -> None:
+    # Scoring reads the beliefs and changes none of them: the scored steps hold exactly the
+    # values of a run that scores every step, the others NaN (every method, the fleets too).
+    scenario = parse_scenario(scenario_text(ROBOTS), "tiny.toml")
+    methods = ["local", "distributed", "double_count", "centralized"]
+    every = run_single(scenario, methods, 5, BeliefConfig())
+    some = run_single(scenario, methods, 5, BeliefConfig(), scored={4, STEPS})
+    at = [3, STEPS - 1]  # steps 4 and STEPS, zero-based
+    rest = [k for k in range(STEPS) if k not in at]
+    for method in methods:
+        for metric in METRICS:
+            full, part = every.metrics[method][metric], some.metrics[method][metric]
+            np.testing.assert_array_equal(part[:, at], full[:, at], err_msg=(method, metric))
+            assert np.isnan(part[:, rest]).all(), (method, metric)
+            assert not np.isnan(full[:, rest]).all(), (method, metric)
+        np.testing.assert_array_equal(
+            some.calibration[method][:, at], every.calibration[method][:, at]
+        )
+        assert not some.calibration[method][:, rest].any(), method
+
+
 def test_run_single_sums_every_fusion_report_of_the_fleets(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
