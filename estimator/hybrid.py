@@ -71,7 +71,10 @@ class BeliefConfig:
     ``geo_conditioned`` (default) or ``paper_mc``; ``num_samples`` for the Monte Carlo part;
     ``object_prior_sigmas``: the weak prior on a newly seen object, centred on its first
     measurement; ``start_prior_sigmas``: the prior on a robot's known start; iSAM2's
-    ``relinearize_threshold`` and the number of ``extra_updates`` after each measurement update.
+    ``relinearize_threshold``, ``relinearize_skip`` (check every this many updates),
+    ``partial_relinearization`` (iSAM2's partial relinearisation check: descend the Bayes tree
+    from the root only through cliques with a variable over the threshold; False: check every
+    variable) and the number of ``extra_updates`` after each measurement update.
     """
 
     weight_estimator: str = "geo_conditioned"
@@ -88,6 +91,7 @@ class BeliefConfig:
     start_prior_sigmas: tuple[float, float, float] = (1e-3, 1e-3, 1e-3)
     relinearize_threshold: float = 1e-3
     relinearize_skip: int = 10
+    partial_relinearization: bool = True
     extra_updates: int = 1
 
     def __post_init__(self) -> None:
@@ -525,6 +529,7 @@ class HybridBelief:
         params = gtsam.ISAM2Params()
         params.setRelinearizeThreshold(self.config.relinearize_threshold)
         params.relinearizeSkip = self.config.relinearize_skip
+        params.enablePartialRelinearizationCheck = self.config.partial_relinearization
         return params
 
     def _propagate(

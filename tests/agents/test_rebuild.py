@@ -32,7 +32,7 @@ SCENARIO = parse_scenario(
     ).replace("prior = [0.5, 0.5]", "prior = [0.7, 0.3]"),
     "pair.toml",
 )
-CONFIG = BeliefConfig.paper(relinearize_skip=1)
+CONFIG = BeliefConfig.paper(relinearize_skip=1, partial_relinearization=False)
 SHARED = 1
 
 

@@ -39,7 +39,7 @@ from tests.estimator.stepwise import (
 POSITION_ERROR = 1e-3  # m, between D's and the centralized belief's mean object positions
 MARGINAL_ERROR = 0.02  # |ΔP(c_j = i)|
 NEAR_LINEAR = 0.1
-CONFIG = BeliefConfig(relinearize_skip=1)
+CONFIG = BeliefConfig(relinearize_skip=1, partial_relinearization=False)
 QUIET_AFTER = 12
 SEEDS = (0, 1, 2, 3)
 

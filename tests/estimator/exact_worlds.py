@@ -41,12 +41,14 @@ Realisations = dict[tuple[int, ...], Hypothesis]
 
 
 def no_pruning(**overrides: object) -> BeliefConfig:
-    """Keep every realisation; relinearise at every update (see docs/estimator.md)."""
+    """Keep every realisation; check every variable for relinearisation at every update (see
+    docs/estimator.md)."""
     fields: dict[str, object] = {
         "prune_ratio": 1e300,
         "max_hypotheses": 100_000,
         "robot_budget": None,
         "relinearize_skip": 1,
+        "partial_relinearization": False,
     }
     fields.update(overrides)
     return BeliefConfig(**fields)  # type: ignore[arg-type]

@@ -24,11 +24,16 @@ from sim.scenario import Scenario
 from sim.sensors import Simulator
 
 # The fusion algebra is exact at a common linearisation point. iSAM2's default lazy relinearisation
-# (relinearize_skip = 10) leaves iterates up to ~2 mm from that point whatever the fusion does, so
-# the exactness tests relinearise at every update (skip 1) to test the fusion, not the iterate.
-EXACT = BeliefConfig(relinearize_skip=1)
+# (relinearize_skip = 10, and the partial relinearisation check that skips subtrees) leaves
+# iterates up to ~2 mm from that point whatever the fusion does, so the exactness tests check
+# every variable at every update to test the fusion, not the iterate.
+EXACT = BeliefConfig(relinearize_skip=1, partial_relinearization=False)
 NO_PRUNING = BeliefConfig(
-    prune_ratio=1e9, max_hypotheses=5000, robot_budget=None, relinearize_skip=1
+    prune_ratio=1e9,
+    max_hypotheses=5000,
+    robot_budget=None,
+    relinearize_skip=1,
+    partial_relinearization=False,
 )
 
 
