@@ -224,3 +224,21 @@ def test_every_parent_of_a_step_is_weighed_with_the_same_draws(
     assert all(np.array_equal(v[0], e) for v in by_step.values() for e in v)
     assert [h.classes for h in apart.hypotheses] == [h.classes for h in whole.hypotheses]
     assert [h.log_weight for h in apart.hypotheses] == [h.log_weight for h in whole.hypotheses]
+
+
+@pytest.mark.parametrize("partial", [True, False])
+def test_every_smoother_gets_the_configured_relinearisation(partial: bool) -> None:
+    # The iSAM2 settings of the config reach every hypothesis' smoother, the children copied
+    # from their parents included (the exactness tests rely on the full check).
+    s = load_scenario("paper")
+    config = BeliefConfig(relinearize_skip=3, partial_relinearization=partial)
+    belief = HybridBelief(belief_model(s), {"r1": s.robot("r1").start}, config)
+    rng = np.random.default_rng(0)
+    for f in Simulator(s, 3).frames("r1")[:8]:
+        belief.step([f], rng)
+    assert len(belief.hypotheses) > 1
+    for h in belief.hypotheses:
+        params = h.isam.params()
+        assert params.enablePartialRelinearizationCheck is partial
+        assert params.relinearizeSkip == 3
+    assert BeliefConfig().partial_relinearization  # the default
