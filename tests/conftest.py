@@ -15,10 +15,12 @@ The session fixture ``netns_machine`` is the bootstrap of the network-namespace 
 
 from __future__ import annotations
 
+import itertools
 import os
 import shutil
 import subprocess
 import sys
+from collections.abc import Sequence
 from pathlib import Path
 
 import pytest
@@ -39,10 +41,13 @@ SERIAL_MODULES = {
     "deploy/test_replay.py",
 }
 # The modules whose tests take most of the suite's time (measured with --durations, slowest
-# first). They are collected first: xdist hands out the first tests one by one, in turn, to its
-# workers, so the long ones start at once on different cores and the short ones fill the gaps
-# (longest first: the phase ends close to total work / cores instead of a long test starting
-# last). A module's tests stay together, so module fixtures are built once.
+# first). xdist's worksteal scheduler first hands each worker one contiguous chunk of the
+# collection (worker i the i-th of k near-equal chunks) and later moves tests from the tail of a
+# busy worker's queue to an idle one; the head of a chunk stays with its worker. So the long
+# modules are dealt out in turn (1st, 2nd, 2nd, 1st, … worker) and each worker's share is put at
+# the head of its chunk: the long ones start at once on different cores, and the short ones fill
+# the gaps and are what gets stolen, so that the phase ends close to total work / cores. A
+# module's tests stay together, so module fixtures and caches are built once.
 LONGEST_FIRST = (
     "deploy/test_consistency.py",
     "deploy/test_fleet_calibration.py",
@@ -58,12 +63,56 @@ LONGEST_FIRST = (
 HERE = Path(__file__).parent
 
 
+def pytest_configure(config: pytest.Config) -> None:
+    config.pluginmanager.register(_Order(), "semfleet-test-order")
+
+
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Mark the serial modules (before ``-m`` deselects by marker)."""
     for item in items:
-        if item.path.relative_to(HERE).as_posix() in SERIAL_MODULES:
+        if _module(item) in SERIAL_MODULES:
             item.add_marker(pytest.mark.serial)
-    rank = {m: i for i, m in enumerate(LONGEST_FIRST)}
-    items.sort(key=lambda item: rank.get(item.path.relative_to(HERE).as_posix(), len(rank)))
+
+
+class _Order:
+    @pytest.hookimpl(trylast=True)
+    def pytest_collection_modifyitems(self, items: list[pytest.Item]) -> None:
+        """Order what ``-m`` left (see LONGEST_FIRST); every xdist worker orders alike."""
+        workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+        order = dealt([_module(item) for item in items], LONGEST_FIRST, workers)
+        items[:] = [items[i] for i in order]
+
+
+def _module(item: pytest.Item) -> str:
+    return item.path.relative_to(HERE).as_posix()
+
+
+def worker_chunks(n: int, workers: int) -> list[int]:
+    """The sizes of the contiguous chunks of n tests that worksteal first gives each worker."""
+    sizes: list[int] = []
+    for i in range(workers):
+        sizes.append((n - sum(sizes)) // (workers - i))
+    return sizes
+
+
+def dealt(modules: list[str], longest: Sequence[str], workers: int) -> list[int]:
+    """A permutation of tests (given by their modules, in collection order): the ``longest``
+    modules (slowest first) dealt to the workers in turn — 1st, 2nd, …, k-th, k-th, …, 1st — and
+    each worker's share at the head of the chunk worksteal gives it, the other tests after them
+    in collection order. With one worker: the longest first, then the rest."""
+    rank = {m: r for r, m in enumerate(longest)}
+    share: list[list[int]] = [[] for _ in range(max(1, workers))]
+    for r in range(len(longest)):
+        turn = r % (2 * len(share))
+        worker = turn if turn < len(share) else 2 * len(share) - 1 - turn
+        share[worker].extend(i for i, m in enumerate(modules) if rank.get(m) == r)
+    rest = iter([i for i, m in enumerate(modules) if m not in rank])
+    out: list[int] = []
+    for mine, size in zip(share, worker_chunks(len(modules), len(share)), strict=True):
+        out.extend(mine)
+        out.extend(itertools.islice(rest, max(0, size - len(mine))))
+    out.extend(rest)
+    return out
 
 
 # --------------------------------------------------------------------------- netns bootstrap
