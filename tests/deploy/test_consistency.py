@@ -5,7 +5,7 @@ bounds, double counting's above. Twenty runs of the paper's first 30 steps here;
 Double counting runs on the first eight of those seeds, against the χ² bounds of eight runs (which
 are wider, so the claim is no weaker): its ANEES is far beyond them — measured on these seeds,
 object ANEES 15.9 / 19.4 / 25.1 per robot against an upper bound of 3.6 on the first eight
-(18.0 / 23.5 / 24.2 on all twenty), robot ANEES 8.1 on average against 4.9. The beliefs are
+(18.0 / 23.5 / 24.3 on all twenty), robot ANEES 8.1 on average against 4.9. The beliefs are
 scored at the last step only, the one the assertions read."""
 
 from __future__ import annotations
