@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import ipaddress
 import os
 import re
 from pathlib import Path
@@ -25,6 +26,16 @@ def positive_int(text: str) -> int:
     if value < 1:
         raise argparse.ArgumentTypeError(f"{text} must be a positive integer")
     return value
+
+
+def positive_float(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}") from None
+    if not (v > 0 and v < 1e6):
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}")
+    return v
 
 
 def class_count(text: str) -> int:
@@ -56,6 +67,22 @@ def writable_out(directory: Path) -> None:
         probe.unlink()
     except OSError as exc:
         raise UsageError(f"--out {directory}: cannot write there ({exc.strerror or exc})") from None
+
+
+_DNS_LABEL = re.compile(r"(?!-)[A-Za-z0-9-]{1,63}(?<!-)")
+
+
+def host_name(text: str) -> str:
+    """A name a certificate can carry: an IPv4 or IPv6 address, or a DNS name (labels of
+    letters, digits and inner hyphens, 253 characters at most)."""
+    try:
+        return str(ipaddress.ip_address(text))
+    except ValueError:
+        pass
+    labels = text.rstrip(".").split(".")
+    if not (len(text) <= 253 and all(_DNS_LABEL.fullmatch(label) for label in labels)):
+        raise argparse.ArgumentTypeError(f"{text!r} is neither an IP address nor a DNS name")
+    return text
 
 
 _IP_PROTOCOLS = {"tcp", "udp", "tls", "quic", "ws"}

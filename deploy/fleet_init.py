@@ -71,6 +71,10 @@ class FleetSpec:
     # routers before it; robots dial what ``connect`` says (their site's router, their site's
     # robots): a Zenoh router forwards between routers and for clients, not between its peers.
     routers: Mapping[str, str] = dataclasses.field(default_factory=dict)
+    # Zenoh's gossip scouting: members learn each other's endpoints from the peers they dial.
+    # Off for a real fleet (Zenoh links then match the radio links ``connect`` describes); on for
+    # a lab test whose agents, on machines unknown in advance, dial only the conductor.
+    gossip: bool = False
 
     def __post_init__(self) -> None:
         names = (*self.robots, self.operator, *self.routers)
@@ -175,7 +179,7 @@ def zenoh_config(
         "verify_name_on_connect": True,
     }
     doc: dict[str, Any] = {
-        "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
+        "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": spec.gossip}},
         "transport": {"link": {"tls": tls}},
         "access_control": access_control(
             spec.fleet,
@@ -198,11 +202,16 @@ def _hosts(base: Sequence[str], listen: str | None) -> tuple[str, ...]:
     wildcard address), so that peers dialling it can verify its name."""
     hosts = list(base)
     if listen is not None:
-        locator = listen.split("/", 1)[-1].split("?", 1)[0].split("#", 1)[0]
-        host = locator.rsplit(":", 1)[0].strip("[]")
+        host = endpoint_host(listen)
         if host not in ("0.0.0.0", "::", "") and host not in hosts:
             hosts.append(host)
     return tuple(hosts)
+
+
+def endpoint_host(endpoint: str) -> str:
+    """The host of a Zenoh endpoint ``proto/host:port[?…][#…]`` (IPv6 without its brackets)."""
+    locator = endpoint.split("/", 1)[-1].split("?", 1)[0].split("#", 1)[0]
+    return locator.rsplit(":", 1)[0].strip("[]")
 
 
 def _agent_toml(spec: FleetSpec, robot: str) -> str:

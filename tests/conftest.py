@@ -68,9 +68,11 @@ def pytest_configure(config: pytest.Config) -> None:
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """Mark the serial modules (before ``-m`` deselects by marker)."""
+    """Mark the tests of the serial modules (before ``-m`` deselects by marker), except those
+    marked ``lockstep``: lock-step launches and usage errors, whose agents wait for each round
+    whatever the load (their step timeouts are minutes), so they run beside the others."""
     for item in items:
-        if _module(item) in SERIAL_MODULES:
+        if _module(item) in SERIAL_MODULES and item.get_closest_marker("lockstep") is None:
             item.add_marker(pytest.mark.serial)
 
 

@@ -8,7 +8,7 @@ from typing import Any
 
 from rich.console import Console
 
-from deploy.args import zenoh_endpoint
+from deploy.args import host_name, zenoh_endpoint
 from deploy.commands.scenario import model_text
 from deploy.errors import UsageError
 from deploy.fleet_init import DEFAULT_PORT, FleetInitError, FleetSpec, init_fleet, loopback_spec
@@ -169,6 +169,7 @@ def add_init_parser(actions: Any) -> None:
         "--host",
         action="append",
         default=[],
+        type=host_name,
         help="a DNS name or address every certificate names (repeatable)",
     )
     p.add_argument(

@@ -13,7 +13,8 @@ from rich.console import Console
 from rich.table import Table
 
 from agents.links import Partition
-from deploy.args import positive_int, seed, zenoh_endpoint
+from deploy.args import positive_float, positive_int, seed
+from deploy.commands import conductor_only
 from deploy.errors import UsageError
 from deploy.fleet import COMM_MODES
 from deploy.launch import LAUNCH_METHODS, Faults, LaunchPlan
@@ -61,16 +62,6 @@ def probability(text: str) -> float:
     return p
 
 
-def positive_float(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}") from None
-    if not (v > 0 and v < 1e6):
-        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}")
-    return v
-
-
 def _robots(scenario: Scenario, text: str) -> list[str]:
     if text == "all":
         return list(scenario.robot_ids)
@@ -88,18 +79,7 @@ def _steps(scenario: Scenario, steps: int | None) -> int | None:
     return steps
 
 
-def _advertise(args: argparse.Namespace) -> str:
-    """The endpoint the agents of a --conductor-only launch dial."""
-    if args.advertise is not None:
-        return str(args.advertise)
-    if "0.0.0.0" in args.conductor_listen or "[::]" in args.conductor_listen:
-        raise UsageError("--conductor-only: --advertise ENDPOINT, the address agents dial")
-    return str(args.conductor_listen)
-
-
 def run_launch(args: argparse.Namespace, console: Console) -> int:
-    if args.advertise is not None and not args.conductor_only:
-        raise UsageError("--advertise: only with --conductor-only")
     scenario = load_scenario(args.scenario)
     plan = LaunchPlan(
         scenario,
@@ -111,19 +91,10 @@ def run_launch(args: argparse.Namespace, console: Console) -> int:
         comm=args.comm,
         steps=_steps(scenario, args.steps),
         secure=args.secure,
-        conductor_only=args.conductor_only,
-        conductor_listen=args.conductor_listen if args.conductor_only else None,
-        conductor_advertise=_advertise(args) if args.conductor_only else None,
-        wait_agents=args.wait_agents,
         keep_estimates=bool(args.view or args.record),
+        **conductor_only.plan_fields(args),
     )
-    if plan.conductor_only:
-        console.print(
-            f"conductor only: listening on {plan.conductor_listen}; start each agent on its "
-            f"machine with {plan.out / 'agents'}/<robot>.toml and model.toml copied there "
-            f"(semfleet agent --robot <robot> --config <robot>.toml); waiting up to "
-            f"{plan.wait_agents:g} s for {', '.join(plan.robots)}"
-        )
+    conductor_only.announce(plan, console)
     console.print(
         f"launching {agents(len(plan.robots))} of {scenario.name} ({plan.mode}, seed "
         f"{plan.seed}) on loopback Zenoh; logs in {plan.out / 'logs'}"
@@ -232,28 +203,7 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--mode", choices=("lockstep", "realtime"), default="lockstep")
     p.add_argument("--robots", default="all", help="'all' or comma-separated robot ids")
     p.add_argument("--out", default="out/launch", help="folder for results, logs, journals")
-    p.add_argument(
-        "--conductor-only",
-        action="store_true",
-        help="drive the world for agents started on other machines (docs/deploy.md)",
-    )
-    p.add_argument(
-        "--conductor-listen",
-        default="tcp/0.0.0.0:7447",
-        type=lambda e: zenoh_endpoint(e, "--conductor-listen"),
-        help="with --conductor-only: where the conductor listens (default tcp/0.0.0.0:7447)",
-    )
-    p.add_argument(
-        "--advertise",
-        type=lambda e: zenoh_endpoint(e, "--advertise"),
-        help="with --conductor-only: the endpoint the agents dial, e.g. tcp/192.168.1.10:7447",
-    )
-    p.add_argument(
-        "--wait-agents",
-        type=positive_float,
-        default=90.0,
-        help="seconds to wait for every agent to come up (default 90)",
-    )
+    conductor_only.add_options(p)
     p.set_defaults(run=run_launch)
 
     c = sub.add_parser("chaos", help="a realtime launch with loss, partitions, kills and garbage")

@@ -36,7 +36,7 @@ from agents.links import LinkModel
 from agents.transport.base import Keys
 from agents.transport.zenoh_transport import ZenohSettings, ZenohTransport, loopback_endpoint
 from deploy.fleet import link_model_for
-from deploy.fleet_init import FleetSpec, init_fleet
+from deploy.fleet_init import FleetSpec, endpoint_host, init_fleet
 from deploy.launch.chaos import KILL, Faults, Garbage
 from deploy.launch.conductor import Collected, Conductor, ConductorError
 from deploy.launch.errors import LaunchError, PlanError
@@ -100,6 +100,9 @@ class LaunchPlan:
     conductor_listen: str | None = None
     conductor_advertise: str | None = None
     wait_agents: float = 90.0
+    # A secure conductor-only launch: the names (DNS or IP) of the agents' machines, written into
+    # every member's certificate, since an agent dialling another verifies the name it dialled.
+    agent_hosts: tuple[str, ...] = ()
     # "loopback": every process on 127.0.0.1, links simulated (sim/links); "netns": one network
     # namespace per agent, loss, partitions and range applied to real packets (root only).
     net: str = "loopback"
@@ -119,13 +122,21 @@ class LaunchPlan:
         if self.steps is not None and not 1 <= self.steps <= s.steps:
             raise PlanError(f"steps: {self.steps} outside 1..{s.steps} (scenario {s.name})")
         self.faults.check(self.robots, self.run_steps, self.mode == "lockstep")
+        if self.agent_hosts and not (self.conductor_only and self.secure):
+            raise PlanError("agent hosts: only for a secure conductor-only launch")
         if self.conductor_only:
-            if self.secure or self.zenoh_neighbours is not None:
-                raise PlanError("conductor only: not with secure fleets or Zenoh topologies yet")
+            if self.zenoh_neighbours is not None:
+                raise PlanError("conductor only: not with a Zenoh topology")
             if self.faults.kills or self.faults.restarts:
                 raise PlanError("conductor only: the agents run elsewhere, no kills or restarts")
             if not (self.conductor_listen and self.conductor_advertise):
                 raise PlanError("conductor only: needs the endpoint to listen on and to advertise")
+            for name, e in (
+                ("listen", self.conductor_listen),
+                ("advertise", self.conductor_advertise),
+            ):
+                if self.secure and not e.startswith("tls/"):
+                    raise PlanError(f"conductor {name} {e}: a secure fleet's endpoints are tls/…")
         if not 1.0 <= self.wait_agents <= 86_400:
             raise PlanError(f"wait for agents {self.wait_agents}: must be in 1..86400 s")
         if self.net not in NETS:
@@ -201,6 +212,12 @@ class Launcher:
             if self._fleet is None:
                 zenoh = self._zenoh_section(r, agent_ports, conductor_port)
                 write_agent_config(cfg, self._agent_section(r), zenoh)
+            elif plan.conductor_only:
+                # Everything the robot's machine needs, in its own folder, paths relative to it.
+                cfg = self._fleet[r] / "agent.toml"
+                agent = self._agent_section(r) | {"journal": f"{r}.journal"}
+                security = {"signing_key": "signing.key", "roster": "roster.toml"}
+                write_agent_config(cfg, agent, {"config_file": "zenoh.json5"}, security)
             else:
                 folder = self._fleet[r].resolve()
                 security = {"signing_key": str(folder / "signing.key")}
@@ -222,11 +239,25 @@ class Launcher:
         host, conductor_host = {r: "127.0.0.1" for r in robots}, "127.0.0.1"
         if self.network is not None:
             host, conductor_host = self.network.layout.addresses, self.network.layout.host
-        listen = {r: f"tls/{host[r]}:{ports[r]}" for r in robots}
         conductor = f"tls/{conductor_host}:{conductor_port}"
-        hosts = tuple(dict.fromkeys(("localhost", "127.0.0.1", conductor_host)))
+        names: tuple[str, ...] = ()
+        if plan.conductor_only:
+            # Agents on machines of their own dial the advertised conductor and find each other
+            # through gossip scouting; each listens on every interface of its machine (on
+            # loopback only when the conductor is on loopback: then so are they).
+            assert plan.conductor_advertise is not None
+            conductor = plan.conductor_advertise
+            conductor_host = endpoint_host(conductor)
+            on_loopback = not ZenohSettings(connect=(conductor,)).off_loopback()
+            host = {r: "127.0.0.1" if on_loopback else "0.0.0.0" for r in robots}
+            names = plan.agent_hosts
+        listen = {r: f"tls/{host[r]}:{ports[r]}" for r in robots}
+        hosts = tuple(dict.fromkeys(("localhost", "127.0.0.1", conductor_host, *names)))
         neighbours = plan.zenoh_neighbours
-        if neighbours is None:
+        connect: dict[str, tuple[str, ...]]
+        if plan.conductor_only:
+            connect = {r: (conductor,) for r in robots}
+        elif neighbours is None:
             connect = {
                 r: (conductor, *(listen[p] for p in robots[:i])) for i, r in enumerate(robots)
             }
@@ -235,7 +266,7 @@ class Launcher:
         starts = {r: _pose(plan.scenario.robot(r).start) for r in robots}
         model = dump_robot_model(plan.scenario.robot_model())
         spec = FleetSpec(plan.fleet, tuple(robots), CONDUCTOR, listen, connect, starts, model)
-        spec = dataclasses.replace(spec, simulator=True, hosts=hosts)
+        spec = dataclasses.replace(spec, simulator=True, hosts=hosts, gossip=plan.conductor_only)
         shutil.rmtree(plan.out / "fleet", ignore_errors=True)
         return init_fleet(spec, plan.out / "fleet")
 
@@ -303,7 +334,11 @@ class Launcher:
         if self.network is not None:
             listen = (f"tcp/{self.network.layout.host}:{conductor_port}",)
         settings = ZenohSettings(listen=listen, connect=dial, gossip=neighbours is None)
-        if self._fleet is not None:
+        if self._fleet is not None and plan.conductor_only:
+            settings = ZenohSettings(
+                listen=listen, config_file=self._fleet[CONDUCTOR] / "zenoh.json5"
+            )
+        elif self._fleet is not None:
             tls = tuple(e.replace("tcp/", "tls/", 1) for e in (*listen, *dial))
             settings = ZenohSettings(
                 listen=tls[:1], connect=tls[1:], config_file=self._fleet[CONDUCTOR] / "zenoh.json5"

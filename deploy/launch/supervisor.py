@@ -92,7 +92,10 @@ def write_agent_config(
     if security is not None:
         doc["security"] = dict(security)
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(tomli_w.dumps(doc), encoding="utf-8")
+    # Whole or not at all: an agent started elsewhere may read it while the launch goes on.
+    part = path.with_name(f".{path.name}.part")
+    part.write_text(tomli_w.dumps(doc), encoding="utf-8")
+    part.replace(path)
 
 
 def _prctl() -> Callable[..., int] | None:

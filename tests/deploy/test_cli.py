@@ -218,6 +218,28 @@ GENERATE = ["scenario", "generate", "--robots", "1", "--objects", "2", "--classe
         (["launch", "--scenario", "paper", "--robots", "r1,r9"], "--robots: unknown robots"),
         (["launch", "--scenario", "paper", "--steps", "61"], "--steps: 61 outside 1..60"),
         (["chaos", "--scenario", "paper", "--kill", "r9@3"], "--kill/--restart: unknown robot"),
+        (
+            ["launch", "--scenario", "paper", "--advertise", "tcp/10.0.0.1:7447"],
+            "--advertise: only",
+        ),
+        (["launch", "--scenario", "paper", "--agent-host", "b"], "--agent-host: only with --co"),
+        (
+            ["launch", "--scenario", "paper", "--conductor-only", "--agent-host", "b"],
+            "only with --s",
+        ),
+        (["launch", "--scenario", "paper", "--conductor-only"], "--advertise ENDPOINT, the add"),
+        (
+            [
+                "launch",
+                "--scenario",
+                "paper",
+                "--conductor-only",
+                "--secure",
+                "--conductor-listen",
+                "tcp/127.0.0.1:7447",
+            ],
+            "conductor listen tcp/127.0.0.1:7447: a secure fleet's endpoints are tls/",
+        ),
     ],
 )
 def test_cli_usage_errors_exit_2_with_one_line(
@@ -225,6 +247,21 @@ def test_cli_usage_errors_exit_2_with_one_line(
 ) -> None:
     _usage_error(semfleet(*args, "--out", "out", cwd=tmp_path), fragment)
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("host", ["a b", "lab-", "x" * 64, "host_b"])
+def test_a_certificate_host_that_is_no_address_or_dns_name_is_a_usage_error(
+    tmp_path: Path, host: str
+) -> None:
+    for args in (
+        ["launch", "--scenario", "paper", "--conductor-only", "--secure", "--agent-host", host],
+        ["fleet", "init", "--fleet", "f", "--robots", "r1", "--scenario", "paper", "--host", host],
+    ):
+        r = semfleet(*args, "--out" if args[0] == "launch" else "-o", "out", cwd=tmp_path)
+        assert r.returncode == 2, (r.stdout, r.stderr)
+        lines = r.stderr.strip().splitlines()
+        assert len(lines) == 1 and "neither an IP address nor a DNS name" in lines[0], r.stderr
+        assert not (tmp_path / "out").exists()
 
 
 @pytest.mark.parametrize(
