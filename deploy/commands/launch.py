@@ -95,9 +95,14 @@ def run_launch(args: argparse.Namespace, console: Console) -> int:
         **conductor_only.plan_fields(args),
     )
     conductor_only.announce(plan, console)
+    where = (
+        "started elsewhere"
+        if plan.conductor_only
+        else f"on loopback Zenoh; logs in {plan.out / 'logs'}"
+    )
     console.print(
         f"launching {agents(len(plan.robots))} of {scenario.name} ({plan.mode}, seed "
-        f"{plan.seed}) on loopback Zenoh; logs in {plan.out / 'logs'}"
+        f"{plan.seed}) {where}"
     )
     outcome = launch_recorded(plan, console, args, f"launch {scenario.name} seed {plan.seed}")
     console.print(counters_table(outcome))
