@@ -42,9 +42,11 @@ def slot_figures(summary: LocalSummary) -> dict[str, float]:
     ``refused`` and ``eigvalsh`` are 1 when the default ``Limits`` refuse the slot, or need
     eigenvalues to decide (the Cholesky certificate of ``protocol.codec`` cannot)."""
     rs = summary.realisations
-    info = np.stack([r.info for r in rs])
-    eta = np.stack([r.eta for r in rs])
-    lin = np.stack([r.lin for r in rs])
+    xis, which = summary.distinct_xi()
+    rows = np.array([which.index(x) for x in range(len(xis))])
+    info = np.stack([x.info for x in xis])
+    eta = np.stack([x.eta for x in xis])
+    lin = np.stack([x.lin for x in xis])
     phi = np.array([r.log_phi for r in rs])
     lam = np.linalg.eigvalsh(info)
     delta = np.linalg.solve(info, eta[..., None])[..., 0]
@@ -58,7 +60,7 @@ def slot_figures(summary: LocalSummary) -> dict[str, float]:
         "eta": float(np.abs(eta).max()),
         "eta_over_lam": float((np.linalg.norm(eta, axis=1) / lam[:, -1]).max()),
         "delta": float(np.linalg.norm(delta, axis=1).max()),
-        "refused": float(numbers_problem("slot", phi, lin, info, eta, Limits()) is not None),
+        "refused": float(numbers_problem("slot", phi, lin, info, eta, Limits(), rows) is not None),
         "eigvalsh": float(not codec._certified(info, eta, Limits())),
     }
 

@@ -22,8 +22,16 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from estimator.factors import object_key
-from estimator.hybrid import BeliefConfig, BeliefModel, HybridBelief, Hypothesis, UsedSlot
-from estimator.summary import Realisation, Slot
+from estimator.hybrid import (
+    BeliefConfig,
+    BeliefModel,
+    Continuous,
+    HybridBelief,
+    Hypothesis,
+    UsedXi,
+    distinct_continuous,
+)
+from estimator.summary import Slot, Xi
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -96,10 +104,8 @@ def _fits(parent: IntArray, real: IntArray) -> tuple[IntArray, IntArray]:
     return np.concatenate(rows), np.concatenate(cols)
 
 
-def xi_factor(
-    keys: Sequence[int], r: Realisation, sign: float = 1.0
-) -> gtsam.LinearContainerFactor:
-    """ξ of a realisation as a GTSAM factor on the object ``keys``: an n-key HessianFactor (summed
+def xi_factor(keys: Sequence[int], r: Xi, sign: float = 1.0) -> gtsam.LinearContainerFactor:
+    """ξ as a GTSAM factor on the object ``keys``: an n-key HessianFactor (summed
     from unary and pairwise pieces; Python constructors stop at three keys) wrapped in a
     LinearContainerFactor at ``r.lin``. ``sign = −1`` gives the anti-factor."""
     n = len(keys)
@@ -123,18 +129,18 @@ def xi_factor(
 
 
 class _XiFactors:
-    """The ξ factors of one fusion, built once per (realisation, sign) however many hypotheses
-    take that realisation: a factor is never changed once built, and iSAM2 only holds a pointer
-    to it (it relinearises into new factors), so hypotheses can share it."""
+    """The ξ factors of one fusion, built once per (ξ, sign) however many continuous beliefs
+    take that ξ: a factor is never changed once built, and iSAM2 only holds a pointer to it (it
+    relinearises into new factors), so continuous beliefs can share it."""
 
     def __init__(self) -> None:
-        self._built: dict[tuple[int, float], tuple[Realisation, gtsam.LinearContainerFactor]] = {}
+        self._built: dict[tuple[int, float], tuple[Xi, gtsam.LinearContainerFactor]] = {}
 
     def get(
-        self, object_ids: Sequence[int], r: Realisation, sign: float = 1.0
+        self, object_ids: Sequence[int], r: Xi, sign: float = 1.0
     ) -> gtsam.LinearContainerFactor:
         key = (id(r), sign)
-        if key not in self._built:  # the realisation is kept too, so its id is never reused
+        if key not in self._built:  # the ξ is kept too, so its id is never reused
             self._built[key] = (r, xi_factor([object_key(j) for j in object_ids], r, sign))
         return self._built[key][1]
 
@@ -210,23 +216,43 @@ class DistributedBelief(HybridBelief):
         for j in join.order:
             self._object_index[j] = len(self.object_ids)
             self.object_ids.append(j)
-        last_child = {int(p): n for n, p in enumerate(join.parent)}
-        children = []
-        xi = _XiFactors()
+        # Children that continue one continuous belief with the same ξ of every slot share
+        # one continuous belief: fused once, copied only where the ξ differ.
+        source = {id(h.continuous): h.continuous for h in parents}
+        groups: dict[tuple[int, ...], list[int]] = {}
         for n, p in enumerate(join.parent):
-            classes = tuple(int(c) for c in join.classes[n])
-            child = parents[p].branch(
-                classes, float(join.log_weight[n]), copy_isam=last_child[int(p)] != n
+            xis = tuple(
+                id(batch[b].summary.realisations[int(r)].xi) if r >= 0 else -1
+                for b, r in enumerate(join.picks[n])
             )
-            picks = [(b, int(r)) for b, r in enumerate(join.picks[n]) if r >= 0]
-            self._fuse(child, picks, batch, join.order, settle, xi)
-            children.append(child)
-        self.hypotheses = children
+            groups.setdefault((id(parents[int(p)].continuous), *xis), []).append(n)
+        last_group = {}
+        for key in groups:
+            last_group[key[0]] = key
+        children: dict[int, Hypothesis] = {}
+        xi = _XiFactors()
+        for key, members in groups.items():
+            base = source[key[0]]
+            cont = base if last_group[key[0]] == key else base.copy()
+            first = members[0]
+            picks = [(b, int(r)) for b, r in enumerate(join.picks[first]) if r >= 0]
+            self._fuse(cont, picks, batch, join.order, settle, xi)
+            for n in members:
+                used_phi = dict(parents[int(join.parent[n])].used_phi)
+                for b, r in enumerate(join.picks[n]):
+                    if r >= 0:
+                        used_phi[batch[b].owner] = batch[b].summary.realisations[int(r)].log_phi
+                classes = tuple(int(c) for c in join.classes[n])
+                children[n] = Hypothesis(classes, cont, float(join.log_weight[n]), used_phi)
+        children_list = [children[n] for n in range(len(join.parent))]
+        self.hypotheses = children_list
         self._normalise()
         for s in batch:
             if s.owner not in skipped:
                 self.versions[s.owner] = s.version
-        return FusionStats(used, tuple(sorted(skipped)), candidates, len(children), len(skipped))
+        return FusionStats(
+            used, tuple(sorted(skipped)), candidates, len(children_list), len(skipped)
+        )
 
     def rebuild(
         self, local: HybridBelief, held: Sequence[Slot], settle: bool = True
@@ -245,11 +271,11 @@ class DistributedBelief(HybridBelief):
             )
         self.object_ids = list(local.object_ids)
         self._object_index = {j: i for i, j in enumerate(self.object_ids)}
+        conts, which = distinct_continuous(local.hypotheses)
+        copies = [Continuous(gtsam.ISAM2(c.isam), c.estimate, dict(c.object_priors)) for c in conts]
         self.hypotheses = [
-            Hypothesis(
-                h.classes, gtsam.ISAM2(h.isam), h.log_weight, h.estimate, dict(h.object_priors)
-            )
-            for h in local.hypotheses
+            Hypothesis(h.classes, copies[g], h.log_weight)
+            for h, g in zip(local.hypotheses, which, strict=True)
         ]
         self.versions = {}
         stats = self.integrate([s for s in held if s.owner != self.owner], settle)
@@ -266,6 +292,8 @@ class DistributedBelief(HybridBelief):
         """Raise :class:`SlotError` if a slot contradicts this belief's model."""
         m = self.model.num_classes
         n = len(s.summary.object_ids)
+        # As if every hypothesis held its own ξ: it bounds the slot's objects (223 with the
+        # defaults), and with them the work of building and eliminating its dense ξ factor.
         fusion_bytes = self.cap * (3 * n) ** 2 * 8
         if fusion_bytes > self.config.max_fusion_bytes:
             cap = self.config.max_fusion_bytes / 2**20
@@ -280,7 +308,8 @@ class DistributedBelief(HybridBelief):
                 raise SlotError(
                     f"slot of {s.owner}: realisation classes do not fit {n} objects, {m} classes"
                 )
-            if r.lin.shape != (n, 3) or r.info.shape != (3 * n, 3 * n) or r.eta.shape != (3 * n,):
+        for x in s.summary.distinct_xi()[0]:
+            if x.lin.shape != (n, 3) or x.info.shape != (3 * n, 3 * n) or x.eta.shape != (3 * n,):
                 raise SlotError(f"slot of {s.owner}: ξ shapes do not fit {n} objects")
 
     def _join(self, batch: Sequence[Slot]) -> tuple[_Join, set[str]]:
@@ -340,13 +369,11 @@ class DistributedBelief(HybridBelief):
 
     def _old_log_phi(self, owner: str) -> Array:
         """log φ of the version of ``owner``'s slot each hypothesis used before (0 if none)."""
-        return np.array(
-            [h.used[owner].realisation.log_phi if owner in h.used else 0.0 for h in self.hypotheses]
-        )
+        return np.array([h.used_phi.get(owner, 0.0) for h in self.hypotheses])
 
     def _fuse(
         self,
-        h: Hypothesis,
+        h: Continuous,
         picks: Sequence[tuple[int, int]],
         batch: Sequence[Slot],
         order: Sequence[int],
@@ -359,12 +386,11 @@ class DistributedBelief(HybridBelief):
         values = gtsam.Values()
         remove: list[int] = []
         new_objects = set(order)
-        positions = []  # (slot, realisation, first and last graph position of its factors)
+        positions = []  # (slot, ξ, carried factor indices, graph position of its ξ factor)
         for b, r in picks:
             s = batch[b]
-            real = s.summary.realisations[r]
+            real = s.summary.realisations[r].xi
             ids = s.summary.object_ids
-            first = graph.size()
             for i, j in enumerate(ids):
                 if j in new_objects and j not in h.object_priors:
                     pose = gtsam.Pose2(*real.lin[i])
@@ -380,20 +406,20 @@ class DistributedBelief(HybridBelief):
                     remove.extend(old.factor_indices)
                 else:
                     carried = old.factor_indices
-                    graph.add(xi.get(old.object_ids, old.realisation, -1.0))
+                    graph.add(xi.get(old.object_ids, old.xi, -1.0))
             start = graph.size()
             graph.add(xi.get(ids, real))
-            positions.append((s, real, carried, first, start))
+            positions.append((s, real, carried, start))
         result = h.isam.update(graph, values, remove)
         new_indices = list(result.getNewFactorsIndices())
-        for s, real, carried, _, start in positions:
+        for s, real, carried, start in positions:
             anti = (
                 (new_indices[start - 1],)
                 if start > 0 and carried and self.fusion == "consistent"
                 else ()
             )
             own = (*carried, *anti, new_indices[start])
-            h.used[s.owner] = UsedSlot(s.stamp, s.summary.object_ids, real, own)
+            h.used[s.owner] = UsedXi(s.stamp, s.summary.object_ids, real, own)
         for _ in range(self.config.extra_updates if settle else 0):
             h.isam.update()
         h.estimate = h.isam.calculateEstimate()

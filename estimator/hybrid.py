@@ -30,10 +30,11 @@ from estimator.factors import (
     pose_key,
     semantic_factor,
 )
+from estimator.ledger import SemanticLedger
 from estimator.models import ClassifierModel, Detection, GaussianNoise, SensorFrame, viewpoint
 from estimator.pruning import PRUNINGS, PruningRule, class_marginals, match_marginals, select
 from estimator.snapshot import BeliefSnapshot  # re-exported: it used to live here
-from estimator.summary import Realisation
+from estimator.summary import Xi
 from estimator.weights import (
     WEIGHT_ESTIMATORS,
     InvolvedGaussian,
@@ -75,6 +76,13 @@ class BeliefConfig:
     ``partial_relinearization`` (iSAM2's partial relinearisation check: descend the Bayes tree
     from the root only through cliques with a variable over the threshold; False: check every
     variable) and the number of ``extra_updates`` after each measurement update.
+
+    ``semantic_poses``: whether the semantic factors also enter the Gaussians, so that every
+    class realisation has a continuous belief of its own (Eq. 5 taken literally, the paper's
+    model; ``BeliefConfig.paper()``). By default they do not: the semantic measurements weigh the
+    class realisations (their viewpoint-dependent likelihood is integrated over the poses, Eq. 6)
+    but leave the poses to the geometric factors, so one continuous belief serves every
+    hypothesis (docs/estimator.md, "One continuous belief").
     """
 
     weight_estimator: str = "geo_conditioned"
@@ -93,6 +101,7 @@ class BeliefConfig:
     relinearize_skip: int = 10
     partial_relinearization: bool = True
     extra_updates: int = 1
+    semantic_poses: bool = False
 
     def __post_init__(self) -> None:
         if self.weight_estimator not in WEIGHT_ESTIMATORS:
@@ -116,8 +125,15 @@ class BeliefConfig:
 
     @classmethod
     def paper(cls, **changes: object) -> BeliefConfig:
-        """The paper's hypothesis management: joint weight ratio 1/150, cap 300, no budget."""
-        fields = {"pruning": "ratio", "prune_ratio": 150.0, "robot_budget": None, **changes}
+        """The paper's model and hypothesis management: a continuous belief per class realisation
+        (semantic factors in the Gaussians), joint weight ratio 1/150, cap 300, no budget."""
+        fields = {
+            "pruning": "ratio",
+            "prune_ratio": 150.0,
+            "robot_budget": None,
+            "semantic_poses": True,
+            **changes,
+        }
         return cls(**fields)  # type: ignore[arg-type]
 
     @classmethod
@@ -156,44 +172,93 @@ class BeliefModel:
 
 
 @dataclass(frozen=True, slots=True)
-class UsedSlot:
-    """What a distributed hypothesis took from another robot's slot: the version's stamp, the
-    owner's object ids and the realisation it joined, and the iSAM2 indices of the factors that
-    carry that robot's information (removed on the next version when downdating by removal)."""
+class UsedXi:
+    """What a continuous belief of D took from another robot's slot: the version's stamp, the
+    owner's object ids, the ξ it multiplied in, and the iSAM2 indices of the factors that carry
+    that robot's information (removed on the next version when downdating by removal)."""
 
     stamp: int
     object_ids: tuple[int, ...]
-    realisation: Realisation
+    xi: Xi
     factor_indices: tuple[int, ...]
 
 
-@dataclass(slots=True)
-class Hypothesis:
-    """One class realisation ``classes`` (aligned with the belief's ``object_ids``), its
-    continuous belief and its normalised log-weight.
+@dataclass(slots=True, eq=False)
+class Continuous:
+    """A continuous belief over the robot trajectories and object poses: its iSAM2, the current
+    estimate, the mean (3,) of every object's weak prior (needed to divide it out of a slot
+    exactly), and in D the ξ of other robots' slots it holds, by owner.
 
-    ``object_priors`` holds the mean (3,) of every object's weak prior (needed to divide it out of
-    a slot exactly); ``used`` the slots a distributed belief has integrated, by owner.
+    One continuous belief serves every hypothesis whose factors are the same: all of them when
+    the semantic factors stay out of the Gaussians (``BeliefConfig.semantic_poses = False``, the
+    default), one per class realisation otherwise. ``ledger``: the semantic evidence its
+    hypotheses' weights hold, re-linearised as the estimate moves (``estimator.ledger``; None
+    when the semantic factors are in the Gaussians).
     """
 
-    classes: tuple[int, ...]
     isam: gtsam.ISAM2
-    log_weight: float
     estimate: gtsam.Values = field(repr=False)
     object_priors: dict[int, Array] = field(default_factory=dict, repr=False)
-    used: dict[str, UsedSlot] = field(default_factory=dict, repr=False)
+    used: dict[str, UsedXi] = field(default_factory=dict, repr=False)
+    ledger: SemanticLedger | None = field(default=None, repr=False)
 
-    def branch(self, classes: tuple[int, ...], log_weight: float, copy_isam: bool) -> Hypothesis:
-        """A child with ``classes``; it shares nothing mutable with this hypothesis unless
-        ``copy_isam`` is False, in which case it takes over this hypothesis' iSAM2."""
-        isam = gtsam.ISAM2(self.isam) if copy_isam else self.isam
-        return Hypothesis(
-            classes, isam, log_weight, self.estimate, dict(self.object_priors), dict(self.used)
+    def copy(self) -> Continuous:
+        """An independent copy (``gtsam.ISAM2``'s copy constructor)."""
+        ledger = None if self.ledger is None else self.ledger.copy()
+        return Continuous(
+            gtsam.ISAM2(self.isam),
+            self.estimate,
+            dict(self.object_priors),
+            dict(self.used),
+            ledger,
         )
 
     def pose(self, key: int) -> Array:
         p = self.estimate.atPose2(key)
         return np.array([p.x(), p.y(), p.theta()])
+
+
+@dataclass(slots=True, eq=False)
+class Hypothesis:
+    """One class realisation ``classes`` (aligned with the belief's ``object_ids``), the
+    continuous belief it uses (possibly shared with other hypotheses) and its normalised
+    log-weight. ``used_phi``: in a distributed belief, log φ of the realisation of each other
+    robot's slot it integrated (subtracted when a newer version replaces it)."""
+
+    classes: tuple[int, ...]
+    continuous: Continuous
+    log_weight: float
+    used_phi: dict[str, float] = field(default_factory=dict, repr=False)
+
+    @property
+    def isam(self) -> gtsam.ISAM2:
+        return self.continuous.isam
+
+    @property
+    def estimate(self) -> gtsam.Values:
+        return self.continuous.estimate
+
+    @property
+    def object_priors(self) -> dict[int, Array]:
+        return self.continuous.object_priors
+
+    def pose(self, key: int) -> Array:
+        return self.continuous.pose(key)
+
+
+def distinct_continuous(hypotheses: Sequence[Hypothesis]) -> tuple[list[Continuous], IntArray]:
+    """The distinct continuous beliefs of ``hypotheses`` (by identity, in order of first use)
+    and the index (H,) of each hypothesis' one in that list."""
+    index: dict[int, int] = {}
+    out: list[Continuous] = []
+    which = np.empty(len(hypotheses), dtype=np.int64)
+    for i, h in enumerate(hypotheses):
+        g = index.get(id(h.continuous))
+        if g is None:
+            g = index[id(h.continuous)] = len(out)
+            out.append(h.continuous)
+        which[i] = g
+    return out, which
 
 
 @dataclass(frozen=True, slots=True)
@@ -212,11 +277,14 @@ _EVIDENCE_CHUNK = 2_000_000
 
 @dataclass(frozen=True, slots=True)
 class _Evidence:
-    """What branching needs of the parents' weight integrals (see ``HybridBelief._reduce``)."""
+    """What branching needs of the parents' weight integrals (see ``HybridBelief._reduce``):
+    ``acc`` per parent, ``marg`` and ``lt`` per continuous belief, ``which`` (P,) the continuous
+    belief of every parent."""
 
     acc: Array
     marg: Array
     lt: Array
+    which: IntArray
 
 
 @dataclass(frozen=True, slots=True)
@@ -278,7 +346,9 @@ class HybridBelief:
             values.insert(self.pose_key(r), pose)
         isam = gtsam.ISAM2(self._isam_params())
         isam.update(graph, values)
-        self.hypotheses = [Hypothesis((), isam, 0.0, isam.calculateEstimate())]
+        ledger = None if self.config.semantic_poses else SemanticLedger()
+        first = Continuous(isam, isam.calculateEstimate(), ledger=ledger)
+        self.hypotheses = [Hypothesis((), first, 0.0)]
 
     # -- keys and queries -------------------------------------------------------------------
 
@@ -326,13 +396,14 @@ class HybridBelief:
         every robot, are computed once."""
         keys = [object_key(j) for j in self.object_ids]
         hyps = self.hypotheses
+        conts, which = distinct_continuous(hyps)
         n = len(keys)
-        object_pose = np.array([[h.pose(key) for key in keys] for h in hyps]).reshape(
-            len(hyps), n, 3
-        )
+        object_pose = np.array([[c.pose(key) for key in keys] for c in conts]).reshape(
+            len(conts), n, 3
+        )[which]
         object_cov = np.array(
-            [[h.isam.marginalCovariance(key) for key in keys] for h in hyps]
-        ).reshape(len(hyps), n, 3, 3)
+            [[c.isam.marginalCovariance(key) for key in keys] for c in conts]
+        ).reshape(len(conts), n, 3, 3)[which]
         classes = np.array([h.classes for h in hyps], dtype=np.int64).reshape(len(hyps), n)
         weights = self.weights()
         out = {}
@@ -342,8 +413,8 @@ class HybridBelief:
                 tuple(self.object_ids),
                 weights,
                 classes,
-                np.array([h.pose(xk) for h in hyps]),
-                np.array([h.isam.marginalCovariance(xk) for h in hyps]),
+                np.array([c.pose(xk) for c in conts])[which],
+                np.array([c.isam.marginalCovariance(xk) for c in conts])[which],
                 object_pose,
                 object_cov,
             )
@@ -362,38 +433,62 @@ class HybridBelief:
                 new_ids.append(d.object_id)
                 first[d.object_id] = (f, d)
         parents = self.hypotheses
-        for h in parents:
-            self._propagate(h, frames, first)
+        conts, which = distinct_continuous(parents)
+        for c in conts:
+            self._propagate(c, frames, first)
         for f in frames:
             self.step_of[f.robot] = f.k
         if not detections:
+            self._relinearise_evidence()
             return StepStats(len(parents), len(parents), len(parents))
-        evidence = self._evidence(parents, detections, new_ids, rng)
+        evidence = self._evidence(parents, conts, which, detections, new_ids, rng)
         beam = self._branch(parents, evidence, new_ids)
         for j in new_ids:
             self._object_index[j] = len(self.object_ids)
             self.object_ids.append(j)
         self.hypotheses = self._materialise(parents, beam, detections)
+        self._relinearise_evidence()
         self._normalise()
         return StepStats(len(parents), beam.weighed, len(self.hypotheses))
+
+    def _relinearise_evidence(self) -> None:
+        """Move every hypothesis' weight by the change of its semantic evidence since the
+        weights last saw its continuous belief's estimate (``estimator.ledger``)."""
+        conts, which = distinct_continuous(self.hypotheses)
+        if not self.object_ids or all(c.ledger is None for c in conts):
+            return
+        classes = np.array([h.classes for h in self.hypotheses], dtype=np.int64)
+        columns = np.arange(len(self.object_ids))
+        for g, c in enumerate(conts):
+            if c.ledger is None:
+                continue
+            change = c.ledger.refresh(c.estimate, self.model.classifier, self._object_index)
+            rows = np.flatnonzero(which == g)
+            moved = change[columns[None, :], classes[rows]].sum(axis=1)
+            for i, delta in zip(rows, moved, strict=True):
+                self.hypotheses[i].log_weight += float(delta)
 
     def _evidence(
         self,
         parents: Sequence[Hypothesis],
+        conts: Sequence[Continuous],
+        which: IntArray,
         detections: Sequence[tuple[SensorFrame, Detection]],
         new_ids: Sequence[int],
         rng: np.random.Generator,
     ) -> _Evidence:
         """The weight integral of every parent's children (Eq. 6), reduced to what branching
-        needs; the parents are evaluated in chunks, vectorised within a chunk."""
+        needs. The integrals are evaluated once per continuous belief ``conts`` (``which`` (P,)
+        maps the parents onto them), in chunks, vectorised within a chunk."""
         terms = self._semantic_terms(detections)
-        per_parent = len(detections) * self.config.num_samples * self.model.num_classes
-        size = max(1, _EVIDENCE_CHUNK // max(per_parent, 1))
-        parts = []
+        per_cont = len(detections) * self.config.num_samples * self.model.num_classes
+        size = max(1, _EVIDENCE_CHUNK // max(per_cont, 1))
+        accs, margs, lts = [], [], []
+        order = []
         eps = None  # the draws every parent shares (``geo_conditioned_batch``)
-        for start in range(0, len(parents), size):
-            chunk = parents[start : start + size]
-            gs = [self._involved(h, detections) for h in chunk]
+        for start in range(0, len(conts), size):
+            chunk = conts[start : start + size]
+            gs = [self._involved(c, detections) for c in chunk]
             if self.config.weight_estimator == "geo_conditioned":
                 if eps is None:
                     eps = rng.standard_normal((self.config.num_samples, len(gs[0].info)))
@@ -409,21 +504,37 @@ class HybridBelief:
                 ]
                 base = np.stack([ev.base for ev in evs])
                 log_lik = np.stack([ev.log_lik for ev in evs])
-            parts.append(self._reduce(chunk, base, log_lik, detections, new_ids))
-        return _Evidence(*(np.concatenate(arrays) for arrays in zip(*parts, strict=True)))
+            members = np.flatnonzero((which >= start) & (which < start + len(chunk)))
+            acc, marg, lt = self._reduce(
+                [parents[int(i)] for i in members],
+                which[members] - start,
+                base,
+                log_lik,
+                detections,
+                new_ids,
+            )
+            accs.append(acc)
+            margs.append(marg)
+            lts.append(lt)
+            order.append(members)
+        acc = np.empty((len(parents), accs[0].shape[1]))
+        acc[np.concatenate(order)] = np.concatenate(accs)
+        return _Evidence(acc, np.concatenate(margs), np.concatenate(lts), which)
 
     def _reduce(
         self,
         parents: Sequence[Hypothesis],
+        which: IntArray,
         base: Array,
         log_lik: Array,
         detections: Sequence[tuple[SensorFrame, Detection]],
         new_ids: Sequence[int],
     ) -> tuple[Array, Array, Array]:
-        """Per-sample evidence of each parent for :meth:`_branch`: base (P, S) and semantic
-        log-likelihoods (P, S, D, M) → ``acc`` (P, S) with every new object's class summed out
-        under its prior, ``marg`` (P, T, S) those sums per new object, and ``lt`` (P, T, M, S)
-        Σ log P(z_d | c) over each new object's detections."""
+        """Per-sample evidence for :meth:`_branch`: base (G, S) and semantic log-likelihoods
+        (G, S, D, M) of G continuous beliefs, and the parents that use them (``which`` (P,)) →
+        ``acc`` (P, S) per parent, with every new object's class summed out under its prior,
+        ``marg`` (G, T, S) those sums per new object, and ``lt`` (G, T, M, S) Σ log P(z_d | c)
+        over each new object's detections."""
         log_prior = self._log_prior
         new_col = {j: t for t, j in enumerate(new_ids)}
         dets_of: list[list[int]] = [[] for _ in new_ids]
@@ -435,20 +546,25 @@ class HybridBelief:
             else:
                 old_cols.append(col)
                 old_index.append(self._object_index[d.object_id])
-        p, samples = base.shape
-        acc = np.array(base, dtype=float)
-        if old_cols:
-            cls = np.array([[h.classes[i] for i in old_index] for h in parents], dtype=np.int64)
-            picked = np.take_along_axis(log_lik[:, :, old_cols, :], cls[:, None, :, None], axis=3)
-            acc += picked[..., 0].sum(axis=2)
+        g, samples = base.shape
         m = self.model.num_classes
-        lt = np.empty((p, len(new_ids), m, samples))
-        marg = np.empty((p, len(new_ids), samples))
+        lt = np.empty((g, len(new_ids), m, samples))
+        marg = np.empty((g, len(new_ids), samples))
         for t, cols in enumerate(dets_of):
-            summed = log_lik[:, :, cols, :].sum(axis=2)  # (P, S, M)
+            summed = log_lik[:, :, cols, :].sum(axis=2)  # (G, S, M)
             lt[:, t] = np.swapaxes(summed, 1, 2)
             marg[:, t] = logsumexp(summed + log_prior, axis=2)
-        acc += marg.sum(axis=1)
+        acc = base[which] + marg.sum(axis=1)[which]
+        if old_cols:
+            cls = np.array([[h.classes[i] for i in old_index] for h in parents], dtype=np.int64)
+            old = np.ascontiguousarray(np.moveaxis(log_lik[:, :, old_cols, :], 1, 3))  # (G,D,M,S)
+            det = np.arange(len(old_cols))
+            # Parents in slices, so that the gathered (P', D_old, S) stays within the chunk.
+            rows = max(1, _EVIDENCE_CHUNK // max(1, len(old_cols) * samples))
+            for first in range(0, len(parents), rows):
+                part = slice(first, first + rows)
+                picked = old[which[part, None], det[None, :], cls[part]]  # (P', D_old, S)
+                acc[part] += picked.sum(axis=1)
         return acc, marg, lt
 
     def _branch(
@@ -481,9 +597,11 @@ class HybridBelief:
             kept, lw = self._prune(beam.log_weight, parent_cls)
             return beam.keep(kept, lw)
         m = self.model.num_classes
+        which = evidence.which
         for t in range(len(new_ids)):
-            lt = lt_all[beam.parent, t]  # (K, M, S)
-            grown = beam.acc[:, None, :] - marg[beam.parent, t][:, None, :] + lt
+            g = which[beam.parent]
+            lt = lt_all[g, t]  # (K, M, S)
+            grown = beam.acc[:, None, :] - marg[g, t][:, None, :] + lt
             grown = np.where(np.isnan(grown), -np.inf, grown)  # −inf − (−inf): a dead sample
             prior = beam.log_prior[:, None] + log_prior[None, :]
             lw = parent_lw[beam.parent][:, None] + prior + logsumexp(grown, axis=2)
@@ -534,7 +652,7 @@ class HybridBelief:
 
     def _propagate(
         self,
-        h: Hypothesis,
+        h: Continuous,
         frames: Sequence[SensorFrame],
         first: Mapping[int, tuple[SensorFrame, Detection]],
     ) -> None:
@@ -571,7 +689,7 @@ class HybridBelief:
         return SemanticTerms(np.array(robot_var), np.array(object_var), z)
 
     def _involved(
-        self, h: Hypothesis, detections: Sequence[tuple[SensorFrame, Detection]]
+        self, h: Continuous, detections: Sequence[tuple[SensorFrame, Detection]]
     ) -> InvolvedGaussian:
         """``h``'s propagated belief over the involved variables (this step's robot poses and the
         detected objects, in order of first appearance) and the linearised geometric factors."""
@@ -628,10 +746,11 @@ class HybridBelief:
         lower bound."""
         b = int(np.argmax(beam.log_weight))
         p = int(beam.parent[b])
-        rest = evidence.lt[p, t + 1 :]  # (T', M, S)
+        g = int(evidence.which[p])
+        rest = evidence.lt[g, t + 1 :]  # (T', M, S)
         log_prior = self._log_prior
         best = np.argmax(log_prior[None, :] + logsumexp(rest, axis=2), axis=1)  # (T',)
-        acc = beam.acc[b] - evidence.marg[p, t + 1 :].sum(axis=0)
+        acc = beam.acc[b] - evidence.marg[g, t + 1 :].sum(axis=0)
         acc = acc + rest[np.arange(len(best)), best].sum(axis=0)
         samples = len(acc)
         lw = parent_lw[p] + beam.log_prior[b] + log_prior[best].sum()
@@ -643,31 +762,58 @@ class HybridBelief:
         beam: _Beam,
         detections: Sequence[tuple[SensorFrame, Detection]],
     ) -> list[Hypothesis]:
-        by_parent: dict[int, list[int]] = {}
+        """The kept children, with the step's factors added once per distinct continuous belief:
+        children of parents that share one share one, unless ``semantic_poses`` gives them
+        different semantic factors (different classes of the detected objects)."""
+        semantic = self.config.semantic_poses
+        detected = [self._object_index[d.object_id] for _, d in detections]
+        groups: dict[tuple[int, tuple[int, ...]], list[int]] = {}
+        child_classes = []
         for i, p in enumerate(beam.parent):
-            by_parent.setdefault(int(p), []).append(i)
-        children = []
-        for p, group in by_parent.items():
-            parent = parents[p]
-            for n, i in enumerate(group):
-                classes = parent.classes + tuple(int(c) for c in beam.classes[i])
+            parent = parents[int(p)]
+            classes = parent.classes + tuple(int(c) for c in beam.classes[i])
+            child_classes.append(classes)
+            factors = tuple(classes[j] for j in detected) if semantic else ()
+            groups.setdefault((id(parent.continuous), factors), []).append(i)
+        last_group = {}
+        for key in groups:
+            last_group[key[0]] = key
+        source = {id(h.continuous): h.continuous for h in parents}
+        children: dict[int, Hypothesis] = {}
+        made = []
+        for key, members in groups.items():
+            base = source[key[0]]
+            # Every other group copies its parent's iSAM2 first; the last takes it over.
+            cont = base if last_group[key[0]] == key else base.copy()
+            made.append((cont, child_classes[members[0]]))
+            for i in members:
+                parent = parents[int(beam.parent[i])]
                 lw = float(beam.log_weight[i])
-                child = parent.branch(classes, lw, copy_isam=n < len(group) - 1)
-                self._measure(child, detections)
-                children.append(child)
-        return children
+                children[i] = Hypothesis(child_classes[i], cont, lw, dict(parent.used_phi))
+        for cont, classes in made:
+            self._measure(cont, classes, detections)
+        return [children[i] for i in range(len(beam.parent))]
 
-    def _measure(self, h: Hypothesis, detections: Sequence[tuple[SensorFrame, Detection]]) -> None:
-        """Add the geometric and semantic factors of this step's detections (Eq. 5)."""
+    def _measure(
+        self,
+        h: Continuous,
+        classes: tuple[int, ...],
+        detections: Sequence[tuple[SensorFrame, Detection]],
+    ) -> None:
+        """Add the geometric factors of this step's detections (Eq. 5), and with
+        ``semantic_poses`` the semantic factors of ``classes``."""
         graph = gtsam.NonlinearFactorGraph()
         for f, d in detections:
             xk, oj = self.pose_key(f.robot, f.k), object_key(d.object_id)
             graph.add(
                 gtsam.BetweenFactorPose2(xk, oj, gtsam.Pose2(*d.z_geo), self._geometric_noise)
             )
-            c = h.classes[self._object_index[d.object_id]]
-            psi0 = float(viewpoint(h.pose(xk), h.pose(oj)))
-            graph.add(semantic_factor(self.model.classifier, c, d.z_sem, xk, oj, psi0))
+            if h.ledger is not None:
+                h.ledger.add(xk, d.object_id, d.z_sem)
+            if self.config.semantic_poses:
+                c = classes[self._object_index[d.object_id]]
+                psi0 = float(viewpoint(h.pose(xk), h.pose(oj)))
+                graph.add(semantic_factor(self.model.classifier, c, d.z_sem, xk, oj, psi0))
         h.isam.update(graph, gtsam.Values())
         for _ in range(self.config.extra_updates):
             h.isam.update()

@@ -2,8 +2,9 @@
 
 For every hypothesis of the LOCAL belief: ξ, the joint Gaussian over all the owner's object poses
 with the object priors divided out exactly (information form Λ, η about the linearisation poses
-``lin``), and log φ = log w − Σ_j log P(c_j). The joint marginal comes from the hypothesis' iSAM2
-Bayes tree; its mean is iSAM2's current Δ at the linearisation point.
+``lin``), and log φ = log w − Σ_j log P(c_j). The joint marginal comes from the iSAM2 Bayes tree of
+the hypothesis' continuous belief; its mean is iSAM2's current Δ at the linearisation point.
+Hypotheses that share a continuous belief share one ξ (computed once).
 """
 
 from __future__ import annotations
@@ -15,8 +16,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from estimator.factors import object_key
-from estimator.hybrid import HybridBelief, Hypothesis
-from estimator.summary import LocalSummary, Realisation
+from estimator.hybrid import Continuous, HybridBelief, distinct_continuous
+from estimator.summary import LocalSummary, Realisation, Xi
 
 Array = NDArray[np.float64]
 
@@ -32,17 +33,18 @@ def summarise(belief: HybridBelief) -> LocalSummary | None:
     ids = tuple(belief.object_ids)
     log_prior = np.log(np.asarray(belief.model.class_prior, dtype=float))
     prior_noise = gtsam.noiseModel.Diagonal.Sigmas(np.array(belief.config.object_prior_sigmas))
+    conts, which = distinct_continuous(belief.hypotheses)
+    xis = [_prior_divided_marginal(c, ids, prior_noise) for c in conts]
     out = []
-    for h in belief.hypotheses:
-        lin, info, eta = _prior_divided_marginal(h, ids, prior_noise)
+    for h, g in zip(belief.hypotheses, which, strict=True):
         log_phi = h.log_weight - float(sum(log_prior[c] for c in h.classes))
-        out.append(Realisation(h.classes, log_phi, lin, info, eta))
+        out.append(Realisation(h.classes, log_phi, xis[g]))
     return LocalSummary(ids, tuple(out))
 
 
 def _prior_divided_marginal(
-    h: Hypothesis, ids: Sequence[int], prior_noise: gtsam.noiseModel.Base
-) -> tuple[Array, Array, Array]:
+    h: Continuous, ids: Sequence[int], prior_noise: gtsam.noiseModel.Base
+) -> Xi:
     keys = [object_key(j) for j in ids]
     joint = h.isam.jointMarginalInformation(gtsam.KeyVector(keys))
     info = np.asarray(joint.fullMatrix())  # blocks in the order of ``keys``
@@ -59,7 +61,7 @@ def _prior_divided_marginal(
         block = slice(3 * i, 3 * i + 3)
         info[block, block] -= a.T @ a
         eta[block] -= a.T @ b
-    return lin, _floor_eigenvalues(info), eta
+    return Xi(lin, _floor_eigenvalues(info), eta)
 
 
 def _floor_eigenvalues(info: Array) -> Array:

@@ -11,19 +11,43 @@ Array = NDArray[np.float64]
 
 
 @dataclass(frozen=True, slots=True, eq=False)
+class Xi:
+    """ξ of Eq. 18: a prior-divided joint Gaussian over the owner's n objects in information form.
+
+    ``lin`` (n, 3) linearisation poses; ``info`` (3n, 3n) Λ, symmetric positive definite; ``eta``
+    (3n,) η, so that ξ ∝ exp(−½ δᵀΛδ + ηᵀδ) over tangent perturbations δ at ``lin``. Several
+    realisations of one slot may share one ξ (the same object): every realisation of a belief
+    whose hypotheses share one continuous belief does (docs/estimator.md).
+    """
+
+    lin: Array
+    info: Array
+    eta: Array
+
+
+@dataclass(frozen=True, slots=True, eq=False)
 class Realisation:
     """One class realisation of the owner's objects and its summary.
 
     ``classes`` (n,) class indices aligned with the slot's object ids; ``log_phi`` = log w − log
-    P(C); ``lin`` (n, 3) linearisation poses; ``info`` (3n, 3n) Λ, symmetric positive definite;
-    ``eta`` (3n,) η, so that ξ ∝ exp(−½ δᵀΛδ + ηᵀδ) over tangent perturbations δ at ``lin``.
+    P(C); ``xi`` the owner's objects' Gaussian under this realisation.
     """
 
     classes: tuple[int, ...]
     log_phi: float
-    lin: Array
-    info: Array
-    eta: Array
+    xi: Xi
+
+    @property
+    def lin(self) -> Array:
+        return self.xi.lin
+
+    @property
+    def info(self) -> Array:
+        return self.xi.info
+
+    @property
+    def eta(self) -> Array:
+        return self.xi.eta
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -32,6 +56,20 @@ class LocalSummary:
 
     object_ids: tuple[int, ...]
     realisations: tuple[Realisation, ...]
+
+    def distinct_xi(self) -> tuple[list[Xi], list[int]]:
+        """The distinct ξ of the realisations (by identity, in order of first use) and the index
+        of each realisation's ξ in that list."""
+        index: dict[int, int] = {}
+        xis: list[Xi] = []
+        which = []
+        for r in self.realisations:
+            i = index.get(id(r.xi))
+            if i is None:
+                i = index[id(r.xi)] = len(xis)
+                xis.append(r.xi)
+            which.append(i)
+        return xis, which
 
 
 @dataclass(frozen=True, slots=True, eq=False)

@@ -23,7 +23,7 @@ from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
 from numpy.typing import NDArray
 
 from estimator.models.frames import MAX_STEP
-from estimator.summary import LocalSummary, Realisation, WireForm
+from estimator.summary import LocalSummary, Realisation, WireForm, Xi
 from protocol.errors import (
     BadSignature,
     InvalidValue,
@@ -44,6 +44,7 @@ from protocol.stack import Slot, Stack
 from protocol.validate import as_int, as_map, decode_document, need, robot_id, valid_id
 
 Array = NDArray[np.float64]
+IntArray = NDArray[np.int64]
 
 VERSION = 1  # unsigned slots
 SIGNED_VERSION = 2  # owner-signed slots (docs/wire.md, "Signed slots")
@@ -57,6 +58,8 @@ _EPOCH_SLOT_KEYS = _SLOT_KEYS | {"epoch"}  # version 1: "epoch" only when it is 
 _SIGNED_SLOT_KEYS = _SLOT_KEYS | {"epoch", "sig"}
 MAX_EPOCH = 2**53 - 1  # an epoch is a count of milliseconds (docs/wire.md, "Versions and epochs")
 _REAL_KEYS = frozenset({"c", "phi", "lin", "info", "eta"})
+# A realisation whose ξ is that of an earlier realisation of the slot (docs/wire.md, "Shared ξ").
+_REF_KEYS = frozenset({"c", "phi", "xi"})
 
 
 @dataclass(frozen=True, slots=True)
@@ -158,17 +161,28 @@ def _position_problem(pos: tuple[float, float], lim: Limits) -> Problem | None:
 
 
 def numbers_problem(
-    where: str, log_phi: Array, lin: Array, info: Array, eta: Array, lim: Limits
+    where: str,
+    log_phi: Array,
+    lin: Array,
+    info: Array,
+    eta: Array,
+    lim: Limits,
+    rows: IntArray | None = None,
 ) -> Problem | None:
     """The first broken number rule of a slot's realisations, or None; ``where`` is the slot's
-    field (``slots[i]``). ``log_phi`` (R,), ``lin`` (R, n, 3), ``info`` (R, 3n, 3n) symmetric,
-    ``eta`` (R, 3n). Checked field by field over all R at once, in wire order: φ, lin, Λ, η;
-    one batched Cholesky per slot, and one batched ``eigvalsh`` when it cannot decide."""
-    r = len(log_phi)
-    for name, arr in (("phi", log_phi), ("lin", lin), ("info", info), ("eta", eta)):
-        bad = ~np.isfinite(arr.reshape(r, -1)).all(axis=1)
-        if bad.any():
-            return InvalidValue, _at(where, bad, name), "non-finite number"
+    field (``slots[i]``). ``log_phi`` (R,) of every realisation; ``lin`` (X, n, 3), ``info``
+    (X, 3n, 3n) symmetric, ``eta`` (X, 3n) of the slot's X distinct ξ, carried by the
+    realisations ``rows`` (X,) (default: ξ i by realisation i). Checked field by field over all
+    at once, in wire order: φ, lin, Λ, η; one batched Cholesky per slot, and one batched
+    ``eigvalsh`` when it cannot decide."""
+    rows = np.arange(len(lin)) if rows is None else rows
+    if not np.isfinite(log_phi).all():
+        return InvalidValue, _at(where, ~np.isfinite(log_phi), "phi"), "non-finite number"
+    x = len(lin)
+    for name, arr in (("lin", lin), ("info", info), ("eta", eta)):
+        flagged = ~np.isfinite(arr.reshape(x, -1)).all(axis=1)
+        if flagged.any():
+            return InvalidValue, _at(where, flagged, name, rows), "non-finite number"
     bad = np.abs(log_phi) > lim.max_abs_log_phi
     if bad.any():
         value = float(log_phi[np.argmax(bad)])
@@ -178,18 +192,21 @@ def numbers_problem(
     xy = np.abs(lin[..., :2]).max(axis=(1, 2))
     bad = xy > lim.world_extent
     if bad.any():
-        return LimitExceeded, _at(where, bad, "lin"), f"a position outside ±{lim.world_extent:g} m"
+        field = _at(where, bad, "lin", rows)
+        return LimitExceeded, field, f"a position outside ±{lim.world_extent:g} m"
     bad = np.abs(lin[..., 2]).max(axis=1) > MAX_ABS_THETA
     if bad.any():
-        return InvalidValue, _at(where, bad, "lin"), "an angle outside ±2π"
+        return InvalidValue, _at(where, bad, "lin", rows), "an angle outside ±2π"
     if _certified(info, eta, lim):
         return None
-    return _spectral_problem(where, info, eta, lim)
+    return _spectral_problem(where, info, eta, lim, rows)
 
 
-def _at(where: str, bad: Any, name: str) -> str:
-    """The field of the first realisation flagged in ``bad``."""
-    return f"{where}.real[{int(np.argmax(bad))}].{name}"
+def _at(where: str, bad: Any, name: str, rows: IntArray | None = None) -> str:
+    """The field of the first realisation flagged in ``bad`` (of the realisation ``rows[i]``
+    when ``bad`` flags distinct ξ)."""
+    first = int(np.argmax(bad))
+    return f"{where}.real[{first if rows is None else int(rows[first])}].{name}"
 
 
 def _eta_norm(eta: Array) -> Array:
@@ -227,7 +244,9 @@ def _certified(info: Array, eta: Array, lim: Limits) -> bool:
     return True
 
 
-def _spectral_problem(where: str, info: Array, eta: Array, lim: Limits) -> Problem | None:
+def _spectral_problem(
+    where: str, info: Array, eta: Array, lim: Limits, rows: IntArray
+) -> Problem | None:
     """The first broken Λ or η rule, decided by Λ's extreme eigenvalues (one batched
     ``eigvalsh``)."""
     # Every test is written "not within": a NaN that eigvalsh may return for matrices near the
@@ -237,12 +256,12 @@ def _spectral_problem(where: str, info: Array, eta: Array, lim: Limits) -> Probl
     bad = ~(hi <= lim.max_information)
     if bad.any():
         value = float(hi[np.argmax(bad)])
-        return LimitExceeded, _at(where, bad, "info"), f"λmax = {value:.3g} > max_information"
+        return LimitExceeded, _at(where, bad, "info", rows), f"λmax = {value:.3g} > max_information"
     bad = ~(lo >= -lim.psd_tol * np.maximum(hi, -lo))
     if bad.any():
         return (
             InvalidValue,
-            _at(where, bad, "info"),
+            _at(where, bad, "info", rows),
             f"Λ is indefinite (λmin = {lo[np.argmax(bad)]:.3g})",
         )
     floor = lim.world_extent**-2
@@ -253,14 +272,14 @@ def _spectral_problem(where: str, info: Array, eta: Array, lim: Limits) -> Probl
         value = float(kappa[np.argmax(bad)])
         return (
             LimitExceeded,
-            _at(where, bad, "info"),
+            _at(where, bad, "info", rows),
             f"condition number {value:.3g} > max_condition",
         )
     bad = ~(_eta_norm(eta) <= np.maximum(hi, 0.0) * eta_bound(info.shape[1] // 3, lim))
     if bad.any():
         return (
             LimitExceeded,
-            _at(where, bad, "eta"),
+            _at(where, bad, "eta", rows),
             "‖η‖ > λmax·δmax: ξ's mean lies outside the world",
         )
     return None
@@ -368,14 +387,20 @@ def _encode_slot(slot: Slot, where: str, lim: Limits) -> dict[str, Any]:
     rs = slot.summary.realisations
     _local(len(rs) >= 1, f"{where}.real", "no realisation")
     _local(len(rs) <= lim.max_realisations, f"{where}.real", f"{len(rs)} > {lim.max_realisations}")
+    xis, which = slot.summary.distinct_xi()
+    carrier: dict[int, int] = {}  # ξ → the realisation that carries it on the wire (its first)
+    for i, x in enumerate(which):
+        carrier.setdefault(x, i)
+    rows = np.array([carrier[x] for x in range(len(xis))], dtype=np.int64)
     for i, r in enumerate(rs):
         field = f"{where}.real[{i}]"
-        shapes = (
-            np.shape(r.lin) == (n, 3)
-            and np.shape(r.info) == (3 * n, 3 * n)
-            and np.shape(r.eta) == (3 * n,)
-        )
-        _local(shapes, field, "shapes do not match the object count")
+        if rows[which[i]] == i:
+            shapes = (
+                np.shape(r.xi.lin) == (n, 3)
+                and np.shape(r.xi.info) == (3 * n, 3 * n)
+                and np.shape(r.xi.eta) == (3 * n,)
+            )
+            _local(shapes, field, "shapes do not match the object count")
         _local(len(r.classes) == n, f"{field}.c", f"expected {n} classes")
         phi_ok = isinstance(r.log_phi, float | int | np.floating | np.integer)
         _local(
@@ -392,12 +417,12 @@ def _encode_slot(slot: Slot, where: str, lim: Limits) -> dict[str, Any]:
             f"{where}.real[{int(np.argmax(bad_rows))}].c",
             f"classes must be in 0..{lim.num_classes - 1}",
         )
-    # One array per field for the whole slot: the checks and conversions run once, not per
-    # realisation.
+    # One array per field for the whole slot: the checks and conversions run once per distinct
+    # ξ, not per realisation.
     phi = np.array([float(r.log_phi) for r in rs])
-    lin = np.ascontiguousarray(np.stack([r.lin for r in rs]), dtype=_F64)
-    info = np.ascontiguousarray(np.stack([r.info for r in rs]), dtype=_F64)
-    eta = np.ascontiguousarray(np.stack([r.eta for r in rs]), dtype=_F64)
+    lin = np.ascontiguousarray(np.stack([x.lin for x in xis]), dtype=_F64)
+    info = np.ascontiguousarray(np.stack([x.info for x in xis]), dtype=_F64)
+    eta = np.ascontiguousarray(np.stack([x.eta for x in xis]), dtype=_F64)
     iu = _tri(n)
     upper = info[:, iu[0], iu[1]]
     sent = _mirror(upper, n)  # what decode rebuilds: validate exactly that
@@ -410,20 +435,19 @@ def _encode_slot(slot: Slot, where: str, lim: Limits) -> dict[str, Any]:
         bad_rows &= np.isfinite(sent).all(axis=(1, 2))
         _local(
             not bad_rows.any(),
-            f"{where}.real[{int(np.argmax(bad_rows))}].info",
+            f"{where}.real[{int(rows[np.argmax(bad_rows)])}].info",
             "Λ not symmetric (or not finite below its diagonal)",
         )
-    _raise_local(numbers_problem(where, phi, lin, sent, eta, lim))
-    reals = [
-        {
-            "c": classes[i].astype(np.uint8).tobytes(),
-            "phi": float(r.log_phi),
-            "lin": lin[i].tobytes(),
-            "info": upper[i].tobytes(),
-            "eta": eta[i].tobytes(),
-        }
-        for i, r in enumerate(rs)
-    ]
+    _raise_local(numbers_problem(where, phi, lin, sent, eta, lim, rows))
+    reals: list[dict[str, Any]] = []
+    for i, r in enumerate(rs):
+        head = {"c": classes[i].astype(np.uint8).tobytes(), "phi": float(r.log_phi)}
+        g = which[i]
+        if rows[g] == i:
+            head |= {"lin": lin[g].tobytes(), "info": upper[g].tobytes(), "eta": eta[g].tobytes()}
+        else:
+            head["xi"] = int(rows[g])
+        reals.append(head)
     out: dict[str, Any] = {"owner": slot.owner, "stamp": int(slot.stamp), "objects": ids}
     out["real"] = reals
     epoch = slot.epoch
@@ -501,9 +525,10 @@ def decode(
     return decode_document(data, lim.max_message_bytes, parse, unpack=scan)
 
 
-def _floats(blobs: list[Any], where: str, name: str, count: int) -> Array:
-    """The float64 blobs ``name`` of every realisation of a slot as one (R, count) array."""
-    for i, value in enumerate(blobs):
+def _floats(blobs: list[Any], where: str, name: str, count: int, rows: IntArray) -> Array:
+    """The float64 blobs ``name`` of the realisations ``rows`` of a slot (those that carry their
+    ξ) as one (X, count) array."""
+    for i, value in zip(rows, blobs, strict=True):
         field = f"{where}[{i}].{name}"
         need(isinstance(value, bytes), field, "expected binary float64 data")
         need(len(value) == 8 * count, field, f"expected {8 * count} bytes, got {len(value)}")
@@ -656,19 +681,25 @@ def _decode_slot(
         LimitExceeded,
     )
     iu = _tri(n)
-    heads = [_decode_head(r, f"{where}.real[{i}]", n, lim) for i, r in enumerate(reals)]
+    heads = [_decode_head(r, f"{where}.real[{i}]", n, i, lim) for i, r in enumerate(reals)]
+    for i, (_, _, _, ref) in enumerate(heads):
+        if ref is not None:
+            field = f"{where}.real[{i}].xi"
+            need(heads[ref][3] is None, field, "names a realisation without its ξ", InvalidValue)
+    rows = np.array([i for i, h in enumerate(heads) if h[3] is None], dtype=np.int64)
     sizes = {"lin": 3 * n, "info": len(iu[0]), "eta": 3 * n}
     arrays = {
-        name: _floats([h[2][name] for h in heads], f"{where}.real", name, count)
+        name: _floats([heads[i][2][name] for i in rows], f"{where}.real", name, count, rows)
         for name, count in sizes.items()
     }
     info = _mirror(arrays["info"], n)
-    lin = arrays["lin"].reshape(len(heads), n, 3)
+    lin = arrays["lin"].reshape(len(rows), n, 3)
     phi = np.array([h[1] for h in heads])
-    _raise_remote(numbers_problem(where, phi, lin, info, arrays["eta"], lim))
+    _raise_remote(numbers_problem(where, phi, lin, info, arrays["eta"], lim, rows))
+    xis = {int(i): Xi(lin[x], info[x], arrays["eta"][x]) for x, i in enumerate(rows)}
     out = tuple(
-        Realisation(classes, phi, lin[i], info[i], arrays["eta"][i])
-        for i, (classes, phi, _) in enumerate(heads)
+        Realisation(classes, phi, xis[i if ref is None else ref])
+        for i, (classes, phi, _, ref) in enumerate(heads)
     )
     summary = LocalSummary(ids, out)
     wire = WireForm(owner, epoch, stamp, signature, summary, bytes(buf[frame.start : frame.end]))
@@ -676,10 +707,16 @@ def _decode_slot(
 
 
 def _decode_head(
-    raw: Any, where: str, n: int, lim: Limits
-) -> tuple[tuple[int, ...], float, dict[str, Any]]:
-    """Classes, log φ and the raw float blobs of one realisation."""
-    r = as_map(raw, where, _REAL_KEYS)
+    raw: Any, where: str, n: int, i: int, lim: Limits
+) -> tuple[tuple[int, ...], float, dict[str, Any], int | None]:
+    """Classes, log φ and the raw float blobs of realisation ``i``, and the index of the earlier
+    realisation whose ξ it shares (None when it carries its own)."""
+    shares = isinstance(raw, dict) and "xi" in raw
+    r = as_map(raw, where, _REF_KEYS if shares else _REAL_KEYS)
+    ref = None
+    if shares:
+        ref = as_int(r["xi"], f"{where}.xi", 0, max(0, i - 1))
+        need(ref < i, f"{where}.xi", "must name an earlier realisation", InvalidValue)
     c = r["c"]
     need(isinstance(c, bytes) and len(c) == n, f"{where}.c", f"expected {n} class bytes")
     classes = tuple(c)
@@ -695,7 +732,7 @@ def _decode_head(
         f"{where}.phi",
         "expected a number",
     )
-    return classes, float(phi), r
+    return classes, float(phi), r, ref
 
 
 def _raise_remote(problem: Problem | None) -> None:

@@ -47,7 +47,7 @@ from agents.transport.base import Inbox, Keys
 from agents.transport.zenoh_transport import ZenohSettings, ZenohTransport
 from deploy.launch.chaos import garbage_stack
 from estimator.models import MAX_STEP, Detection, SensorFrame
-from estimator.summary import LocalSummary, Realisation
+from estimator.summary import LocalSummary, Realisation, Xi
 from protocol.codec import StackMessage, decode, encode, sign_slot
 from protocol.errors import RemoteProtocolError
 from protocol.frames import encode_frame
@@ -197,7 +197,9 @@ class Attacker:
 
     def _forged(self, attack: str, epoch: int, stamp: int) -> Slot:
         """A victim slot the victim never made: one object of class 0 that is not there."""
-        real = Realisation((0,), 0.0, np.array([[5.0, 5.0, 0.0]]), 100.0 * np.eye(3), np.zeros(3))
+        real = Realisation(
+            (0,), 0.0, Xi(np.array([[5.0, 5.0, 0.0]]), 100.0 * np.eye(3), np.zeros(3))
+        )
         slot = Slot(self.victim, stamp, LocalSummary((FORGED_OBJECTS[attack],), (real,)), epoch)
         if self.identity.signing_key is not None:  # signed — by the wrong key
             slot = sign_slot(slot, self.identity.signing_key)

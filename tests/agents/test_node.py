@@ -393,7 +393,7 @@ def test_node_ignores_an_older_version_of_a_slot_it_holds(
     assert node.stack.stamps() == {"r1": 6}
     node.on_frame(frames["r2"][1])
     assert node.distributed.stamps == {"r1": 6}
-    assert {h.used["r1"].stamp for h in node.distributed.hypotheses} == {6}
+    assert {h.continuous.used["r1"].stamp for h in node.distributed.hypotheses} == {6}
 
 
 def test_node_takes_the_newer_version_after_an_older_one(

@@ -85,8 +85,9 @@ SHARED_OBJECTS = [
 ]
 
 
-def _config(sigma: float) -> BeliefConfig:
-    return no_pruning(object_prior_sigmas=(sigma, sigma, min(sigma, math.pi)))
+def _config(sigma: float, semantic_poses: bool = False) -> BeliefConfig:
+    sigmas = (sigma, sigma, min(sigma, math.pi))
+    return no_pruning(object_prior_sigmas=sigmas, semantic_poses=semantic_poses)
 
 
 def _ring_world(layout: str, classes: str) -> Scenario:
@@ -108,19 +109,28 @@ def _disjoint_objects(m: int) -> list[tuple[float, float, float, int]]:
 
 
 @functools.cache
-def _centralized(layout: str, classes: str, seed: int, sigma: float) -> HybridBelief:
+def _centralized(
+    layout: str, classes: str, seed: int, sigma: float, semantic_poses: bool = False
+) -> HybridBelief:
     s = _ring_world(layout, classes)
-    return centralized_belief(s, seed, Simulator(s, seed).all_frames(), _config(sigma))
+    config = _config(sigma, semantic_poses)
+    return centralized_belief(s, seed, Simulator(s, seed).all_frames(), config)
 
 
 @functools.cache
 def _ring_fleet(
-    layout: str, classes: str, seed: int, sigma: float, fusion: str = "consistent"
+    layout: str,
+    classes: str,
+    seed: int,
+    sigma: float,
+    fusion: str = "consistent",
+    semantic_poses: bool = False,
 ) -> dict[str, RobotNode]:
     """The in-process fleet on the ring r1–r2–r3–r4–r1: r3's slot reaches r1 via r2 and via r4."""
     s = _ring_world(layout, classes)
     frames = Simulator(s, seed).all_frames()
-    nodes = make_nodes(s, belief_model(s), _config(sigma), lambda r: belief_rng(seed, [r]), fusion)
+    config = _config(sigma, semantic_poses)
+    nodes = make_nodes(s, belief_model(s), config, lambda r: belief_rng(seed, [r]), fusion)
     run_fleet(nodes, frames, Schedule(tuple((1, s.steps, a, b) for a, b in RING)), s.steps)
     last_seen = {r: max(f.k for f in fs if f.detections) for r, fs in frames.items()}
     for r, node in nodes.items():
@@ -155,22 +165,31 @@ def _assert_equals_centralized(
             assert_close(cd, cc, rtol=0.0, atol=tol.cov * scale, what=f"covariance: {what}")
 
 
+SEMANTIC_POSES = pytest.mark.parametrize(
+    "semantic_poses", [False, True], ids=["shared", "per-realisation"]
+)
+
+
+@SEMANTIC_POSES
 @pytest.mark.parametrize("classes", ["two", "three"])
 @pytest.mark.parametrize("seed", range(3))
 def test_fusion_on_a_relaying_ring_equals_centralized_for_every_hypothesis(
-    classes: str, seed: int
+    classes: str, seed: int, semantic_poses: bool
 ) -> None:
-    central = _centralized("disjoint", classes, seed, WEAK)
-    for r, node in _ring_fleet("disjoint", classes, seed, WEAK).items():
+    central = _centralized("disjoint", classes, seed, WEAK, semantic_poses)
+    fleet = _ring_fleet("disjoint", classes, seed, WEAK, semantic_poses=semantic_poses)
+    for r, node in fleet.items():
         _assert_equals_centralized(node.distributed, central, r, EXACT)
 
 
+@SEMANTIC_POSES
 @pytest.mark.parametrize("seed", range(3))
 def test_fusion_of_shared_objects_on_a_relaying_ring_equals_centralized_to_first_order(
-    seed: int,
+    seed: int, semantic_poses: bool
 ) -> None:
-    central = _centralized("shared", "two", seed, WEAK)
-    for r, node in _ring_fleet("shared", "two", seed, WEAK).items():
+    central = _centralized("shared", "two", seed, WEAK, semantic_poses)
+    fleet = _ring_fleet("shared", "two", seed, WEAK, semantic_poses=semantic_poses)
+    for r, node in fleet.items():
         _assert_equals_centralized(node.distributed, central, r, SHARED)
 
 
@@ -197,8 +216,13 @@ def test_fusion_with_a_strong_object_prior_equals_centralized_in_weights_and_cov
 )
 @pytest.mark.parametrize("seed", range(3))
 def test_fusion_with_a_strong_object_prior_equals_centralized_in_means(seed: int) -> None:
-    central = _centralized("disjoint", "two", seed, STRONG)
-    for r, node in _ring_fleet("disjoint", "two", seed, STRONG).items():
+    # With a continuous belief per realisation, whose semantic factors relinearise the objects
+    # away from their first estimate. (In the shared belief of this near-linear ring iSAM2 never
+    # relinearises, so the slot's linearisation point is the prior centre and the gap does not
+    # show; test_strong_prior_gap_is_the_shift_of_the_prior_centres measures it elsewhere.)
+    central = _centralized("disjoint", "two", seed, STRONG, True)
+    fleet = _ring_fleet("disjoint", "two", seed, STRONG, semantic_poses=True)
+    for r, node in fleet.items():
         _assert_equals_centralized(node.distributed, central, r, EXACT)
 
 

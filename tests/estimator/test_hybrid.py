@@ -191,7 +191,8 @@ def test_every_parent_of_a_step_is_weighed_with_the_same_draws(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     """Common random numbers: the parents of a step share one set of Monte Carlo draws, also
-    across the chunks the evidence is computed in, so the chunk size changes nothing."""
+    across the chunks the evidence is computed in, so the chunk size changes nothing (with
+    a continuous belief per hypothesis, so that a step has several)."""
     s = load_scenario("paper")
     frames = Simulator(s, 3).frames("r1")[:25]
     draws: list[tuple[int, np.ndarray]] = []
@@ -205,7 +206,8 @@ def test_every_parent_of_a_step_is_weighed_with_the_same_draws(
 
     def run(chunk: int) -> HybridBelief:
         monkeypatch.setattr(hybrid, "_EVIDENCE_CHUNK", chunk)
-        belief = HybridBelief(belief_model(s), {"r1": s.robot("r1").start}, BeliefConfig())
+        config = BeliefConfig(semantic_poses=True)
+        belief = HybridBelief(belief_model(s), {"r1": s.robot("r1").start}, config)
         rng = np.random.default_rng(4)
         frames_done.clear()
         for f in frames:

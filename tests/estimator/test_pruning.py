@@ -144,7 +144,8 @@ def _branch(
 ) -> _Beam:
     base = np.stack([ev.base for ev in evidence])
     log_lik = np.stack([ev.log_lik for ev in evidence])
-    reduced = _Evidence(*belief._reduce(hyps, base, log_lik, detections, new_ids))  # type: ignore[arg-type]
+    own = np.arange(len(hyps))  # every parent its own continuous belief
+    reduced = _Evidence(*belief._reduce(hyps, own, base, log_lik, detections, new_ids), own)  # type: ignore[arg-type]
     return belief._branch(hyps, reduced, new_ids)  # type: ignore[arg-type]
 
 

@@ -50,8 +50,9 @@ def _batch_xi(
     config: BeliefConfig,
     with_object_priors: bool,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """(Λ, η) over the objects: the whole batch graph of ``h``'s realisation linearised at ``h``'s
-    linearisation point, robot poses eliminated by a numpy Schur complement."""
+    """(Λ, η) over the objects: the whole batch graph of ``h``'s realisation (its semantic
+    factors only with ``config.semantic_poses``) linearised at ``h``'s linearisation point, robot
+    poses eliminated by a numpy Schur complement."""
     graph = gtsam.NonlinearFactorGraph()
     start_noise = gtsam.noiseModel.Diagonal.Sigmas(np.array(config.start_prior_sigmas))
     graph.add(gtsam.PriorFactorPose2(pose_key(0, 0), gtsam.Pose2(*start), start_noise))
@@ -69,6 +70,8 @@ def _batch_xi(
         for d in f.detections:
             oj = object_key(d.object_id)
             graph.add(gtsam.BetweenFactorPose2(xk, oj, gtsam.Pose2(*d.z_geo), geometric))
+            if not config.semantic_poses:
+                continue
             x, o = lin.atPose2(xk), lin.atPose2(oj)
             psi0 = float(viewpoint([x.x(), x.y(), x.theta()], [o.x(), o.y(), o.theta()]))
             graph.add(
@@ -91,13 +94,14 @@ def _batch_xi(
     return schur, eta[:n] - h_or @ np.linalg.solve(h_rr, eta[n:])
 
 
+@pytest.mark.parametrize("semantic_poses", [False, True], ids=["shared", "per-realisation"])
 @pytest.mark.parametrize("classes", ["two", "three"])
 @pytest.mark.parametrize("seed", range(3))
 def test_summarise_xi_is_the_batch_schur_complement_without_object_priors(
-    classes: str, seed: int
+    classes: str, seed: int, semantic_poses: bool
 ) -> None:
     s = prior_world([0.0], _objects(classes), PRIORS[classes], steps=8)
-    config = no_pruning(object_prior_sigmas=STRONG_PRIOR)
+    config = no_pruning(object_prior_sigmas=STRONG_PRIOR, semantic_poses=semantic_poses)
     frames = Simulator(s, seed).all_frames()
     belief = local_belief(s, "r1", seed, frames, config)
     summary = summarise(belief)
@@ -108,6 +112,9 @@ def test_summarise_xi_is_the_batch_schur_complement_without_object_priors(
     model, start = belief_model(s), np.array(s.robot("r1").start)
     prior_info = 1.0 / STRONG_PRIOR[0] ** 2
     frames_r1 = list(frames["r1"])
+    # One ξ for every realisation when they share a continuous belief, one each otherwise.
+    xis, _ = summary.distinct_xi()
+    assert len(xis) == (m**3 if semantic_poses else 1)
     for h, real in zip(belief.hypotheses, summary.realisations, strict=True):
         what = f"realisation {h.classes}"
         assert real.classes == h.classes, what

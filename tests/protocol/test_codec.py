@@ -19,7 +19,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from estimator.models import MAX_STEP
-from estimator.summary import LocalSummary, Realisation
+from estimator.summary import LocalSummary, Realisation, Xi
 from protocol import codec
 from protocol.codec import Limits, StackMessage, decode, encode
 from protocol.errors import (
@@ -67,7 +67,7 @@ def make_realisation(rng: np.random.Generator, n: int, num_classes: int) -> Real
         [bounded(rng, (n, 2), DEFAULT.world_extent), bounded(rng, (n, 1), 2.0 * math.pi)], axis=1
     )
     lam_min = float(np.linalg.eigvalsh(info)[0]) if n else 0.0
-    return Realisation(classes, log_phi, lin, info, bounded(rng, (3 * n,), lam_min))
+    return Realisation(classes, log_phi, Xi(lin, info, bounded(rng, (3 * n,), lam_min)))
 
 
 def make_summary(
@@ -75,8 +75,11 @@ def make_summary(
     n: int | None = None,
     realisations: int | None = None,
     num_classes: int | None = None,
+    shared: float = 0.3,
 ) -> LocalSummary:
-    """A valid summary: n ∈ 0..6 distinct object ids, 1..4 realisations, M ∈ {2, 3} classes."""
+    """A valid summary: n ∈ 0..6 distinct object ids, 1..4 realisations, M ∈ {2, 3} classes;
+    with ``shared`` probability a realisation shares the ξ of an earlier one (docs/wire.md,
+    "Shared ξ")."""
     n = int(rng.integers(0, 7)) if n is None else n
     k = int(rng.integers(1, 5)) if realisations is None else realisations
     m = int(rng.choice([2, 3])) if num_classes is None else num_classes
@@ -85,7 +88,13 @@ def make_summary(
         j = int(rng.choice([0, 2**32 - 1])) if rng.random() < 0.1 else int(rng.integers(0, 2**32))
         if j not in ids:
             ids.append(j)
-    return LocalSummary(tuple(ids), tuple(make_realisation(rng, n, m) for _ in range(k)))
+    reals: list[Realisation] = []
+    for _ in range(k):
+        r = make_realisation(rng, n, m)
+        if reals and rng.random() < shared:
+            r = dataclasses.replace(r, xi=reals[int(rng.integers(0, len(reals)))].xi)
+        reals.append(r)
+    return LocalSummary(tuple(ids), tuple(reals))
 
 
 def make_message(
@@ -125,6 +134,9 @@ def assert_same_message(got: StackMessage, want: StackMessage) -> None:
             assert gr.classes == tuple(wr.classes), where
             assert gr.log_phi == wr.log_phi, where
             assert _bits(gr.log_phi) == _bits(wr.log_phi), where
+            # The same realisations share a ξ on both sides (docs/wire.md, "Shared ξ").
+            sharers = [j for j, r in enumerate(w.summary.realisations) if r.xi is wr.xi]
+            assert [j for j, r in enumerate(g.summary.realisations) if r.xi is gr.xi] == sharers
             for name in ("lin", "info", "eta"):
                 ga, wa = getattr(gr, name), getattr(wr, name)
                 assert ga.dtype == np.float64 and ga.shape == wa.shape, f"{where}.{name}"
@@ -183,9 +195,9 @@ REF = StackMessage(
     (1.5, -2.25),
     Stack(
         (
-            Slot("r3", 12, make_summary(np.random.default_rng(3), 2, 3, 3)),
-            Slot("r1", 7, make_summary(np.random.default_rng(1), 3, 2, 2)),
-            Slot("r2", 0, make_summary(np.random.default_rng(2), 0, 1, 2)),
+            Slot("r3", 12, make_summary(np.random.default_rng(3), 2, 3, 3, shared=0.0)),
+            Slot("r1", 7, make_summary(np.random.default_rng(1), 3, 2, 2, shared=0.0)),
+            Slot("r2", 0, make_summary(np.random.default_rng(2), 0, 1, 2, shared=0.0)),
         )
     ),
     13,
@@ -279,6 +291,83 @@ def test_codec_realisation_size_matches_docs(n: int) -> None:
 
 def test_codec_realisation_size_at_fifteen_objects() -> None:
     assert documented_realisation_bytes(15) == 9055
+
+
+def documented_reference_bytes(n: int, i: int) -> int:
+    """docs/wire.md: a realisation that shares realisation i's ξ is n + 19 + h(n) + s(i)."""
+    return n + 19 + _header(n) + (1 if i < 128 else 2 if i < 256 else 3)
+
+
+@pytest.mark.parametrize(("n", "i"), [(0, 0), (1, 0), (15, 0), (15, 127), (15, 128), (2, 300)])
+def test_codec_shared_xi_realisation_size_matches_docs(n: int, i: int) -> None:
+    rng = np.random.default_rng(n + i)
+    reals = [make_realisation(rng, n, 2) for _ in range(i + 1)]
+    base = LocalSummary(tuple(range(n)), tuple(reals))
+    shared = dataclasses.replace(make_realisation(rng, n, 2), xi=reals[i].xi)
+    more = LocalSummary(base.object_ids, (*reals, shared))
+    sizes = [
+        len(
+            encode(
+                StackMessage("r0", None, Stack((Slot("r1", 1, s),))), Limits(max_realisations=4096)
+            )
+        )
+        for s in (base, more)
+    ]
+    assert sizes[1] - sizes[0] == documented_reference_bytes(n, i)
+    assert documented_reference_bytes(15, 0) == 37
+
+
+def test_codec_a_belief_with_one_continuous_belief_sends_its_xi_once() -> None:
+    """300 realisations of 15 objects sharing one ξ: one ξ on the wire, about 20 KB."""
+    rng = np.random.default_rng(3)
+    first = make_realisation(rng, 15, 2)
+    reals = [first] + [
+        dataclasses.replace(make_realisation(rng, 15, 2), xi=first.xi) for _ in range(299)
+    ]
+    summary = LocalSummary(tuple(range(15)), tuple(reals))
+    blob = encode(StackMessage("r0", None, Stack((Slot("r1", 1, summary),))))
+    assert len(blob) < 21_000
+    got = decode(blob).stack.slots[0].summary
+    assert len({id(r.xi) for r in got.realisations}) == 1
+
+
+def _with_reference(index: int, ref: Any, carry: bool = False) -> bytes:
+    """REF's wire form with r1's realisation ``index`` turned into a reference to ``ref``
+    (keeping its own ξ too when ``carry``)."""
+    doc = msgpack.unpackb(encode(REF), raw=False)
+    real = doc["slots"][0]["real"][index]
+    kept = real if carry else {"c": real["c"], "phi": real["phi"]}
+    doc["slots"][0]["real"][index] = {**kept, "xi": ref}
+    return bytes(msgpack.packb(doc, use_bin_type=True))
+
+
+@pytest.mark.parametrize(
+    ("data", "error", "field"),
+    [
+        pytest.param(_with_reference(0, 0), InvalidValue, "slots[0].real[0].xi", id="self"),
+        pytest.param(_with_reference(1, 1), InvalidValue, "slots[0].real[1].xi", id="itself"),
+        pytest.param(_with_reference(0, 1), InvalidValue, "slots[0].real[0].xi", id="later"),
+        pytest.param(_with_reference(1, -1), InvalidValue, "slots[0].real[1].xi", id="negative"),
+        pytest.param(_with_reference(1, 0.0), MalformedMessage, "slots[0].real[1].xi", id="float"),
+        pytest.param(_with_reference(1, 0, True), MalformedMessage, "slots[0].real[1]", id="both"),
+    ],
+)
+def test_codec_refuses_a_shared_xi_reference_that_names_no_earlier_xi(
+    data: bytes, error: type[Exception], field: str
+) -> None:
+    with pytest.raises(error) as info:
+        decode(data)
+    assert info.value.field == field  # type: ignore[attr-defined]
+
+
+def test_codec_refuses_a_reference_to_a_realisation_without_its_own_xi() -> None:
+    doc = msgpack.unpackb(encode(REF), raw=False)
+    reals = doc["slots"][2]["real"]  # r3: three realisations
+    reals[1] = {"c": reals[1]["c"], "phi": reals[1]["phi"], "xi": 0}
+    reals[2] = {"c": reals[2]["c"], "phi": reals[2]["phi"], "xi": 1}
+    with pytest.raises(InvalidValue) as info:
+        decode(bytes(msgpack.packb(doc, use_bin_type=True)))
+    assert info.value.field == "slots[2].real[2].xi"
 
 
 @settings(FUZZ, max_examples=2000)
@@ -685,7 +774,9 @@ def _replace_real(index: int, **changes: Any) -> StackMessage:
     """REF with r1's realisation ``index`` changed."""
     slot = REF.stack.slots[0]
     reals = list(slot.summary.realisations)
-    reals[index] = dataclasses.replace(reals[index], **changes)
+    r = reals[index]
+    xi = {k: changes.pop(k) for k in ("lin", "info", "eta") if k in changes}
+    reals[index] = dataclasses.replace(r, xi=dataclasses.replace(r.xi, **xi), **changes)
     summary = LocalSummary(slot.summary.object_ids, tuple(reals))
     return dataclasses.replace(REF, stack=REF.stack.with_slot(Slot("r1", slot.stamp, summary)))
 
@@ -1011,7 +1102,7 @@ def _near_limits(rng: np.random.Generator, lim: Limits, n: int) -> Realisation:
     eta = direction / np.linalg.norm(direction) * top * delta_max * pick(rng.uniform(0, 0.9), 1.5)
     log_phi = lim.max_abs_log_phi * pick(rng.uniform(-1, 1), rng.choice([-1.01, 1.01]))
     classes = tuple(int(c) for c in rng.integers(0, int(pick(lim.num_classes, 255)), n))
-    return Realisation(classes, float(log_phi), lin, info, eta)
+    return Realisation(classes, float(log_phi), Xi(lin, info, eta))
 
 
 def _message_near_limits(rng: np.random.Generator, lim: Limits) -> StackMessage:
@@ -1076,5 +1167,5 @@ def test_codec_cholesky_certificate_never_accepts_what_the_eigenvalues_refuse(se
         info, eta = r.info[None], r.eta[None]
         if codec._certified(info, eta, lim):
             certified += 1
-            assert codec._spectral_problem("slots[0]", info, eta, lim) is None
+            assert codec._spectral_problem("slots[0]", info, eta, lim, np.arange(1)) is None
     assert certified >= 30, certified

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
 
-from estimator.summary import LocalSummary, Realisation
+from estimator.summary import LocalSummary, Realisation, Xi
 from protocol.codec import Limits, StackMessage, decode, encode, sign_slot
 from protocol.errors import BadSignature, LocalProtocolError, RemoteProtocolError
 from protocol.signing import digest, verify_digest
@@ -31,7 +31,7 @@ def _slot(owner: str, stamp: int, seed: int) -> Slot:
         info = a @ a.T + 3 * np.eye(3 * n)
         lin = rng.uniform(-5, 5, (n, 3))
         lin[:, 2] = rng.uniform(-3, 3, n)
-        reals.append(Realisation(c, float(rng.normal()), lin, info, rng.normal(size=3 * n)))
+        reals.append(Realisation(c, float(rng.normal()), Xi(lin, info, rng.normal(size=3 * n))))
     return Slot(owner, stamp, LocalSummary((7, 12), tuple(reals)))
 
 

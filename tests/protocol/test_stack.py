@@ -16,7 +16,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from estimator.summary import LocalSummary, Realisation
+from estimator.summary import LocalSummary, Realisation, Xi
 from protocol.stack import Slot, Stack
 
 OWNERS = ("a", "b", "c", "d", "e")
@@ -27,7 +27,7 @@ PROPERTY = settings(derandomize=True, deadline=None, max_examples=500)
 @functools.cache
 def version(owner: str, stamp: int, epoch: int = 0) -> Slot:
     """The one Slot object holding ``owner``'s summary at its step ``stamp`` of ``epoch``."""
-    real = Realisation((stamp % 2,), float(stamp), np.zeros((1, 3)), np.eye(3), np.zeros(3))
+    real = Realisation((stamp % 2,), float(stamp), Xi(np.zeros((1, 3)), np.eye(3), np.zeros(3)))
     return Slot(owner, stamp, LocalSummary((stamp,), (real,)), epoch)
 
 
