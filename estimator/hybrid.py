@@ -88,9 +88,9 @@ class BeliefConfig:
     weight_estimator: str = "geo_conditioned"
     num_samples: int = 500
     pruning: str = "marginal"
-    prune_ratio: float = 150.0
+    prune_ratio: float = 1e4
     class_floor: float = 1e-4
-    marginal_ratio: float = 150.0
+    marginal_ratio: float = 1e4
     max_hypotheses: int = 300
     robot_budget: int | None = None
     max_join: int = 250_000

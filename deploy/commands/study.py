@@ -66,6 +66,8 @@ def run(args: argparse.Namespace, console: Console, own: dict[str, tuple[str, An
         changes["max_hypotheses"] = args.max_hypotheses
     if args.robot_budget is not None:
         changes["robot_budget"] = args.robot_budget or None
+    if args.semantic_poses:
+        changes["semantic_poses"] = True
     config = HYPOTHESIS_MANAGEMENT[args.hypotheses](**changes)
     if args.seed + args.runs - 1 > MAX_SEED:
         raise UsageError(f"--seed {args.seed} with --runs {args.runs} runs past the largest seed")
@@ -103,6 +105,7 @@ def run(args: argparse.Namespace, console: Console, own: dict[str, tuple[str, An
         "hypotheses": args.hypotheses,
         "max_hypotheses": config.max_hypotheses,
         "robot_budget": config.robot_budget,
+        "semantic_poses": config.semantic_poses,
         "communication": comm,
     }
     if args.shard is not None:
@@ -200,8 +203,16 @@ def add_parser(sub: Any) -> None:
         "--hypotheses",
         choices=tuple(HYPOTHESIS_MANAGEMENT),
         default="marginal",
-        help="hypothesis management: marginal (default), paper (joint ratio 1/150, to replicate "
-        "the paper) or exact (no pruning, small worlds only)",
+        help="hypothesis management: marginal (default), paper (joint ratio 1/150 and a "
+        "continuous belief per realisation, to replicate the paper) or exact (no pruning, small "
+        "worlds only)",
+    )
+    p.add_argument(
+        "--semantic-poses",
+        action="store_true",
+        help="semantic factors in the Gaussians: a continuous belief per class realisation, the "
+        "paper's Eq. 5 taken literally (20-50x slower; implied by --hypotheses paper; "
+        "docs/estimator.md)",
     )
     p.add_argument(
         "--max-hypotheses",

@@ -147,6 +147,7 @@ def test_study_results_json_schema(two_runs: tuple[subprocess.CompletedProcess[s
     assert (doc["hypotheses"], doc["communication"]) == ("marginal", "range")
     assert doc["max_hypotheses"] == BeliefConfig().max_hypotheses
     assert doc["robot_budget"] == BeliefConfig().robot_budget
+    assert doc["semantic_poses"] is False
     assert set(doc["methods"]) == set(METHODS)
     for method, entry in doc["methods"].items():
         assert set(entry["mean"]) == set(METRICS), method
@@ -478,3 +479,16 @@ def test_study_user_error_is_one_line_on_a_narrow_terminal(tmp_path: Path) -> No
     r = semfleet("study", "--scenario", "nonesuch", "--out", str(tmp_path), columns=None)
     assert r.returncode == 2, r.stderr
     assert r.stderr.strip().count("\n") == 0, r.stderr
+
+
+@pytest.mark.parametrize(
+    ("options", "semantic_poses"),
+    [(("--semantic-poses",), True), (("--hypotheses", "paper"), True), ((), False)],
+)
+def test_study_semantic_poses_reach_the_beliefs_and_the_results(
+    world: Path, tmp_path: Path, options: tuple[str, ...], semantic_poses: bool
+) -> None:
+    out = tmp_path / "out"
+    r = study(world, out, "--methods", "local", "--runs", "1", "--jobs", "1", *options)
+    assert r.returncode == 0, r.stderr
+    assert read_json(out)["semantic_poses"] is semantic_poses
