@@ -823,6 +823,7 @@ class AgentCore:
             "slots_reused": c.slots_reused,
             "empty_joins": c.empty_joins,
             "rebuilds": c.rebuilds,
+            "completed_joins": c.completed_joins,
             "ignored_out_of_range": a.ignored_out_of_range,
             "bytes_sent": c.bytes_sent,
             "bytes_sent_ticks": self.tick_bytes,

@@ -48,7 +48,9 @@ class NodeCounters:
     slots refused because their owner is outside the roster (or the stack is full),
     ``own_slot_invalid`` times the own slot could not be sent (outside the limits),
     ``empty_joins`` slots whose join with D was empty and ``rebuilds`` the times D was rebuilt
-    from L and the held slots because of one; ``own_superseded`` the times a received stack held
+    from L and the held slots because of one, ``completed_joins`` the hypotheses of D joined with
+    a slot's nearest realisations because the slot carried none of theirs
+    (``FusionStats.completed``); ``own_superseded`` the times a received stack held
     a version of the own slot newer than the node's (a lost journal's earlier life, or a forgery
     on an unsigned fleet): the node then moves to a higher epoch. ``slots_decoded`` counts the
     slots whose bodies were parsed, ``slots_skipped`` those left unparsed: versions the node
@@ -65,6 +67,7 @@ class NodeCounters:
     own_slot_invalid: int = 0
     empty_joins: int = 0
     rebuilds: int = 0
+    completed_joins: int = 0
     own_superseded: int = 0
     slots_decoded: int = 0
     slots_skipped: int = 0
@@ -340,6 +343,7 @@ class RobotNode:
         if stats.empty_joins and self.distributed.fusion == "consistent":
             self._rebuild_due = True
         self.counters.empty_joins += stats.empty_joins
+        self.counters.completed_joins += stats.completed
         return stats
 
     def rebuild(self) -> FusionStats:
@@ -350,6 +354,7 @@ class RobotNode:
         self._rebuild_due = False
         self.counters.empty_joins += stats.empty_joins
         self.counters.rebuilds += stats.rebuilds
+        self.counters.completed_joins += stats.completed
         if stats.skipped:
             log.warning(
                 "%s: slots of %s join with no hypothesis of D even after a rebuild",

@@ -56,7 +56,9 @@ class FusionStats:
     """What one integration did: slots integrated, slots skipped (empty join), hypotheses.
 
     ``empty_joins`` counts slots whose join with D's hypotheses was empty and ``rebuilds`` the
-    times D was rebuilt from its local data and every held slot because of one."""
+    times D was rebuilt from its local data and every held slot because of one; ``completed``
+    the hypotheses of D that no realisation of a slot matched and that were joined with their
+    nearest realisations instead (:func:`_nearest`)."""
 
     integrated: tuple[str, ...]
     skipped: tuple[str, ...]
@@ -64,17 +66,21 @@ class FusionStats:
     kept: int
     empty_joins: int = 0
     rebuilds: int = 0
+    completed: int = 0
 
 
 @dataclass(frozen=True, slots=True)
 class _Join:
     """Candidate children of a fusion: parent index (J,), classes of D's objects followed by the
     objects new to D (J, n'), the realisation picked from every slot of the batch (J, B; −1 for
-    none), log-weights (J,), and the ids of the objects new to D in column order."""
+    none), the log φ each child takes from every slot (J, B: the picked realisation's, or its
+    completion's, :func:`_nearest`), log-weights (J,), and the ids of the objects new to D in
+    column order."""
 
     parent: IntArray
     classes: IntArray
     picks: IntArray
+    phis: Array
     log_weight: Array
     order: list[int]
 
@@ -83,6 +89,7 @@ class _Join:
             self.parent[kept],
             self.classes[kept],
             self.picks[kept],
+            self.phis[kept],
             self.log_weight[kept] if log_weight is None else log_weight,
             self.order,
         )
@@ -102,6 +109,64 @@ def _fits(parent: IntArray, real: IntArray) -> tuple[IntArray, IntArray]:
     if not rows:
         return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
     return np.concatenate(rows), np.concatenate(cols)
+
+
+def _nearest(
+    parent: IntArray, real: IntArray, fresh: IntArray, log_phi: Array, unmatched: IntArray
+) -> tuple[IntArray, IntArray, Array]:
+    """Completion of a truncated slot for the rows of D that no realisation matches.
+
+    A slot carries the heaviest class realisations of its owner, and D the heaviest of its own
+    product: two truncated supports can miss each other on the shared objects although each
+    holds every class that matters (a row of D whose combination of the shared objects the
+    owner's newest version no longer carries would be dropped, and with it, possibly, the last
+    carrier of a class). Such a row is joined with its nearest realisations instead — those that
+    differ from it on the fewest shared objects — and log φ moved, for every object where they
+    differ, by the slot's own evidence for the row's class against the realisation's:
+    log Σ_{r: c_j = a} φ_r − log Σ_{r: c_j = b} φ_r, exact when the owner's class posterior
+    factorises over those objects (with one continuous belief, the objects' classes couple only
+    through the Monte Carlo draws a step's objects share). A class that no realisation carries
+    has no evidence (−inf): a row needing it is not completed, so a slot that rules a class out
+    still does. Nearest realisations that give a row the same classes of the objects new to it
+    (``fresh`` (R, f)) estimate one child's log φ: it is their mean, and the heaviest of them
+    stands for the child (its ξ). ``parent`` (J, s) and ``real`` (R, s) are the classes of the
+    shared objects. Returns (row, realisation) pairs, one per child, and each child's log φ.
+    """
+    empty = np.zeros(0, dtype=np.int64)
+    if len(unmatched) == 0 or parent.shape[1] == 0 or len(real) == 0:
+        return empty, empty, np.zeros(0)
+    m = int(max(parent.max(), real.max())) + 1
+    evidence = np.full((real.shape[1], m), -np.inf)  # (s, M): log Σ φ over carriers of each class
+    for k in range(real.shape[1]):
+        for c in np.unique(real[:, k]):
+            evidence[k, c] = np.logaddexp.reduce(log_phi[real[:, k] == c])
+    cols = np.arange(real.shape[1])
+    theirs = evidence[cols[None, :], real]  # (R, s)
+    step = max(1, _FITS_CELLS // max(1, len(real) * parent.shape[1]))
+    rows_out, cols_out, estimates = [], [], []
+    for first in range(0, len(unmatched), step):
+        rows = unmatched[first : first + step]
+        ours = evidence[cols[None, :], parent[rows]]  # (U, s)
+        differ = parent[rows][:, None, :] != real[None, :, :]  # (U, R, s)
+        change = np.where(differ, ours[:, None, :] - theirs[None, :, :], 0.0).sum(axis=2)
+        usable = np.isfinite(change)
+        distance = np.where(usable, differ.sum(axis=2), parent.shape[1] + 1)
+        nearest = (distance == distance.min(axis=1, keepdims=True)) & usable
+        u, r = np.nonzero(nearest)
+        rows_out.append(rows[u])
+        cols_out.append(r)
+        estimates.append(log_phi[r] + change[u, r])
+    row, col, estimate = (np.concatenate(x) for x in (rows_out, cols_out, estimates))
+    if len(row) == 0:
+        return empty, empty, np.zeros(0)
+    child_key = np.concatenate([row[:, None], fresh[col]], axis=1)
+    _, child = np.unique(child_key, axis=0, return_inverse=True)
+    child = child.reshape(-1)
+    mean = np.bincount(child, estimate) / np.bincount(child)
+    # The heaviest realisation of each child: sort by (child, −log φ), take the first of each.
+    order = np.lexsort((-log_phi[col], child))
+    first_of = order[np.r_[True, child[order][1:] != child[order][:-1]]]
+    return row[first_of], col[first_of], mean[child[first_of]]
 
 
 def xi_factor(keys: Sequence[int], r: Xi, sign: float = 1.0) -> gtsam.LinearContainerFactor:
@@ -168,6 +233,7 @@ class DistributedBelief(HybridBelief):
         # Owner → (epoch, stamp) of the slot version D used (Slot.version).
         self.versions: dict[str, tuple[int, int]] = {}
         self._incoming: set[str] = set()  # owners of the batch being integrated
+        self._completed = 0  # rows of the join being built that were completed (_nearest)
 
     @property
     def stamps(self) -> dict[str, int]:
@@ -209,7 +275,15 @@ class DistributedBelief(HybridBelief):
         used = tuple(s.owner for s in batch if s.owner not in skipped)
         self._incoming = set(used)  # the budget counts the robots D will hold
         if not used:
-            return FusionStats((), tuple(sorted(skipped)), 0, len(self.hypotheses), len(skipped))
+            return FusionStats(
+                (),
+                tuple(sorted(skipped)),
+                0,
+                len(self.hypotheses),
+                len(skipped),
+                0,
+                self._completed,
+            )
         candidates = len(join.parent)
         join = join.keep(*self._prune(join.log_weight, join.classes))
         parents = self.hypotheses
@@ -241,7 +315,7 @@ class DistributedBelief(HybridBelief):
                 used_phi = dict(parents[int(join.parent[n])].used_phi)
                 for b, r in enumerate(join.picks[n]):
                     if r >= 0:
-                        used_phi[batch[b].owner] = batch[b].summary.realisations[int(r)].log_phi
+                        used_phi[batch[b].owner] = float(join.phis[n, b])
                 classes = tuple(int(c) for c in join.classes[n])
                 children[n] = Hypothesis(classes, cont, float(join.log_weight[n]), used_phi)
         children_list = [children[n] for n in range(len(join.parent))]
@@ -251,7 +325,13 @@ class DistributedBelief(HybridBelief):
             if s.owner not in skipped:
                 self.versions[s.owner] = s.version
         return FusionStats(
-            used, tuple(sorted(skipped)), candidates, len(children_list), len(skipped)
+            used,
+            tuple(sorted(skipped)),
+            candidates,
+            len(children_list),
+            len(skipped),
+            0,
+            self._completed,
         )
 
     def rebuild(
@@ -272,7 +352,7 @@ class DistributedBelief(HybridBelief):
         self.object_ids = list(local.object_ids)
         self._object_index = {j: i for i, j in enumerate(self.object_ids)}
         conts, which = distinct_continuous(local.hypotheses)
-        copies = [Continuous(gtsam.ISAM2(c.isam), c.estimate, dict(c.object_priors)) for c in conts]
+        copies = [c.copy() for c in conts]  # with L's semantic ledger; L holds no slot
         self.hypotheses = [
             Hypothesis(h.classes, copies[g], h.log_weight)
             for h, g in zip(local.hypotheses, which, strict=True)
@@ -286,6 +366,7 @@ class DistributedBelief(HybridBelief):
             stats.kept,
             stats.empty_joins,
             stats.rebuilds + 1,
+            stats.completed,
         )
 
     def check(self, s: Slot) -> None:
@@ -321,10 +402,12 @@ class DistributedBelief(HybridBelief):
             np.arange(len(self.hypotheses)),
             parent_cls.reshape(len(self.hypotheses), len(known)),
             np.full((len(self.hypotheses), len(batch)), -1, dtype=np.int64),
+            np.full((len(self.hypotheses), len(batch)), np.nan),
             np.array([h.log_weight for h in self.hypotheses]),
             [],
         )
         skipped: set[str] = set()
+        self._completed = 0
         for b, s in enumerate(batch):
             ids = s.summary.object_ids
             shared = [(known[j], i) for i, j in enumerate(ids) if j in known]
@@ -339,7 +422,16 @@ class DistributedBelief(HybridBelief):
             if len(join.parent) * width > self.config.max_join:
                 heaviest = np.argsort(-join.log_weight, kind="stable")
                 join = join.keep(np.sort(heaviest[: max(1, self.config.max_join // width)]))
+            log_phi = np.array([r.log_phi for r in s.summary.realisations])
             rows, cols = _fits(join.classes[:, d_cols], real_cls[:, s_cols])
+            unmatched = np.setdiff1d(np.arange(len(join.parent)), rows)
+            near_rows, near_cols, near_phi = _nearest(
+                join.classes[:, d_cols], real_cls[:, s_cols], real_cls[:, fresh], log_phi, unmatched
+            )
+            self._completed += len(np.unique(near_rows))
+            phi = np.concatenate([log_phi[cols], near_phi])
+            rows = np.concatenate([rows, near_rows])
+            cols = np.concatenate([cols, near_cols])
             if len(rows) == 0:
                 # Expected under double counting (D becomes overconfident and prunes what the
                 # owner keeps); under consistent fusion the RobotNode rebuilds D.
@@ -347,17 +439,19 @@ class DistributedBelief(HybridBelief):
                 log.log(level, "slot of %s (stamp %d) joins with no hypothesis", s.owner, s.stamp)
                 skipped.add(s.owner)
                 continue
-            log_phi = np.array([r.log_phi for r in s.summary.realisations])
             new_cls = real_cls[:, fresh]
-            lw = join.log_weight[rows] + log_phi[cols] + self._log_prior[new_cls[cols]].sum(axis=1)
+            lw = join.log_weight[rows] + phi + self._log_prior[new_cls[cols]].sum(axis=1)
             if self.fusion == "consistent":
                 lw -= self._old_log_phi(s.owner)[join.parent[rows]]
             picks = join.picks[rows].copy()
             picks[:, b] = cols
+            phis = join.phis[rows].copy()
+            phis[:, b] = phi
             join = _Join(
                 join.parent[rows],
                 np.concatenate([join.classes[rows], new_cls[cols]], axis=1),
                 picks,
+                phis,
                 lw,
                 join.order + [ids[i] for i in fresh],
             )

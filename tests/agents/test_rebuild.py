@@ -111,3 +111,30 @@ def test_empty_join_is_counted_and_d_equals_the_rebuild_from_l_and_held_slots(se
                 g.isam.marginalCovariance(key), h.isam.marginalCovariance(key), atol=1e-9
             )
     assert node.distributed.step_of["r1"] == STEPS
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_rebuilt_d_keeps_re_linearising_the_semantic_evidence_of_l(seed: int) -> None:
+    # With one continuous belief (the default) the weights re-linearise every detection's
+    # evidence as the estimate moves (estimator.ledger): a rebuilt D must keep L's detections.
+    s = SCENARIO
+    config = BeliefConfig()
+    frames = Simulator(s, seed).all_frames()
+    node = RobotNode(
+        "r1",
+        s.robot("r1").start,
+        belief_model(s),
+        belief_rng(seed, ["r1"]),
+        belief_rng(seed, ["r1"]),
+        config,
+    )
+    for f in frames["r1"]:
+        node.on_frame(f)
+    node.rebuild()
+    ledgers = [h.continuous.ledger for h in node.distributed.hypotheses]
+    want = node.local.hypotheses[0].continuous.ledger
+    assert want is not None and len(want.object_ids) > 0
+    for got in ledgers:
+        assert got is not None and got is not want  # a copy, not L's own
+        assert got.object_ids == want.object_ids and got.robot_keys == want.robot_keys
+        np.testing.assert_array_equal(got.applied, want.applied)

@@ -44,6 +44,11 @@ SETTLED_ERROR = 0.05  # |ΔP(c_j = i)| between a D and the centralized belief, s
 # where it loses object 12's true class in the centralized belief at k = 50.
 PAPER_STEPS = 35
 WHOLE_PAPER_SEEDS = (3, 5)
+# Seeds of the 100-run study on 12000..12099 where, before the join completed truncated slots
+# (estimator.distributed._nearest), the D of r2 and r3 lost a true class at k = 57 that the
+# centralized belief and r1's local belief held at 0.015..0.53: r1's newest slot no longer
+# carried the combinations of the shared objects D's rows had (even a rebuild lost it).
+HELD_OUT_SEEDS = (12003, 12036, 12087)
 # (scenario, steps or None for all, seed, first step from which every link is up, hops)
 WORLDS = [
     ("lanes:short", None, 0, 1, 4),
@@ -146,7 +151,7 @@ def test_fused_beliefs_keep_every_true_class_the_local_beliefs_keep(
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("seed", WHOLE_PAPER_SEEDS)
+@pytest.mark.parametrize("seed", WHOLE_PAPER_SEEDS + HELD_OUT_SEEDS)
 def test_fused_beliefs_keep_every_true_class_on_the_whole_paper_world(seed: int) -> None:
     # Seed 3 is where the paper's ratio rule loses object 12's true class in the centralized
     # belief at k = 50 (docs/estimator.md, "Known limits"); seed 5 where the default's D of r3
