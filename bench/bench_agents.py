@@ -135,8 +135,9 @@ def _gossip_rows() -> list[Result]:
     raw_ms, gossip_ms, decode_times = asyncio.run(_latencies(blobs, receiver))
     raw, gossip = statistics.median(raw_ms), statistics.median(gossip_ms)
     decode_ms = statistics.median(decode_times)  # the very decodes inside the gossip path
-    target = 2 * raw + decode_ms
-    met = "met" if gossip <= target else "NOT met"
+    ratio = gossip / raw
+    beyond = (gossip - decode_ms) / raw  # the path without the validating decode
+    met = "met" if ratio <= 1.5 else "NOT met"
     return [
         Result(
             "gossip latency: put → merged at the peer",
@@ -144,9 +145,10 @@ def _gossip_rows() -> list[Result]:
             gossip,
             baseline_ms=raw,
             note=f"median; baseline = raw Zenoh put → callback, same {len(blobs[0]):,}-byte "
-            f"paper stack; decode (in the path) {decode_ms:.3f} ms; p95 "
-            f"{np.percentile(gossip_ms, 95):.3f} ms vs raw {np.percentile(raw_ms, 95):.3f}; "
-            f"target ≤ 2×raw + decode = {target:.3f} ms {met}",
+            f"paper stack, every slot a new version; decode (in the path) {decode_ms:.3f} ms; "
+            f"p95 {np.percentile(gossip_ms, 95):.3f} ms vs raw {np.percentile(raw_ms, 95):.3f}; "
+            f"gossip/raw {ratio:.1f} (issue 14 target ≤ 1.5) {met}; without the decode "
+            f"{beyond:.1f}x raw",
         )
     ]
 

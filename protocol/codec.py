@@ -12,6 +12,7 @@ sides of every field, and the limits they share, are kept side by side in this o
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -132,7 +133,9 @@ class StackMessage:
     reused: tuple[str, ...] = ()
 
 
+@functools.lru_cache(maxsize=64)
 def _tri(n: int) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+    """The upper-triangle indices of a 3n × 3n matrix (cached: only read, never written)."""
     return np.triu_indices(3 * n)
 
 
@@ -681,11 +684,14 @@ def _decode_slot(
         LimitExceeded,
     )
     iu = _tri(n)
-    heads = [_decode_head(r, f"{where}.real[{i}]", n, i, lim) for i, r in enumerate(reals)]
-    for i, (_, _, _, ref) in enumerate(heads):
-        if ref is not None:
-            field = f"{where}.real[{i}].xi"
-            need(heads[ref][3] is None, field, "names a realisation without its ξ", InvalidValue)
+    heads = _well_formed_heads(reals, n, lim)
+    if heads is None:  # the field-by-field path names what is wrong
+        heads = [_decode_head(r, f"{where}.real[{i}]", n, i, lim) for i, r in enumerate(reals)]
+        for i, (_, _, _, ref) in enumerate(heads):
+            if ref is not None:
+                field = f"{where}.real[{i}].xi"
+                carrier = heads[ref][3] is None
+                need(carrier, field, "names a realisation without its ξ", InvalidValue)
     rows = np.array([i for i, h in enumerate(heads) if h[3] is None], dtype=np.int64)
     sizes = {"lin": 3 * n, "info": len(iu[0]), "eta": 3 * n}
     arrays = {
@@ -706,9 +712,61 @@ def _decode_slot(
     return owner, Slot(owner, stamp, summary, epoch, signature, wire), False
 
 
-def _decode_head(
-    raw: Any, where: str, n: int, i: int, lim: Limits
-) -> tuple[tuple[int, ...], float, dict[str, Any], int | None]:
+_Head = tuple[tuple[int, ...], float, dict[str, Any], int | None]
+
+
+def _well_formed_heads(reals: list[Any], n: int, lim: Limits) -> list[_Head] | None:
+    """What :func:`_decode_head` gives for every realisation, checked all at once (a slot's
+    realisations are hundreds of small maps: one pass over them and numpy for the classes and
+    the ξ references, instead of a call per field), or None if any realisation breaks a rule —
+    :func:`_decode_head` then finds which and says why. Same rules: a map with exactly the keys
+    of a realisation that carries its ξ or of one that names an earlier carrier, n class bytes
+    below ``num_classes``, a number log φ (not a bool), a ξ reference to an earlier carrier."""
+    cs: list[Any] = []
+    phis: list[Any] = []
+    refs: list[Any] = []
+    own: list[bool] = []
+    for r in reals:
+        if type(r) is not dict:
+            return None
+        if len(r) == 3 and r.keys() == _REF_KEYS:
+            refs.append(r["xi"])
+            own.append(False)
+        elif len(r) == 5 and r.keys() == _REAL_KEYS:
+            refs.append(0)
+            own.append(True)
+        else:
+            return None
+        cs.append(r["c"])
+        phis.append(r["phi"])
+    if not all(type(c) is bytes and len(c) == n for c in cs):
+        return None
+    if not all(type(v) is float or type(v) is int for v in phis):
+        return None
+    if not all(type(x) is int for x in refs):
+        return None
+    try:
+        phi = [float(v) for v in phis]
+        ref = np.array(refs, dtype=np.int64)
+    except (OverflowError, ValueError):
+        return None
+    classes = np.frombuffer(b"".join(cs), dtype=np.uint8).reshape(len(cs), n)
+    if n and int(classes.max()) >= lim.num_classes:
+        return None
+    carries = np.array(own, dtype=bool)
+    shares = ~carries
+    index = np.arange(len(ref))
+    if np.any(shares & ((ref < 0) | (ref >= index))):
+        return None
+    if np.any(shares & ~carries[np.clip(ref, 0, max(0, len(ref) - 1))]):
+        return None
+    return [
+        (tuple(c), phi[i], reals[i], None if own[i] else int(ref[i]))
+        for i, c in enumerate(classes.tolist())
+    ]
+
+
+def _decode_head(raw: Any, where: str, n: int, i: int, lim: Limits) -> _Head:
     """Classes, log φ and the raw float blobs of realisation ``i``, and the index of the earlier
     realisation whose ξ it shares (None when it carries its own)."""
     shares = isinstance(raw, dict) and "xi" in raw
