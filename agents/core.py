@@ -65,6 +65,8 @@ CLOCK_SKEW_S = 300.0
 STAMP_SLACK = 10_000
 GOSSIP_PERIOD_S = 0.5  # the one default gossip period (agent configs, launches)
 LOCKSTEP_RESEND_MAX = 8  # periods: the longest a lock-step agent waits to re-send a stack
+# ... in a fleet of up to LOCKSTEP_RESEND_MAX / 2 + 1 robots: beyond, 2 (N − 1) periods, so that
+# whatever N an agent receives about one re-sent stack every two periods (N² / (2 (N − 1)) / N).
 WINDOW_STEPS = 64  # the one default of how far ahead frames, orders, rounds and links are kept
 
 
@@ -375,8 +377,8 @@ class AgentCore:
     def _lockstep_backoff(self, out: _Outgoing) -> bool:
         """Whether this tick skips the lock-step re-send: a round's stacks go out when the round
         ends, and the ticks only repair a loss, so an unchanged pair is re-sent after 1, 2, 4
-        ... up to ``LOCKSTEP_RESEND_MAX`` periods (exponential back-off) instead of every period
-        — with N agents every period would be N² stacks, which swamped 50 agents on 2 cores.
+        ... up to :meth:`_lockstep_resend_max` periods (exponential back-off) instead of every
+        period — with N agents every period would be N² stacks, which swamped 50 agents on 2 cores.
         A new round starts over at one period. Timer thread only."""
         pair = (out.stack, out.previous)
         if pair != self._resend_pair:
@@ -385,9 +387,20 @@ class AgentCore:
         self._resend_idle += 1
         if self._resend_idle < self._resend_wait:
             return True
-        self._resend_wait = min(2 * self._resend_wait, LOCKSTEP_RESEND_MAX)
+        self._resend_wait = min(2 * self._resend_wait, self._lockstep_resend_max())
         self._resend_idle = 0
         return False
+
+    def _lockstep_resend_max(self) -> int:
+        """The longest back-off of the lock-step re-sends, in gossip periods: LOCKSTEP_RESEND_MAX,
+        or 2 (N − 1) in a roster of N robots if longer. Every agent re-sends to N − 1 peers, so
+        with a fixed cap the re-sends a peer receives grow with N (50 agents on 2 cores: about 6
+        a second each, 23 MB per agent in three rounds, a round of minutes and inbox overflows);
+        scaled, they stay at about one every two periods. Loopback or a LAN rarely loses a
+        stack: the ticks only repair losses."""
+        roster = self.node.roster
+        peers = 0 if roster is None else len(roster) - 1
+        return max(LOCKSTEP_RESEND_MAX, 2 * peers)
 
     def _ack_due(self, k: int) -> bool:
         """Whether a repeated order of round ``k`` is answered with the estimate again: at once

@@ -4,7 +4,9 @@ one 2-core machine runs in realtime mode, with CPU and memory per agent.
 - Gossip latency: publish of a real paper stack on one Zenoh session → decoded and merged by a
   RobotNode behind a second session (the agent's path: Zenoh thread → ``call_soon_threadsafe`` →
   inbox → decode → merge), against the raw Zenoh put → subscriber-callback latency for the same
-  payload, measured in the same run. Target: ≤ 2 × raw + decode time.
+  payload, measured in the same run. Targets: ≤ 2 × raw + decode time (issue 5); ≤ 1.5 × raw
+  (issue 14, for a relayed slot: every slot of the stack is a version the receiver lacks, so
+  each is decoded and validated once, as a relay's peer must).
 - Relay per hop: 4 agent processes on a line whose Zenoh links only join neighbours (gossip
   scouting off), realtime; the time from a new version of r1's slot in r1's stack to the same
   version in r4's stack, over 3 hops. Agents gossip on a timer, so a hop costs on average half a
@@ -138,6 +140,7 @@ def _gossip_rows() -> list[Result]:
     ratio = gossip / raw
     beyond = (gossip - decode_ms) / raw  # the path without the validating decode
     met = "met" if ratio <= 1.5 else "NOT met"
+    met5 = "met" if gossip <= 2 * raw + decode_ms else "NOT met"
     return [
         Result(
             "gossip latency: put → merged at the peer",
@@ -148,7 +151,7 @@ def _gossip_rows() -> list[Result]:
             f"paper stack, every slot a new version; decode (in the path) {decode_ms:.3f} ms; "
             f"p95 {np.percentile(gossip_ms, 95):.3f} ms vs raw {np.percentile(raw_ms, 95):.3f}; "
             f"gossip/raw {ratio:.1f} (issue 14 target ≤ 1.5) {met}; without the decode "
-            f"{beyond:.1f}x raw",
+            f"{beyond:.1f}x raw; ≤ 2×raw + decode = {2 * raw + decode_ms:.3f} ms (issue 5) {met5}",
         )
     ]
 

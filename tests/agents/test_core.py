@@ -292,6 +292,22 @@ def test_lockstep_ticks_back_off_while_the_stacks_are_unchanged(frames) -> None:
     )
 
 
+def test_lockstep_ticks_of_a_large_fleet_back_off_to_two_periods_per_peer() -> None:
+    """In a roster of N robots every agent re-sends to N − 1 peers: the back-off grows to
+    2 (N − 1) periods (38 for 20 robots), so each agent receives about one re-sent stack every two
+    periods whatever N; a fleet of up to 5 robots keeps the cap of 8."""
+    for robots, want in ((20, [1, 2, 4, 8, 16, 32, 64, 102]), (5, [1, 2, 4, 8, 16, 24, 32])):
+        roster = ["r1", "r2", "r3"] + [f"x{i}" for i in range(robots - 3)]
+        d = Driver(mode="lockstep", roster=roster)
+        d.run(d.core.start(0.0))
+        sent = [
+            i
+            for i in range(1, want[-1] + 1)
+            if any(a.key == KEYS.stack("r1") for a in d.core.on_timer(float(i)))
+        ]
+        assert sent == want, robots
+
+
 def test_a_repeated_order_is_answered_with_the_estimate_at_backed_off_times(frames) -> None:  # type: ignore[no-untyped-def]
     """The conductor re-orders the whole fleet for one late agent; an agent answers a repeated
     order of its round at once, then after 1, 2, 4 ... gossip periods (0.5 s here)."""
