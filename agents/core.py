@@ -415,7 +415,7 @@ class AgentCore:
         self._ack_resend = (
             k,
             self._now,
-            min(2 * wait, LOCKSTEP_RESEND_MAX * self.settings.gossip_period),
+            min(2 * wait, self._lockstep_resend_max() * self.settings.gossip_period),
         )
         return True
 

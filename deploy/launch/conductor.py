@@ -38,7 +38,10 @@ log = logging.getLogger(__name__)
 Array = NDArray[np.float64]
 
 
-RESEND_MAX = 8  # a lock-step round's re-sends back off to this many retry periods
+# A lock-step round's re-sends back off to this many retry periods, or to 2 (N − 1) for a fleet of
+# N robots if longer: every re-order is answered by every agent, so a fixed cap grows the answers
+# with N (the agents back off their answers the same way, agents/core.py).
+RESEND_MAX = 8
 
 
 class ConductorError(RuntimeError):
@@ -267,7 +270,8 @@ class Conductor:
                         f"step {k}: no estimate from {late} in the last {step_timeout} s"
                     )
                 if late and now - last_send > wait:
-                    last_send, wait = now, min(2 * wait, RESEND_MAX * self.retry_period)
+                    cap = max(RESEND_MAX, 2 * (len(self.robots) - 1)) * self.retry_period
+                    last_send, wait = now, min(2 * wait, cap)
                     self._order(k)
                     for r in self.robots:
                         if self._acked[r] < k:

@@ -326,6 +326,32 @@ def test_a_repeated_order_is_answered_with_the_estimate_at_backed_off_times(fram
     assert [t for t in times if answered(t)] == [1.0, 1.5, 2.5, 4.5]
 
 
+def test_repeated_orders_of_a_large_fleet_are_answered_at_longer_backed_off_times(frames) -> None:  # type: ignore[no-untyped-def]
+    """With N robots the conductor's repeated order is answered by N − 1 other agents too: the
+    answers back off to 2 (N − 1) gossip periods (19 s for 20 robots at 0.5 s) instead of 8."""
+    for robots, want in (
+        (3, [1.0, 1.5, 2.5, 4.5, 8.5, 12.5, 16.5]),
+        (20, [1.0, 1.5, 2.5, 4.5, 8.5, 16.5]),
+    ):
+        roster = ["r1", "r2", "r3"] + [f"x{i}" for i in range(robots - 3)]
+        d = Driver(mode="lockstep", gossip_period=0.5, roster=roster)
+        d.run(d.core.start(0.0))
+        order = encode_control(StepOrder(1, {"r1": ()}))
+        d.send(KEYS.ctl("step"), order)
+        d.frame(frames["r1"][0])
+        assert d.core.node.k == 1
+        times = [1.0, 1.5, 2.5, 4.5, 8.5, 12.5, 16.5]
+        got = [
+            t
+            for t in times
+            if any(
+                isinstance(a, Publish) and a.key == KEYS.estimate("r1")
+                for a in d.core.on_message(KEYS.ctl("step"), order, t)
+            )
+        ]
+        assert got == want, robots
+
+
 def test_a_lockstep_agent_parses_a_buffered_slot_version_once(frames) -> None:  # type: ignore[no-untyped-def]
     """A stack for a later round waits in the buffer, and its copies keep coming (re-sends,
     relays): the agent parses each slot version once and takes it from what it parsed for every
