@@ -45,6 +45,12 @@ def _local(robot: str, seed: int, frames: dict) -> HybridBelief:
     return belief
 
 
+def _node(seed: int, config: BeliefConfig) -> RobotNode:
+    """r1's node, its L and D drawing from the seeded streams of the study."""
+    start, model = SCENARIO.robot("r1").start, belief_model(SCENARIO)
+    return RobotNode("r1", start, model, belief_rng(seed, ["r1"]), belief_rng(seed, ["r1"]), config)
+
+
 def _shifted(summary: LocalSummary, cls: int, delta: float) -> LocalSummary:
     """``summary`` with log φ of the realisations giving object SHARED class ``cls`` moved by
     ``delta``; with ``delta = -inf`` those realisations are left out."""
@@ -65,14 +71,7 @@ def test_empty_join_is_counted_and_d_equals_the_rebuild_from_l_and_held_slots(se
     frames = Simulator(s, seed).all_frames()
     summary = summarise(_local("r2", seed, frames))
     assert summary is not None and SHARED in summary.object_ids
-    node = RobotNode(
-        "r1",
-        s.robot("r1").start,
-        belief_model(s),
-        belief_rng(seed, ["r1"]),
-        belief_rng(seed, ["r1"]),
-        CONFIG,
-    )
+    node = _node(seed, CONFIG)
     for f in frames["r1"][:-1]:
         node.on_frame(f)
     assert {0, 1} <= {h.classes[node.local.object_ids.index(SHARED)] for h in node.local.hypotheses}
@@ -120,14 +119,7 @@ def test_a_rebuilt_d_keeps_re_linearising_the_semantic_evidence_of_l(seed: int) 
     s = SCENARIO
     config = BeliefConfig()
     frames = Simulator(s, seed).all_frames()
-    node = RobotNode(
-        "r1",
-        s.robot("r1").start,
-        belief_model(s),
-        belief_rng(seed, ["r1"]),
-        belief_rng(seed, ["r1"]),
-        config,
-    )
+    node = _node(seed, config)
     for f in frames["r1"]:
         node.on_frame(f)
     node.rebuild()
