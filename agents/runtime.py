@@ -136,6 +136,7 @@ class Agent:
         self.worker_busy_s = 0.0
         self.loop_lag_max_s = 0.0  # the longest the loop was held beyond a 10 ms tick
         self.gossip_gap_max_s = 0.0  # the longest time between two gossip ticks
+        self.links_max = {"stream": 0, "datagram": 0}  # the most links seen at a tick
         self._worker = concurrent.futures.ThreadPoolExecutor(1, f"agent-{self.robot}")
         self._stop = asyncio.Event()
 
@@ -221,6 +222,9 @@ class Agent:
             now = time.perf_counter()
             self.gossip_gap_max_s = max(self.gossip_gap_max_s, now - last)
             last = now
+            links = self.transport.links()
+            for kind in ("stream", "datagram"):
+                self.links_max[kind] = max(self.links_max[kind], links.get(kind, 0))
             self._carry_out(self.core.on_timer(self.clock()))
 
     async def _watch_loop(self, tick: float = 0.01) -> None:
@@ -236,6 +240,8 @@ class Agent:
             "inbox_dropped": sum(i.dropped for i in self.inboxes),
             "loop_lag_max_us": round(1e6 * self.loop_lag_max_s),
             "gossip_gap_max_us": round(1e6 * self.gossip_gap_max_s),
+            "links_stream_max": self.links_max["stream"],
+            "links_datagram_max": self.links_max["datagram"],
             **ros2,
         }
 

@@ -177,6 +177,11 @@ class Transport(Protocol):
         """Deliver "alive"/"gone" messages for tokens matching ``key_expr`` (current ones too)."""
         ...
 
+    def links(self) -> dict[str, int]:
+        """To how many other nodes the session has a ``stream`` link (TCP, TLS) and a
+        ``datagram`` link (UDP) now."""
+        ...
+
 
 @dataclass(frozen=True, slots=True)
 class Keys:
@@ -223,3 +228,19 @@ def _robot(robot: str) -> str:
     if robot != "*" and not valid_id(robot):
         raise ValueError(f"robot id {robot!r}: {ROBOT_ID_RULE}")
     return robot
+
+
+def key_matches(key_expr: str, key: str) -> bool:
+    """Zenoh's wildcards on '/'-separated chunks: ``*`` one chunk, ``**`` zero or more chunks."""
+    return _match(key_expr.split("/"), key.split("/"))
+
+
+def _match(pattern: list[str], chunks: list[str]) -> bool:
+    if not pattern:
+        return not chunks
+    head, rest = pattern[0], pattern[1:]
+    if head == "**":
+        return any(_match(rest, chunks[i:]) for i in range(len(chunks) + 1))
+    if not chunks:
+        return False
+    return (head == "*" or head == chunks[0]) and _match(rest, chunks[1:])

@@ -7,23 +7,7 @@ from __future__ import annotations
 import asyncio
 from dataclasses import dataclass, field
 
-from agents.transport.base import Inbox, Kind, Message
-
-
-def key_matches(key_expr: str, key: str) -> bool:
-    """Zenoh's wildcards on '/'-separated chunks: ``*`` one chunk, ``**`` zero or more chunks."""
-    return _match(key_expr.split("/"), key.split("/"))
-
-
-def _match(pattern: list[str], chunks: list[str]) -> bool:
-    if not pattern:
-        return not chunks
-    head, rest = pattern[0], pattern[1:]
-    if head == "**":
-        return any(_match(rest, chunks[i:]) for i in range(len(chunks) + 1))
-    if not chunks:
-        return False
-    return (head == "*" or head == chunks[0]) and _match(rest, chunks[1:])
+from agents.transport.base import Inbox, Kind, Message, key_matches
 
 
 @dataclass
@@ -80,6 +64,9 @@ class MemoryTransport:
         self.tokens.append(key)
         if self.is_open:
             self._announce(key, "alive")
+
+    def links(self) -> dict[str, int]:
+        return {"stream": 0, "datagram": 0}  # a bus, not a network
 
     def watch_alive(self, key_expr: str, inbox: Inbox) -> None:
         self.watches.append((key_expr, inbox))

@@ -61,6 +61,7 @@ MODES = ("lockstep", "realtime")
 NETS = ("loopback", "netns")
 CONDUCTOR = "conductor"  # the operator identity of a secure launch's conductor
 STOP_SETTLE_S = 0.2  # after ctl/stop, before SIGTERM: agents that heard it exit on their own
+NETNS_LEASE_MS = 10_000  # Zenoh's own default: a session outlives a cut of up to 10 s
 
 OnStep = Callable[[Conductor, int], None]
 
@@ -295,14 +296,26 @@ class Launcher:
         neighbours = self.plan.zenoh_neighbours
         if self.network is not None:
             # Each agent listens on its namespace's address and dials the conductor and the
-            # agents before it: the side that dials re-dials after a cut heals. Plain TCP on a
-            # bridge no other host can reach.
+            # agents before it: the side that dials re-dials after a cut heals. Plain TCP and
+            # UDP on a bridge no other host can reach: each agent-to-agent session is two
+            # links, TCP for what must arrive, UDP for the best-effort gossip, which a healed
+            # cut lets through at once (docs/deploy.md, "Radio links"). The lease outlasts
+            # cuts of up to NETNS_LEASE_MS, so the sessions need not be opened again.
             lay = self.network.layout
-            listen = [f"tcp/{lay.address(robot)}:{ports[robot]}"]
+            mine = f"{lay.address(robot)}:{ports[robot]}"
+            listen = [f"tcp/{mine}?rel=1", f"udp/{mine}?rel=0"]
             before = self.plan.robots[: self.plan.robots.index(robot)]
             dial = [f"tcp/{lay.host}:{conductor_port}"]
-            dial += [f"tcp/{lay.address(p)}:{ports[p]}" for p in before]
-            return {"listen": listen, "connect": dial, "gossip": True, "insecure": True}
+            for p in before:
+                peer = f"{lay.address(p)}:{ports[p]}"
+                dial += [f"tcp/{peer}?rel=1", f"udp/{peer}?rel=0"]
+            return {
+                "listen": listen,
+                "connect": dial,
+                "gossip": True,
+                "insecure": True,
+                "lease_ms": NETNS_LEASE_MS,
+            }
         if self.plan.conductor_only:
             # An agent on another machine dials the conductor; gossip scouting links it to the
             # other agents the conductor knows of. Off loopback this lab harness runs without TLS.

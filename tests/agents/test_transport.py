@@ -4,14 +4,21 @@ of Zenoh sessions on loopback (put → inbox, liveliness alive/gone, no multicas
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 from collections.abc import Callable
+from pathlib import Path
 
 import pytest
+import zenoh
 
 from agents.transport import Inbox, Keys, MemoryBus, MemoryTransport, Message
-from agents.transport.base import Kind
-from agents.transport.memory import key_matches
-from agents.transport.zenoh_transport import ZenohSettings, ZenohTransport, settings_for
+from agents.transport.base import Kind, key_matches
+from agents.transport.zenoh_transport import (
+    OPEN_TIMEOUT_MS,
+    ZenohSettings,
+    ZenohTransport,
+    settings_for,
+)
 from deploy.launch import free_ports
 
 KEYS = Keys("t1")
@@ -217,6 +224,50 @@ async def test_zenoh_pair_on_loopback_put_reaches_the_inbox() -> None:
         await a.close()
     assert not a.is_open and not b.is_open
     a.publish(KEYS.stack("r1"), b"after close")  # a no-op, not an error
+
+
+def test_zenoh_settings_recover_fast_after_a_cut_and_pair_udp_with_tcp(tmp_path: Path) -> None:
+    doc = settings_for(17001, [17002]).document()
+    assert doc["connect"]["retry"]["period_max_ms"] == 250
+    assert doc["transport"]["unicast"]["open_timeout"] == OPEN_TIMEOUT_MS == 2000
+    assert "max_links" not in doc["transport"]["unicast"]  # TCP alone: one link per session
+    udp = ZenohSettings(listen=("tcp/127.0.0.1:17001?rel=1", "udp/127.0.0.1:17001?rel=0"))
+    assert udp.document()["transport"]["unicast"]["max_links"] == 2
+    # what a file sets wins
+    f = tmp_path / "zenoh.json5"
+    f.write_text("{transport: {unicast: {open_timeout: 9000, max_links: 1}}}")
+    held = dataclasses.replace(udp, config_file=f).document()["transport"]["unicast"]
+    assert (held["open_timeout"], held["max_links"]) == (9000, 1)
+
+
+@pytest.mark.asyncio
+async def test_zenoh_udp_next_to_tcp_carries_the_gossip_best_effort() -> None:
+    """A session to a peer listening on TCP and UDP has both links; stacks are put
+    best-effort (they then take the UDP link), everything else reliable."""
+    (port,) = free_ports(1)
+    here = (f"tcp/127.0.0.1:{port}?rel=1", f"udp/127.0.0.1:{port}?rel=0")
+    a = ZenohTransport(ZenohSettings(listen=here, gossip=False))
+    b = ZenohTransport(ZenohSettings(connect=here, gossip=False))
+    stacks = Inbox(64)
+    b.subscribe(KEYS.stack("*"), stacks)
+    payload = bytes(range(256)) * 120  # 30 KB: the paper's largest stack
+    try:
+        await a.open()
+        await b.open()
+        async with asyncio.timeout(15):
+            while a.links() != {"stream": 1, "datagram": 1} or not len(stacks):
+                a.publish(KEYS.stack("r1"), payload)
+                await stacks.wait(0.1)
+        assert stacks.drain()[0] == Message(KEYS.stack("r1"), payload)
+        assert b.links() == {"stream": 1, "datagram": 1}
+        a.publish(KEYS.estimate("r1"), b"e")
+        publishers = a._publishers
+        assert publishers[KEYS.stack("r1")].reliability == zenoh.Reliability.BEST_EFFORT
+        assert publishers[KEYS.estimate("r1")].reliability == zenoh.Reliability.RELIABLE
+    finally:
+        await b.close()
+        await a.close()
+    assert a.links() == {"stream": 0, "datagram": 0}
 
 
 @pytest.mark.asyncio

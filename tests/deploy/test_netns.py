@@ -315,6 +315,9 @@ def test_netns_chaos_with_real_loss_and_a_healing_partition_stays_near_the_lossl
         config = tomllib.loads((plan.out / "agents" / f"{r}.toml").read_text(encoding="utf-8"))
         assert config["agent"]["simulation"] is False
         assert config["zenoh"]["listen"][0].startswith("tcp/10.213.")
+        # every agent-to-agent session had its UDP link, which carries the gossip
+        stop = json.loads((plan.out / "logs" / f"{r}.log").read_text().splitlines()[-1])
+        assert stop["event"] == "stop" and stop["links_datagram_max"] >= len(ROBOTS) - 1, stop
 
 
 def _start_chaos(tmp_path: Path) -> subprocess.Popen[str]:
