@@ -51,7 +51,6 @@ class ZenohConfigError(ValueError):
 # UDP link when it has one (a healed cut lets the next stack through at once, where TCP would
 # still be backing off its retransmissions for seconds), over its TCP link otherwise.
 BEST_EFFORT_KEYS = ("**/stack/*",)
-OPEN_TIMEOUT_MS = 2000  # opening one link (TCP connect, TLS and Zenoh handshakes)
 
 
 @dataclass(frozen=True, slots=True)
@@ -101,15 +100,13 @@ class ZenohSettings:
         if _get(doc, "scouting/multicast/enabled") is True:
             raise ZenohConfigError(f"{where}: scouting/multicast/enabled must be false")
         _set(doc, "scouting/multicast/enabled", False)
-        # Recovery after a cut heals: a dialled peer is re-dialled every 100–250 ms, and an
-        # attempt whose SYN a cut swallowed is abandoned after 2 s (Zenoh's default is 10 s,
-        # while TCP re-sends a SYN only after 1, 3, 7 s), so a healed link is back within about
-        # 1.25 s instead of up to 7 s. A file that sets either wins.
+        # Recovery after a cut heals: a dialled peer is re-dialled every 100–250 ms. An attempt
+        # keeps Zenoh's open timeout (10 s; `transport/unicast/open_timeout`): with 2 s, the
+        # handshakes of a 50-agent launch on 2 cores were abandoned and its late agents never
+        # got a frame. A file that sets either wins.
         if _get(doc, "connect/retry") is None:
             retry = {"period_init_ms": 100, "period_max_ms": 250, "period_increase_factor": 2}
             _set(doc, "connect/retry", retry)
-        if _get(doc, "transport/unicast/open_timeout") is None:
-            _set(doc, "transport/unicast/open_timeout", OPEN_TIMEOUT_MS)
         # A UDP endpoint next to the TCP ones makes each session two links (multilink): the
         # reliable one for control, the best-effort one for gossip (``BEST_EFFORT_KEYS``).
         if _get(doc, "transport/unicast/max_links") is None and any(

@@ -13,12 +13,7 @@ import zenoh
 
 from agents.transport import Inbox, Keys, MemoryBus, MemoryTransport, Message
 from agents.transport.base import Kind, key_matches
-from agents.transport.zenoh_transport import (
-    OPEN_TIMEOUT_MS,
-    ZenohSettings,
-    ZenohTransport,
-    settings_for,
-)
+from agents.transport.zenoh_transport import ZenohSettings, ZenohTransport, settings_for
 from deploy.launch import free_ports
 
 KEYS = Keys("t1")
@@ -227,10 +222,12 @@ async def test_zenoh_pair_on_loopback_put_reaches_the_inbox() -> None:
 
 
 def test_zenoh_settings_recover_fast_after_a_cut_and_pair_udp_with_tcp(tmp_path: Path) -> None:
+    """Re-dials every 100–250 ms; a link attempt keeps Zenoh's own open timeout (10 s): 2 s
+    abandoned the handshakes of a 50-agent launch on 2 cores, whose late agents never got a
+    frame; a UDP endpoint makes a second link per session."""
     doc = settings_for(17001, [17002]).document()
     assert doc["connect"]["retry"]["period_max_ms"] == 250
-    assert doc["transport"]["unicast"]["open_timeout"] == OPEN_TIMEOUT_MS == 2000
-    assert "max_links" not in doc["transport"]["unicast"]  # TCP alone: one link per session
+    assert "unicast" not in doc["transport"]  # Zenoh's open timeout, one link per session
     udp = ZenohSettings(listen=("tcp/127.0.0.1:17001?rel=1", "udp/127.0.0.1:17001?rel=0"))
     assert udp.document()["transport"]["unicast"]["max_links"] == 2
     # what a file sets wins
