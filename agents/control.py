@@ -1,8 +1,10 @@
 """Run-control messages between a conductor and its agents (``semfleet/<fleet>/ctl/**``).
 
 ``step``: the conductor's order for lock-step round k, with, for every robot, the peers whose
-stacks of round k − 1 it must merge first (the link model evaluated on ground truth).
-``need``: an agent asks for frames from step k on (after a restart or a gap).
+stacks of round k − 1 it must merge first (the link model evaluated on ground truth), and
+optionally the robots whose estimate of round k it still waits for.
+``need``: an agent asks for frames from step k on (after a restart or a gap). ``round`` (on the
+same key): a lock-step agent asks peers for their stacks of round k it lacks.
 ``status``: every agent publishes its estimate with its counters now. ``stop``: end of the run.
 Payloads are msgpack maps of at most ``max_bytes`` (64 KiB by default, checked before anything is
 unpacked) and step orders hold at most ``MAX_LINKS`` robots of ``MAX_LINKS`` senders each, so
@@ -37,10 +39,13 @@ MAX_CONTROL_BYTES = 64 * 1024
 
 @dataclass(frozen=True, slots=True)
 class StepOrder:
-    """Lock-step round ``k``: ``links[robot]`` = the senders ``robot`` hears before stepping."""
+    """Lock-step round ``k``: ``links[robot]`` = the senders ``robot`` hears before stepping.
+    ``waiting``: the robots whose estimate of round k the conductor still lacks (a re-sent order
+    is answered by those only); None: every robot (an operator's order, or an older conductor)."""
 
     k: int
     links: dict[str, tuple[str, ...]] = field(default_factory=dict)
+    waiting: tuple[str, ...] | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -49,6 +54,16 @@ class NeedFrames:
 
     robot: str
     k: int
+
+
+@dataclass(frozen=True, slots=True)
+class NeedRound:
+    """Lock-step: ``robot`` lacks the stacks of round ``k`` of ``senders`` (lost, or never
+    sent yet); each named sender that has made its round-k stack sends it again."""
+
+    robot: str
+    k: int
+    senders: tuple[str, ...]
 
 
 @dataclass(frozen=True, slots=True)
@@ -63,7 +78,7 @@ class Stop:
     reason: str = ""
 
 
-Control = StepOrder | NeedFrames | Status | Stop
+Control = StepOrder | NeedFrames | NeedRound | Status | Stop
 
 
 def encode_control(message: Control, max_bytes: int = MAX_CONTROL_BYTES) -> bytes:
@@ -80,10 +95,22 @@ def encode_control(message: Control, max_bytes: int = MAX_CONTROL_BYTES) -> byte
             _local(len(senders) <= MAX_LINKS, where, f"{len(senders)} senders > {MAX_LINKS}")
             _local(all(valid_id(s) for s in senders), where, "invalid robot id")
         doc = {"type": "step", "k": message.k, "links": {r: list(s) for r, s in links.items()}}
+        if message.waiting is not None:
+            waiting = message.waiting
+            _local(len(waiting) <= MAX_LINKS, "ctl.waiting", f"{len(waiting)} robots > {MAX_LINKS}")
+            _local(all(valid_id(r) for r in waiting), "ctl.waiting", "invalid robot id")
+            doc["waiting"] = list(waiting)
     elif isinstance(message, NeedFrames):
         _local(valid_id(message.robot), "ctl.robot", f"invalid robot id {message.robot!r}")
         _local(_valid_step(message.k), "ctl.k", f"{message.k!r} outside 0..{MAX_STEP}")
         doc = {"type": "need", "robot": message.robot, "k": message.k}
+    elif isinstance(message, NeedRound):
+        _local(valid_id(message.robot), "ctl.robot", f"invalid robot id {message.robot!r}")
+        _local(_valid_step(message.k), "ctl.k", f"{message.k!r} outside 0..{MAX_STEP}")
+        senders = message.senders
+        _local(len(senders) <= MAX_LINKS, "ctl.senders", f"{len(senders)} robots > {MAX_LINKS}")
+        _local(all(valid_id(r) for r in senders), "ctl.senders", "invalid robot id")
+        doc = {"type": "round", "robot": message.robot, "k": message.k, "senders": list(senders)}
     elif isinstance(message, Status):
         doc = {"type": "status"}
     elif isinstance(message, Stop):
@@ -107,7 +134,7 @@ def _parse(doc: Any) -> Control:
         raise MalformedMessage("expected a map", "ctl")
     kind = doc.get("type")
     if kind == "step":
-        _keys(doc, {"type", "k", "links"})
+        _keys(doc, {"type", "k", "links"} | ({"waiting"} & set(doc)))
         k = _step(doc["k"])
         links = doc["links"]
         if not isinstance(links, dict):
@@ -123,10 +150,30 @@ def _parse(doc: Any) -> Control:
             if len(senders) > MAX_LINKS:
                 raise LimitExceeded(f"{len(senders)} senders > {MAX_LINKS}", where)
             out[robot] = tuple(_robot(s, where) for s in senders)
-        return StepOrder(k, out)
+        waiting = None
+        if "waiting" in doc:
+            raw = doc["waiting"]
+            if not isinstance(raw, list):
+                raise MalformedMessage("expected an array", "ctl.waiting")
+            if len(raw) > MAX_LINKS:
+                raise LimitExceeded(f"{len(raw)} robots > {MAX_LINKS}", "ctl.waiting")
+            waiting = tuple(_robot(r, "ctl.waiting") for r in raw)
+        return StepOrder(k, out, waiting)
     if kind == "need":
         _keys(doc, {"type", "robot", "k"})
         return NeedFrames(_robot(doc["robot"], "ctl.robot"), _step(doc["k"]))
+    if kind == "round":
+        _keys(doc, {"type", "robot", "k", "senders"})
+        senders = doc["senders"]
+        if not isinstance(senders, list):
+            raise MalformedMessage("expected an array", "ctl.senders")
+        if len(senders) > MAX_LINKS:
+            raise LimitExceeded(f"{len(senders)} robots > {MAX_LINKS}", "ctl.senders")
+        return NeedRound(
+            _robot(doc["robot"], "ctl.robot"),
+            _step(doc["k"]),
+            tuple(_robot(r, "ctl.senders") for r in senders),
+        )
     if kind == "status":
         _keys(doc, {"type"})
         return Status()
@@ -171,6 +218,7 @@ __all__ = [
     "MAX_LINKS",
     "Control",
     "NeedFrames",
+    "NeedRound",
     "RemoteProtocolError",
     "Status",
     "StepOrder",

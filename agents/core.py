@@ -39,7 +39,15 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from agents.control import NeedFrames, Status, StepOrder, Stop, decode_control, encode_control
+from agents.control import (
+    NeedFrames,
+    NeedRound,
+    Status,
+    StepOrder,
+    Stop,
+    decode_control,
+    encode_control,
+)
 from agents.journal import Record
 from agents.node import RobotNode
 from agents.transport.base import Keys
@@ -174,6 +182,8 @@ class CoreCounters:
     restores: int = 0
     estimates_sent: int = 0
     need_requests: int = 0
+    round_requests: int = 0
+    rounds_resent: int = 0
     status_requests: int = 0
     replayed_frames: int = 0
     replayed_stacks: int = 0
@@ -192,6 +202,10 @@ class _Outgoing:
     # new (``fresh`` False: already published).
     digest: bytes | None = None
     fresh: bool = True
+    k: int = 0  # the node's step when these were made (lock-step: the round of ``stack``)
+    # Lock-step: the round whose stacks the next step needs, and the senders of the order whose
+    # stack of it has not come (asked for by the timer, NeedRound).
+    need_round: tuple[int, tuple[str, ...]] | None = None
 
 
 class AgentCore:
@@ -239,13 +253,21 @@ class AgentCore:
         self._out_include: set[str] = set()  # the owners of the slots in ``_out.stack``
         self._tick_last: bytes | None = None  # the timer thread's own: the last stack it sent
         self.tick_bytes = 0  # bytes of stacks and digests the timer sent (timer thread only)
-        # Lock-step re-sends (timer thread only): the pair last re-sent, the periods to wait
-        # before the next re-send of that same pair, and the periods waited so far.
-        self._resend_pair: tuple[bytes | None, bytes | None] = (None, None)
+        # Lock-step re-sends (timer thread only): the round last re-sent, the periods to wait
+        # before its next re-send, and the periods waited so far.
+        self._resend_round = -1
         self._resend_wait = 1
         self._resend_idle = 0
         # Re-sent acknowledgements: (round, when last re-sent, the wait before the next one).
         self._ack_resend: tuple[int, float, float] = (-1, -math.inf, 0.0)
+        # Lock-step requests for round stacks: (the need, when first seen, when last asked)
+        # (timer thread only), and when each of this agent's rounds was last sent on request.
+        self._round_need: tuple[tuple[int, tuple[str, ...]] | None, float, float] = (
+            None,
+            -math.inf,
+            -math.inf,
+        )
+        self._round_resent: dict[int, float] = {}
 
     # -- lifecycle ---------------------------------------------------------------------------
 
@@ -331,7 +353,7 @@ class AgentCore:
         actions: list[Action] = []
         for key, payload in messages:
             if key.startswith(keys.ctl("")):
-                actions += self._on_control(payload)
+                actions += self._on_control(key, payload)
             elif key == keys.frames(self.robot):
                 actions += self._on_frame(payload)
             elif key.startswith(f"{keys.prefix}/stack/"):
@@ -372,17 +394,38 @@ class AgentCore:
             actions.append(Publish(self.keys.stack(self.robot), data))
         if out.need_from is not None:
             actions += self._need(out.need_from, now)
+        if out.need_round is not None or self._round_need[0] is not None:
+            actions += self._ask_for_round(out.need_round, now)
         return actions
+
+    def _ask_for_round(self, need: tuple[int, tuple[str, ...]] | None, now: float) -> list[Action]:
+        """Lock-step: ask the senders whose stack of the coming step's round has not come for
+        it, once it has been missing a gossip period and then at most once a period (a lost
+        stack is otherwise re-sent only on its sender's backed-off ticks, up to 2 (N − 1)
+        periods later). Timer thread only."""
+        period = self.settings.gossip_period
+        seen, since, asked = self._round_need
+        if need != seen:
+            self._round_need = (need, now, -math.inf)
+            return []
+        if need is None or now - since < period or now - asked < period:
+            return []
+        self._round_need = (need, since, now)
+        self.counters.round_requests += 1
+        payload = encode_control(NeedRound(self.robot, need[0], need[1]))
+        return [Publish(self.keys.ctl("need", self.robot), payload)]
 
     def _lockstep_backoff(self, out: _Outgoing) -> bool:
         """Whether this tick skips the lock-step re-send: a round's stacks go out when the round
-        ends, and the ticks only repair a loss, so an unchanged pair is re-sent after 1, 2, 4
+        ends, and the ticks only repair a loss, so a round's stacks are re-sent after 1, 2, 4
         ... up to :meth:`_lockstep_resend_max` periods (exponential back-off) instead of every
-        period — with N agents every period would be N² stacks, which swamped 50 agents on 2 cores.
-        A new round starts over at one period. Timer thread only."""
-        pair = (out.stack, out.previous)
-        if pair != self._resend_pair:
-            self._resend_pair, self._resend_wait, self._resend_idle = pair, 1, 0
+        period — with N agents every period would be N² stacks, which swamped 50 agents on 2
+        cores. A new round starts over at one period; a round stack whose bytes change within
+        the round (what peers lack shrinks as their digests come) keeps its back-off: starting
+        over at every change re-sent stacks several times a period in a 50-agent fleet. Timer
+        thread only."""
+        if out.k != self._resend_round:
+            self._resend_round, self._resend_wait, self._resend_idle = out.k, 1, 0
             return False
         self._resend_idle += 1
         if self._resend_idle < self._resend_wait:
@@ -402,21 +445,37 @@ class AgentCore:
         peers = 0 if roster is None else len(roster) - 1
         return max(LOCKSTEP_RESEND_MAX, 2 * peers)
 
-    def _ack_due(self, k: int) -> bool:
-        """Whether a repeated order of round ``k`` is answered with the estimate again: at once
-        the first time, then after 1, 2, 4 ... gossip periods (a conductor re-orders a whole
-        fleet for one late agent, and every estimate can be megabytes)."""
+    def _ack_due(self, order: StepOrder) -> bool:
+        """Whether a repeated order of the current round is answered with the estimate again.
+        An order that names the robots it waits for is answered by those only, at most once a
+        gossip period (the conductor backs its re-orders off). One that names nobody (an
+        operator's, an older conductor's) goes to the whole fleet: answered at once the first
+        time, then after 1, 2, 4 ... gossip periods, up to :meth:`_lockstep_resend_max` (every
+        agent would answer it, and an estimate can be megabytes)."""
+        if order.waiting is not None:
+            return self.robot in order.waiting and self._answer_due(order.k)
+        period = self.settings.gossip_period
         last_k, last_t, wait = self._ack_resend
-        if k != last_k:
-            self._ack_resend = (k, self._now, self.settings.gossip_period)
+        if order.k != last_k:
+            self._ack_resend = (order.k, self._now, period)
             return True
         if self._now - last_t < wait:
             return False
         self._ack_resend = (
-            k,
+            order.k,
             self._now,
-            min(2 * wait, self._lockstep_resend_max() * self.settings.gossip_period),
+            min(2 * wait, self._lockstep_resend_max() * period),
         )
+        return True
+
+    def _answer_due(self, k: int) -> bool:
+        """A request meant for this robot (an order naming it, a frame of its current step sent
+        again): answered with the estimate at most once a gossip period."""
+        period = self.settings.gossip_period
+        last_k, last_t, _ = self._ack_resend
+        if k == last_k and self._now - last_t < period:
+            return False
+        self._ack_resend = (k, self._now, period)
         return True
 
     def next_timer(self, now: float) -> float:
@@ -424,7 +483,7 @@ class AgentCore:
 
     # -- input -------------------------------------------------------------------------------
 
-    def _on_control(self, payload: bytes) -> list[Action]:
+    def _on_control(self, key: str, payload: bytes) -> list[Action]:
         try:
             order = decode_control(payload, max_bytes=self.settings.max_control_bytes)
         except RemoteProtocolError as exc:
@@ -437,7 +496,7 @@ class AgentCore:
                 self._orders[order.k] = order
             elif order.k > k:
                 self.counters.orders_ahead += 1
-            elif order.k == k and self._last_estimate is not None and self._ack_due(k):
+            elif order.k == k and self._last_estimate is not None and self._ack_due(order):
                 return self._publish_estimate(self._last_estimate)  # the conductor missed our ack
         elif isinstance(order, Status):
             self.counters.status_requests += 1
@@ -445,9 +504,33 @@ class AgentCore:
         elif isinstance(order, Stop):
             self.stop_reason = self.stop_reason or order.reason or "stopped by the conductor"
             return [Halt(self.stop_reason)]
+        elif isinstance(order, NeedRound):
+            return self._answer_round(order, self.keys.robot_of(key))
         elif isinstance(order, NeedFrames):
             pass  # for whoever publishes frames
         return []
+
+    def _answer_round(self, need: NeedRound, asker: str | None) -> list[Action]:
+        """A lock-step peer lacks this agent's stack of round ``need.k``: send it again if this
+        agent has made it (its current round's or the previous one's), at most once a gossip
+        period per round whoever asks. A request on another robot's key is ignored (each robot
+        asks on its own ``ctl/need`` key; a secure fleet enforces it)."""
+        if (
+            self.settings.mode != "lockstep"
+            or asker != need.robot
+            or need.robot == self.robot
+            or self.robot not in need.senders
+        ):
+            return []
+        out = self._out
+        data = {out.k: out.stack, out.k - 1: out.previous}.get(need.k)
+        last = self._round_resent.get(need.k, -math.inf)
+        if data is None or self._now - last < self.settings.gossip_period:
+            return []
+        self._round_resent = {k: t for k, t in self._round_resent.items() if k >= out.k - 1}
+        self._round_resent[need.k] = self._now
+        self.counters.rounds_resent += 1
+        return [Publish(self.keys.stack(self.robot), data)]
 
     def _on_links(self, payload: bytes) -> None:
         """The simulator's verdict of who hears whom at step k (simulations only)."""
@@ -477,7 +560,7 @@ class AgentCore:
         k = self.node.k
         if frame.k <= k:
             self.counters.frames_duplicate += 1
-            if frame.k == k and self._last_estimate is not None:
+            if frame.k == k and self._last_estimate is not None and self._answer_due(k):
                 return self._publish_estimate(self._last_estimate)
             return []
         if frame.k > k + self.settings.window:
@@ -617,6 +700,9 @@ class AgentCore:
                 message, data = self._rounds[(s, k - 1)]
                 self._merge(self._without_refused(message), data)
         frame, data = self._frames.pop(k)
+        # The frame is here: the timer must not go on asking for it while the step runs (every
+        # request made the conductor send it again, and every copy was answered with an estimate).
+        self._out = dataclasses.replace(self._out, need_from=None, need_round=None)
         actions = self._step(frame, data)
         self._forget_before(self.node.k)
         return actions
@@ -727,11 +813,25 @@ class AgentCore:
             missing = bool(self._frames) and nxt not in self._frames
         return nxt if missing else None
 
+    def _round_missing(self) -> tuple[int, tuple[str, ...]] | None:
+        """Lock-step: the round whose stacks the next step merges, and the senders its order
+        names whose stack of that round has not come (None: nothing to ask for)."""
+        nxt = self.node.k + 1
+        order = self._orders.get(nxt)
+        if self.settings.mode != "lockstep" or order is None:
+            return None
+        senders = order.links.get(self.robot, ())
+        missing = tuple(sorted(s for s in senders if (s, nxt - 1) not in self._rounds))
+        return (nxt - 1, missing) if missing else None
+
     def _refresh(self) -> None:
         """Publish, whole, what the timer may read."""
         # Always, even empty: a lock-step peer ordered to hear us at round 1 needs our round 0.
         data, digest, fresh = self._stack_payload()
-        self._out = _Outgoing(data, self._out.previous, self._frames_missing(), digest, fresh)
+        need = self._frames_missing()
+        self._out = _Outgoing(
+            data, self._out.previous, need, digest, fresh, self.node.k, self._round_missing()
+        )
 
     def _stack_payload(self) -> tuple[bytes, bytes | None, bool]:
         """The stack to gossip now, its digest alone (delta gossip in real time) and whether the
@@ -797,7 +897,7 @@ class AgentCore:
 
     def _publish_stack(self, previous: bytes | None = None) -> list[Action]:
         data, digest, _ = self._stack_payload()
-        self._out = _Outgoing(data, previous, self._out.need_from, digest, fresh=False)
+        self._out = _Outgoing(data, previous, self._out.need_from, digest, False, self.node.k)
         self.node.mark_sent(len(data))
         return [Publish(self.keys.stack(self.robot), data)]
 
@@ -856,6 +956,8 @@ class AgentCore:
             "links_invalid": a.invalid_links,
             "estimates_sent": a.estimates_sent,
             "need_requests": a.need_requests,
+            "round_requests": a.round_requests,
+            "rounds_resent": a.rounds_resent,
             "status_requests": a.status_requests,
             "replayed_frames": a.replayed_frames,
             "replayed_stacks": a.replayed_stacks,

@@ -18,6 +18,7 @@ from agents.control import (
     MAX_STEP,
     Control,
     NeedFrames,
+    NeedRound,
     Status,
     StepOrder,
     Stop,
@@ -51,8 +52,12 @@ STOP = {"type": "stop", "reason": "done"}
         StepOrder(1),
         StepOrder(7, {"r1": (), "r2": ("r1", "r3"), "r3": ("r2",)}),
         StepOrder(MAX_STEP, {"a" * 32: ("B_-9",)}),
+        StepOrder(4, {"r1": ("r2",), "r2": ()}, waiting=("r2",)),
+        StepOrder(4, {"r1": ()}, waiting=()),
         NeedFrames("r2", 0),
         NeedFrames("r_9-x", 12),
+        NeedRound("r2", 4, ("r1", "r3")),
+        NeedRound("r2", 0, ()),
         Stop(),
         Stop("run complete ✓"),
         Status(),
@@ -103,7 +108,13 @@ MALFORMED: list[tuple[bytes, type[RemoteProtocolError], str]] = [
     (_pack(_with(STEP, links=["r1"])), MalformedMessage, "ctl.links"),
     (_pack(_with(STEP, links={"r1": "r2"})), MalformedMessage, "ctl.links.r1"),
     (_pack(_with(STEP, links={"r1": {"r2": 1}})), MalformedMessage, "ctl.links.r1"),
+    (_pack(_with(STEP, waiting="r1")), MalformedMessage, "ctl.waiting"),
+    (_pack(_with(STEP, waiting=["r1"] * 1025)), LimitExceeded, "ctl.waiting"),
     (_pack(_with(NEED, robot=_DROP)), MalformedMessage, "ctl"),
+    (_pack({**NEED, "type": "round"}), MalformedMessage, "ctl"),
+    (_pack({**NEED, "type": "round", "senders": "r1"}), MalformedMessage, "ctl.senders"),
+    (_pack({**NEED, "type": "round", "senders": ["r 1"]}), InvalidValue, "ctl.senders"),
+    (_pack({**NEED, "type": "round", "senders": ["r1"] * 1025}), LimitExceeded, "ctl.senders"),
     (_pack(_with(NEED, k=None)), MalformedMessage, "ctl.k"),
     (_pack(_with(NEED, k=-5)), InvalidValue, "ctl.k"),
     (_pack(_with(STOP, reason=3)), MalformedMessage, "ctl.reason"),
@@ -114,6 +125,7 @@ MALFORMED += [(_pack(_with(NEED, robot=bad)), InvalidValue, "ctl.robot") for bad
 MALFORMED += [
     (_pack(_with(STEP, links={"r1": [bad]})), InvalidValue, "ctl.links.r1") for bad in BAD_IDS
 ]
+MALFORMED += [(_pack(_with(STEP, waiting=[bad])), InvalidValue, "ctl.waiting") for bad in BAD_IDS]
 MALFORMED += [
     (_pack(_with(STEP, links={bad: []})), InvalidValue, "ctl.links")
     for bad in BAD_IDS
@@ -264,7 +276,11 @@ def test_control_step_order_at_the_link_caps_is_accepted() -> None:
         (StepOrder(True), "ctl.k"),
         (StepOrder(1, {"r 1": ()}), "ctl.links"),
         (StepOrder(1, {"r1": ("r/2",)}), "ctl.links.r1"),
+        (StepOrder(1, {}, waiting=("r 1",)), "ctl.waiting"),
+        (StepOrder(1, {}, waiting=("r1",) * 1025), "ctl.waiting"),
         (NeedFrames("", 1), "ctl.robot"),
+        (NeedRound("r1", 1, ("r/2",)), "ctl.senders"),
+        (NeedRound("r1", -1, ()), "ctl.k"),
         (NeedFrames("r1", -1), "ctl.k"),
         (Stop(3), "ctl.reason"),  # type: ignore[arg-type]
         (Stop("x" * MAX_CONTROL_BYTES), "ctl"),
