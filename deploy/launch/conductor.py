@@ -38,9 +38,9 @@ log = logging.getLogger(__name__)
 Array = NDArray[np.float64]
 
 
-# A lock-step round's re-sends back off to this many retry periods, or to 2 (N − 1) for a fleet of
-# N robots if longer: every re-order is answered by every agent, so a fixed cap grows the answers
-# with N (the agents back off their answers the same way, agents/core.py).
+# A lock-step round's re-sends back off to this many retry periods: a re-sent order names the
+# robots it still waits for, and only those answer it (with their estimate), so its cost does not
+# grow with the fleet.
 RESEND_MAX = 8
 
 
@@ -51,13 +51,16 @@ class ConductorError(RuntimeError):
 @dataclass(slots=True)
 class Collected:
     """What came back: metrics per belief (robots, steps), class-ECE bin statistics per belief
-    (robots, steps, 3, bins), step times and the agents' counters."""
+    (robots, steps, 3, bins), step times and the agents' counters. ``received`` counts every
+    estimate of a robot, ``repeated`` those of a step already scored (answers to re-sent orders
+    and frames): each (robot, step) is scored, and its step times kept, once."""
 
     metrics: dict[str, dict[str, Array]]
     calibration: dict[str, Array] = field(default_factory=dict)
     step_ms: dict[str, list[float]] = field(default_factory=dict)
     counters: dict[str, dict[str, int]] = field(default_factory=dict)
     received: dict[str, int] = field(default_factory=dict)
+    repeated: int = 0
     invalid: int = 0
     last_step: dict[str, int] = field(default_factory=dict)
     final: dict[str, EstimateMessage] = field(default_factory=dict)
@@ -127,6 +130,7 @@ class Conductor:
         self.collected = Collected(self.scorer.metrics, self.scorer.calibration)
         self._index = {r: i for i, r in enumerate(self.robots)}
         self._acked: dict[str, int] = {r: 0 for r in self.robots}
+        self._scored: set[tuple[str, int]] = set()
         self._need_order_t = -math.inf  # when a frame request last made the order go again
 
     async def open(self) -> None:
@@ -147,7 +151,10 @@ class Conductor:
         self.published_up_to[robot] = max(self.published_up_to[robot], last)
 
     def _order(self, k: int) -> None:
-        order = StepOrder(k, links_at(self.links, self.frames, self.robots, k))
+        """Order round k, naming the robots whose estimate of it is still missing: only those
+        answer a re-sent order (each answer can be a large estimate)."""
+        waiting = tuple(r for r in self.robots if self._acked[r] < k)
+        order = StepOrder(k, links_at(self.links, self.frames, self.robots, k), waiting)
         self.transport.publish(self.keys.ctl("step"), encode_control(order))
 
     def _publish_links(self, k: int) -> None:
@@ -212,6 +219,14 @@ class Conductor:
             c.estimates[(est.robot, est.k)] = est
         c.last_step[est.robot] = max(c.last_step.get(est.robot, 0), est.k)
         self._acked[est.robot] = max(self._acked[est.robot], est.k)
+        # A step's estimate comes again whenever an order or a frame is re-sent (lock-step
+        # agents answer each with it): the first is scored, the others only refresh the
+        # counters. Scoring every hypothesis against the truth is the conductor's largest cost:
+        # with 50 agents, re-scoring the repeats kept it minutes behind the fleet.
+        if (est.robot, est.k) in self._scored:
+            c.repeated += 1
+            return
+        self._scored.add((est.robot, est.k))
         for belief, snap in est.beliefs.items():
             self.scorer.record(belief, est.robot, est.k, snap)
         for belief, key in (("local", "step_us_local"), ("distributed", "step_us_distributed")):
@@ -243,8 +258,8 @@ class Conductor:
     ) -> None:
         """Round by round: order round k, send frame k, wait for every agent's estimate of k
         (re-sending the order and the late agents' frames after ``retry_period``, then twice as
-        long each time up to ``RESEND_MAX`` × ``retry_period``: every agent answers a repeated
-        order with its estimate, so re-sending every period would flood a large fleet). A round
+        long each time up to ``RESEND_MAX`` × ``retry_period``; a re-sent order names the
+        robots it waits for, and only those answer it with their estimate). A round
         fails when no agent acknowledged it for ``step_timeout`` seconds: a slow round that keeps
         making progress (many agents on few cores) is waited for; a stuck one is not."""
         for k in range(1, steps + 1):
@@ -270,8 +285,7 @@ class Conductor:
                         f"step {k}: no estimate from {late} in the last {step_timeout} s"
                     )
                 if late and now - last_send > wait:
-                    cap = max(RESEND_MAX, 2 * (len(self.robots) - 1)) * self.retry_period
-                    last_send, wait = now, min(2 * wait, cap)
+                    last_send, wait = now, min(2 * wait, RESEND_MAX * self.retry_period)
                     self._order(k)
                     for r in self.robots:
                         if self._acked[r] < k:

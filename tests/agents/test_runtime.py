@@ -499,3 +499,46 @@ async def test_conductor_waits_for_a_slow_round_that_progresses_and_names_a_stuc
     finally:
         await agent.close()
         await side.close()
+
+
+@pytest.mark.asyncio
+async def test_conductor_scores_a_step_once_however_often_its_estimate_comes(
+    frames: dict[str, list[SensorFrame]],
+) -> None:
+    """Lock-step agents answer every re-sent order with their estimate: the conductor scores
+    each (robot, step) once — the first estimate — counts the repeats, and keeps one step time
+    each, while the repeats still refresh the counters."""
+    bus = MemoryBus()
+    side = MemoryTransport(bus)
+    conductor = Conductor(SCENARIO, frames, ROBOTS, side, KEYS, CHAIN)
+    await conductor.open()
+    agent = MemoryTransport(bus)
+    await agent.open()
+    scored: list[tuple[str, str, int]] = []
+    record = conductor.scorer.record
+
+    def counting(belief: str, robot: str, k: int, snap: BeliefSnapshot) -> None:
+        scored.append((belief, robot, k))
+        record(belief, robot, k, snap)
+
+    conductor.scorer.record = counting  # type: ignore[method-assign]
+    try:
+        nodes = _nodes()
+        snap = nodes["r1"].distributed.snapshot("r1")
+        for i in range(4):
+            counters = {"step_us_distributed": 1000 + i, "stacks_received": i}
+            message = EstimateMessage("r1", 1, {"distributed": snap}, counters)
+            agent.publish(KEYS.estimate("r1"), encode_estimate(message))
+        other = EstimateMessage("r2", 1, {"distributed": nodes["r2"].distributed.snapshot("r2")})
+        agent.publish(KEYS.estimate("r2"), encode_estimate(other))
+        await asyncio.sleep(0.05)
+        conductor.pump()
+        c = conductor.collected
+        assert scored == [("distributed", "r1", 1), ("distributed", "r2", 1)]
+        assert c.received == {"r1": 4, "r2": 1} and c.repeated == 3
+        assert c.step_ms["distributed"] == [1.0]
+        assert c.counters["r1"]["stacks_received"] == 3  # the latest estimate's counters
+        assert np.isfinite(c.metrics["distributed"]["robot_error"][0, 0])
+    finally:
+        await agent.close()
+        await side.close()
