@@ -420,9 +420,62 @@ def test_estimate_non_string_names_are_malformed() -> None:
     WIRE.assert_rejected(WIRE.with_(("counters",), {b"invalid": 1}), MalformedMessage, "counters")
 
 
-@pytest.mark.parametrize("version", [0, 2, -1, "1", None, 1.0, True])
+@pytest.mark.parametrize("version", [0, 3, -1, "1", None, 1.0, True])
 def test_estimate_unknown_version_is_unsupported(version: Any) -> None:
     WIRE.assert_rejected(WIRE.with_(("v",), version), UnsupportedVersion, "v")
+
+
+def _shared(rng: np.random.Generator, h: int, n: int) -> BeliefSnapshot:
+    """A snapshot whose hypotheses differ only in weights and classes (one continuous belief)."""
+    one = make_snapshot(rng, 1, n)
+    many = make_snapshot(rng, h, n)
+    tile = {name: np.repeat(getattr(one, name), h, axis=0) for name in SHAREABLE}
+    return dataclasses.replace(many, **tile)
+
+
+SHAREABLE = ("robot_pose", "robot_cov", "object_pose", "object_cov")
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_estimate_poses_every_hypothesis_shares_travel_once(seed: int) -> None:
+    """The pose arrays of hypotheses that share one continuous belief are sent once (wire
+    version 2) and come back bit for bit, H times; a belief with one differing entry, or one
+    hypothesis, keeps version 1 and sends each hypothesis' own."""
+    rng = np.random.default_rng(seed)
+    h, n = 6, 4
+    snap = _shared(rng, h, n)
+    blob = encode_estimate(EstimateMessage("r1", 3, {"distributed": snap}))
+    doc = msgpack.unpackb(blob)
+    assert doc["v"] == 2
+    sent = doc["beliefs"]["distributed"]
+    assert [len(sent[a]) for a in SHAREABLE] == [24, 72, 24 * n, 72 * n]
+    assert len(sent["classes"]) == 8 * h * n and len(sent["weights"]) == 8 * h
+    got = decode_estimate(blob).beliefs["distributed"]
+    assert_same_snapshot(got, snap)
+    # one entry of one hypothesis differs: that array goes whole, the others still once
+    cov = snap.object_cov.copy()
+    cov[h - 1, n - 1, 2, 2] = np.nextafter(cov[h - 1, n - 1, 2, 2], np.inf)
+    apart = dataclasses.replace(snap, object_cov=cov)
+    blob = encode_estimate(EstimateMessage("r1", 3, {"distributed": apart}))
+    sent = msgpack.unpackb(blob)["beliefs"]["distributed"]
+    assert (len(sent["object_cov"]), len(sent["object_pose"])) == (72 * h * n, 24 * n)
+    assert_same_snapshot(decode_estimate(blob).beliefs["distributed"], apart)
+    single = make_snapshot(rng, 1, n)
+    assert msgpack.unpackb(encode_estimate(EstimateMessage("r1", 3, {"local": single})))["v"] == 1
+
+
+def test_estimate_arrays_sent_once_are_refused_where_they_may_not_be() -> None:
+    """Version 1 has no shared arrays; in version 2 only the four pose arrays may be shared, and
+    a length that is neither H hypotheses' nor one's is refused, naming the field."""
+    rng = np.random.default_rng(9)
+    snap = _shared(rng, 5, 3)
+    doc = msgpack.unpackb(encode_estimate(EstimateMessage("r1", 3, {"local": snap})))
+    assert doc["v"] == 2
+    WIRE.assert_rejected(pack({**doc, "v": 1}), MalformedMessage, "beliefs.local.robot_pose")
+    for name, size in (("classes", 24), ("object_pose", 24 * 2)):  # (weights fix H)
+        bad = copy.deepcopy(doc)
+        bad["beliefs"]["local"][name] = bytes(size)
+        WIRE.assert_rejected(pack(bad), MalformedMessage, f"beliefs.local.{name}")
 
 
 @pytest.mark.parametrize("kind", ["stack", "frame", "Estimate", "", None, b"estimate"])
