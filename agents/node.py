@@ -237,7 +237,7 @@ class RobotNode:
         (or, for the own slot, than the node's own (epoch, step)); the others are not parsed."""
         if owner == self.robot:
             return (epoch, stamp) > (self.epoch, self.k)
-        return (epoch, stamp) > self.stack.versions().get(owner, (-1, -1))
+        return (epoch, stamp) > (self.stack.version_of(owner) or (-1, -1))
 
     def merge(self, message: StackMessage) -> bool:
         """Merge a decoded stack (newest version per owner, never the own slot); True if it

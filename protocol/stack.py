@@ -4,7 +4,7 @@ slot, a version being (epoch, stamp) (docs/wire.md, "Versions and epochs")."""
 from __future__ import annotations
 
 from collections.abc import Iterable, Iterator, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from estimator.summary import Slot
 
@@ -16,12 +16,15 @@ class Stack:
     """One slot per known robot, newest version each."""
 
     slots: tuple[Slot, ...] = ()
+    # owner → (epoch, stamp), made once: a receiver asks for it for every slot header it reads
+    _versions: dict[str, tuple[int, int]] = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         owners = [s.owner for s in self.slots]
         if len(set(owners)) != len(owners):
             raise ValueError(f"a stack holds one slot per robot, got owners {owners}")
         object.__setattr__(self, "slots", tuple(sorted(self.slots, key=lambda s: s.owner)))
+        object.__setattr__(self, "_versions", {s.owner: s.version for s in self.slots})
 
     def __iter__(self) -> Iterator[Slot]:
         return iter(self.slots)
@@ -37,8 +40,12 @@ class Stack:
         return {s.owner: s.stamp for s in self.slots}
 
     def versions(self) -> dict[str, tuple[int, int]]:
-        """Owner → (epoch, stamp) of the version held."""
-        return {s.owner: s.version for s in self.slots}
+        """Owner → (epoch, stamp) of the version held (a new dict: the caller may change it)."""
+        return dict(self._versions)
+
+    def version_of(self, owner: str) -> tuple[int, int] | None:
+        """The (epoch, stamp) held of ``owner``'s slot, None if none is held."""
+        return self._versions.get(owner)
 
     def with_slot(self, slot: Slot) -> Stack:
         """This stack with ``slot`` replacing its owner's version (used for one's own slot)."""
