@@ -31,7 +31,7 @@ from estimator.hybrid import (
     UsedXi,
     distinct_continuous,
 )
-from estimator.summary import Slot, Xi
+from estimator.summary import Realisations, Slot, Xi
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -294,11 +294,12 @@ class DistributedBelief(HybridBelief):
         # one continuous belief: fused once, copied only where the ξ differ.
         source = {id(h.continuous): h.continuous for h in parents}
         groups: dict[tuple[int, ...], list[int]] = {}
+        xi_ids = []  # per slot of the batch: the identity of each realisation's ξ
+        for sl in batch:
+            distinct, which = sl.summary.distinct_xi()
+            xi_ids.append([id(distinct[w]) for w in which])
         for n, p in enumerate(join.parent):
-            xis = tuple(
-                id(batch[b].summary.realisations[int(r)].xi) if r >= 0 else -1
-                for b, r in enumerate(join.picks[n])
-            )
+            xis = tuple(xi_ids[b][int(r)] if r >= 0 else -1 for b, r in enumerate(join.picks[n]))
             groups.setdefault((id(parents[int(p)].continuous), *xis), []).append(n)
         last_group = {}
         for key in groups:
@@ -384,11 +385,17 @@ class DistributedBelief(HybridBelief):
             )
         if len(set(s.summary.object_ids)) != n:
             raise SlotError(f"slot of {s.owner}: duplicate object ids")
-        for r in s.summary.realisations:
-            if len(r.classes) != n or any(not 0 <= c < m for c in r.classes):
-                raise SlotError(
-                    f"slot of {s.owner}: realisation classes do not fit {n} objects, {m} classes"
-                )
+        rs = s.summary.realisations
+        fits = isinstance(rs, Realisations) or all(len(r.classes) == n for r in rs)
+        cls = s.summary.class_matrix() if fits else None
+        if (
+            cls is None
+            or cls.shape != (len(rs), n)
+            or (cls.size and not 0 <= cls.min() <= cls.max() < m)
+        ):
+            raise SlotError(
+                f"slot of {s.owner}: realisation classes do not fit {n} objects, {m} classes"
+            )
         for x in s.summary.distinct_xi()[0]:
             if x.lin.shape != (n, 3) or x.info.shape != (3 * n, 3 * n) or x.eta.shape != (3 * n,):
                 raise SlotError(f"slot of {s.owner}: ξ shapes do not fit {n} objects")
@@ -412,8 +419,7 @@ class DistributedBelief(HybridBelief):
             ids = s.summary.object_ids
             shared = [(known[j], i) for i, j in enumerate(ids) if j in known]
             fresh = [i for i, j in enumerate(ids) if j not in known]
-            real_cls = np.array([r.classes for r in s.summary.realisations], dtype=np.int64)
-            real_cls = real_cls.reshape(len(s.summary.realisations), len(ids))
+            real_cls = s.summary.class_matrix()
             d_cols = np.array([a for a, _ in shared], dtype=np.int64)
             s_cols = np.array([i for _, i in shared], dtype=np.int64)
             # Bounded before anything is built: at most max_join (row, realisation) pairs (the
@@ -422,7 +428,7 @@ class DistributedBelief(HybridBelief):
             if len(join.parent) * width > self.config.max_join:
                 heaviest = np.argsort(-join.log_weight, kind="stable")
                 join = join.keep(np.sort(heaviest[: max(1, self.config.max_join // width)]))
-            log_phi = np.array([r.log_phi for r in s.summary.realisations])
+            log_phi = s.summary.log_phis()
             rows, cols = _fits(join.classes[:, d_cols], real_cls[:, s_cols])
             unmatched = np.setdiff1d(np.arange(len(join.parent)), rows)
             near_rows, near_cols, near_phi = _nearest(

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
+from typing import overload
 
 import numpy as np
 from numpy.typing import NDArray
@@ -50,26 +52,104 @@ class Realisation:
         return self.xi.eta
 
 
+class Realisations(Sequence[Realisation]):
+    """R realisations held as columns: ``classes`` (R, n) class indices, ``log_phi`` (R,), and
+    the index ``xi_index`` (R,) of each one's ξ in ``xis``. What a decoder makes: a slot of the
+    default belief is one ξ and hundreds of (classes, log φ) rows, which numpy reads and checks
+    at once, without an object per row. Indexing and iterating give :class:`Realisation` s that
+    share the very ``Xi`` objects of ``xis``. The arrays must not be changed (the decoder gives
+    read-only ones)."""
+
+    __slots__ = ("classes", "log_phi", "xi_index", "xis")
+
+    def __init__(
+        self,
+        classes: NDArray[np.integer],
+        log_phi: Array,
+        xis: Sequence[Xi],
+        xi_index: NDArray[np.integer],
+    ) -> None:
+        if classes.ndim != 2 or log_phi.shape != (len(classes),) or xi_index.shape != log_phi.shape:
+            raise ValueError("realisation columns: classes (R, n), log_phi (R,), xi_index (R,)")
+        self.classes = classes
+        self.log_phi = log_phi
+        self.xis = tuple(xis)
+        self.xi_index = xi_index
+
+    def __len__(self) -> int:
+        return len(self.log_phi)
+
+    @overload
+    def __getitem__(self, i: int) -> Realisation: ...
+
+    @overload
+    def __getitem__(self, i: slice) -> tuple[Realisation, ...]: ...
+
+    def __getitem__(self, i: int | slice) -> Realisation | tuple[Realisation, ...]:
+        if isinstance(i, slice):
+            return tuple(self[j] for j in range(*i.indices(len(self))))
+        i = range(len(self))[i]  # bounds and negative indices as a tuple has them
+        classes = tuple(int(c) for c in self.classes[i])
+        return Realisation(classes, float(self.log_phi[i]), self.xis[int(self.xi_index[i])])
+
+    def __iter__(self) -> Iterator[Realisation]:
+        return (self[i] for i in range(len(self)))
+
+
 @dataclass(frozen=True, slots=True, eq=False)
 class LocalSummary:
-    """Every unpruned realisation of a local belief over the owner's objects ``object_ids``."""
+    """Every unpruned realisation of a local belief over the owner's objects ``object_ids``:
+    a tuple of :class:`Realisation`, or the same as columns (:class:`Realisations`)."""
 
     object_ids: tuple[int, ...]
-    realisations: tuple[Realisation, ...]
+    realisations: tuple[Realisation, ...] | Realisations
 
     def distinct_xi(self) -> tuple[list[Xi], list[int]]:
         """The distinct ξ of the realisations (by identity, in order of first use) and the index
         of each realisation's ξ in that list."""
+        rs = self.realisations
+        if isinstance(rs, Realisations):
+            return _first_use(rs.xis, rs.xi_index)
         index: dict[int, int] = {}
         xis: list[Xi] = []
         which = []
-        for r in self.realisations:
+        for r in rs:
             i = index.get(id(r.xi))
             if i is None:
                 i = index[id(r.xi)] = len(xis)
                 xis.append(r.xi)
             which.append(i)
         return xis, which
+
+    def class_matrix(self) -> NDArray[np.int64]:
+        """(R, n) class indices of the realisations."""
+        rs = self.realisations
+        if isinstance(rs, Realisations):
+            return rs.classes.astype(np.int64)
+        return np.array([r.classes for r in rs], dtype=np.int64).reshape(len(rs), -1)
+
+    def log_phis(self) -> Array:
+        """(R,) log φ of the realisations."""
+        rs = self.realisations
+        if isinstance(rs, Realisations):
+            return rs.log_phi
+        return np.array([r.log_phi for r in rs], dtype=float)
+
+
+def _first_use(xis: Sequence[Xi], index: NDArray[np.integer]) -> tuple[list[Xi], list[int]]:
+    """``xis`` renumbered in order of first use by ``index``, the unused left out (and a ξ held
+    twice by identity, once)."""
+    used, first, inverse = np.unique(index, return_index=True, return_inverse=True)
+    order = np.argsort(first, kind="stable")  # the used ξ by first use
+    out: list[Xi] = []
+    by_id: dict[int, int] = {}
+    rank = np.empty(len(used), dtype=np.intp)
+    for u in order:
+        x = xis[int(used[u])]
+        rank[u] = by_id.setdefault(id(x), len(out))
+        if rank[u] == len(out):
+            out.append(x)
+    return out, rank[inverse].tolist()
 
 
 @dataclass(frozen=True, slots=True, eq=False)

@@ -24,7 +24,7 @@ from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
 from numpy.typing import NDArray
 
 from estimator.models.frames import MAX_STEP
-from estimator.summary import LocalSummary, Realisation, WireForm, Xi
+from estimator.summary import LocalSummary, Realisations, WireForm, Xi
 from protocol.errors import (
     BadSignature,
     InvalidValue,
@@ -661,12 +661,7 @@ def _decode_slot(
             and before.wire.data == memoryview(buf)[frame.start : frame.end]
         ):
             return owner, before, True
-    for name, body in bodies.items():
-        try:
-            s[name] = msgpack.unpackb(body, raw=False, strict_map_key=True, use_list=True)
-        except Exception as exc:  # as unpacking the whole message would have failed
-            raise MalformedMessage(f"not msgpack ({type(exc).__name__}: {exc})", where) from None
-    objects = s["objects"]
+    objects = _unpack(bodies["objects"], where)
     need(isinstance(objects, list), f"{where}.objects", "expected an array")
     n = len(objects)
     need(n <= lim.max_objects, f"{where}.objects", f"{n} > {lim.max_objects}", LimitExceeded)
@@ -674,7 +669,43 @@ def _decode_slot(
         as_int(j, f"{where}.objects[{i}]", 0, _MAX_OBJECT_ID) for i, j in enumerate(objects)
     )
     need(len(set(ids)) == n, f"{where}.objects", "duplicate object ids", InvalidValue)
-    reals = s["real"]
+    columns = _shared_xi_run(bodies["real"], n, lim)
+    if columns is None:  # the general path: every realisation a map of its own
+        columns = _realisation_maps(bodies["real"], where, n, lim)
+    classes, phi, carriers, xi_index = columns
+    rows = np.array(list(carriers), dtype=np.int64)
+    iu = _tri(n)
+    sizes = {"lin": 3 * n, "info": len(iu[0]), "eta": 3 * n}
+    arrays = {
+        name: _floats([raw[name] for raw in carriers.values()], f"{where}.real", name, count, rows)
+        for name, count in sizes.items()
+    }
+    info = _mirror(arrays["info"], n)
+    lin = arrays["lin"].reshape(len(rows), n, 3)
+    _raise_remote(numbers_problem(where, phi, lin, info, arrays["eta"], lim, rows))
+    xis = [Xi(lin[x], info[x], arrays["eta"][x]) for x in range(len(rows))]
+    for a in (classes, phi, xi_index):
+        a.flags.writeable = False
+    summary = LocalSummary(ids, Realisations(classes, phi, xis, xi_index))
+    wire = WireForm(owner, epoch, stamp, signature, summary, bytes(buf[frame.start : frame.end]))
+    return owner, Slot(owner, stamp, summary, epoch, signature, wire), False
+
+
+# (R, n) uint8 classes, (R,) log φ, the realisations that carry their ξ (index → their map), and
+# (R,) the index of each realisation's ξ among those carriers.
+_Columns = tuple[NDArray[np.uint8], Array, dict[int, dict[str, Any]], NDArray[np.intp]]
+
+
+def _unpack(body: memoryview, where: str) -> Any:
+    try:
+        return msgpack.unpackb(body, raw=False, strict_map_key=True, use_list=True)
+    except Exception as exc:  # as unpacking the whole message would have failed
+        raise MalformedMessage(f"not msgpack ({type(exc).__name__}: {exc})", where) from None
+
+
+def _realisation_maps(body: memoryview, where: str, n: int, lim: Limits) -> _Columns:
+    """The realisations of a slot body parsed map by map; raises naming the field at fault."""
+    reals = _unpack(body, where)
     need(isinstance(reals, list), f"{where}.real", "expected an array")
     need(len(reals) >= 1, f"{where}.real", "a slot has at least one realisation", InvalidValue)
     need(
@@ -683,7 +714,6 @@ def _decode_slot(
         f"{len(reals)} > {lim.max_realisations}",
         LimitExceeded,
     )
-    iu = _tri(n)
     heads = _well_formed_heads(reals, n, lim)
     if heads is None:  # the field-by-field path names what is wrong
         heads = [_decode_head(r, f"{where}.real[{i}]", n, i, lim) for i, r in enumerate(reals)]
@@ -692,24 +722,73 @@ def _decode_slot(
                 field = f"{where}.real[{i}].xi"
                 carrier = heads[ref][3] is None
                 need(carrier, field, "names a realisation without its ξ", InvalidValue)
-    rows = np.array([i for i, h in enumerate(heads) if h[3] is None], dtype=np.int64)
-    sizes = {"lin": 3 * n, "info": len(iu[0]), "eta": 3 * n}
-    arrays = {
-        name: _floats([heads[i][2][name] for i in rows], f"{where}.real", name, count, rows)
-        for name, count in sizes.items()
-    }
-    info = _mirror(arrays["info"], n)
-    lin = arrays["lin"].reshape(len(rows), n, 3)
-    phi = np.array([h[1] for h in heads])
-    _raise_remote(numbers_problem(where, phi, lin, info, arrays["eta"], lim, rows))
-    xis = {int(i): Xi(lin[x], info[x], arrays["eta"][x]) for x, i in enumerate(rows)}
-    out = tuple(
-        Realisation(classes, phi, xis[i if ref is None else ref])
-        for i, (classes, phi, _, ref) in enumerate(heads)
-    )
-    summary = LocalSummary(ids, out)
-    wire = WireForm(owner, epoch, stamp, signature, summary, bytes(buf[frame.start : frame.end]))
-    return owner, Slot(owner, stamp, summary, epoch, signature, wire), False
+    carriers = {i: h[2] for i, h in enumerate(heads) if h[3] is None}
+    number = {i: x for x, i in enumerate(carriers)}
+    classes = np.array([h[0] for h in heads], dtype=np.uint8).reshape(len(heads), n)
+    phi = np.array([h[1] for h in heads], dtype=float)
+    xi_index = np.array([number[i if h[3] is None else h[3]] for i, h in enumerate(heads)])
+    return classes, phi, carriers, xi_index.astype(np.intp)
+
+
+# A realisation that shares realisation 0's ξ, as ``encode`` writes it for n < 256 objects:
+# {"c": bin8 of n bytes, "phi": float64, "xi": 0} — n + 22 bytes whose layout is fixed.
+def _ref_record(n: int) -> tuple[NDArray[np.uint8], NDArray[np.bool_]]:
+    head = bytes([0x83, 0xA1, ord("c"), 0xC4, n])
+    row = head + bytes(n) + b"\xa3phi\xcb" + bytes(8) + b"\xa2xi\x00"
+    fixed = np.ones(len(row), dtype=bool)
+    fixed[len(head) : len(head) + n] = False  # the classes
+    fixed[len(head) + n + 5 : len(head) + n + 13] = False  # log φ
+    return np.frombuffer(row, dtype=np.uint8), fixed
+
+
+@functools.lru_cache(maxsize=64)
+def _ref_layout(n: int) -> tuple[NDArray[np.uint8], NDArray[np.intp]]:
+    row, fixed = _ref_record(n)
+    return row[fixed], np.flatnonzero(fixed)
+
+
+def _shared_xi_run(body: memoryview, n: int, lim: Limits) -> _Columns | None:
+    """The realisations of a slot whose first realisation carries the ξ and every other one
+    shares it, read at once: the shared ones are records of one fixed layout (``_ref_record``),
+    checked and sliced with numpy instead of unpacked map by map. None when the body is anything
+    else — the general path then parses it (and names the field at fault, if any)."""
+    if n >= 256 or len(body) < 2:
+        return None
+    first = body[0]
+    if 0x91 <= first <= 0x9F:
+        count, at = first & 0x0F, 1
+    elif first == 0xDC and len(body) >= 3:
+        count, at = int.from_bytes(body[1:3], "big"), 3
+    else:
+        return None
+    if count > lim.max_realisations:
+        return None
+    size = n + 22
+    rest = len(body) - (count - 1) * size  # where the shared realisations would begin
+    if count < 2 or rest <= at:
+        return None
+    try:
+        carrier = msgpack.unpackb(body[at:rest], raw=False, strict_map_key=True, use_list=True)
+    except Exception:
+        return None
+    if not (type(carrier) is dict and len(carrier) == 5 and carrier.keys() == _REAL_KEYS):
+        return None
+    c, phi0 = carrier["c"], carrier["phi"]
+    if not (type(c) is bytes and len(c) == n and type(phi0) is float):
+        return None
+    records = np.frombuffer(body[rest:], dtype=np.uint8).reshape(count - 1, size)
+    want, where = _ref_layout(n)
+    if not (records[:, where] == want).all():
+        return None
+    classes = np.empty((count, n), dtype=np.uint8)
+    classes[0] = np.frombuffer(c, dtype=np.uint8)
+    classes[1:] = records[:, 5 : 5 + n]
+    if n and int(classes.max()) >= lim.num_classes:
+        return None
+    phi = np.empty(count)
+    phi[0] = phi0
+    phi[1:] = np.ascontiguousarray(records[:, 10 + n : 18 + n]).view(">f8")[:, 0]
+    return classes, phi, {0: carrier}, np.zeros(count, dtype=np.intp)
 
 
 _Head = tuple[tuple[int, ...], float, dict[str, Any], int | None]

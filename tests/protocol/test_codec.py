@@ -30,6 +30,7 @@ from protocol.errors import (
     RemoteProtocolError,
     UnsupportedVersion,
 )
+from protocol.scan import scan
 from protocol.stack import Slot, Stack
 from tests.protocol import fuzz
 from tests.protocol.fuzz import FUZZ, Path, field_name, get_at, pack, set_at
@@ -215,6 +216,34 @@ BASE_MESSAGES = (
     ),
     *(make_message(np.random.default_rng(seed)) for seed in (11, 12, 13)),
 )
+
+
+def one_xi_summary(rng: np.random.Generator, n: int, count: int, m: int = 3) -> LocalSummary:
+    """``count`` realisations sharing one ξ (the default belief's slots): realisation 0 carries
+    it, every other one names it — the layout decode reads as fixed-size records."""
+    first = make_realisation(rng, n, m)
+    others = [
+        dataclasses.replace(make_realisation(rng, n, m), xi=first.xi) for _ in range(count - 1)
+    ]
+    return LocalSummary(tuple(range(100, 100 + n)), (first, *others))
+
+
+# Shared-ξ slots as the default belief sends them, so that the fuzzing below (truncation,
+# corruption, mutation) also runs through the fixed-record path of decode.
+BASE_MESSAGES += (
+    StackMessage(
+        "one-xi",
+        (0.5, 0.25),
+        Stack(
+            (
+                Slot("a", 3, one_xi_summary(np.random.default_rng(21), 3, 6)),
+                Slot("b", 4, one_xi_summary(np.random.default_rng(22), 0, 3)),
+                Slot("c", 5, one_xi_summary(np.random.default_rng(23), 2, 17)),
+            )
+        ),
+        4,
+    ),
+)
 BASE_BLOBS = tuple(encode(m) for m in BASE_MESSAGES)
 BASE_DOCS = tuple(msgpack.unpackb(b, raw=False) for b in BASE_BLOBS)
 
@@ -329,6 +358,90 @@ def test_codec_a_belief_with_one_continuous_belief_sends_its_xi_once() -> None:
     assert len(blob) < 21_000
     got = decode(blob).stack.slots[0].summary
     assert len({id(r.xi) for r in got.realisations}) == 1
+
+
+def _slot_body(blob: bytes, slot: int = 0) -> memoryview:
+    """The ``real`` body of slot ``slot`` of an encoded message, as decode locates it."""
+    frame = scan(blob)["slots"][slot]
+    a, b = frame.spans["real"]
+    return memoryview(blob)[a:b]
+
+
+@pytest.mark.parametrize("seed", range(12))
+def test_codec_shared_xi_records_read_at_once_equal_the_maps_read_one_by_one(seed: int) -> None:
+    """The fixed-record path gives exactly what parsing every realisation's map gives (classes,
+    log φ to the bit, every realisation on the carrier's ξ), for 0..30 objects and 2..40
+    realisations — 16 or more realisations make a msgpack array16."""
+    rng = np.random.default_rng(seed)
+    n, count = int(rng.integers(0, 31)), int(rng.integers(2, 41))
+    summary = one_xi_summary(rng, n, count, m=4)
+    blob = encode(StackMessage("r0", None, Stack((Slot("r1", 1, summary),))))
+    body = _slot_body(blob)
+    fast = codec._shared_xi_run(body, n, DEFAULT)
+    assert fast is not None
+    slow = codec._realisation_maps(body, "slots[0]", n, DEFAULT)
+    for f, g in zip((fast[0], fast[3]), (slow[0], slow[3]), strict=True):
+        assert f.dtype == g.dtype and np.array_equal(f, g)
+    assert _bits(fast[1]) == _bits(slow[1])
+    assert list(fast[2]) == list(slow[2]) == [0]
+    got = decode(blob).stack.slots[0].summary
+    assert [r.classes for r in got.realisations] == [r.classes for r in summary.realisations]
+    assert _bits([r.log_phi for r in got.realisations]) == _bits(
+        [r.log_phi for r in summary.realisations]
+    )
+
+
+def _one_xi_doc() -> dict[str, Any]:
+    summary = one_xi_summary(np.random.default_rng(5), 3, 5)
+    return msgpack.unpackb(encode(StackMessage("r0", None, Stack((Slot("r1", 1, summary),)))))
+
+
+@pytest.mark.parametrize(
+    "change",
+    [
+        "int-phi",
+        "key-order",
+        "second-carrier",
+        "ref-to-1",
+        "class-too-big",
+        "str-class",
+    ],
+)
+def test_codec_a_shared_xi_body_in_any_other_form_takes_the_map_by_map_path(change: str) -> None:
+    """Anything but the fixed layout is left to the map-by-map path, which accepts what is valid
+    (an integer log φ, another key order, two carriers) and names the field of what is not."""
+    doc = _one_xi_doc()
+    reals = doc["slots"][0]["real"]
+    if change == "int-phi":
+        reals[2]["phi"] = 3
+    elif change == "key-order":
+        reals[3] = {"xi": 0, "phi": reals[3]["phi"], "c": reals[3]["c"]}
+    elif change == "second-carrier":
+        reals[2] = {**reals[0], "c": reals[2]["c"], "phi": reals[2]["phi"]}
+    elif change == "ref-to-1":
+        reals[1] = {**reals[0], "c": reals[1]["c"]}
+        reals[4]["xi"] = 1
+    elif change == "class-too-big":
+        reals[4]["c"] = bytes([0, 9, 1])
+    elif change == "str-class":
+        reals[1]["c"] = "abc"
+    blob = bytes(msgpack.packb(doc, use_bin_type=True))
+    assert codec._shared_xi_run(_slot_body(blob), 3, Limits(num_classes=3)) is None
+    if change == "class-too-big":
+        with pytest.raises(InvalidValue) as info:
+            decode(blob, Limits(num_classes=3))
+        assert info.value.field == "slots[0].real[4].c"
+        return
+    if change == "str-class":
+        with pytest.raises(MalformedMessage) as caught:
+            decode(blob)
+        assert caught.value.field == "slots[0].real[1].c"
+        return
+    got = decode(blob).stack.slots[0].summary.realisations
+    assert [r.classes for r in got] == [tuple(r["c"]) for r in reals]
+    assert [r.log_phi for r in got] == [float(r["phi"]) for r in reals]
+    if change == "ref-to-1":
+        assert got[4].xi is got[1].xi and got[1].xi is not got[0].xi
 
 
 def _with_reference(index: int, ref: Any, carry: bool = False) -> bytes:
