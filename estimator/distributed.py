@@ -291,34 +291,41 @@ class DistributedBelief(HybridBelief):
             self._object_index[j] = len(self.object_ids)
             self.object_ids.append(j)
         # Children that continue one continuous belief with the same ξ of every slot share
-        # one continuous belief: fused once, copied only where the ξ differ.
-        source = {id(h.continuous): h.continuous for h in parents}
-        groups: dict[tuple[int, ...], list[int]] = {}
-        xi_ids = []  # per slot of the batch: the identity of each realisation's ξ
-        for sl in batch:
-            distinct, which = sl.summary.distinct_xi()
-            xi_ids.append([id(distinct[w]) for w in which])
-        for n, p in enumerate(join.parent):
-            xis = tuple(xi_ids[b][int(r)] if r >= 0 else -1 for b, r in enumerate(join.picks[n]))
-            groups.setdefault((id(parents[int(p)].continuous), *xis), []).append(n)
-        last_group = {}
-        for key in groups:
-            last_group[key[0]] = key
+        # one continuous belief: fused once, copied only where the ξ differ. A group is keyed by
+        # the parent's continuous belief and the ξ picked from every slot (by their indices
+        # among the distinct ones: the same ξ object, the same index), in order of first child.
+        conts, cont_of = distinct_continuous(parents)
+        key = np.empty((len(join.parent), 1 + len(batch)), dtype=np.int64)
+        key[:, 0] = np.asarray(cont_of, dtype=np.int64)[join.parent]
+        for b, sl in enumerate(batch):
+            which = np.asarray(sl.summary.distinct_xi()[1], dtype=np.int64)
+            r = join.picks[:, b]
+            key[:, 1 + b] = np.where(r >= 0, which[np.maximum(r, 0)], -1)
+        _, first, group_of = np.unique(key, axis=0, return_index=True, return_inverse=True)
+        group_of = group_of.reshape(-1)
+        order = np.argsort(first, kind="stable")  # groups in order of their first child
+        last_of_cont = {int(key[first[g], 0]): g for g in order}  # the last group of a belief
+        classes_of = join.classes.tolist()
+        log_weight_of = join.log_weight.tolist()
+        picks_of = join.picks.tolist()
+        phis_of = join.phis.tolist()
+        owners = [sl.owner for sl in batch]
         children: dict[int, Hypothesis] = {}
         xi = _XiFactors()
-        for key, members in groups.items():
-            base = source[key[0]]
-            cont = base if last_group[key[0]] == key else base.copy()
-            first = members[0]
-            picks = [(b, int(r)) for b, r in enumerate(join.picks[first]) if r >= 0]
+        for g in order:
+            members = np.flatnonzero(group_of == g).tolist()
+            c = int(key[first[g], 0])
+            base = conts[c]
+            cont = base if last_of_cont[c] == g else base.copy()
+            picks = [(b, r) for b, r in enumerate(picks_of[members[0]]) if r >= 0]
             self._fuse(cont, picks, batch, join.order, settle, xi)
             for n in members:
                 used_phi = dict(parents[int(join.parent[n])].used_phi)
-                for b, r in enumerate(join.picks[n]):
+                phis = phis_of[n]
+                for b, r in enumerate(picks_of[n]):
                     if r >= 0:
-                        used_phi[batch[b].owner] = float(join.phis[n, b])
-                classes = tuple(int(c) for c in join.classes[n])
-                children[n] = Hypothesis(classes, cont, float(join.log_weight[n]), used_phi)
+                        used_phi[owners[b]] = phis[b]
+                children[n] = Hypothesis(tuple(classes_of[n]), cont, log_weight_of[n], used_phi)
         children_list = [children[n] for n in range(len(join.parent))]
         self.hypotheses = children_list
         self._normalise()
@@ -415,6 +422,10 @@ class DistributedBelief(HybridBelief):
         )
         skipped: set[str] = set()
         self._completed = 0
+        # log φ of the version of each slot's owner every hypothesis used before (0 if none)
+        old_log_phi = np.array(
+            [[h.used_phi.get(s.owner, 0.0) for s in batch] for h in self.hypotheses], dtype=float
+        ).reshape(len(self.hypotheses), len(batch))
         for b, s in enumerate(batch):
             ids = s.summary.object_ids
             shared = [(known[j], i) for i, j in enumerate(ids) if j in known]
@@ -430,7 +441,9 @@ class DistributedBelief(HybridBelief):
                 join = join.keep(np.sort(heaviest[: max(1, self.config.max_join // width)]))
             log_phi = s.summary.log_phis()
             rows, cols = _fits(join.classes[:, d_cols], real_cls[:, s_cols])
-            unmatched = np.setdiff1d(np.arange(len(join.parent)), rows)
+            matched = np.zeros(len(join.parent), dtype=bool)
+            matched[rows] = True
+            unmatched = np.flatnonzero(~matched)
             near_rows, near_cols, near_phi = _nearest(
                 join.classes[:, d_cols], real_cls[:, s_cols], real_cls[:, fresh], log_phi, unmatched
             )
@@ -448,7 +461,7 @@ class DistributedBelief(HybridBelief):
             new_cls = real_cls[:, fresh]
             lw = join.log_weight[rows] + phi + self._log_prior[new_cls[cols]].sum(axis=1)
             if self.fusion == "consistent":
-                lw -= self._old_log_phi(s.owner)[join.parent[rows]]
+                lw -= old_log_phi[:, b][join.parent[rows]]
             picks = join.picks[rows].copy()
             picks[:, b] = cols
             phis = join.phis[rows].copy()
@@ -466,10 +479,6 @@ class DistributedBelief(HybridBelief):
             for i in fresh:
                 known[ids[i]] = len(known)
         return join, skipped
-
-    def _old_log_phi(self, owner: str) -> Array:
-        """log φ of the version of ``owner``'s slot each hypothesis used before (0 if none)."""
-        return np.array([h.used_phi.get(owner, 0.0) for h in self.hypotheses])
 
     def _fuse(
         self,

@@ -95,9 +95,11 @@ def _support(w: Array, classes: IntArray, marg: Array, floor: float) -> NDArray[
     out = np.zeros(len(w), dtype=bool)
     order = np.argsort(-w, kind="stable")
     ranked = classes[order]  # (K, n), heaviest first
-    for j in range(classes.shape[1]):
-        for i in np.flatnonzero(marg[j] >= floor):
-            out[order[int(np.argmax(ranked[:, j] == i))]] = True
+    for i in range(marg.shape[1]):
+        objects = np.flatnonzero(marg[:, i] >= floor)
+        if len(objects):
+            # the first (heaviest) row carrying class i, for each of those objects
+            out[order[np.argmax(ranked[:, objects] == i, axis=0)]] = True
     return out
 
 

@@ -60,7 +60,7 @@ class Realisations(Sequence[Realisation]):
     share the very ``Xi`` objects of ``xis``. The arrays must not be changed (the decoder gives
     read-only ones)."""
 
-    __slots__ = ("classes", "log_phi", "xi_index", "xis")
+    __slots__ = ("_distinct", "classes", "log_phi", "xi_index", "xis")
 
     def __init__(
         self,
@@ -75,6 +75,14 @@ class Realisations(Sequence[Realisation]):
         self.log_phi = log_phi
         self.xis = tuple(xis)
         self.xi_index = xi_index
+        self._distinct: tuple[list[Xi], list[int]] | None = None
+
+    def distinct_xi(self) -> tuple[list[Xi], list[int]]:
+        """As :meth:`LocalSummary.distinct_xi` (made once: the columns never change)."""
+        if self._distinct is None:
+            self._distinct = _first_use(self.xis, self.xi_index)
+        xis, which = self._distinct
+        return list(xis), list(which)
 
     def __len__(self) -> int:
         return len(self.log_phi)
@@ -109,7 +117,7 @@ class LocalSummary:
         of each realisation's ξ in that list."""
         rs = self.realisations
         if isinstance(rs, Realisations):
-            return _first_use(rs.xis, rs.xi_index)
+            return rs.distinct_xi()
         index: dict[int, int] = {}
         xis: list[Xi] = []
         which = []
