@@ -128,6 +128,12 @@ def test_a_digest_travels_with_a_delta_stack_and_a_bad_one_is_refused() -> None:
         ([["r1", 0]], "have[0]"),
         ("r1", "have"),
         ([["bad id!", 0, 1]], "have[0]"),
+        ([["r1", 0, 3], ["r2", True, 3]], "have[1]"),  # a bool is no integer
+        ([["r1", 0, 3], ["r2", 0.0, 3]], "have[1]"),
+        ([["r1", 0, 10_000_000]], "have[0]"),
+        ([["r1", 2**53, 3]], "have[0]"),
+        ([[7, 0, 1]], "have[0]"),
+        ([("r1", 0, 3), ["r2", 0, 3, 4]], "have[1]"),
     ):
         doc["have"] = bad
         with pytest.raises(RemoteProtocolError) as err:
