@@ -13,6 +13,7 @@ them), around one pump; the scoring itself is in :mod:`deploy.launch.scoring`.
 
 from __future__ import annotations
 
+import collections
 import logging
 import math
 import time
@@ -42,6 +43,12 @@ Array = NDArray[np.float64]
 # robots it still waits for, and only those answer it (with their estimate), so its cost does not
 # grow with the fleet.
 RESEND_MAX = 8
+# Estimates are scored against the truth after the run, or while more than this many wait: the
+# scoring is the conductor's largest cost, and during a run it competes with the agents for the
+# cores (20 agents on 2 cores: the conductor, minutes of scoring behind, heard only the first
+# 9–15 of 20 steps by the end of a run whose agents had all finished). The bound keeps the
+# snapshots held in memory to a few dozen megabytes.
+MAX_UNSCORED = 256
 
 
 class ConductorError(RuntimeError):
@@ -131,6 +138,7 @@ class Conductor:
         self._index = {r: i for i, r in enumerate(self.robots)}
         self._acked: dict[str, int] = {r: 0 for r in self.robots}
         self._scored: set[tuple[str, int]] = set()
+        self._unscored: collections.deque[EstimateMessage] = collections.deque()
         self._need_order_t = -math.inf  # when a frame request last made the order go again
 
     async def open(self) -> None:
@@ -186,6 +194,8 @@ class Conductor:
                     self._order(self.k)
         for m in self.estimates.drain():
             self._on_estimate(m.payload)
+        while len(self._unscored) > MAX_UNSCORED:
+            self._score(self._unscored.popleft())
         now = time.monotonic()
         for m in self.stacks.drain():
             robot = self.keys.robot_of(m.key)
@@ -227,11 +237,20 @@ class Conductor:
             c.repeated += 1
             return
         self._scored.add((est.robot, est.k))
-        for belief, snap in est.beliefs.items():
-            self.scorer.record(belief, est.robot, est.k, snap)
+        self._unscored.append(est)
         for belief, key in (("local", "step_us_local"), ("distributed", "step_us_distributed")):
             if key in est.counters:
                 c.step_ms.setdefault(belief, []).append(est.counters[key] / 1e3)
+
+    def _score(self, est: EstimateMessage) -> None:
+        for belief, snap in est.beliefs.items():
+            self.scorer.record(belief, est.robot, est.k, snap)
+
+    def score_pending(self) -> None:
+        """Score every estimate received and not scored yet (``collected.metrics`` and
+        ``calibration`` are complete after this; the launcher calls it when the run is over)."""
+        while self._unscored:
+            self._score(self._unscored.popleft())
 
     def acked(self, robot: str) -> int:
         return self._acked[robot]

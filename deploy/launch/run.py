@@ -467,6 +467,7 @@ class Launcher:
             raise LaunchError(f"netns run {network.layout.run}: could not remove {', '.join(left)}")
 
     def _outcome(self, conductor: Conductor, wall: float) -> LaunchOutcome:
+        conductor.score_pending()
         c = conductor.collected
         steps = self.steps
         metrics = {m: {n: v[:, :steps] for n, v in c.metrics[m].items()} for m in LAUNCH_METHODS}

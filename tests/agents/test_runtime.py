@@ -28,6 +28,7 @@ from agents.runtime import Agent
 from agents.transport import Inbox, Keys, MemoryBus, MemoryTransport
 from deploy.build import belief_model, belief_rng, make_node, make_nodes
 from deploy.fleet import run_fleet
+from deploy.launch import conductor as conductor_module
 from deploy.launch.conductor import Conductor, ConductorError
 from estimator.hybrid import BeliefConfig, BeliefSnapshot
 from estimator.models import SensorFrame
@@ -533,12 +534,43 @@ async def test_conductor_scores_a_step_once_however_often_its_estimate_comes(
         agent.publish(KEYS.estimate("r2"), encode_estimate(other))
         await asyncio.sleep(0.05)
         conductor.pump()
+        assert scored == []  # scored after the run, not while the agents need the cores
+        conductor.score_pending()
         c = conductor.collected
         assert scored == [("distributed", "r1", 1), ("distributed", "r2", 1)]
         assert c.received == {"r1": 4, "r2": 1} and c.repeated == 3
         assert c.step_ms["distributed"] == [1.0]
         assert c.counters["r1"]["stacks_received"] == 3  # the latest estimate's counters
         assert np.isfinite(c.metrics["distributed"]["robot_error"][0, 0])
+    finally:
+        await agent.close()
+        await side.close()
+
+
+@pytest.mark.asyncio
+async def test_conductor_scores_during_the_run_only_what_exceeds_its_backlog(
+    frames: dict[str, list[SensorFrame]], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Scoring waits for the end of the run, but never holds more than MAX_UNSCORED estimates:
+    beyond, the oldest are scored as they come."""
+    monkeypatch.setattr(conductor_module, "MAX_UNSCORED", 1)
+    bus = MemoryBus()
+    side = MemoryTransport(bus)
+    conductor = Conductor(SCENARIO, frames, ROBOTS, side, KEYS, CHAIN)
+    await conductor.open()
+    agent = MemoryTransport(bus)
+    await agent.open()
+    try:
+        nodes = _nodes()
+        for r in ROBOTS:
+            message = EstimateMessage(r, 1, {"distributed": nodes[r].distributed.snapshot(r)})
+            agent.publish(KEYS.estimate(r), encode_estimate(message))
+        await asyncio.sleep(0.05)
+        conductor.pump()
+        errors = conductor.collected.metrics["distributed"]["robot_error"][:, 0]
+        assert np.isfinite(errors).tolist() == [True, True, False]  # r3 waits
+        conductor.score_pending()
+        assert np.isfinite(conductor.collected.metrics["distributed"]["robot_error"][:, 0]).all()
     finally:
         await agent.close()
         await side.close()
