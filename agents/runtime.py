@@ -152,7 +152,7 @@ class Agent:
 
     def replay(self, records: Sequence[Record]) -> None:
         """Rebuild the belief from journal records (before :meth:`run`)."""
-        self._execute(self.core.replay(records))
+        execute_journal_actions(self.log, self.core.replay(records))
 
     def stop(self, reason: str = "") -> None:
         self.stop_reason = self.stop_reason or reason
@@ -223,8 +223,7 @@ class Agent:
             self.gossip_gap_max_s = max(self.gossip_gap_max_s, now - last)
             last = now
             links = self.transport.links()
-            for kind in ("stream", "datagram"):
-                self.links_max[kind] = max(self.links_max[kind], links.get(kind, 0))
+            self.links_max = {k: max(n, links.get(k, 0)) for k, n in self.links_max.items()}
             self._carry_out(self.core.on_timer(self.clock()))
 
     async def _watch_loop(self, tick: float = 0.01) -> None:
@@ -240,8 +239,7 @@ class Agent:
             "inbox_dropped": sum(i.dropped for i in self.inboxes),
             "loop_lag_max_us": round(1e6 * self.loop_lag_max_s),
             "gossip_gap_max_us": round(1e6 * self.gossip_gap_max_s),
-            "links_stream_max": self.links_max["stream"],
-            "links_datagram_max": self.links_max["datagram"],
+            **{f"links_{kind}_max": n for kind, n in self.links_max.items()},
             **ros2,
         }
 
@@ -281,11 +279,7 @@ class Agent:
                 puts += [(frames_key, f) for f in self.ros2.bridge.on_input(m.key, m.payload)]
             else:
                 puts.append((m.key, m.payload))
-        return self._execute(self.core.on_messages(puts, self.clock()))
-
-    def _execute(self, actions: Sequence[Action]) -> list[Action]:
-        """Carry out the journal actions; return the others."""
-        return execute_journal_actions(self.log, actions)
+        return execute_journal_actions(self.log, self.core.on_messages(puts, self.clock()))
 
     def _carry_out(self, actions: Sequence[Action]) -> None:
         """On the loop: publications and halts."""
@@ -298,7 +292,7 @@ class Agent:
             elif isinstance(a, Halt):
                 self.stop(a.reason)
             else:
-                self._execute([a])
+                execute_journal_actions(self.log, [a])
 
     def counter_values(self) -> dict[str, int]:
         return self.core.counter_values()
