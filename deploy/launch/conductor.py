@@ -70,6 +70,9 @@ class Collected:
     repeated: int = 0
     invalid: int = 0
     last_step: dict[str, int] = field(default_factory=dict)
+    # Real time: each robot's last step the conductor had heard of one period after the last
+    # frame, when every robot should have taken it (then ``settle`` lets the late ones finish).
+    on_time: dict[str, int] = field(default_factory=dict)
     final: dict[str, EstimateMessage] = field(default_factory=dict)
     estimates: dict[tuple[str, int], EstimateMessage] = field(default_factory=dict)
     stack_log: list[tuple[float, str, dict[str, int]]] = field(default_factory=list)
@@ -340,6 +343,7 @@ class Conductor:
                     max(0.0, min(0.05, start + k * period - time.monotonic()))
                 )
                 self.pump()
+        self.collected.on_time = {r: self._acked[r] for r in self.robots}
         deadline = time.monotonic() + settle
         last_send = time.monotonic()
         while any(self._acked[r] < steps for r in self.robots) and time.monotonic() < deadline:
