@@ -398,12 +398,21 @@ class HybridBelief:
         hyps = self.hypotheses
         conts, which = distinct_continuous(hyps)
         n = len(keys)
-        object_pose = np.array([[c.pose(key) for key in keys] for c in conts]).reshape(
-            len(conts), n, 3
-        )[which]
-        object_cov = np.array(
-            [[c.isam.marginalCovariance(key) for key in keys] for c in conts]
-        ).reshape(len(conts), n, 3, 3)[which]
+
+        def per_hypothesis(per_cont: Array) -> Array:
+            # One continuous belief (the default): a read-only view of it for every hypothesis.
+            if len(conts) == 1:
+                return np.broadcast_to(per_cont, (len(hyps), *per_cont.shape[1:]))
+            return per_cont[which]
+
+        object_pose = per_hypothesis(
+            np.array([[c.pose(key) for key in keys] for c in conts]).reshape(len(conts), n, 3)
+        )
+        object_cov = per_hypothesis(
+            np.array([[c.isam.marginalCovariance(key) for key in keys] for c in conts]).reshape(
+                len(conts), n, 3, 3
+            )
+        )
         classes = np.array([h.classes for h in hyps], dtype=np.int64).reshape(len(hyps), n)
         weights = self.weights()
         out = {}
@@ -413,8 +422,8 @@ class HybridBelief:
                 tuple(self.object_ids),
                 weights,
                 classes,
-                np.array([c.pose(xk) for c in conts])[which],
-                np.array([c.isam.marginalCovariance(xk) for c in conts])[which],
+                per_hypothesis(np.array([c.pose(xk) for c in conts])),
+                per_hypothesis(np.array([c.isam.marginalCovariance(xk) for c in conts])),
                 object_pose,
                 object_cov,
             )

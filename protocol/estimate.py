@@ -190,15 +190,27 @@ def _encode_snapshot(snap: BeliefSnapshot, where: str, lim: EstimateLimits) -> d
         _local(a.shape == shape, f"{where}.{name}", f"expected shape {shape}, got {a.shape}")
         kinds = "iu" if dtype == "<i8" else "fiu"
         _local(a.dtype.kind in kinds, f"{where}.{name}", f"wrong dtype {a.dtype}")
-    _check_values(arrays, where, lim, LocalProtocolError)
     out: dict[str, Any] = {"objects": [int(j) for j in ids], _SHARED: False}
-    for name, (dtype, _) in _LAYOUT.items():
+    for name in _SHAREABLE:
         a = arrays[name]
-        if h > 1 and name in _SHAREABLE and np.array_equal(a, np.broadcast_to(a[:1], a.shape)):
-            a = a[:1]  # the same in every hypothesis: sent once
+        if h > 1 and _same_in_every_row(a):
+            arrays[name] = a[:1]  # the same in every hypothesis: checked and sent once
             out[_SHARED] = True
-        out[name] = np.ascontiguousarray(a, dtype=dtype).tobytes()
+    _check_values(arrays, where, lim, LocalProtocolError)
+    for name, (dtype, _) in _LAYOUT.items():
+        out[name] = np.ascontiguousarray(arrays[name], dtype=dtype).tobytes()
     return out
+
+
+def _same_in_every_row(a: np.ndarray) -> bool:
+    """Whether every row (hypothesis) of ``a`` equals its first, to the bit: at once for a
+    broadcast view of one row (what a belief with one continuous belief gives)."""
+    if a.strides[0] == 0:
+        return True
+    first = a[:1]
+    return bool(np.array_equal(a, np.broadcast_to(first, a.shape))) and (
+        a.dtype.kind != "f" or (np.signbit(a) == np.signbit(first)).all()
+    )
 
 
 _SHARED = "shared"  # (internal to encode: not a key on the wire)

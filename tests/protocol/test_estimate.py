@@ -460,6 +460,20 @@ def test_estimate_poses_every_hypothesis_shares_travel_once(seed: int) -> None:
     sent = msgpack.unpackb(blob)["beliefs"]["distributed"]
     assert (len(sent["object_cov"]), len(sent["object_pose"])) == (72 * h * n, 24 * n)
     assert_same_snapshot(decode_estimate(blob).beliefs["distributed"], apart)
+    # −0.0 where the others hold 0.0 compares equal, but is not the same bits: sent whole
+    pose = np.array(snap.object_pose)
+    pose[:, 0, 0] = 0.0
+    pose[h - 1, 0, 0] = -0.0
+    signed = dataclasses.replace(snap, object_pose=pose)
+    blob = encode_estimate(EstimateMessage("r1", 3, {"distributed": signed}))
+    assert len(msgpack.unpackb(blob)["beliefs"]["distributed"]["object_pose"]) == 24 * h * n
+    assert_same_snapshot(decode_estimate(blob).beliefs["distributed"], signed)
+    # a read-only view of one hypothesis for all (what a belief's snapshot gives): sent once
+    view = dataclasses.replace(
+        snap, object_cov=np.broadcast_to(snap.object_cov[:1], snap.object_cov.shape)
+    )
+    blob = encode_estimate(EstimateMessage("r1", 3, {"distributed": view}))
+    assert len(msgpack.unpackb(blob)["beliefs"]["distributed"]["object_cov"]) == 72 * n
     single = make_snapshot(rng, 1, n)
     assert msgpack.unpackb(encode_estimate(EstimateMessage("r1", 3, {"local": single})))["v"] == 1
 
