@@ -75,6 +75,61 @@ def _paper_stacks(count: int) -> tuple[list[bytes], RobotNode]:
     return blobs, receiver
 
 
+class _Pair:
+    """A publishing and a receiving session, open, with the receiver's subscriptions declared:
+    ``raw(data)`` times put → the subscriber's callback on Zenoh's thread, ``gossip(data,
+    receiver)`` put → inbox on the loop → decode → merge (and the decode inside it), in ms."""
+
+    def __init__(self, a: ZenohTransport, b: ZenohTransport, sender: str, capacity: int) -> None:
+        self.a, self.b, self.sender = a, b, sender
+        self.keys = Keys("bench")
+        self.inbox = Inbox(capacity)
+        self.arrivals: list[float] = []
+        self.got = asyncio.Event()
+
+    async def open(self) -> None:
+        loop = asyncio.get_running_loop()
+
+        def raw(_: bytes) -> None:
+            self.arrivals.append(time.perf_counter())
+            loop.call_soon_threadsafe(self.got.set)
+
+        self.b.subscribe(self.keys.stack(self.sender), self.inbox)
+        await self.a.open()
+        await self.b.open()
+        self.b.subscribe_raw(self.keys.estimate(self.sender), raw)
+        await asyncio.sleep(1.0)  # let the declarations reach the publisher (pitfall 9)
+
+    async def close(self) -> None:
+        await self.a.close()
+        await self.b.close()
+
+    async def raw(self, data: bytes) -> float:
+        self.got.clear()
+        t0 = time.perf_counter()
+        self.a.publish(self.keys.estimate(self.sender), data)
+        await asyncio.wait_for(self.got.wait(), 5)
+        return 1e3 * (self.arrivals[-1] - t0)
+
+    async def gossip(self, data: bytes, receiver: RobotNode) -> tuple[float, float]:
+        t0 = time.perf_counter()
+        self.a.publish(self.keys.stack(self.sender), data)
+        message = await asyncio.wait_for(self.inbox.get(), 5)
+        t1 = time.perf_counter()
+        decoded = receiver.decode_stack(message.payload)
+        t2 = time.perf_counter()
+        assert decoded is not None and receiver.merge(decoded)
+        return 1e3 * (time.perf_counter() - t0), 1e3 * (t2 - t1)
+
+
+def _plain_pair(sender: str, capacity: int) -> _Pair:
+    """Two sessions over plain TCP on loopback."""
+    a_port, b_port = free_ports(2)
+    a = ZenohTransport(settings_for(a_port, [], gossip=False))
+    b = ZenohTransport(settings_for(b_port, [a_port], gossip=False))
+    return _Pair(a, b, sender, capacity)
+
+
 async def _latencies(
     blobs: list[bytes],
     receiver: RobotNode,
@@ -83,53 +138,21 @@ async def _latencies(
 ) -> tuple[list[float], list[float], list[float]]:
     """Raw put → callback, and put → merged with the decode inside it timed on its own (ms).
     ``sessions``: the publishing and the receiving session (default: plain TCP on loopback);
-    ``sender``: the robot whose keys the publisher uses (its stack, its estimate for raw puts)."""
-    if sessions is None:
-        a_port, b_port = free_ports(2)
-        a = ZenohTransport(settings_for(a_port, [], gossip=False))
-        b = ZenohTransport(settings_for(b_port, [a_port], gossip=False))
-    else:
-        a, b = sessions
-    keys = Keys("bench")
-    inbox = Inbox(len(blobs) + 1)
-    arrivals: list[float] = []
-    got = asyncio.Event()
-    loop = asyncio.get_running_loop()
-
-    def raw(_: bytes) -> None:
-        arrivals.append(time.perf_counter())
-        loop.call_soon_threadsafe(got.set)
-
-    raw_ms: list[float] = []
-    gossip_ms: list[float] = []
-    decode_ms: list[float] = []
+    ``sender``: the robot whose keys the publisher uses (its stack, its estimate for raw puts).
+    Two separate passes over the same payloads (interleaving them lets one message's
+    transmission overlap the other's measurement); the first 10 of each are warm-up."""
+    pair = (
+        _plain_pair(sender, len(blobs) + 1)
+        if sessions is None
+        else _Pair(*sessions, sender, len(blobs) + 1)
+    )
     try:
-        b.subscribe(keys.stack(sender), inbox)
-        await a.open()
-        await b.open()
-        b.subscribe_raw(keys.estimate(sender), raw)
-        await asyncio.sleep(1.0)  # let the declarations reach the publisher (pitfall 9)
-        # Two separate passes over the same payloads (interleaving them lets one message's
-        # transmission overlap the other's measurement); the first 10 of each are warm-up.
-        for data in blobs:  # raw: put → the subscriber's callback on Zenoh's thread
-            got.clear()
-            t0 = time.perf_counter()
-            a.publish(keys.estimate(sender), data)
-            await asyncio.wait_for(got.wait(), 5)
-            raw_ms.append(1e3 * (arrivals[-1] - t0))
-        for data in blobs:  # gossip: put → inbox on the loop → decode → merge
-            t0 = time.perf_counter()
-            a.publish(keys.stack(sender), data)
-            message = await asyncio.wait_for(inbox.get(), 5)
-            t1 = time.perf_counter()
-            decoded = receiver.decode_stack(message.payload)
-            decode_ms.append(1e3 * (time.perf_counter() - t1))
-            assert decoded is not None and receiver.merge(decoded)
-            gossip_ms.append(1e3 * (time.perf_counter() - t0))
+        await pair.open()
+        raw_ms = [await pair.raw(data) for data in blobs]
+        timed = [await pair.gossip(data, receiver) for data in blobs]
     finally:
-        await a.close()
-        await b.close()
-    return raw_ms[10:], gossip_ms[10:], decode_ms[10:]
+        await pair.close()
+    return raw_ms[10:], [g for g, _ in timed][10:], [d for _, d in timed][10:]
 
 
 def _gossip_rows() -> list[Result]:
