@@ -147,6 +147,8 @@ class LocalSummary:
 def _first_use(xis: Sequence[Xi], index: NDArray[np.integer]) -> tuple[list[Xi], list[int]]:
     """``xis`` renumbered in order of first use by ``index``, the unused left out (and a ξ held
     twice by identity, once)."""
+    if len(xis) == 1:  # every index is 0: the default belief's one ξ
+        return [xis[0]], [0] * len(index)
     used, first, inverse = np.unique(index, return_index=True, return_inverse=True)
     order = np.argsort(first, kind="stable")  # the used ξ by first use
     out: list[Xi] = []
