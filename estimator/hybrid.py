@@ -22,7 +22,6 @@ from dataclasses import dataclass, field
 import gtsam
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.special import logsumexp
 
 from estimator.factors import (
     diagonal_noise,
@@ -31,6 +30,7 @@ from estimator.factors import (
     semantic_factor,
 )
 from estimator.ledger import SemanticLedger
+from estimator.logsumexp import logsumexp
 from estimator.models import ClassifierModel, Detection, GaussianNoise, SensorFrame, viewpoint
 from estimator.pruning import PRUNINGS, PruningRule, class_marginals, match_marginals, select
 from estimator.snapshot import BeliefSnapshot  # re-exported: it used to live here

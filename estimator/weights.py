@@ -15,8 +15,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 from scipy.linalg import solve_triangular
-from scipy.special import logsumexp
 
+from estimator.logsumexp import logsumexp
 from estimator.models import ClassifierModel, se2, viewpoint
 from estimator.models.classifier import all_log_likelihoods
 
