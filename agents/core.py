@@ -576,6 +576,19 @@ class AgentCore:
         sender_key = self.keys.robot_of(key)
         if sender_key == self.robot:
             return []  # our own publication, echoed by the session
+        if (
+            self.settings.simulation
+            and self.settings.mode == "realtime"
+            and sender_key is not None
+            and not self._heard(sender_key)
+        ):
+            # A simulated radio: a robot out of range is not heard at all, so its stack is not
+            # read either (decoding them was most of what a 20-agent simulation spent on stacks).
+            self.node.counters.stacks_received += 1
+            self.node.counters.bytes_received += len(payload)
+            if self._links:  # before the simulator's first verdict nobody is out of range
+                self.counters.ignored_out_of_range += 1
+            return []
         message = self.node.decode_stack(payload)
         if message is None:
             self._log_invalid(sender_key or key, ValueError(self.node.counters.last_error))

@@ -134,7 +134,7 @@ class Agent:
         self.inboxes = (self.control, self.frames, self.stacks, *ros2_inboxes)
         self.stop_reason = ""
         self.worker_busy_s = 0.0
-        self.loop_lag_max_s = 0.0  # the longest the loop was held beyond a 10 ms tick
+        self.loop_lag_max_s = 0.0  # the longest the loop was held beyond a 50 ms tick
         self.gossip_gap_max_s = 0.0  # the longest time between two gossip ticks
         self.links_max = {"stream": 0, "datagram": 0}  # the most links seen at a tick
         self._worker = concurrent.futures.ThreadPoolExecutor(1, f"agent-{self.robot}")
@@ -226,8 +226,10 @@ class Agent:
             self.links_max = {k: max(n, links.get(k, 0)) for k, n in self.links_max.items()}
             self._carry_out(self.core.on_timer(self.clock()))
 
-    async def _watch_loop(self, tick: float = 0.01) -> None:
-        """Measures how long the loop is ever held: a 10 ms sleep that wakes late was held."""
+    async def _watch_loop(self, tick: float = 0.05) -> None:
+        """Measures how long the loop is ever held: a 50 ms sleep that wakes late was held (a
+        hold longer than the tick always delays a wake; 10 ms ticks cost 20 agents 3 % of the
+        machine in wake-ups)."""
         while True:
             t0 = time.perf_counter()
             await asyncio.sleep(tick)

@@ -520,3 +520,19 @@ def test_a_lockstep_agent_parses_a_buffered_slot_version_once(frames) -> None:  
     d.send(KEYS.stack("r2"), data)
     assert (c.slots_decoded, c.slots_reused, c.slots_skipped) == (1, 5, 1)
     assert not d.core.node._parsed
+
+
+def test_a_simulated_agent_does_not_read_the_stacks_of_robots_out_of_range() -> None:
+    """A simulated radio: what a robot out of range sends is counted as received and out of
+    range, and never decoded (garbage from it is not even found invalid); what a robot in range
+    sends is read and judged."""
+    d = Driver(mode="realtime", simulation=True)
+    d.run(d.core.start(0.0))
+    links = StepOrder(1, {"r1": ("r3",)})
+    d.send(KEYS.sim_links(), encode_control(links))
+    d.send(KEYS.stack("r2"), b"\xc1 not a stack")
+    c = d.core.counter_values()
+    assert (c["stacks_received"], c["ignored_out_of_range"], c["stacks_invalid"]) == (1, 1, 0)
+    d.send(KEYS.stack("r3"), b"\xc1 not a stack")
+    c = d.core.counter_values()
+    assert (c["stacks_received"], c["ignored_out_of_range"], c["stacks_invalid"]) == (2, 1, 1)
