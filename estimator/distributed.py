@@ -308,8 +308,14 @@ class DistributedBelief(HybridBelief):
         classes_of = join.classes.tolist()
         log_weight_of = join.log_weight.tolist()
         picks_of = join.picks.tolist()
-        phis_of = join.phis.tolist()
-        owners = [sl.owner for sl in batch]
+        parent_of = join.parent.tolist()
+        # Every row of the join picked a realisation of every slot that joined (a row that
+        # matched none was dropped) and none of a skipped one: log φ per row of the used slots.
+        used_cols = [b for b, sl in enumerate(batch) if sl.owner not in skipped]
+        used_owners = [batch[b].owner for b in used_cols]
+        if not (join.picks[:, used_cols] >= 0).all():
+            raise AssertionError("a row of the join lacks a pick of a slot that joined")
+        phis_of = join.phis[:, used_cols].tolist()
         children: dict[int, Hypothesis] = {}
         xi = _XiFactors()
         for g in order:
@@ -320,11 +326,8 @@ class DistributedBelief(HybridBelief):
             picks = [(b, r) for b, r in enumerate(picks_of[members[0]]) if r >= 0]
             self._fuse(cont, picks, batch, join.order, settle, xi)
             for n in members:
-                used_phi = dict(parents[int(join.parent[n])].used_phi)
-                phis = phis_of[n]
-                for b, r in enumerate(picks_of[n]):
-                    if r >= 0:
-                        used_phi[owners[b]] = phis[b]
+                used_phi = dict(parents[parent_of[n]].used_phi)
+                used_phi.update(zip(used_owners, phis_of[n]))
                 children[n] = Hypothesis(tuple(classes_of[n]), cont, log_weight_of[n], used_phi)
         children_list = [children[n] for n in range(len(join.parent))]
         self.hypotheses = children_list
@@ -423,8 +426,9 @@ class DistributedBelief(HybridBelief):
         skipped: set[str] = set()
         self._completed = 0
         # log φ of the version of each slot's owner every hypothesis used before (0 if none)
+        owners, zeros = [s.owner for s in batch], [0.0] * len(batch)
         old_log_phi = np.array(
-            [[h.used_phi.get(s.owner, 0.0) for s in batch] for h in self.hypotheses], dtype=float
+            [list(map(h.used_phi.get, owners, zeros)) for h in self.hypotheses], dtype=float
         ).reshape(len(self.hypotheses), len(batch))
         for b, s in enumerate(batch):
             ids = s.summary.object_ids

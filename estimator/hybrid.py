@@ -778,9 +778,10 @@ class HybridBelief:
         detected = [self._object_index[d.object_id] for _, d in detections]
         groups: dict[tuple[int, tuple[int, ...]], list[int]] = {}
         child_classes = []
-        for i, p in enumerate(beam.parent):
-            parent = parents[int(p)]
-            classes = parent.classes + tuple(int(c) for c in beam.classes[i])
+        parent_of = beam.parent.tolist()
+        for i, (p, grown) in enumerate(zip(parent_of, beam.classes.tolist(), strict=True)):
+            parent = parents[p]
+            classes = parent.classes + tuple(grown)
             child_classes.append(classes)
             factors = tuple(classes[j] for j in detected) if semantic else ()
             groups.setdefault((id(parent.continuous), factors), []).append(i)
@@ -788,6 +789,7 @@ class HybridBelief:
         for key in groups:
             last_group[key[0]] = key
         source = {id(h.continuous): h.continuous for h in parents}
+        log_weight_of = beam.log_weight.tolist()
         children: dict[int, Hypothesis] = {}
         made = []
         for key, members in groups.items():
@@ -796,9 +798,8 @@ class HybridBelief:
             cont = base if last_group[key[0]] == key else base.copy()
             made.append((cont, child_classes[members[0]]))
             for i in members:
-                parent = parents[int(beam.parent[i])]
-                lw = float(beam.log_weight[i])
-                children[i] = Hypothesis(child_classes[i], cont, lw, dict(parent.used_phi))
+                used_phi = dict(parents[parent_of[i]].used_phi)
+                children[i] = Hypothesis(child_classes[i], cont, log_weight_of[i], used_phi)
         for cont, classes in made:
             self._measure(cont, classes, detections)
         return [children[i] for i in range(len(beam.parent))]

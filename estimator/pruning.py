@@ -93,13 +93,14 @@ def select(
 def _support(w: Array, classes: IntArray, marg: Array, floor: float) -> NDArray[np.bool_]:
     """The heaviest carrier of every (object, class) whose marginal is at least ``floor``."""
     out = np.zeros(len(w), dtype=bool)
-    order = np.argsort(-w, kind="stable")
-    ranked = classes[order]  # (K, n), heaviest first
+    column = w[:, None]
     for i in range(marg.shape[1]):
-        objects = np.flatnonzero(marg[:, i] >= floor)
+        objects = np.flatnonzero((marg[:, i] >= floor) & (marg[:, i] > 0.0))
         if len(objects):
-            # the first (heaviest) row carrying class i, for each of those objects
-            out[order[np.argmax(ranked[:, objects] == i, axis=0)]] = True
+            # The heaviest row carrying class i, for each of those objects (argmax takes the
+            # first of equal weights; a carrier weighs ≥ 0, a non-carrier −1; a marginal > 0
+            # has a carrier).
+            out[np.argmax(np.where(classes[:, objects] == i, column, -1.0), axis=0)] = True
     return out
 
 

@@ -13,7 +13,7 @@ from scipy.special import logsumexp
 from estimator.hybrid import BeliefConfig, BeliefModel, HybridBelief, _Beam, _Evidence
 from estimator.models import GaussianNoise
 from estimator.models.classifier import AliasedClassifier
-from estimator.pruning import PruningRule, class_marginals, match_marginals, select
+from estimator.pruning import PruningRule, _support, class_marginals, match_marginals, select
 from estimator.weights import SampledEvidence
 
 MARGINAL = PruningRule("marginal", 150.0, 1e-4, 300)
@@ -23,6 +23,28 @@ RATIO = PruningRule("ratio", 150.0, 1e-4, 300)
 def _weights(lw: np.ndarray) -> np.ndarray:
     w = np.exp(lw - lw.max())
     return w / w.sum()
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_support_is_the_heaviest_carrier_first_of_equal_weights(seed: int) -> None:
+    """The protected rows are, for each (object, class) with marginal ≥ floor, the heaviest row
+    carrying it, the first of equal weights (ties are common: copies of one weight); a class no
+    row carries protects nothing, even with floor 0."""
+    rng = np.random.default_rng(seed)
+    k, n, m = 60, 5, 4
+    w = rng.choice([0.0, 1e-9, 0.05, 0.05, 0.2, 1.0], k)  # repeated weights, some zero
+    w /= w.sum()
+    classes = rng.integers(0, m - 1, (k, n))  # class m − 1 is carried by no row
+    floor = [0.0, 1e-4, 0.02][seed % 3]
+    marg = class_marginals(w, classes, m)
+    expected = np.zeros(k, dtype=bool)
+    for j in range(n):
+        for i in range(m):
+            carriers = [r for r in range(k) if classes[r, j] == i]
+            if marg[j, i] >= floor and marg[j, i] > 0:
+                best = max(w[r] for r in carriers)
+                expected[min(r for r in carriers if w[r] == best)] = True
+    assert np.array_equal(_support(w, classes, marg, floor), expected)
 
 
 @pytest.mark.parametrize("seed", range(5))
