@@ -327,7 +327,7 @@ class DistributedBelief(HybridBelief):
             self._fuse(cont, picks, batch, join.order, settle, xi)
             for n in members:
                 used_phi = dict(parents[parent_of[n]].used_phi)
-                used_phi.update(zip(used_owners, phis_of[n]))
+                used_phi.update(zip(used_owners, phis_of[n], strict=True))
                 children[n] = Hypothesis(tuple(classes_of[n]), cont, log_weight_of[n], used_phi)
         children_list = [children[n] for n in range(len(join.parent))]
         self.hypotheses = children_list

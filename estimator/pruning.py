@@ -91,16 +91,28 @@ def select(
 
 
 def _support(w: Array, classes: IntArray, marg: Array, floor: float) -> NDArray[np.bool_]:
-    """The heaviest carrier of every (object, class) whose marginal is at least ``floor``."""
+    """The heaviest carrier of every (object, class) whose marginal is at least ``floor`` (and
+    above 0: a class no row carries protects nothing), the first of equal weights.
+
+    Rows are visited heaviest first in blocks of 64, 128, 256 …, and an (object, class) is done
+    once a block holds a carrier: the carriers of the classes that matter are usually among the
+    heaviest rows, so the whole class matrix is rarely compared (a join of 6000 rows: 0.6 ms
+    instead of 8)."""
     out = np.zeros(len(w), dtype=bool)
-    column = w[:, None]
-    for i in range(marg.shape[1]):
-        objects = np.flatnonzero((marg[:, i] >= floor) & (marg[:, i] > 0.0))
-        if len(objects):
-            # The heaviest row carrying class i, for each of those objects (argmax takes the
-            # first of equal weights; a carrier weighs ≥ 0, a non-carrier −1; a marginal > 0
-            # has a carrier).
-            out[np.argmax(np.where(classes[:, objects] == i, column, -1.0), axis=0)] = True
+    need = (marg >= floor) & (marg > 0.0)  # (n, M): the (object, class) still without a carrier
+    order = np.argsort(-w, kind="stable")  # heaviest first, equal weights by index
+    start, size = 0, 64
+    while start < len(w) and need.any():
+        block = order[start : start + size]
+        ranked = classes[block]  # (b, n)
+        for i in np.flatnonzero(need.any(axis=0)):
+            objects = np.flatnonzero(need[:, i])
+            hit = ranked[:, objects] == i
+            found = hit.any(axis=0)
+            out[block[np.argmax(hit, axis=0)[found]]] = True  # the first carrier in the block
+            need[objects[found], i] = False
+        start += size
+        size *= 2
     return out
 
 

@@ -31,10 +31,15 @@ def test_support_is_the_heaviest_carrier_first_of_equal_weights(seed: int) -> No
     carrying it, the first of equal weights (ties are common: copies of one weight); a class no
     row carries protects nothing, even with floor 0."""
     rng = np.random.default_rng(seed)
-    k, n, m = 60, 5, 4
+    k, n, m = (60, 5, 4) if seed < 3 else (700, 5, 4)  # 700: rows are visited in several blocks
     w = rng.choice([0.0, 1e-9, 0.05, 0.05, 0.2, 1.0], k)  # repeated weights, some zero
     w /= w.sum()
-    classes = rng.integers(0, m - 1, (k, n))  # class m − 1 is carried by no row
+    classes = rng.integers(0, m - 2, (k, n))  # class m − 1 is carried by no row
+    light = np.argsort(w, kind="stable")[: k // 20]
+    classes[light, 0] = m - 2  # class m − 2 of object 0: only among the lightest rows
+    if k > 64:  # class m − 2 of object 1: the 65th heaviest row (first of the second block)
+        ranked = np.argsort(-w, kind="stable")
+        classes[ranked[[64, -1]], 1] = m - 2
     floor = [0.0, 1e-4, 0.02][seed % 3]
     marg = class_marginals(w, classes, m)
     expected = np.zeros(k, dtype=bool)
