@@ -502,6 +502,24 @@ async def test_conductor_waits_for_a_slow_round_that_progresses_and_names_a_stuc
         await side.close()
 
 
+@contextlib.asynccontextmanager
+async def _conductor_and_a_robot(
+    frames: dict[str, list[SensorFrame]],
+) -> AsyncIterator[tuple[Conductor, MemoryTransport]]:
+    """A conductor of the chain and a bare transport on its bus to publish as the robots."""
+    bus = MemoryBus()
+    side = MemoryTransport(bus)
+    conductor = Conductor(SCENARIO, frames, ROBOTS, side, KEYS, CHAIN)
+    await conductor.open()
+    agent = MemoryTransport(bus)
+    await agent.open()
+    try:
+        yield conductor, agent
+    finally:
+        await agent.close()
+        await side.close()
+
+
 @pytest.mark.asyncio
 async def test_conductor_scores_a_step_once_however_often_its_estimate_comes(
     frames: dict[str, list[SensorFrame]],
@@ -509,21 +527,15 @@ async def test_conductor_scores_a_step_once_however_often_its_estimate_comes(
     """Lock-step agents answer every re-sent order with their estimate: the conductor scores
     each (robot, step) once — the first estimate — counts the repeats, and keeps one step time
     each, while the repeats still refresh the counters."""
-    bus = MemoryBus()
-    side = MemoryTransport(bus)
-    conductor = Conductor(SCENARIO, frames, ROBOTS, side, KEYS, CHAIN)
-    await conductor.open()
-    agent = MemoryTransport(bus)
-    await agent.open()
-    scored: list[tuple[str, str, int]] = []
-    record = conductor.scorer.record
+    async with _conductor_and_a_robot(frames) as (conductor, agent):
+        scored: list[tuple[str, str, int]] = []
+        record = conductor.scorer.record
 
-    def counting(belief: str, robot: str, k: int, snap: BeliefSnapshot) -> None:
-        scored.append((belief, robot, k))
-        record(belief, robot, k, snap)
+        def counting(belief: str, robot: str, k: int, snap: BeliefSnapshot) -> None:
+            scored.append((belief, robot, k))
+            record(belief, robot, k, snap)
 
-    conductor.scorer.record = counting  # type: ignore[method-assign]
-    try:
+        conductor.scorer.record = counting  # type: ignore[method-assign]
         nodes = _nodes()
         snap = nodes["r1"].distributed.snapshot("r1")
         for i in range(4):
@@ -542,9 +554,6 @@ async def test_conductor_scores_a_step_once_however_often_its_estimate_comes(
         assert c.step_ms["distributed"] == [1.0]
         assert c.counters["r1"]["stacks_received"] == 3  # the latest estimate's counters
         assert np.isfinite(c.metrics["distributed"]["robot_error"][0, 0])
-    finally:
-        await agent.close()
-        await side.close()
 
 
 @pytest.mark.asyncio
@@ -554,13 +563,7 @@ async def test_conductor_scores_during_the_run_only_what_exceeds_its_backlog(
     """Scoring waits for the end of the run, but never holds more than MAX_UNSCORED estimates:
     beyond, the oldest are scored as they come."""
     monkeypatch.setattr(conductor_module, "MAX_UNSCORED", 1)
-    bus = MemoryBus()
-    side = MemoryTransport(bus)
-    conductor = Conductor(SCENARIO, frames, ROBOTS, side, KEYS, CHAIN)
-    await conductor.open()
-    agent = MemoryTransport(bus)
-    await agent.open()
-    try:
+    async with _conductor_and_a_robot(frames) as (conductor, agent):
         nodes = _nodes()
         for r in ROBOTS:
             message = EstimateMessage(r, 1, {"distributed": nodes[r].distributed.snapshot(r)})
@@ -571,6 +574,3 @@ async def test_conductor_scores_during_the_run_only_what_exceeds_its_backlog(
         assert np.isfinite(errors).tolist() == [True, True, False]  # r3 waits
         conductor.score_pending()
         assert np.isfinite(conductor.collected.metrics["distributed"]["robot_error"][:, 0]).all()
-    finally:
-        await agent.close()
-        await side.close()
