@@ -21,6 +21,15 @@ arrives for that step (the failing bytes are never tried again). Every buffer is
 orders, lock-step rounds and simulated links only within ``window`` steps ahead, control
 messages by size, refused slot versions and failed frames by count.
 
+Catching up (real time). An agent whose CPU cannot keep up — many agents on one machine, a long
+step — finds the next frame already waiting when it starts a step. Such a step defers the
+fusion of the peers' slots (and the own stack's publication) to the step that catches up, at
+most ``catch_up`` steps in a row: the robot's own estimate stays current, and every held slot is
+fused a step or a few later, as if it had come later (nothing is lost: fusion takes every slot
+still newer than the version D used). A deferred step is journaled as ``frame_unfused``, and the
+stacks merged before it stay uncommitted suspects until the step that fuses them, so that a
+replay defers the same fusion and a fusion that fails rolls them back.
+
 Over 300 lines for a reason: the agent's whole event logic (frames, stacks, control, links,
 timers, roll-back and replay) is one state machine over one node; split, its invariants (what is
 committed, what is refused) would be spread over modules that all mutate the same state.
@@ -76,6 +85,10 @@ LOCKSTEP_RESEND_MAX = 8  # periods: the longest a lock-step agent waits to re-se
 # ... in a fleet of up to LOCKSTEP_RESEND_MAX / 2 + 1 robots: beyond, 2 (N − 1) periods, so that
 # whatever N an agent receives about one re-sent stack every two periods (N² / (2 (N − 1)) / N).
 WINDOW_STEPS = 64  # the one default of how far ahead frames, orders, rounds and links are kept
+# At most this many steps in a row defer their fusion while the agent is behind its frames: the
+# peers' slots are fused at least every (CATCH_UP_STEPS + 1)-th step (every 2 s at 0.5 s steps).
+CATCH_UP_STEPS = 3
+FRAME, FRAME_UNFUSED = "frame", "frame_unfused"  # journal kinds of a step with and without fusion
 
 
 @dataclass(frozen=True, slots=True)
@@ -85,7 +98,9 @@ class CoreSettings:
     steps ahead of the node; ``max_control_bytes``: larger control messages are refused unread;
     ``invalid_log_period`` (s) between two log lines about invalid input from one source;
     ``simulation``: this agent runs in a simulation and obeys the simulator's links
-    (``sim/links``), which no real robot ever does."""
+    (``sim/links``), which no real robot ever does; ``catch_up``: in real time, how many steps
+    in a row may defer their fusion while the next frame is already waiting (0: never; module
+    docstring)."""
 
     mode: str = "realtime"
     gossip_period: float = GOSSIP_PERIOD_S
@@ -98,6 +113,7 @@ class CoreSettings:
     # "delta": a stack carries the held slots some peer lacks, by the digests (``have``) peers
     # send; "full": every held slot, every time (docs/wire.md, "Delta gossip").
     stack_gossip: str = "delta"
+    catch_up: int = CATCH_UP_STEPS
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -108,6 +124,8 @@ class CoreSettings:
             raise ValueError("gossip and retry periods must be positive")
         if self.window < 1 or self.max_control_bytes < 64:
             raise ValueError("window must be ≥ 1 and max_control_bytes ≥ 64")
+        if self.catch_up < 0:
+            raise ValueError("catch_up must be ≥ 0")
 
 
 # -- actions ---------------------------------------------------------------------------------
@@ -156,7 +174,16 @@ class Halt:
     reason: str
 
 
-Action = Publish | Append | Commit | Quarantine | CutJournal | Halt
+@dataclass(frozen=True, slots=True)
+class Listen:
+    """Subscribe to the stacks of ``peers`` only (None: of every robot). A simulated agent in
+    real time hears only the robots its simulated radio reaches at the coming step; their
+    stacks are the only ones worth receiving (the shell's ``StackSubscriptions``)."""
+
+    peers: frozenset[str] | None
+
+
+Action = Publish | Append | Commit | Quarantine | CutJournal | Halt | Listen
 Version = tuple[str, tuple[int, int]]  # a slot version: owner, (epoch, stamp)
 
 
@@ -169,6 +196,8 @@ class CoreCounters:
     invalid_control: int = 0
     invalid_links: int = 0
     frames_processed: int = 0
+    fusions_deferred: int = 0
+    listen_changes: int = 0
     frames_duplicate: int = 0
     frames_ahead: int = 0
     orders_ahead: int = 0
@@ -239,7 +268,12 @@ class AgentCore:
         self._refused: collections.OrderedDict[Version, None] = collections.OrderedDict()
         self._bad_frames: collections.OrderedDict[int, None] = collections.OrderedDict()
         self._uncommitted: list[Append] = []
+        # The records committed while handling the current batch of messages: their actions are
+        # carried out only after the batch, so ``committed()`` does not hold them yet.
+        self._batch_records: list[Record] = []
         self._merged_since_commit: list[Version] = []
+        self._deferred_in_row = 0  # steps since the last one that fused (catching up)
+        self._listening: frozenset[str] | None = None  # the peers of the last Listen
         self._last_estimate: bytes | None = None
         self._last_need = -math.inf
         self._step_us = (0, 0)
@@ -289,7 +323,7 @@ class AgentCore:
                 log.error("%s: %s", self.robot, reason)
                 actions.append(Quarantine(record.kind, record.body, reason, index))
                 self._restore(records[:index])
-                if record.kind != "frame":
+                if record.kind not in (FRAME, FRAME_UNFUSED):
                     continue
                 actions.append(CutJournal(index))
                 break
@@ -311,11 +345,11 @@ class AgentCore:
                 raise ValueError(self.node.counters.last_error)
             self.node.merge(message)
             self.counters.replayed_stacks += 1
-        elif record.kind == "frame":
+        elif record.kind in (FRAME, FRAME_UNFUSED):
             frame = decode_frame(record.body)
             if frame.robot != self.robot or frame.k != self.node.k + 1:
                 raise ValueError(f"frame of {frame.robot} at step {frame.k} after {self.node.k}")
-            self.node.on_frame(frame)
+            self.node.on_frame(frame, fuse=record.kind == FRAME)
             self.counters.replayed_frames += 1
 
     def _restore(self, records: Sequence[Record]) -> None:
@@ -327,7 +361,7 @@ class AgentCore:
             try:
                 self._apply(record)
             except Exception:
-                if record.kind == "frame":
+                if record.kind in (FRAME, FRAME_UNFUSED):
                     raise
                 log.debug("%s: skipped a quarantined stack record", self.robot)
         self.counters.replayed_frames, self.counters.replayed_stacks = replayed
@@ -337,7 +371,7 @@ class AgentCore:
         actions = self._publish_stack()
         if self.node.k > 0:
             actions += self._publish_estimate()
-        return actions + self._ask_for_frames(now, force=True)
+        return [*self._listen(initial=True), *actions, *self._ask_for_frames(now, force=True)]
 
     # -- events ------------------------------------------------------------------------------
 
@@ -350,7 +384,11 @@ class AgentCore:
         it made possible; what the timer sends is refreshed once, after all of them."""
         keys = self.keys
         self._now = now
+        self._batch_records = []
         actions: list[Action] = []
+        # In real time, every message of the batch first: a step then sees the frames that are
+        # already waiting behind it (and catches up) and fuses every stack that came with them.
+        at_once = self.settings.mode == "realtime"
         for key, payload in messages:
             if key.startswith(keys.ctl("")):
                 actions += self._on_control(key, payload)
@@ -360,7 +398,11 @@ class AgentCore:
                 actions += self._on_stack(key, payload)
             elif key == keys.sim_links():
                 self._on_links(payload)
+            if not at_once:
+                actions += self._step_all()
+        if at_once:
             actions += self._step_all()
+        actions += self._listen()
         self._refresh()
         out = self._out
         if out.fresh and out.digest is not None and out.stack is not None and self._out_include:
@@ -623,6 +665,21 @@ class AgentCore:
             return []
         return self._merge(message, payload)
 
+    def _listen(self, initial: bool = False) -> list[Action]:
+        """A :class:`Listen` when whom to hear changed (``initial``: always): in a simulated real
+        time run, the robots heard at the coming step (nobody before the first links); else
+        every robot."""
+        if not (self.settings.simulation and self.settings.mode == "realtime"):
+            return [Listen(None)] if initial else []
+        due = [k for k in self._links if k <= self.node.k + 1]
+        peers = frozenset(self._links[max(due)].get(self.robot, ())) if due else frozenset()
+        peers -= {self.robot}
+        if not initial and peers == self._listening:
+            return []
+        self._listening = peers
+        self.counters.listen_changes += 1
+        return [Listen(peers)]
+
     def _heard(self, sender: str) -> bool:
         """In a simulation: whether the latest links published for the coming step let
         ``sender`` through to this robot (no links yet: nobody is heard)."""
@@ -716,39 +773,54 @@ class AgentCore:
         # The frame is here: the timer must not go on asking for it while the step runs (every
         # request made the conductor send it again, and every copy was answered with an estimate).
         self._out = dataclasses.replace(self._out, need_from=None, need_round=None)
-        actions = self._step(frame, data)
+        behind = self.settings.mode == "realtime" and k + 1 in self._frames
+        fuse = not behind or self._deferred_in_row >= self.settings.catch_up
+        actions = self._step(frame, data, fuse)
         self._forget_before(self.node.k)
         return actions
 
-    def _step(self, frame: SensorFrame, data: bytes) -> list[Action]:
-        """Step with ``frame`` and commit; on failure roll back and go on (module docstring)."""
+    def _step(self, frame: SensorFrame, data: bytes, fuse: bool = True) -> list[Action]:
+        """Step with ``frame`` and commit; on failure roll back and go on (module docstring).
+        ``fuse=False``: a step that defers its fusion (catching up)."""
         try:
-            self._run(frame)
+            self._run(frame, fuse)
         except Exception as exc:
-            return self._recover(frame, data, exc)
-        return self._committed_step(Append("frame", data))
+            return self._recover(frame, data, exc, fuse)
+        return self._committed_step(data, fuse)
 
-    def _run(self, frame: SensorFrame) -> None:
+    def _run(self, frame: SensorFrame, fuse: bool) -> None:
         # on_frame alone does the same; split to time the fusion + D and the L step separately.
         node = self.node
         t0 = time.perf_counter()
         with np.errstate(over="raise", invalid="raise", divide="ignore"):
-            node.integrate_pending()
+            if fuse:
+                node.integrate_pending()
             t1 = time.perf_counter()
             node.track.advance(frame)
             t2 = time.perf_counter()
-            node.on_frame(frame)
+            node.on_frame(frame, fuse)
         t3 = time.perf_counter()
         self._step_us = (round(1e6 * (t2 - t1)), round(1e6 * ((t1 - t0) + (t3 - t2))))
 
-    def _committed_step(self, frame_record: Append) -> list[Action]:
-        actions: list[Action] = [*self._uncommitted, frame_record, Commit()]
+    def _committed_step(self, frame: bytes, fused: bool) -> list[Action]:
+        """Commit a step taken with the frame bytes ``frame`` and publish. A step that deferred
+        its fusion commits its frame alone: the stacks merged so far go into the journal, and
+        stay suspects, with the step that fuses them."""
+        self.counters.frames_processed += 1
+        if not fused:
+            self._deferred_in_row += 1
+            self.counters.fusions_deferred += 1
+            self._batch_records.append(Record(FRAME_UNFUSED, frame))
+            return [Append(FRAME_UNFUSED, frame), Commit(), *self._publish_estimate()]
+        records = [*self._uncommitted, Append(FRAME, frame)]
+        self._batch_records += [Record(a.kind, a.body) for a in records]
+        actions: list[Action] = [*records, Commit()]
         self._uncommitted = []
         self._merged_since_commit = []
-        self.counters.frames_processed += 1
+        self._deferred_in_row = 0
         return actions + self._publish_stack(previous=self._out.stack) + self._publish_estimate()
 
-    def _recover(self, frame: SensorFrame, data: bytes, exc: Exception) -> list[Action]:
+    def _recover(self, frame: SensorFrame, data: bytes, exc: Exception, fuse: bool) -> list[Action]:
         self.counters.steps_failed += 1
         self._bad_frames[zlib.crc32(data)] = None
         while len(self._bad_frames) > MAX_REFUSED:
@@ -761,26 +833,26 @@ class AgentCore:
         if self.committed is None:
             # Nothing to roll back to: stop stepping rather than go on from a broken belief.
             self.stop_reason = f"step failed with no journal to roll back to ({reason})"
-            return [Quarantine("frame", data, reason), Halt(self.stop_reason)]
+            return [Quarantine(FRAME, data, reason), Halt(self.stop_reason)]
         self._rollback()
         if suspects:
             try:
-                self._run(frame)
+                self._run(frame, fuse)
                 log.warning(
                     "%s: step %d succeeded without the slots %s, which are refused",
                     self.robot,
                     frame.k,
                     suspects,
                 )
-                return self._committed_step(Append("frame", data))
+                return self._committed_step(data, fuse)
             except Exception as again:
                 reason = f"step {frame.k}: {type(again).__name__}: {again}"
                 self._rollback()
         self.counters.frames_quarantined += 1
-        actions: list[Action] = [Quarantine("frame", data, reason)]
+        actions: list[Action] = [Quarantine(FRAME, data, reason)]
         odometry_only = SensorFrame(frame.robot, frame.k, frame.odometry, (), np.full(3, np.nan))
         try:
-            self._run(odometry_only)
+            self._run(odometry_only, fuse)
         except Exception as last:
             # The odometry itself is unusable: stay at the last good step, alive, until a
             # different frame k arrives (these bytes are never tried again).
@@ -796,14 +868,15 @@ class AgentCore:
             return actions
         self.counters.frames_degraded += 1
         log.warning("%s: frame %d quarantined, stepped on its odometry only", self.robot, frame.k)
-        return actions + self._committed_step(Append("frame", encode_frame(odometry_only)))
+        return actions + self._committed_step(encode_frame(odometry_only), fuse)
 
     def _rollback(self) -> None:
         assert self.committed is not None
         self.counters.restores += 1
         self._uncommitted = []
         self._merged_since_commit = []
-        self._restore(self.committed())
+        # What the journal holds, and the steps of this batch committed before this one.
+        self._restore([*self.committed(), *self._batch_records])
 
     def _refuse(self, version: Version) -> None:
         self._refused[version] = None
@@ -951,10 +1024,12 @@ class AgentCore:
             "rebuilds": c.rebuilds,
             "completed_joins": c.completed_joins,
             "ignored_out_of_range": a.ignored_out_of_range,
+            "listen_changes": a.listen_changes,
             "bytes_sent": c.bytes_sent,
             "bytes_sent_ticks": self.tick_bytes,
             "bytes_received": c.bytes_received,
             "frames_processed": a.frames_processed,
+            "fusions_deferred": a.fusions_deferred,
             "frames_invalid": a.invalid_frames,
             "frames_duplicate": a.frames_duplicate,
             "frames_ahead": a.frames_ahead,

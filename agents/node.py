@@ -298,16 +298,25 @@ class RobotNode:
             self.epoch,
         )
 
-    def on_frame(self, frame: SensorFrame) -> StepReport:
+    def on_frame(self, frame: SensorFrame, fuse: bool = True) -> StepReport:
         """One robot step: integrate changed slots into D, local step on L and on D, rebuild the
         own slot from L (never from D). If a slot could not be joined with D, D is rebuilt from L
-        and every held slot once both have taken the step."""
+        and every held slot once both have taken the step.
+
+        ``fuse=False`` steps D without integrating the held slots (nor a due rebuild): the fusion
+        is deferred to a later step, which integrates every slot still newer than D's version —
+        as if those slots had come one step later (a shell that is behind its frames catches up
+        this way; see ``agents.core``)."""
         if frame.robot != self.robot:
             raise ValueError(f"node {self.robot} got a frame of {frame.robot}")
-        fusion = self.integrate_pending()
+        fusion = (
+            self.integrate_pending()
+            if fuse
+            else FusionStats((), (), 0, len(self.distributed.hypotheses))
+        )
         self.track.advance(frame)
         self.distributed.step([frame], self._rng_distributed)
-        if self._rebuild_due:
+        if self._rebuild_due and fuse:
             rebuilt = self.rebuild()
             fusion = replace(
                 fusion, empty_joins=fusion.empty_joins + rebuilt.empty_joins, rebuilds=1

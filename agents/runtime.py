@@ -1,9 +1,10 @@
 """The asyncio shell around one :class:`~agents.core.AgentCore`: an agent of the fleet.
 
-It subscribes the agent's keys — frames (``frames/<robot>``), every stack (``stack/*``), run
-control (``ctl/**``) and, in a simulation, the simulator's links (``sim/links``) — into bounded
-inboxes, holds a liveliness token (``alive/<robot>``), and carries out the core's actions:
-publish, journal (append, commit, quarantine, cut), halt.
+It subscribes the agent's keys — frames (``frames/<robot>``), stacks (``stack/*``, or in a
+simulated real time run ``stack/<peer>`` of the peers in range only), run control (``ctl/**``)
+and, in a simulation, the simulator's links (``sim/links``) — into bounded inboxes, holds a
+liveliness token (``alive/<robot>``), and carries out the core's actions: publish, journal
+(append, commit, quarantine, cut), listen (whose stacks to subscribe to), halt.
 
 The estimator never runs on the event loop. Every message goes to the core in one worker thread
 (decoding, merging and stepping take as long as they take there), while the loop goes on with the
@@ -40,12 +41,13 @@ from agents.core import (
     CoreCounters,
     CutJournal,
     Halt,
+    Listen,
     Publish,
     Quarantine,
 )
 from agents.journal import Journal, Record
 from agents.node import RobotNode
-from agents.transport.base import Inbox, Message, Transport
+from agents.transport.base import Inbox, Message, StackSubscriptions, Transport
 
 if TYPE_CHECKING:
     from agents.ros2.bridge import Ros2Link
@@ -128,6 +130,7 @@ class Agent:
         self.control = Inbox(1024, CONTROL_INBOX_BYTES)
         self.frames = Inbox(4096, FRAME_INBOX_BYTES)
         self.stacks = Inbox(1024, STACK_INBOX_BYTES)
+        self.stack_subscriptions = StackSubscriptions(transport, self.keys, self.stacks)
         self.ros2 = ros2
         self.ros2_in = Inbox(4096, FRAME_INBOX_BYTES)
         ros2_inboxes = (self.ros2_in,) if ros2 is not None else ()
@@ -165,7 +168,7 @@ class Agent:
         if self.settings.simulation:
             t.subscribe(keys.sim_links(), self.control)
         t.subscribe(keys.frames(self.robot), self.frames)
-        t.subscribe(keys.stack("*"), self.stacks)
+        # Stacks: whom the core says to hear (its first Listen comes from ``start``).
         t.declare_alive(keys.alive(self.robot))
         if self.ros2 is not None:
             self.ros2.bridge.next_step = self.node.k + 1  # after a replay: the journal's next step
@@ -293,6 +296,8 @@ class Agent:
                         self.ros2.publish(sample.key, sample.payload, sample.attachment)
             elif isinstance(a, Halt):
                 self.stop(a.reason)
+            elif isinstance(a, Listen):
+                self.stack_subscriptions.follow(a.peers)
             else:
                 execute_journal_actions(self.log, [a])
 

@@ -3,6 +3,11 @@ the step period — whether they keep up (each agent's steps behind one period a
 and its last step 10 s later), CPU % and peak RSS per agent from /proc — and a
 lock-step launch of 50 agents that must complete. Target: 20 agents keep up at a 0.5 s step on 2
 cores (≤ 1 step behind at the end: every agent, one period after the last frame, in every run).
+
+At the target size the runs alternate with a baseline of the same run that never catches up
+(``catch_up = 0``: every step fuses; docs/agents.md, "Catching up"), with the fusions deferred
+and D's errors at the last step of both, so that what catching up buys and costs is measured
+on the same machine state.
 """
 
 from __future__ import annotations
@@ -14,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from agents.core import CATCH_UP_STEPS
 from bench import Result
 from bench.bench_agents import GOSSIP_S, PERIOD_S, _run_launch
 from deploy.launch import LaunchPlan
@@ -45,29 +51,35 @@ def _capacity_rows(tmp: Path) -> list[Result]:
         path = tmp / f"gen{n}.toml"
         path.write_text(dump_scenario(s), encoding="utf-8")
         s = parse_scenario(path.read_text(encoding="utf-8"), str(path))
-        runs = []
+        catch_ups = [CATCH_UP_STEPS, 0] if n == TARGET_AGENTS else [CATCH_UP_STEPS]
+        runs: dict[int, list[tuple[float, Collected, Usage]]] = {c: [] for c in catch_ups}
         for i in range(REPEATS.get(n, 1)):
-            plan = LaunchPlan(
-                s, 0, list(s.robot_ids), tmp / f"cap{n}-{i}", mode="realtime", period=PERIOD_S,
-                gossip_period=GOSSIP_S, fleet=f"cap{n}x{i}", publish_local=False,
-            )  # fmt: skip
-            start = time.perf_counter()
-            try:
-                outcome, usage = _run_launch(plan, sample=True)
-            except Exception as exc:  # a capacity probe may fail at high N: that is the figure
-                rows.append(
-                    Result(f"realtime capacity: {n} agents", n, float("nan"), note=f"failed: {exc}")
-                )
-                continue
-            runs.append((time.perf_counter() - start, outcome.collected, usage))
-        if runs:
-            rows.append(_capacity_row(n, s.steps, runs))
+            for c in catch_ups:
+                plan = LaunchPlan(
+                    s, 0, list(s.robot_ids), tmp / f"cap{n}-{i}-{c}", mode="realtime",
+                    period=PERIOD_S, gossip_period=GOSSIP_S, fleet=f"cap{n}x{i}c{c}",
+                    publish_local=False, catch_up=c,
+                )  # fmt: skip
+                start = time.perf_counter()
+                try:
+                    outcome, usage = _run_launch(plan, sample=True)
+                except Exception as exc:  # a capacity probe may fail at high N: the figure
+                    note = f"failed: {exc}"
+                    rows.append(
+                        Result(f"realtime capacity: {n} agents", n, float("nan"), note=note)
+                    )
+                    continue
+                runs[c].append((time.perf_counter() - start, outcome.collected, usage))
+        rows += [_capacity_row(n, s.steps, runs[c], c) for c in catch_ups if runs[c]]
     return rows
 
 
-def _capacity_row(n: int, steps: int, runs: list[tuple[float, Collected, Usage]]) -> Result:
+def _capacity_row(
+    n: int, steps: int, runs: list[tuple[float, Collected, Usage]], catch_up: int
+) -> Result:
     """Steps behind one period after the last frame (when every robot should have taken it),
-    per run: mean and worst agent; the last step 10 s later; CPU and peak RSS per agent."""
+    per run: mean and worst agent; the last step 10 s later; CPU and peak RSS per agent; the
+    stacks each agent received and the fusions it deferred; D's errors at the last step."""
     behind = [[steps - c.on_time.get(r, 0) for r in c.on_time] for _, c, _ in runs]
     later = [np.mean([c.last_step.get(r, 0) for r in c.on_time]) for _, c, _ in runs]
     cpu = [
@@ -86,14 +98,24 @@ def _capacity_row(n: int, steps: int, runs: list[tuple[float, Collected, Usage]]
     target = (
         f" (target for {TARGET_AGENTS}: every agent ≤ 1 behind) {met}" if n == TARGET_AGENTS else ""
     )
+    counters = [c.counters[r] for _, c, _ in runs for r in c.counters]
+    received = np.mean([x.get("stacks_received", 0) for x in counters])
+    deferred = np.mean([x.get("fusions_deferred", 0) for x in counters])
+    last = {
+        name: np.mean([np.nanmean(c.metrics["distributed"][name][:, -1]) for _, c, _ in runs])
+        for name in ("robot_error", "object_error")
+    }
+    errors = ", ".join(f"{name} {value:.3f} m" for name, value in last.items())
+    label = "" if catch_up == CATCH_UP_STEPS else f", catch_up {catch_up} (baseline)"
     return Result(
-        f"realtime capacity: {n} agents, period {PERIOD_S:g} s",
+        f"realtime capacity: {n} agents, period {PERIOD_S:g} s{label}",
         n,
         1e3 * float(np.median([wall for wall, _, _ in runs])),
         note=f"steps behind one period after the last frame, {len(runs)} run(s): {per_run}"
         f"{target}; mean last step 10 s later {', '.join(f'{x:.1f}' for x in later)} of "
         f"{steps}; CPU per agent {np.mean(cpu):.1f} % (max {np.max(cpu):.1f} %); peak RSS per "
-        f"agent {np.mean(rss):.0f} MB (max {np.max(rss):.0f} MB)",
+        f"agent {np.mean(rss):.0f} MB (max {np.max(rss):.0f} MB); per agent {received:.0f} stacks "
+        f"received, {deferred:.1f} fusions deferred; D at the last step: {errors}",
     )
 
 

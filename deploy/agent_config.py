@@ -12,7 +12,7 @@ from cryptography.exceptions import UnsupportedAlgorithm
 from cryptography.hazmat.primitives import serialization
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey, Ed25519PublicKey
 
-from agents.core import GOSSIP_PERIOD_S, STACK_GOSSIP, WINDOW_STEPS, CoreSettings
+from agents.core import CATCH_UP_STEPS, GOSSIP_PERIOD_S, STACK_GOSSIP, WINDOW_STEPS, CoreSettings
 from agents.node import Signing
 from agents.ros2.bridge import Ros2Settings
 from agents.ros2.messages import Ros2Unavailable, types_for
@@ -54,7 +54,7 @@ class AgentConfig:
 
 _AGENT_KEYS = {
     "fleet", "model", "start", "roster", "seed", "mode", "gossip_period", "journal",
-    "publish_local", "simulation", "window", "world_extent", "stack_gossip",
+    "publish_local", "simulation", "window", "world_extent", "stack_gossip", "catch_up",
 }  # fmt: skip
 _ZENOH_KEYS = {
     "listen", "connect", "gossip", "shared_memory", "lease_ms", "config_file", "insecure",
@@ -224,6 +224,7 @@ def _read_agent_config(path: Path, robot: str) -> AgentConfig:
         window=a.integer("window", 1, 100_000) if a.has("window") else WINDOW_STEPS,
         publish_local=a.boolean("publish_local") if a.has("publish_local") else True,
         simulation=a.boolean("simulation") if a.has("simulation") else False,
+        catch_up=a.integer("catch_up", 0, 1000) if a.has("catch_up") else CATCH_UP_STEPS,
     )
     endpoints = {}
     for name in ("listen", "connect"):

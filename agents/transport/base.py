@@ -165,6 +165,11 @@ class Transport(Protocol):
         """Deliver every put on ``key_expr`` (wildcards allowed) into ``inbox``."""
         ...
 
+    def unsubscribe(self, key_expr: str, inbox: Inbox) -> None:
+        """Stop delivering puts on ``key_expr`` into ``inbox`` (a subscription made with exactly
+        these two; nothing if there is none)."""
+        ...
+
     def publish(self, key: str, payload: bytes) -> None:
         """Send without blocking the loop (a congested link drops the message)."""
         ...
@@ -244,3 +249,24 @@ def _match(pattern: list[str], chunks: list[str]) -> bool:
     if not chunks:
         return False
     return (head == "*" or head == chunks[0]) and _match(rest, chunks[1:])
+
+
+class StackSubscriptions:
+    """Whose stacks an agent subscribes to: every robot's (``stack/*``), or, in a simulated real
+    time run, only those of the robots its simulated radio hears at the coming step (the core's
+    ``Listen``): the stacks of robots out of range are then never sent to this agent at all,
+    instead of being received, handed to the loop and dropped there (two thirds of all stacks
+    in a 20-robot world)."""
+
+    def __init__(self, transport: Transport, keys: Keys, inbox: Inbox) -> None:
+        self.transport, self.keys, self.inbox = transport, keys, inbox
+        self.exprs: set[str] = set()
+
+    def follow(self, peers: frozenset[str] | None) -> None:
+        """Subscribe to the stacks of ``peers`` only (None: of every robot)."""
+        want = {self.keys.stack("*")} if peers is None else {self.keys.stack(p) for p in peers}
+        for expr in sorted(self.exprs - want):
+            self.transport.unsubscribe(expr, self.inbox)
+        for expr in sorted(want - self.exprs):
+            self.transport.subscribe(expr, self.inbox)
+        self.exprs = want

@@ -49,6 +49,11 @@ class MemoryTransport:
     def subscribe(self, key_expr: str, inbox: Inbox) -> None:
         self.subscriptions.append((key_expr, inbox))
 
+    def unsubscribe(self, key_expr: str, inbox: Inbox) -> None:
+        self.subscriptions = [
+            (e, i) for e, i in self.subscriptions if not (e == key_expr and i is inbox)
+        ]
+
     def publish(self, key: str, payload: bytes) -> None:
         if not self.is_open:
             return

@@ -198,6 +198,8 @@ class ZenohTransport:
         self._pending_tokens: list[str] = []
         self._pending_watches: list[tuple[str, Inbox]] = []
         self._handles: list[Any] = []
+        # Declared subscribers by (key expression, id of the inbox), for ``unsubscribe``.
+        self._subscribers: dict[tuple[str, int], list[zenoh.Subscriber[None]]] = {}
         self._publishers: dict[str, zenoh.Publisher] = {}
         self.sent = 0
         self.send_errors = 0
@@ -230,6 +232,7 @@ class ZenohTransport:
         if session is None:
             return
         self._handles.clear()
+        self._subscribers.clear()
         self._publishers.clear()
         await asyncio.to_thread(session.close)
 
@@ -245,6 +248,14 @@ class ZenohTransport:
         self._pending_subs.append((key_expr, inbox))
         if self._session is not None:
             self._declare_subscriber(key_expr, inbox)
+
+    def unsubscribe(self, key_expr: str, inbox: Inbox) -> None:
+        self._pending_subs = [
+            (e, i) for e, i in self._pending_subs if not (e == key_expr and i is inbox)
+        ]
+        for subscriber in self._subscribers.pop((key_expr, id(inbox)), []):
+            if self._session is not None:
+                subscriber.undeclare()
 
     def publish(self, key: str, payload: bytes, attachment: bytes | None = None) -> None:
         """Put ``payload`` on ``key``; ``attachment``, if given, travels with it (rmw_zenoh's
@@ -311,7 +322,8 @@ class ZenohTransport:
 
     def _declare_subscriber(self, key_expr: str, inbox: Inbox) -> None:
         assert self._session is not None
-        self._handles.append(self._session.declare_subscriber(key_expr, self._handoff(inbox)))
+        subscriber = self._session.declare_subscriber(key_expr, self._handoff(inbox))
+        self._subscribers.setdefault((key_expr, id(inbox)), []).append(subscriber)
 
     def _declare_token(self, key: str) -> None:
         assert self._session is not None

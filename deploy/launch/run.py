@@ -31,7 +31,7 @@ from typing import Any
 
 from rich.console import Console
 
-from agents.core import GOSSIP_PERIOD_S
+from agents.core import CATCH_UP_STEPS, GOSSIP_PERIOD_S
 from agents.links import LinkModel
 from agents.transport.base import Keys
 from agents.transport.zenoh_transport import ZenohSettings, ZenohTransport, loopback_endpoint
@@ -79,6 +79,7 @@ class LaunchPlan:
     period: float = 0.5
     gossip_period: float = GOSSIP_PERIOD_S
     stack_gossip: str = "delta"  # or "full" (docs/wire.md, "Delta gossip")
+    catch_up: int = CATCH_UP_STEPS  # realtime: steps in a row that may defer fusion (agents.core)
     comm: str | None = None
     faults: Faults = field(default_factory=Faults)
     fleet: str = "launch"
@@ -282,6 +283,7 @@ class Launcher:
             "mode": plan.mode,
             "gossip_period": plan.gossip_period,
             "stack_gossip": plan.stack_gossip,
+            "catch_up": plan.catch_up,
             "journal": f"../journal/{robot}.log",
             "publish_local": plan.publish_local,
             # Loss, partitions and range are the simulator's: it publishes who hears whom

@@ -329,9 +329,9 @@ def test_a_lockstep_agent_does_not_ask_for_the_frame_it_is_stepping_with(frames)
     make = _factory("r1")
 
     class Watched(RobotNode):
-        def on_frame(self, frame: SensorFrame):  # type: ignore[no-untyped-def]
+        def on_frame(self, frame: SensorFrame, fuse: bool = True):  # type: ignore[no-untyped-def]
             ticks.append(cores[0].on_timer(100.0 + len(ticks)))  # a tick during the step
-            return super().on_frame(frame)
+            return super().on_frame(frame, fuse)
 
     def make_watched() -> RobotNode:
         node = make()
@@ -536,3 +536,109 @@ def test_a_simulated_agent_does_not_read_the_stacks_of_robots_out_of_range() -> 
     d.send(KEYS.stack("r3"), b"\xc1 not a stack")
     c = d.core.counter_values()
     assert (c["stacks_received"], c["ignored_out_of_range"], c["stacks_invalid"]) == (2, 1, 1)
+
+
+# --------------------------------------------------------------------------- catching up
+
+
+def _batch(d: Driver, messages: Sequence[tuple[str, bytes]]) -> list[Action]:
+    """Messages that arrived together (the shell drains its inboxes into one batch)."""
+    actions = d.core.on_messages(messages, 0.0)
+    d.run(actions)
+    return actions
+
+
+def _frames_of(fs: Sequence[SensorFrame]) -> list[tuple[str, bytes]]:
+    return [(KEYS.frames(f.robot), encode_frame(f)) for f in fs]
+
+
+def test_a_realtime_agent_behind_its_frames_defers_the_fusion_to_the_step_that_catches_up(
+    frames,  # type: ignore[no-untyped-def]
+) -> None:
+    """Frames 2, 3 and 4 waiting together with r2's stack: steps 2 and 3 take their frame
+    without fusing (journaled ``frame_unfused``, no stack published), step 4 fuses r2's slot.
+    The journal holds the stack after the deferred frames, so that a replay rebuilds exactly the
+    same belief; and the D of the catching-up agent is the D of an agent that got r2's stack just
+    before step 4."""
+    peer = _seen_something("r2", frames)
+    stack = (KEYS.stack("r2"), peer.encoded_stack())
+    d = Driver()
+    d.frame(frames["r1"][0])
+    actions = _batch(d, [*_frames_of(frames["r1"][1:4]), stack])
+    c = d.core.counter_values()
+    assert (c["frames_processed"], c["fusions_deferred"], d.core.node.k) == (4, 2, 4)
+    assert d.core.node.distributed.stamps == {"r2": peer.k}
+    kinds = [r.kind for r in d.log.records()]
+    assert kinds == ["frame", "frame_unfused", "frame_unfused", "stack", "frame"]
+    published = [a.key for a in actions if isinstance(a, Publish)]
+    assert published.count(KEYS.stack("r1")) == 1  # after step 4 only
+    assert published.count(KEYS.estimate("r1")) == 3  # every step is still reported
+    _same_belief(_replayed(d).node, d.core.node)
+    # The same D as an agent not behind that received the stack between steps 3 and 4.
+    e = Driver()
+    for f in frames["r1"][:3]:
+        e.frame(f)
+    e.send(*stack)
+    e.frame(frames["r1"][3])
+    assert e.core.counter_values()["fusions_deferred"] == 0
+    _same_belief(e.core.node, d.core.node)
+    # Without catching up, every step fuses: r2's slot at step 2 already, a different D.
+    f = Driver(catch_up=0)
+    f.frame(frames["r1"][0])
+    _batch(f, [*_frames_of(frames["r1"][1:4]), stack])
+    assert f.core.counter_values()["fusions_deferred"] == 0
+    assert [r.kind for r in f.log.records()] == ["frame", "stack", "frame", "frame", "frame"]
+    snapshots = [x.core.node.distributed.snapshot("r1") for x in (d, f)]
+    assert not np.array_equal(snapshots[0].weights, snapshots[1].weights)
+
+
+def test_catching_up_defers_at_most_catch_up_steps_in_a_row(frames) -> None:  # type: ignore[no-untyped-def]
+    d = Driver(catch_up=2)
+    _batch(d, _frames_of(frames["r1"][:7]))
+    kinds = [r.kind for r in d.log.records()]
+    assert kinds == ["frame_unfused", "frame_unfused", "frame"] * 2 + ["frame"]
+    lockstep = Driver(mode="lockstep")
+    assert lockstep.core.settings.catch_up > 0  # the setting applies to real time only
+    with pytest.raises(ValueError, match="catch_up"):
+        CoreSettings(catch_up=-1)
+
+
+def test_a_fusion_that_fails_after_deferred_steps_refuses_the_slots_merged_before_them(
+    frames,
+    monkeypatch,  # type: ignore[no-untyped-def]
+) -> None:
+    """The stacks merged before a deferred step stay suspects until the step that fuses them: if
+    that fusion raises, they are refused and the step goes on without them (not quarantined)."""
+    peer = _seen_something("r2", frames)
+    d = Driver()
+    d.frame(frames["r1"][0])
+    original = DistributedBelief.integrate
+
+    def integrate(self, slots, settle=True):  # type: ignore[no-untyped-def]
+        if any(s.owner == "r2" for s in slots):
+            raise RuntimeError("Indeterminate linear system (forged slot)")
+        return original(self, slots, settle)
+
+    monkeypatch.setattr(DistributedBelief, "integrate", integrate)
+    _batch(d, [(KEYS.stack("r2"), peer.encoded_stack()), *_frames_of(frames["r1"][1:3])])
+    c = d.core.counter_values()
+    assert (c["fusions_deferred"], c["steps_failed"], c["slots_refused"]) == (1, 1, 1)
+    assert (c["frames_quarantined"], d.core.node.k) == (0, 3)
+    assert "r2" not in d.core.node.distributed.stamps
+    assert [r.kind for r in d.log.records()] == ["frame", "frame_unfused", "frame"]
+    _same_belief(_replayed(d).node, d.core.node)
+
+
+def test_a_step_that_fails_after_another_of_the_same_batch_rolls_back_to_that_one(frames) -> None:  # type: ignore[no-untyped-def]
+    """Frames 2 and a failing 3 in one batch: the batch's actions (step 2's commit among them)
+    are carried out only after the batch, so the roll-back must start from step 2 committed in
+    this batch, not from the journal alone (it went back to step 1, and step 3 could never be
+    taken)."""
+    d = Driver(catch_up=0)
+    d.frame(frames["r1"][0])
+    _batch(d, [*_frames_of([frames["r1"][1], _poisoned(frames["r1"][2])])])
+    c = d.core.counter_values()
+    assert (c["steps_failed"], c["frames_quarantined"], c["frames_degraded"]) == (1, 1, 1)
+    assert (c["steps_stuck"], d.core.node.k) == (0, 3)
+    assert [r.kind for r in d.log.records()] == ["frame"] * 3
+    _same_belief(_replayed(d).node, d.core.node)

@@ -267,35 +267,43 @@ def _links(k: int, links: dict[str, tuple[str, ...]]) -> bytes:
 
 
 @pytest.mark.asyncio
-async def test_simulated_agent_hears_whom_the_simulator_says_and_counts_the_rest(
+async def test_simulated_agent_subscribes_to_the_stacks_of_whom_the_simulator_says_only(
     frames: dict[str, list[SensorFrame]],
 ) -> None:
+    """In a simulated real time run the agent subscribes to ``stack/<peer>`` of the robots in
+    range at the coming step only (nobody before the first links): a stack of a robot out of
+    range is never even delivered to it. (The core's own filter, for a stack still in flight
+    when the range changed, is tested in test_core.)"""
     bus = MemoryBus()
     world = MemoryTransport(bus)
     await world.open()
-    peer = _nodes()["r2"]
-    peer.on_frame(frames["r2"][0])
+    peers = _nodes()
+    for r in ("r2", "r3"):
+        peers[r].on_frame(frames[r][0])
     agent = _agent("r1", bus, "realtime", simulation=True)
     async with _running(agent) as (task,):
-        world.publish(KEYS.stack("r2"), _stack_from(peer))  # no links yet: nobody is heard
-        await _until(lambda: agent.node.counters.stacks_received == 1)
-        assert agent.counters.ignored_out_of_range == 0  # (nor counted out of range)
-        assert agent.node.stack.stamps() == {}
+        await _until(lambda: agent.counter_values()["listen_changes"] == 1)
+        assert agent.stack_subscriptions.exprs == set()  # no links yet: nobody is heard
+        world.publish(KEYS.stack("r2"), _stack_from(peers["r2"]))
         world.publish(KEYS.sim_links(), _links(1, {"r1": (), "r2": ("r1",)}))
         world.publish(KEYS.frames("r1"), encode_frame(frames["r1"][0]))
         await _until(lambda: agent.node.k == 1)
-        world.publish(KEYS.stack("r2"), _stack_from(peer))  # step 1's links: r2 → r1 is cut
-        await _until(lambda: agent.node.counters.stacks_received == 2)
-        assert agent.counters.ignored_out_of_range == 1
-        assert agent.node.stack.stamps() == {"r1": 1}
+        world.publish(KEYS.stack("r2"), _stack_from(peers["r2"]))  # step 1: r2 → r1 is cut
         world.publish(KEYS.sim_links(), _links(2, {"r1": ("r2",)}))
         world.publish(KEYS.sim_links(), b"\xff")  # counted, never fatal
+        await _until(lambda: agent.stack_subscriptions.exprs == {KEYS.stack("r2")})
+        assert agent.node.counters.stacks_received == 0
+        world.publish(KEYS.stack("r3"), _stack_from(peers["r3"]))  # out of range: not sent
+        world.publish(KEYS.stack("r2"), _stack_from(peers["r2"]))
+        await _until(lambda: agent.node.counters.stacks_received == 1)
         await asyncio.sleep(0.05)
-        world.publish(KEYS.stack("r2"), _stack_from(peer))
-        await _until(lambda: agent.node.counters.stacks_received == 3)
         assert agent.node.stack.stamps() == {"r1": 1, "r2": 1}
-        assert agent.counter_values()["ignored_out_of_range"] == 1
-        assert agent.counter_values()["links_invalid"] == 1
+        c = agent.counter_values()
+        assert (c["stacks_received"], c["ignored_out_of_range"], c["links_invalid"]) == (1, 0, 1)
+        assert c["listen_changes"] == 2
+        world.publish(KEYS.sim_links(), _links(3, {"r1": ("r3",)}))  # stays at step 1's + 1
+        await asyncio.sleep(0.05)
+        assert agent.stack_subscriptions.exprs == {KEYS.stack("r2")}
         assert not task.done()
 
 

@@ -12,7 +12,7 @@ import pytest
 import zenoh
 
 from agents.transport import Inbox, Keys, MemoryBus, MemoryTransport, Message
-from agents.transport.base import Kind, key_matches
+from agents.transport.base import Kind, StackSubscriptions, key_matches
 from agents.transport.zenoh_transport import ZenohSettings, ZenohTransport, settings_for
 from deploy.launch import free_ports
 
@@ -219,6 +219,77 @@ async def test_zenoh_pair_on_loopback_put_reaches_the_inbox() -> None:
         await a.close()
     assert not a.is_open and not b.is_open
     a.publish(KEYS.stack("r1"), b"after close")  # a no-op, not an error
+
+
+@pytest.mark.asyncio
+async def test_zenoh_stack_subscriptions_follow_the_peers_heard() -> None:
+    """``StackSubscriptions.follow`` on real sessions: the stacks of the peers followed arrive,
+    the others are not delivered once unsubscribed (undeclared at the publisher's side), and
+    None subscribes to every robot's again."""
+    port_a, port_b = free_ports(2)
+    a = ZenohTransport(settings_for(port_a, []))
+    b = ZenohTransport(settings_for(port_b, [port_a]))
+    stacks = Inbox(256)
+    subs = StackSubscriptions(b, KEYS, stacks)
+    subs.follow(frozenset({"r1"}))  # before open: declared on open
+
+    async def heard(robots: set[str], silent: set[str]) -> None:
+        # Publish until every robot of ``robots`` was heard since the last call (declarations
+        # take a moment to reach the publisher); none of ``silent`` may be, meanwhile.
+        got: set[str] = set()
+        async with asyncio.timeout(15):
+            while got != robots:
+                for r in sorted(robots | silent):
+                    a.publish(KEYS.stack(r), r.encode())
+                await stacks.wait(0.1)
+                await asyncio.sleep(0.05)
+                senders = {m.payload.decode() for m in stacks.drain()}
+                assert not senders & silent, senders
+                got |= senders
+
+    try:
+        await a.open()
+        await b.open()
+        await heard({"r1"}, {"r2", "r3"})
+        subs.follow(frozenset({"r2", "r3"}))
+        assert subs.exprs == {KEYS.stack("r2"), KEYS.stack("r3")}
+        await asyncio.sleep(0.5)  # the undeclaration of r1's reaches a
+        stacks.drain()
+        await heard({"r2", "r3"}, {"r1"})
+        subs.follow(None)
+        await heard({"r1", "r2", "r3"}, set())
+        subs.follow(frozenset())
+        await asyncio.sleep(0.5)
+        stacks.drain()
+        for r in ("r1", "r2"):
+            a.publish(KEYS.stack(r), r.encode())
+        await asyncio.sleep(0.3)
+        assert not stacks.drain()
+    finally:
+        await b.close()
+        await a.close()
+
+
+@pytest.mark.asyncio
+async def test_memory_stack_subscriptions_follow_the_peers_heard() -> None:
+    bus = MemoryBus()
+    a, b = MemoryTransport(bus), MemoryTransport(bus)
+    await a.open()
+    await b.open()
+    stacks = Inbox(16)
+    subs = StackSubscriptions(b, KEYS, stacks)
+    subs.follow(frozenset({"r2"}))
+    subs.follow(frozenset({"r2"}))  # no second subscription: one message per put
+    for r in ("r1", "r2"):
+        a.publish(KEYS.stack(r), r.encode())
+    await asyncio.sleep(0)
+    assert [m.payload for m in stacks.drain()] == [b"r2"]
+    subs.follow(None)
+    for r in ("r1", "r2"):
+        a.publish(KEYS.stack(r), r.encode())
+    await asyncio.sleep(0)
+    assert [m.payload for m in stacks.drain()] == [b"r1", b"r2"]
+    assert b.subscriptions == [(KEYS.stack("*"), stacks)]
 
 
 def test_zenoh_settings_recover_fast_after_a_cut_and_pair_udp_with_tcp(tmp_path: Path) -> None:
