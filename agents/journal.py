@@ -537,3 +537,30 @@ def _header(record: Record) -> dict[str, Any] | None:
     except Exception:  # an undecodable header means "not a journal", whatever msgpack raised
         return None
     return header if isinstance(header, dict) else None
+
+
+class MemoryLog:
+    """The committed records of an agent without a journal (kept in memory, for roll-backs)."""
+
+    def __init__(self) -> None:
+        self._records: list[Record] = []
+        self._pending: list[Record] = []
+
+    def append(self, kind: str, body: bytes) -> None:
+        self._pending.append(Record(kind, body))
+
+    def commit(self) -> None:
+        self._records += self._pending
+        self._pending = []
+
+    def records(self) -> list[Record]:
+        return list(self._records)
+
+    def cut(self, index: int) -> None:
+        self._records = self._records[:index]
+
+    def quarantine(self, kind: str, body: bytes, reason: str, index: int | None = None) -> None:
+        log.warning("quarantined %s record (no journal): %s", kind, reason)
+
+    def close(self) -> None:
+        pass

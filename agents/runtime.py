@@ -1,10 +1,10 @@
 """The asyncio shell around one :class:`~agents.core.AgentCore`: an agent of the fleet.
 
-It subscribes the agent's keys — frames (``frames/<robot>``), stacks (``stack/*``, or in a
-simulated real time run ``stack/<peer>`` of the peers in range only), run control (``ctl/**``)
-and, in a simulation, the simulator's links (``sim/links``) — into bounded inboxes, holds a
-liveliness token (``alive/<robot>``), and carries out the core's actions: publish, journal
-(append, commit, quarantine, cut), listen (whose stacks to subscribe to), halt.
+It subscribes the agent's keys — frames (``frames/<robot>``), stacks (``stack/*``; in a simulated
+real time run ``stack/<peer>`` of the peers in range), run control (``ctl/**``) and, in a
+simulation, the simulator's links (``sim/links``) — into bounded inboxes, holds a liveliness
+token (``alive/<robot>``), and carries out the core's actions: publish, journal (append, commit,
+quarantine, cut), listen (whose stacks to subscribe to: the core's first ``Listen``), halt.
 
 The estimator never runs on the event loop. Every message goes to the core in one worker thread
 (decoding, merging and stepping take as long as they take there), while the loop goes on with the
@@ -17,10 +17,8 @@ rmw_zenoh: it holds the ROS graph's liveliness tokens, publishes every estimate'
 belief as ROS 2 messages (converted on the loop, right after the estimate itself) and turns the
 robot's ROS 2 odometry and detections into frames (in the worker, ahead of the core).
 
-Modes (``agents.core.CoreSettings.mode``): ``realtime`` merges a stack as soon as it arrives and
-steps as soon as the next frame is there; ``lockstep`` merges exactly the peers a conductor's
-:class:`~agents.control.StepOrder` names and then steps, so the run repeats the in-process runner
-bit for bit. In both, an agent that sees a gap in its frames asks for them (``ctl/need``).
+Modes (``CoreSettings.mode``; docs/agents.md): ``realtime`` steps when the next frame is there;
+``lockstep`` follows a conductor's orders, bit for bit the in-process runner.
 """
 
 from __future__ import annotations
@@ -45,7 +43,7 @@ from agents.core import (
     Publish,
     Quarantine,
 )
-from agents.journal import Journal, Record
+from agents.journal import Journal, MemoryLog, Record
 from agents.node import RobotNode
 from agents.transport.base import Inbox, Message, StackSubscriptions, Transport
 
@@ -58,33 +56,6 @@ STACK_INBOX_BYTES = 64 * 1024 * 1024
 FRAME_INBOX_BYTES = 16 * 1024 * 1024
 CONTROL_INBOX_BYTES = 4 * 1024 * 1024
 SHUTDOWN_STEP_WAIT_S = 1.0
-
-
-class MemoryLog:
-    """The committed records of an agent without a journal (kept in memory, for roll-backs)."""
-
-    def __init__(self) -> None:
-        self._records: list[Record] = []
-        self._pending: list[Record] = []
-
-    def append(self, kind: str, body: bytes) -> None:
-        self._pending.append(Record(kind, body))
-
-    def commit(self) -> None:
-        self._records += self._pending
-        self._pending = []
-
-    def records(self) -> list[Record]:
-        return list(self._records)
-
-    def cut(self, index: int) -> None:
-        self._records = self._records[:index]
-
-    def quarantine(self, kind: str, body: bytes, reason: str, index: int | None = None) -> None:
-        log.warning("quarantined %s record (no journal): %s", kind, reason)
-
-    def close(self) -> None:
-        pass
 
 
 def execute_journal_actions(log: Journal | MemoryLog, actions: Sequence[Action]) -> list[Action]:
@@ -168,7 +139,6 @@ class Agent:
         if self.settings.simulation:
             t.subscribe(keys.sim_links(), self.control)
         t.subscribe(keys.frames(self.robot), self.frames)
-        # Stacks: whom the core says to hear (its first Listen comes from ``start``).
         t.declare_alive(keys.alive(self.robot))
         if self.ros2 is not None:
             self.ros2.bridge.next_step = self.node.k + 1  # after a replay: the journal's next step

@@ -101,11 +101,19 @@ def _capacity_row(
     counters = [c.counters[r] for _, c, _ in runs for r in c.counters]
     received = np.mean([x.get("stacks_received", 0) for x in counters])
     deferred = np.mean([x.get("fusions_deferred", 0) for x in counters])
+    # Over the robots that reached the last step (none may have, at 30 agents).
     last = {
-        name: np.mean([np.nanmean(c.metrics["distributed"][name][:, -1]) for _, c, _ in runs])
+        name: np.concatenate([c.metrics["distributed"][name][:, -1] for _, c, _ in runs])
         for name in ("robot_error", "object_error")
     }
-    errors = ", ".join(f"{name} {value:.3f} m" for name, value in last.items())
+    reached = int(np.isfinite(last["robot_error"]).sum())
+    errors = (
+        ", ".join(
+            f"{name} {np.mean(v[np.isfinite(v)]):.3f} m" if reached else f"{name} n/a"
+            for name, v in last.items()
+        )
+        + f" ({reached} of {len(last['robot_error'])} robot runs reached it)"
+    )
     label = "" if catch_up == CATCH_UP_STEPS else f", catch_up {catch_up} (baseline)"
     return Result(
         f"realtime capacity: {n} agents, period {PERIOD_S:g} s{label}",
