@@ -1,13 +1,14 @@
 """The wire codec of published estimates, key ``semfleet/<fleet>/estimate/<robot>`` (docs/wire.md).
 
-An estimate is a msgpack map ``{"v": 1, "type": "estimate", "robot": str, "k": int, "beliefs":
+An estimate is a msgpack map ``{"v": 3, "type": "estimate", "robot": str, "k": int, "beliefs":
 {name: snapshot}, "counters": {name: int}}``; a snapshot is a :class:`BeliefSnapshot` with its
 object ids as a msgpack int array and every other array as one raw little-endian binary: float64
-for weights, poses and covariances, int64 for classes. Classes travel as int64 rather than one byte
-each (as in a stack) or a msgpack int list: int64 is ``BeliefSnapshot.classes``' own dtype, so the
-round trip is exact without conversion, one ``frombuffer`` decodes and checks H·n classes at once
-(a Python list of 10⁵ ints would not), and at 8 bytes per object per hypothesis they stay small next
-to the 72-byte object covariances. As in ``protocol.codec``, ``decode_estimate`` raises only
+for weights, poses and covariances, one unsigned byte per class (version 3; int64 in versions 1
+and 2, still decoded). One ``frombuffer`` decodes and checks H·n classes at once (a msgpack list
+of 10⁵ ints would not). Bytes rather than int64 since the pose arrays travel once for all
+hypotheses (version 2): the classes, H·n of them, became most of an estimate (docs/wire.md,
+"Estimates"). A belief with a class index over 255 is sent as version 1 or 2, with int64 classes.
+As in ``protocol.codec``, ``decode_estimate`` raises only
 :class:`RemoteProtocolError` subclasses naming the field, and ``encode_estimate`` raises
 :class:`LocalProtocolError` for exactly what the decoder would reject under the same limits (the
 value checks are one function shared by both).
@@ -36,6 +37,9 @@ from protocol.validate import as_int, as_map, decode_document, need, robot_id, v
 
 VERSION = 1
 SHARED_VERSION = 2  # a snapshot may send a pose array once for all its hypotheses (docs/wire.md)
+BYTE_CLASSES_VERSION = 3  # version 2, with one unsigned byte per class instead of int64
+VERSIONS = (VERSION, SHARED_VERSION, BYTE_CLASSES_VERSION)
+_BYTE_CLASS = "<u1"
 ESTIMATE = "estimate"
 MAX_COUNT = 2**63 - 1
 MAX_OBJECT_ID = 2**32 - 1
@@ -154,8 +158,12 @@ def encode_estimate(msg: EstimateMessage, limits: EstimateLimits | None = None) 
         for name in sorted(msg.beliefs)
     }
     shared = any([snap.pop(_SHARED) for snap in beliefs.values()])  # every flag removed
+    # Checked already: every class is in 0 … num_classes − 1.
+    byte = all(int(snap["classes"].max(initial=0)) <= 255 for snap in beliefs.values())
+    for snap in beliefs.values():
+        snap["classes"] = snap["classes"].astype(_BYTE_CLASS if byte else "<i8").tobytes()
     doc = {
-        "v": SHARED_VERSION if shared else VERSION,
+        "v": BYTE_CLASSES_VERSION if byte else SHARED_VERSION if shared else VERSION,
         "type": ESTIMATE,
         "robot": msg.robot,
         "k": int(msg.k),
@@ -198,7 +206,9 @@ def _encode_snapshot(snap: BeliefSnapshot, where: str, lim: EstimateLimits) -> d
             out[_SHARED] = True
     _check_values(arrays, where, lim, LocalProtocolError)
     for name, (dtype, _) in _LAYOUT.items():
-        out[name] = np.ascontiguousarray(arrays[name], dtype=dtype).tobytes()
+        out[name] = np.ascontiguousarray(arrays[name], dtype=dtype)
+        if name != "classes":  # classes: bytes once the message's version is known
+            out[name] = out[name].tobytes()
     return out
 
 
@@ -238,8 +248,8 @@ def _named(value: Any, where: str, pattern: re.Pattern[str], most: int) -> dict[
 def _decode_doc(doc: Any, lim: EstimateLimits) -> EstimateMessage:
     need(isinstance(doc, dict), "message", f"expected a map, got {type(doc).__name__}")
     version = doc.get("v")
-    if "v" in doc and (type(version) is not int or version not in (VERSION, SHARED_VERSION)):
-        speaks = f"{VERSION} and {SHARED_VERSION}"
+    if "v" in doc and (type(version) is not int or version not in VERSIONS):
+        speaks = ", ".join(map(str, VERSIONS))
         raise UnsupportedVersion(f"schema version {doc['v']!r} (this side speaks {speaks})", "v")
     top = as_map(doc, "message", _TOP_KEYS)
     if top["type"] != ESTIMATE:
@@ -248,8 +258,8 @@ def _decode_doc(doc: Any, lim: EstimateLimits) -> EstimateMessage:
     k = as_int(top["k"], "k", 0, MAX_STEP)
     raw = _named(top["beliefs"], "beliefs", BELIEF_NAME, MAX_BELIEFS)
     need(len(raw) >= 1, "beliefs", "no belief", InvalidValue)
-    shares = version == SHARED_VERSION
-    beliefs = {name: _decode_snapshot(v, f"beliefs.{name}", lim, shares) for name, v in raw.items()}
+    v = VERSION if version is None else version
+    beliefs = {name: _decode_snapshot(b, f"beliefs.{name}", lim, v) for name, b in raw.items()}
     counters = _named(top["counters"], "counters", COUNTER_NAME, MAX_COUNTERS)
     for name, count in counters.items():
         as_int(count, f"counters.{name}", 0, MAX_COUNT)
@@ -257,7 +267,7 @@ def _decode_doc(doc: Any, lim: EstimateLimits) -> EstimateMessage:
 
 
 def _decode_snapshot(
-    value: Any, where: str, lim: EstimateLimits, shares: bool = False
+    value: Any, where: str, lim: EstimateLimits, version: int = VERSION
 ) -> BeliefSnapshot:
     s = as_map(value, where, _SNAPSHOT_KEYS)
     objects = s["objects"]
@@ -274,9 +284,12 @@ def _decode_snapshot(
     need(h >= 1, f"{where}.weights", "a belief has at least one hypothesis", InvalidValue)
     need(h <= lim.max_hypotheses, f"{where}.weights", f"{h} > {lim.max_hypotheses}", LimitExceeded)
     arrays: dict[str, Any] = {}
+    shares = version >= SHARED_VERSION
     for name, (dtype, per) in _LAYOUT.items():
+        if name == "classes" and version == BYTE_CLASSES_VERSION:
+            dtype = _BYTE_CLASS
         shape = _shape(h, n, per)
-        size = 8 * int(np.prod(shape))
+        size = np.dtype(dtype).itemsize * int(np.prod(shape))
         got = len(s[name])
         once = _shape(1, n, per)
         if shares and name in _SHAREABLE and h > 1 and got == 8 * int(np.prod(once)) != size:
@@ -285,7 +298,7 @@ def _decode_snapshot(
             arrays[name] = np.broadcast_to(one, shape)
             continue
         need(got == size, f"{where}.{name}", f"expected {size} bytes for {shape}, got {got}")
-        native = np.float64 if dtype == "<f8" else np.int64
+        native = np.float64 if dtype == "<f8" else np.int64  # classes: int64, whatever the wire
         arrays[name] = np.frombuffer(s[name], dtype=dtype).astype(native).reshape(shape)
     _check_values(arrays, where, lim, InvalidValue)
     return BeliefSnapshot(ids, **arrays)

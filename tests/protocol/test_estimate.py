@@ -149,7 +149,7 @@ def test_estimate_round_trip_is_bit_exact(index: int) -> None:
 def test_estimate_wire_layout_matches_docs() -> None:
     assert list(REF_DOC) == ["v", "type", "robot", "k", "beliefs", "counters"]
     assert (REF_DOC["v"], REF_DOC["type"], REF_DOC["robot"], REF_DOC["k"]) == (
-        1,
+        3,
         "estimate",
         "r2",
         12,
@@ -160,7 +160,7 @@ def test_estimate_wire_layout_matches_docs() -> None:
     raw = REF_DOC["beliefs"]["local"]
     assert list(raw) == ["objects", *ARRAYS]
     assert raw["objects"] == list(local.object_ids)
-    assert raw["classes"] == local.classes.astype("<i8").tobytes()
+    assert raw["classes"] == local.classes.astype("<u1").tobytes()  # one byte per class
     for name in FLOAT_ARRAYS:
         assert raw[name] == getattr(local, name).astype("<f8").tobytes()
 
@@ -277,14 +277,67 @@ def test_estimate_weights_within_tolerance_are_accepted(weights: list[float]) ->
     assert got.beliefs["local"].weights.tobytes() == np.array(weights).tobytes()
 
 
-@pytest.mark.parametrize("value", [-1, 64, 2**62, -(2**63)])
+def _class_poked(index: int, value: int) -> bytes:
+    """The reference document (version 3) with class ``index`` of ``local`` set to ``value``."""
+    path = (*LOCAL, "classes")
+    blob = get_at(REF_DOC, path)
+    return WIRE.with_(path, blob[:index] + bytes([value]) + blob[index + 1 :])
+
+
+def _int64_classes(doc: dict[str, Any], version: int) -> dict[str, Any]:
+    """``doc`` (version 3) as a document of ``version`` 1 or 2: classes as int64."""
+    old = copy.deepcopy(doc)
+    old["v"] = version
+    for snap in old["beliefs"].values():
+        snap["classes"] = np.frombuffer(snap["classes"], "<u1").astype("<i8").tobytes()
+    return old
+
+
+@pytest.mark.parametrize("value", [64, 200, 255])
 def test_estimate_class_out_of_range_is_invalid(value: int) -> None:
-    blob = WIRE.poke((*LOCAL, "classes"), 4, value, "<q")
-    WIRE.assert_rejected(blob, InvalidValue, "beliefs.local.classes")
+    WIRE.assert_rejected(_class_poked(4, value), InvalidValue, "beliefs.local.classes")
+
+
+@pytest.mark.parametrize("value", [-1, 64, 2**62, -(2**63)])
+def test_estimate_int64_class_out_of_range_is_invalid(value: int) -> None:
+    """Versions 1 and 2 carry classes as int64: negative and huge ones are refused too."""
+    path = (*LOCAL, "classes")
+    for version in (1, 2):
+        doc = _int64_classes(REF_DOC, version)
+        blob = get_at(doc, path)
+        doc["beliefs"]["local"]["classes"] = blob[:32] + struct.pack("<q", value) + blob[40:]
+        WIRE.assert_rejected(pack(doc), InvalidValue, "beliefs.local.classes")
+
+
+def test_estimate_int64_classes_of_versions_1_and_2_still_decode() -> None:
+    """An estimate of an agent before version 3 (classes as int64) decodes to the same beliefs,
+    and its classes must have 8 bytes each there (one each in version 3)."""
+    for version in (1, 2):
+        doc = _int64_classes(REF_DOC, version)
+        assert_same_estimate(decode_estimate(pack(doc)), REF)
+        as_bytes = copy.deepcopy(doc)
+        as_bytes["beliefs"]["local"]["classes"] = REF_DOC["beliefs"]["local"]["classes"]
+        WIRE.assert_rejected(pack(as_bytes), MalformedMessage, "beliefs.local.classes")
+    doc = copy.deepcopy(REF_DOC)
+    doc["beliefs"]["local"]["classes"] = _int64_classes(REF_DOC, 2)["beliefs"]["local"]["classes"]
+    WIRE.assert_rejected(pack(doc), MalformedMessage, "beliefs.local.classes")
+
+
+def test_estimate_classes_over_255_travel_as_int64() -> None:
+    """A model with more than 256 classes: its estimates keep int64 classes (version 1 or 2)."""
+    lim = EstimateLimits(num_classes=1000)
+    snap = dataclasses.replace(
+        REF.beliefs["local"], classes=np.array([[0, 999, 2], [256, 1, 0]], dtype=np.int64)
+    )
+    msg = EstimateMessage("r1", 3, {"local": snap, "distributed": REF.beliefs["distributed"]})
+    blob = encode_estimate(msg, lim)
+    doc = msgpack.unpackb(blob)
+    assert doc["v"] == 1 and len(doc["beliefs"]["local"]["classes"]) == 8 * 2 * 3
+    assert_same_estimate(decode_estimate(blob, lim), msg)
 
 
 def test_estimate_class_limit_follows_num_classes() -> None:
-    blob = WIRE.poke((*LOCAL, "classes"), 4, 2, "<q")
+    blob = _class_poked(4, 2)
     WIRE.assert_rejected(blob, InvalidValue, "beliefs.local.classes", EstimateLimits(num_classes=2))
     assert decode_estimate(blob, EstimateLimits(num_classes=3)).beliefs["local"].classes[1, 1] == 2
 
@@ -420,7 +473,7 @@ def test_estimate_non_string_names_are_malformed() -> None:
     WIRE.assert_rejected(WIRE.with_(("counters",), {b"invalid": 1}), MalformedMessage, "counters")
 
 
-@pytest.mark.parametrize("version", [0, 3, -1, "1", None, 1.0, True])
+@pytest.mark.parametrize("version", [0, 4, -1, "1", None, 1.0, True])
 def test_estimate_unknown_version_is_unsupported(version: Any) -> None:
     WIRE.assert_rejected(WIRE.with_(("v",), version), UnsupportedVersion, "v")
 
@@ -439,17 +492,17 @@ SHAREABLE = ("robot_pose", "robot_cov", "object_pose", "object_cov")
 @pytest.mark.parametrize("seed", range(4))
 def test_estimate_poses_every_hypothesis_shares_travel_once(seed: int) -> None:
     """The pose arrays of hypotheses that share one continuous belief are sent once (wire
-    version 2) and come back bit for bit, H times; a belief with one differing entry, or one
-    hypothesis, keeps version 1 and sends each hypothesis' own."""
+    versions 2 and 3) and come back bit for bit, H times; a belief with one differing entry, or
+    one hypothesis, sends each hypothesis' own."""
     rng = np.random.default_rng(seed)
     h, n = 6, 4
     snap = _shared(rng, h, n)
     blob = encode_estimate(EstimateMessage("r1", 3, {"distributed": snap}))
     doc = msgpack.unpackb(blob)
-    assert doc["v"] == 2
+    assert doc["v"] == 3
     sent = doc["beliefs"]["distributed"]
     assert [len(sent[a]) for a in SHAREABLE] == [24, 72, 24 * n, 72 * n]
-    assert len(sent["classes"]) == 8 * h * n and len(sent["weights"]) == 8 * h
+    assert len(sent["classes"]) == h * n and len(sent["weights"]) == 8 * h
     got = decode_estimate(blob).beliefs["distributed"]
     assert_same_snapshot(got, snap)
     # one entry of one hypothesis differs: that array goes whole, the others still once
@@ -475,18 +528,21 @@ def test_estimate_poses_every_hypothesis_shares_travel_once(seed: int) -> None:
     blob = encode_estimate(EstimateMessage("r1", 3, {"distributed": view}))
     assert len(msgpack.unpackb(blob)["beliefs"]["distributed"]["object_cov"]) == 72 * n
     single = make_snapshot(rng, 1, n)
-    assert msgpack.unpackb(encode_estimate(EstimateMessage("r1", 3, {"local": single})))["v"] == 1
+    blob = encode_estimate(EstimateMessage("r1", 3, {"local": single}))
+    assert len(msgpack.unpackb(blob)["beliefs"]["local"]["object_cov"]) == 72 * n
 
 
 def test_estimate_arrays_sent_once_are_refused_where_they_may_not_be() -> None:
-    """Version 1 has no shared arrays; in version 2 only the four pose arrays may be shared, and
-    a length that is neither H hypotheses' nor one's is refused, naming the field."""
+    """Version 1 has no shared arrays; in versions 2 and 3 only the four pose arrays may be
+    shared, and a length that is neither H hypotheses' nor one's is refused, naming the field."""
     rng = np.random.default_rng(9)
     snap = _shared(rng, 5, 3)
     doc = msgpack.unpackb(encode_estimate(EstimateMessage("r1", 3, {"local": snap})))
-    assert doc["v"] == 2
-    WIRE.assert_rejected(pack({**doc, "v": 1}), MalformedMessage, "beliefs.local.robot_pose")
-    for name, size in (("classes", 24), ("object_pose", 24 * 2)):  # (weights fix H)
+    assert doc["v"] == 3
+    assert_same_estimate(decode_estimate(pack(_int64_classes(doc, 2))), decode_estimate(pack(doc)))
+    old = _int64_classes(doc, 1)
+    WIRE.assert_rejected(pack(old), MalformedMessage, "beliefs.local.robot_pose")
+    for name, size in (("classes", 3), ("object_pose", 24 * 2)):  # (weights fix H)
         bad = copy.deepcopy(doc)
         bad["beliefs"]["local"][name] = bytes(size)
         WIRE.assert_rejected(pack(bad), MalformedMessage, f"beliefs.local.{name}")
@@ -543,8 +599,12 @@ def test_estimate_default_limits_hold_a_large_belief() -> None:
 
 # --------------------------------------------------------------------------- structured fuzz
 
-# Class indices (int64) at and past their edges, poked like the float64s.
-EDGE_CLASSES = st.sampled_from([struct.pack("<q", v) for v in (-1, 0, 2, 64, 2**63 - 1, -(2**63))])
+# Class indices at and past their edges, poked like the float64s (8 bytes: 8 one-byte classes of
+# version 3, or one int64 class of versions 1 and 2).
+EDGE_CLASSES = st.sampled_from(
+    [struct.pack("<q", v) for v in (-1, 0, 2, 64, 2**63 - 1, -(2**63))]
+    + [bytes([v] * 8) for v in (0, 1, 2, 63, 64, 255)]
+)
 MUTATOR = fuzz.Mutator(
     known_keys=("v", "type", "robot", "k", "beliefs", "counters", "local", "objects", *ARRAYS),
     strings=("estimate", "r1", "local", ""),
