@@ -3,12 +3,9 @@
 An estimate is a msgpack map ``{"v": 3, "type": "estimate", "robot": str, "k": int, "beliefs":
 {name: snapshot}, "counters": {name: int}}``; a snapshot is a :class:`BeliefSnapshot` with its
 object ids as a msgpack int array and every other array as one raw little-endian binary: float64
-for weights, poses and covariances, one unsigned byte per class (version 3; int64 in versions 1
-and 2, still decoded). One ``frombuffer`` decodes and checks H·n classes at once (a msgpack list
-of 10⁵ ints would not). Bytes rather than int64 since the pose arrays travel once for all
-hypotheses (version 2): the classes, H·n of them, became most of an estimate (docs/wire.md,
-"Estimates"). A belief with a class index over 255 is sent as version 1 or 2, with int64 classes.
-As in ``protocol.codec``, ``decode_estimate`` raises only
+for weights, poses and covariances; classes one unsigned byte each (version 3), or int64 (versions
+1 and 2, and any message with a class over 255), decoded and checked in one ``frombuffer``
+(docs/wire.md, "Estimates"). As in ``protocol.codec``, ``decode_estimate`` raises only
 :class:`RemoteProtocolError` subclasses naming the field, and ``encode_estimate`` raises
 :class:`LocalProtocolError` for exactly what the decoder would reject under the same limits (the
 value checks are one function shared by both).
@@ -158,8 +155,7 @@ def encode_estimate(msg: EstimateMessage, limits: EstimateLimits | None = None) 
         for name in sorted(msg.beliefs)
     }
     shared = any([snap.pop(_SHARED) for snap in beliefs.values()])  # every flag removed
-    # Checked already: every class is in 0 … num_classes − 1.
-    byte = all(int(snap["classes"].max(initial=0)) <= 255 for snap in beliefs.values())
+    byte = all(int(snap["classes"].max(initial=0)) <= 255 for snap in beliefs.values())  # ≥ 0
     for snap in beliefs.values():
         snap["classes"] = snap["classes"].astype(_BYTE_CLASS if byte else "<i8").tobytes()
     doc = {
