@@ -56,6 +56,7 @@ STACK_INBOX_BYTES = 64 * 1024 * 1024
 FRAME_INBOX_BYTES = 16 * 1024 * 1024
 CONTROL_INBOX_BYTES = 4 * 1024 * 1024
 SHUTDOWN_STEP_WAIT_S = 1.0
+LISTEN_ECHO_S = 0.05  # after subscribing to new peers' stacks (a declaration takes ~3 ms here)
 
 
 def execute_journal_actions(log: Journal | MemoryLog, actions: Sequence[Action]) -> list[Action]:
@@ -266,10 +267,17 @@ class Agent:
                         self.ros2.publish(sample.key, sample.payload, sample.attachment)
             elif isinstance(a, Halt):
                 self.stop(a.reason)
-            elif isinstance(a, Listen):
-                self.stack_subscriptions.follow(a.peers)
+            elif isinstance(a, Listen) and self.stack_subscriptions.follow(a.peers):
+                # What a new peer published while the subscription was being declared is lost:
+                # gossip once more when the declaration is through, so that it learns now what
+                # this agent lacks (and sends it: delta gossip) instead of at its next tick.
+                asyncio.get_running_loop().call_later(LISTEN_ECHO_S, self._echo)
             else:
                 execute_journal_actions(self.log, [a])
+
+    def _echo(self) -> None:
+        if not self._stop.is_set():
+            self._carry_out(self.core.on_timer(self.clock()))
 
     def counter_values(self) -> dict[str, int]:
         return self.core.counter_values()

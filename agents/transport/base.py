@@ -262,11 +262,14 @@ class StackSubscriptions:
         self.transport, self.keys, self.inbox = transport, keys, inbox
         self.exprs: set[str] = set()
 
-    def follow(self, peers: frozenset[str] | None) -> None:
-        """Subscribe to the stacks of ``peers`` only (None: of every robot)."""
+    def follow(self, peers: frozenset[str] | None) -> bool:
+        """Subscribe to the stacks of ``peers`` only (None: of every robot); whether a
+        subscription was added."""
         want = {self.keys.stack("*")} if peers is None else {self.keys.stack(p) for p in peers}
         for expr in sorted(self.exprs - want):
             self.transport.unsubscribe(expr, self.inbox)
-        for expr in sorted(want - self.exprs):
+        added = sorted(want - self.exprs)
+        for expr in added:
             self.transport.subscribe(expr, self.inbox)
         self.exprs = want
+        return bool(added)

@@ -88,9 +88,14 @@ def _agent(
     gossip_period: float = QUIET,
     clock: Callable[[], float] | None = None,
     simulation: bool = False,
+    listen_in_range: bool = False,
 ) -> Agent:
     settings = CoreSettings(
-        mode=mode, gossip_period=gossip_period, retry_period=0.05, simulation=simulation
+        mode=mode,
+        gossip_period=gossip_period,
+        retry_period=0.05,
+        simulation=simulation,
+        listen_in_range=listen_in_range,
     )
     extra = {} if clock is None else {"clock": clock}
     core = AgentCore(_factory(robot), KEYS, settings)
@@ -267,20 +272,53 @@ def _links(k: int, links: dict[str, tuple[str, ...]]) -> bytes:
 
 
 @pytest.mark.asyncio
+async def test_simulated_agent_hears_whom_the_simulator_says_and_counts_the_rest(
+    frames: dict[str, list[SensorFrame]],
+) -> None:
+    bus = MemoryBus()
+    world = MemoryTransport(bus)
+    await world.open()
+    peer = _nodes()["r2"]
+    peer.on_frame(frames["r2"][0])
+    agent = _agent("r1", bus, "realtime", simulation=True)
+    async with _running(agent) as (task,):
+        world.publish(KEYS.stack("r2"), _stack_from(peer))  # no links yet: nobody is heard
+        await _until(lambda: agent.node.counters.stacks_received == 1)
+        assert agent.counters.ignored_out_of_range == 0  # (nor counted out of range)
+        assert agent.node.stack.stamps() == {}
+        world.publish(KEYS.sim_links(), _links(1, {"r1": (), "r2": ("r1",)}))
+        world.publish(KEYS.frames("r1"), encode_frame(frames["r1"][0]))
+        await _until(lambda: agent.node.k == 1)
+        world.publish(KEYS.stack("r2"), _stack_from(peer))  # step 1's links: r2 → r1 is cut
+        await _until(lambda: agent.node.counters.stacks_received == 2)
+        assert agent.counters.ignored_out_of_range == 1
+        assert agent.node.stack.stamps() == {"r1": 1}
+        world.publish(KEYS.sim_links(), _links(2, {"r1": ("r2",)}))
+        world.publish(KEYS.sim_links(), b"\xff")  # counted, never fatal
+        await asyncio.sleep(0.05)
+        world.publish(KEYS.stack("r2"), _stack_from(peer))
+        await _until(lambda: agent.node.counters.stacks_received == 3)
+        assert agent.node.stack.stamps() == {"r1": 1, "r2": 1}
+        assert agent.counter_values()["ignored_out_of_range"] == 1
+        assert agent.counter_values()["links_invalid"] == 1
+        assert not task.done()
+
+
+@pytest.mark.asyncio
 async def test_simulated_agent_subscribes_to_the_stacks_of_whom_the_simulator_says_only(
     frames: dict[str, list[SensorFrame]],
 ) -> None:
-    """In a simulated real time run the agent subscribes to ``stack/<peer>`` of the robots in
-    range at the coming step only (nobody before the first links): a stack of a robot out of
-    range is never even delivered to it. (The core's own filter, for a stack still in flight
-    when the range changed, is tested in test_core.)"""
+    """With ``listen_in_range``, a simulated real time agent subscribes to ``stack/<peer>`` of
+    the robots in range at the coming step only (nobody before the first links): a stack of a
+    robot out of range is never even delivered to it. (The core's own filter, for a stack still
+    in flight when the range changed, is tested in test_core.)"""
     bus = MemoryBus()
     world = MemoryTransport(bus)
     await world.open()
     peers = _nodes()
     for r in ("r2", "r3"):
         peers[r].on_frame(frames[r][0])
-    agent = _agent("r1", bus, "realtime", simulation=True)
+    agent = _agent("r1", bus, "realtime", simulation=True, listen_in_range=True)
     async with _running(agent) as (task,):
         await _until(lambda: agent.counter_values()["listen_changes"] == 1)
         assert agent.stack_subscriptions.exprs == set()  # no links yet: nobody is heard
@@ -582,3 +620,28 @@ async def test_conductor_scores_during_the_run_only_what_exceeds_its_backlog(
         assert np.isfinite(errors).tolist() == [True, True, False]  # r3 waits
         conductor.score_pending()
         assert np.isfinite(conductor.collected.metrics["distributed"]["robot_error"][:, 0]).all()
+
+
+@pytest.mark.asyncio
+async def test_an_agent_that_subscribes_to_new_peers_gossips_again_once_subscribed() -> None:
+    """What a new peer published while the subscription was being declared is lost: 50 ms after
+    it subscribed, the agent gossips once more (its gossip period is far longer here), so that
+    the peer learns what it lacks without waiting for a tick."""
+    bus = MemoryBus()
+    world = MemoryTransport(bus)
+    await world.open()
+    watched = Inbox(64)
+    world.subscribe(KEYS.stack("r1"), watched)
+    agent = _agent("r1", bus, "realtime", simulation=True, listen_in_range=True)
+    async with _running(agent) as (task,):
+        await _until(lambda: agent.counter_values()["listen_changes"] == 1)
+        await asyncio.sleep(0.2)
+        before = len(watched.drain())
+        world.publish(KEYS.sim_links(), _links(1, {"r1": ("r2",)}))
+        await _until(lambda: agent.stack_subscriptions.exprs == {KEYS.stack("r2")})
+        assert not watched.drain()  # nothing at once: the subscription is being declared
+        await _until(lambda: len(watched) >= 1)
+        world.publish(KEYS.sim_links(), _links(1, {"r1": ("r2",)}))  # the same peers: no echo
+        await asyncio.sleep(0.2)
+        assert len(watched.drain()) == 1 and before >= 1
+        assert not task.done()

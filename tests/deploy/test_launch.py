@@ -245,10 +245,7 @@ def test_launch_realtime_with_30_percent_loss_completes_close_to_lossless(
         config = (tmp_path / "agents" / f"{r}.toml").read_text()
         assert "simulation = true" in config and "drop" not in config
         assert outcome.collected.counters[r]["frames_processed"] == STEPS
-    # Each agent subscribes to the stacks of the robots the simulator lets it hear (the first
-    # Listen, then one per change of the lost links); a stack still in flight when its sender
-    # went out of reach is dropped by the agent (``ignored_out_of_range``).
-    assert all(outcome.collected.counters[r]["listen_changes"] > 2 for r in ROBOTS)
+    assert sum(outcome.collected.counters[r]["ignored_out_of_range"] for r in ROBOTS) > 0
     metrics = outcome.result.metrics
     # L never depends on communication: identical to the lossless run.
     for name in METRICS:
