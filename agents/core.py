@@ -215,6 +215,7 @@ class CoreCounters:
     slots_implausible: int = 0
     restores: int = 0
     estimates_sent: int = 0
+    estimates_skipped: int = 0
     need_requests: int = 0
     round_requests: int = 0
     rounds_resent: int = 0
@@ -543,7 +544,7 @@ class AgentCore:
                 self._orders[order.k] = order
             elif order.k > k:
                 self.counters.orders_ahead += 1
-            elif order.k == k and self._last_estimate is not None and self._ack_due(order):
+            elif order.k == k and k > 0 and self._ack_due(order):
                 return self._publish_estimate(self._last_estimate)  # the conductor missed our ack
         elif isinstance(order, Status):
             self.counters.status_requests += 1
@@ -607,7 +608,7 @@ class AgentCore:
         k = self.node.k
         if frame.k <= k:
             self.counters.frames_duplicate += 1
-            if frame.k == k and self._last_estimate is not None and self._answer_due(k):
+            if frame.k == k and k > 0 and self._answer_due(k):
                 return self._publish_estimate(self._last_estimate)
             return []
         if frame.k > k + self.settings.window:
@@ -780,19 +781,23 @@ class AgentCore:
         # request made the conductor send it again, and every copy was answered with an estimate).
         self._out = dataclasses.replace(self._out, need_from=None, need_round=None)
         behind = self.settings.mode == "realtime" and k + 1 in self._frames
+        catching_up = behind and self.settings.catch_up > 0
         fuse = not behind or self._deferred_in_row >= self.settings.catch_up
-        actions = self._step(frame, data, fuse)
+        actions = self._step(frame, data, fuse, report=not catching_up)
         self._forget_before(self.node.k)
         return actions
 
-    def _step(self, frame: SensorFrame, data: bytes, fuse: bool = True) -> list[Action]:
+    def _step(
+        self, frame: SensorFrame, data: bytes, fuse: bool = True, report: bool = True
+    ) -> list[Action]:
         """Step with ``frame`` and commit; on failure roll back and go on (module docstring).
-        ``fuse=False``: a step that defers its fusion (catching up)."""
+        ``fuse=False``: a step that defers its fusion; ``report=False``: a step whose estimate is
+        not published, the next step following at once (both: catching up)."""
         try:
             self._run(frame, fuse)
         except Exception as exc:
             return self._recover(frame, data, exc, fuse)
-        return self._committed_step(data, fuse)
+        return self._committed_step(data, fuse, report)
 
     def _run(self, frame: SensorFrame, fuse: bool) -> None:
         # on_frame alone does the same; split to time the fusion + D and the L step separately.
@@ -808,23 +813,24 @@ class AgentCore:
         t3 = time.perf_counter()
         self._step_us = (round(1e6 * (t2 - t1)), round(1e6 * ((t1 - t0) + (t3 - t2))))
 
-    def _committed_step(self, frame: bytes, fused: bool) -> list[Action]:
+    def _committed_step(self, frame: bytes, fused: bool, report: bool = True) -> list[Action]:
         """Commit a step taken with the frame bytes ``frame`` and publish. A step that deferred
         its fusion commits its frame alone: the stacks merged so far go into the journal, and
-        stay suspects, with the step that fuses them."""
+        stay suspects, with the step that fuses them. ``report=False``: no estimate (it would be
+        superseded by the step that follows at once; one is made if asked for)."""
         self.counters.frames_processed += 1
         if not fused:
             self._deferred_in_row += 1
             self.counters.fusions_deferred += 1
             self._batch_records.append(Record(FRAME_UNFUSED, frame))
-            return [Append(FRAME_UNFUSED, frame), Commit(), *self._publish_estimate()]
+            return [Append(FRAME_UNFUSED, frame), Commit(), *self._report(report)]
         records = [*self._uncommitted, Append(FRAME, frame)]
         self._batch_records += [Record(a.kind, a.body) for a in records]
         actions: list[Action] = [*records, Commit()]
         self._uncommitted = []
         self._merged_since_commit = []
         self._deferred_in_row = 0
-        return actions + self._publish_stack(previous=self._out.stack) + self._publish_estimate()
+        return actions + self._publish_stack(previous=self._out.stack) + self._report(report)
 
     def _recover(self, frame: SensorFrame, data: bytes, exc: Exception, fuse: bool) -> list[Action]:
         self.counters.steps_failed += 1
@@ -993,7 +999,16 @@ class AgentCore:
         self.node.mark_sent(len(data))
         return [Publish(self.keys.stack(self.robot), data)]
 
+    def _report(self, report: bool) -> list[Action]:
+        if report:
+            return self._publish_estimate()
+        self._last_estimate = None  # made when next asked for
+        self.counters.estimates_skipped += 1
+        return []
+
     def _publish_estimate(self, data: bytes | None = None) -> list[Action]:
+        """Publish ``data``, or the estimate of the current step (made and kept for answering
+        again)."""
         if data is None:
             beliefs = {"distributed": self.node.distributed.snapshot(self.robot)}
             if self.settings.publish_local:
@@ -1049,6 +1064,7 @@ class AgentCore:
             "rounds_dropped": a.rounds_dropped,
             "links_invalid": a.invalid_links,
             "estimates_sent": a.estimates_sent,
+            "estimates_skipped": a.estimates_skipped,
             "need_requests": a.need_requests,
             "round_requests": a.round_requests,
             "rounds_resent": a.rounds_resent,

@@ -11,7 +11,7 @@ import msgpack
 import numpy as np
 import pytest
 
-from agents.control import NeedRound, StepOrder, decode_control, encode_control
+from agents.control import NeedRound, Status, StepOrder, decode_control, encode_control
 from agents.core import (
     Action,
     AgentCore,
@@ -29,6 +29,7 @@ from estimator.distributed import DistributedBelief
 from estimator.hybrid import BeliefConfig
 from estimator.models import Detection, SensorFrame
 from protocol.codec import StackMessage, decode, encode
+from protocol.estimate import decode_estimate
 from protocol.frames import encode_frame
 from protocol.stack import Stack
 from sim.loader import load_scenario
@@ -548,6 +549,10 @@ def _batch(d: Driver, messages: Sequence[tuple[str, bytes]]) -> list[Action]:
     return actions
 
 
+def _published(actions: Sequence[Action], key: str) -> list[bytes]:
+    return [a.payload for a in actions if isinstance(a, Publish) and a.key == key]
+
+
 def _frames_of(fs: Sequence[SensorFrame]) -> list[tuple[str, bytes]]:
     return [(KEYS.frames(f.robot), encode_frame(f)) for f in fs]
 
@@ -572,7 +577,10 @@ def test_a_realtime_agent_behind_its_frames_defers_the_fusion_to_the_step_that_c
     assert kinds == ["frame", "frame_unfused", "frame_unfused", "stack", "frame"]
     published = [a.key for a in actions if isinstance(a, Publish)]
     assert published.count(KEYS.stack("r1")) == 1  # after step 4 only
-    assert published.count(KEYS.estimate("r1")) == 3  # every step is still reported
+    # Only the newest step is reported: the estimates of steps 2 and 3 were superseded at once.
+    assert published.count(KEYS.estimate("r1")) == 1
+    assert c["estimates_skipped"] == 2
+    assert decode_estimate(_published(actions, KEYS.estimate("r1"))[-1]).k == 4
     _same_belief(_replayed(d).node, d.core.node)
     # The same D as an agent not behind that received the stack between steps 3 and 4.
     e = Driver()
@@ -585,8 +593,9 @@ def test_a_realtime_agent_behind_its_frames_defers_the_fusion_to_the_step_that_c
     # Without catching up, every step fuses: r2's slot at step 2 already, a different D.
     f = Driver(catch_up=0)
     f.frame(frames["r1"][0])
-    _batch(f, [*_frames_of(frames["r1"][1:4]), stack])
+    f_actions = _batch(f, [*_frames_of(frames["r1"][1:4]), stack])
     assert f.core.counter_values()["fusions_deferred"] == 0
+    assert len(_published(f_actions, KEYS.estimate("r1"))) == 3  # and reports every step
     assert [r.kind for r in f.log.records()] == ["frame", "stack", "frame", "frame", "frame"]
     snapshots = [x.core.node.distributed.snapshot("r1") for x in (d, f)]
     assert not np.array_equal(snapshots[0].weights, snapshots[1].weights)
@@ -601,6 +610,40 @@ def test_catching_up_defers_at_most_catch_up_steps_in_a_row(frames) -> None:  # 
     assert lockstep.core.settings.catch_up > 0  # the setting applies to real time only
     with pytest.raises(ValueError, match="catch_up"):
         CoreSettings(catch_up=-1)
+
+
+def test_an_agent_that_skipped_estimates_while_catching_up_answers_with_its_current_one(
+    frames,
+    monkeypatch,  # type: ignore[no-untyped-def]
+) -> None:
+    """Steps 1–3 arrive together: only step 3 is reported; asked for it again (the conductor
+    re-sends the last frame), the agent sends the same bytes, or a fresh one (a status). An agent
+    whose step after a skipped report cannot be taken at all (stuck at step 3, whose estimate
+    was never published) makes the estimate of step 3 when asked, not step 1's again."""
+    d = Driver()
+    actions = _batch(d, _frames_of(frames["r1"][:3]))
+    sent = _published(actions, KEYS.estimate("r1"))
+    assert [decode_estimate(b).k for b in sent] == [3]
+    again = d.core.on_messages(_frames_of(frames["r1"][2:3]), 1.0)
+    assert _published(again, KEYS.estimate("r1")) == sent
+    status = d.core.on_messages([(KEYS.ctl("status"), encode_control(Status()))], 2.0)
+    assert [decode_estimate(b).k for b in _published(status, KEYS.estimate("r1"))] == [3]
+
+    original = RobotNode.on_frame
+
+    def fails_at_4(self, frame, fuse=True):  # type: ignore[no-untyped-def]
+        if frame.k == 4:
+            raise FloatingPointError("step 4 cannot be taken")
+        return original(self, frame, fuse)
+
+    monkeypatch.setattr(RobotNode, "on_frame", fails_at_4)
+    e = Driver()
+    e.frame(frames["r1"][0])
+    actions = _batch(e, _frames_of(frames["r1"][1:4]))
+    assert e.core.node.k == 3 and e.core.counter_values()["steps_stuck"] == 1
+    assert _published(actions, KEYS.estimate("r1")) == []  # steps 2 and 3 were superseded
+    again = e.core.on_messages(_frames_of(frames["r1"][2:3]), 1.0)  # frame 3 sent again
+    assert [decode_estimate(b).k for b in _published(again, KEYS.estimate("r1"))] == [3]
 
 
 def test_a_fusion_that_fails_after_deferred_steps_refuses_the_slots_merged_before_them(
