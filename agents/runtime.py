@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import asyncio
 import concurrent.futures
+import contextlib
 import functools
 import logging
 import time
@@ -107,6 +108,9 @@ class Agent:
         self.ros2_in = Inbox(4096, FRAME_INBOX_BYTES)
         ros2_inboxes = (self.ros2_in,) if ros2 is not None else ()
         self.inboxes = (self.control, self.frames, self.stacks, *ros2_inboxes)
+        self._doorbell = asyncio.Event()  # rung by every inbox: one wait for all of them
+        for inbox in self.inboxes:
+            inbox.ring(self._doorbell)
         self.stop_reason = ""
         self.worker_busy_s = 0.0
         self.loop_lag_max_s = 0.0  # the longest the loop was held beyond a 50 ms tick
@@ -221,18 +225,14 @@ class Agent:
 
     async def _main(self) -> None:
         while not self._stop.is_set():
+            self._doorbell.clear()  # before draining: a message put after the drain rings it
             messages = [m for inbox in self.inboxes for m in inbox.drain()]
             if not messages:
-                await self._wait_any(self.settings.retry_period)
+                with contextlib.suppress(TimeoutError):
+                    await asyncio.wait_for(self._doorbell.wait(), self.settings.retry_period)
                 continue
             actions = await self._in_worker(functools.partial(self._handle, messages))
             self._carry_out(actions)
-
-    async def _wait_any(self, timeout: float) -> None:
-        waits = [asyncio.create_task(i.wait(timeout)) for i in self.inboxes]
-        await asyncio.wait(waits, return_when=asyncio.FIRST_COMPLETED)
-        for w in waits:
-            w.cancel()
 
     async def _in_worker(self, work: Callable[[], list[Action]]) -> list[Action]:
         loop = asyncio.get_running_loop()

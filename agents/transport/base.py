@@ -58,6 +58,7 @@ class Inbox:
         self._event = asyncio.Event()
         self._loop: asyncio.AbstractEventLoop | None = None
         self._wake_pending = False
+        self._doorbells: list[asyncio.Event] = []
 
     def __len__(self) -> int:
         return len(self._items)
@@ -65,6 +66,12 @@ class Inbox:
     def bind(self, loop: asyncio.AbstractEventLoop) -> None:
         """The loop to wake when a message is put from another thread."""
         self._loop = loop
+
+    def ring(self, doorbell: asyncio.Event) -> None:
+        """Set ``doorbell`` too whenever this inbox wakes its loop: one event that several inboxes
+        ring is waited for at the cost of one (a consumer of several inboxes clears it, drains
+        them all, and waits for it only if they were all empty)."""
+        self._doorbells.append(doorbell)
 
     def put(self, message: Message) -> None:
         """Enqueue, from the loop or from any other thread (after :meth:`bind`)."""
@@ -109,10 +116,15 @@ class Inbox:
         except RuntimeError:
             running = None
         if loop is None or running is loop:
-            self._event.set()
+            self._set()
         else:
             with contextlib.suppress(RuntimeError):  # a closed loop: shutting down
-                loop.call_soon_threadsafe(self._event.set)
+                loop.call_soon_threadsafe(self._set)
+
+    def _set(self) -> None:
+        self._event.set()
+        for doorbell in self._doorbells:
+            doorbell.set()
 
     def drain(self) -> list[Message]:
         """Everything queued, oldest first, without waiting."""

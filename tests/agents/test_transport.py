@@ -106,6 +106,37 @@ async def test_inbox_get_and_wait_block_until_a_message_arrives() -> None:
     assert inbox.drain() == [_m(2)]
 
 
+@pytest.mark.asyncio
+async def test_inboxes_ring_one_doorbell_from_other_threads_once_per_drain() -> None:
+    """The agent's main loop waits on one event for all its inboxes: a put from a transport's
+    thread into any of them rings it; puts that follow before a drain do not ring again (one
+    wake-up per batch); after the drain the next put rings again."""
+    loop = asyncio.get_running_loop()
+    a, b, doorbell = Inbox(8), Inbox(8), asyncio.Event()
+    for inbox in (a, b):
+        inbox.bind(loop)
+        inbox.ring(doorbell)
+    rings = 0
+    original = doorbell.set
+
+    def counted() -> None:
+        nonlocal rings
+        rings += 1
+        original()
+
+    doorbell.set = counted  # type: ignore[method-assign]
+    await loop.run_in_executor(None, b.put, _m(1))
+    await asyncio.wait_for(doorbell.wait(), 5.0)
+    await loop.run_in_executor(None, b.put, _m(2))  # not drained yet: no second ring
+    await asyncio.sleep(0.01)
+    assert rings == 1 and len(b) == 2
+    doorbell.clear()
+    assert a.drain() == [] and b.drain() == [_m(1), _m(2)]
+    await loop.run_in_executor(None, a.put, _m(3))
+    await asyncio.wait_for(doorbell.wait(), 5.0)
+    assert rings == 2 and a.drain() == [_m(3)]
+
+
 # --------------------------------------------------------------------------- memory
 
 
