@@ -4,7 +4,8 @@ It subscribes the agent's keys — frames (``frames/<robot>``), stacks (``stack/
 real time run ``stack/<peer>`` of the peers in range), run control (``ctl/**``) and, in a
 simulation, the simulator's links (``sim/links``) — into bounded inboxes, holds a liveliness
 token (``alive/<robot>``), and carries out the core's actions: publish, journal (append, commit,
-quarantine, cut), listen (whose stacks to subscribe to: the core's first ``Listen``), halt.
+quarantine, cut), listen (whose stacks to subscribe to: the core's first ``Listen``), hear
+(whose stacks wake the loop: the others wait in the inbox for the next batch), halt.
 
 The estimator never runs on the event loop. Every message goes to the core in one worker thread
 (decoding, merging and stepping take as long as they take there), while the loop goes on with the
@@ -40,6 +41,7 @@ from agents.core import (
     CoreCounters,
     CutJournal,
     Halt,
+    Hear,
     Listen,
     Publish,
     Quarantine,
@@ -267,6 +269,8 @@ class Agent:
                         self.ros2.publish(sample.key, sample.payload, sample.attachment)
             elif isinstance(a, Halt):
                 self.stop(a.reason)
+            elif isinstance(a, Hear):
+                self.stacks.wake_for(a.keys)
             elif isinstance(a, Listen) and self.stack_subscriptions.follow(a.peers):
                 # What a new peer published while the subscription was being declared is lost:
                 # gossip once more when the declaration is through, so that it learns now what

@@ -89,6 +89,12 @@ def _capacity_row(
         if "cpu" in u
     ]
     rss = [u["rss"] for _, _, usage in runs for u in usage.values()]
+    # CPU per step taken while the frames came (sampled at every frame, so from frame 1 to the
+    # last; the steps are those acknowledged one period later): what a step costs an agent on a
+    # shared machine, less dependent on the scheduling than how far behind the agents end.
+    cpu_s = sum(u["cpu"] - u["cpu0"] for _, _, usage in runs for u in usage.values() if "cpu" in u)
+    taken = sum(max(1, c.on_time.get(r, 0) - 1) for _, c, usage in runs for r in usage)
+    cpu_ms_per_step = 1e3 * cpu_s / max(1, taken)
     worst = max(max(b) for b in behind)
     met = "met" if worst <= 1 else "NOT met"
     per_run = "; ".join(
@@ -121,7 +127,8 @@ def _capacity_row(
         1e3 * float(np.median([wall for wall, _, _ in runs])),
         note=f"steps behind one period after the last frame, {len(runs)} run(s): {per_run}"
         f"{target}; mean last step 10 s later {', '.join(f'{x:.1f}' for x in later)} of "
-        f"{steps}; CPU per agent {np.mean(cpu):.1f} % (max {np.max(cpu):.1f} %); peak RSS per "
+        f"{steps}; CPU per agent {np.mean(cpu):.1f} % (max {np.max(cpu):.1f} %), "
+        f"{cpu_ms_per_step:.0f} ms per step taken; peak RSS per "
         f"agent {np.mean(rss):.0f} MB (max {np.max(rss):.0f} MB); per agent {received:.0f} stacks "
         f"received, {deferred:.1f} fusions deferred; D at the last step: {errors}",
     )

@@ -59,6 +59,7 @@ class Inbox:
         self._loop: asyncio.AbstractEventLoop | None = None
         self._wake_pending = False
         self._doorbells: list[asyncio.Event] = []
+        self._loud: frozenset[str] | None = None  # the keys whose messages wake (None: all)
 
     def __len__(self) -> int:
         return len(self._items)
@@ -66,6 +67,13 @@ class Inbox:
     def bind(self, loop: asyncio.AbstractEventLoop) -> None:
         """The loop to wake when a message is put from another thread."""
         self._loop = loop
+
+    def wake_for(self, keys: frozenset[str] | None) -> None:
+        """Only messages on ``keys`` wake the loop (None: every message); the others are queued
+        quietly and taken with the next batch (:meth:`drain`; :meth:`wait` and :meth:`get` see
+        them as they look)."""
+        with self._lock:
+            self._loud = keys
 
     def ring(self, doorbell: asyncio.Event) -> None:
         """Set ``doorbell`` too whenever this inbox wakes its loop: one event that several inboxes
@@ -84,10 +92,10 @@ class Inbox:
             self._make_room(message.key, size)
             self._items.append(message)
             self.bytes += size
-            wake = not self._wake_pending
+            if self._wake_pending or (self._loud is not None and message.key not in self._loud):
+                return
             self._wake_pending = True
-        if wake:
-            self._wake()
+        self._wake()
 
     def _make_room(self, key: str, size: int) -> None:
         """Drop until ``size`` more bytes and one more message fit (lock held)."""

@@ -17,6 +17,7 @@ from agents.core import (
     AgentCore,
     CoreSettings,
     CutJournal,
+    Hear,
     Publish,
     Quarantine,
 )
@@ -537,6 +538,27 @@ def test_a_simulated_agent_does_not_read_the_stacks_of_robots_out_of_range() -> 
     d.send(KEYS.stack("r3"), b"\xc1 not a stack")
     c = d.core.counter_values()
     assert (c["stacks_received"], c["ignored_out_of_range"], c["stacks_invalid"]) == (2, 1, 1)
+
+
+def test_a_simulated_agent_wakes_only_for_the_stacks_of_robots_it_will_hear() -> None:
+    """``Hear``: the keys of the robots heard under the links due at the coming step and under
+    every later links already received (so the shell never keeps back a stack the core would
+    read), without the agent's own; again only when that set changes; none in lock-step or off
+    a simulation (every stack wakes the agent there)."""
+
+    def hears(d: Driver, k: int, links: dict[str, tuple[str, ...]]) -> list[frozenset[str] | None]:
+        actions = d.core.on_messages([(KEYS.sim_links(), encode_control(StepOrder(k, links)))], 0.0)
+        return [a.keys for a in actions if isinstance(a, Hear)]
+
+    d = Driver(mode="realtime", simulation=True)
+    d.run(d.core.start(0.0))
+    assert hears(d, 1, {"r1": ("r1", "r3")}) == [frozenset({KEYS.stack("r3")})]
+    assert hears(d, 1, {"r1": ("r3", "r1")}) == []  # the same robots: nothing to say
+    # Links for step 2 already here while step 1 is coming: both steps' robots wake it.
+    assert hears(d, 2, {"r1": ("r2",)}) == [frozenset({KEYS.stack("r2"), KEYS.stack("r3")})]
+    for other in (Driver(mode="lockstep", simulation=True), Driver(mode="realtime")):
+        other.run(other.core.start(0.0))
+        assert hears(other, 1, {"r1": ("r3",)}) == []
 
 
 # --------------------------------------------------------------------------- catching up

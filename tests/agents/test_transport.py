@@ -137,6 +137,28 @@ async def test_inboxes_ring_one_doorbell_from_other_threads_once_per_drain() -> 
     assert rings == 2 and a.drain() == [_m(3)]
 
 
+@pytest.mark.asyncio
+async def test_an_inbox_wakes_for_its_loud_keys_only_and_keeps_the_others_for_the_next_batch() -> (
+    None
+):
+    loop = asyncio.get_running_loop()
+    inbox, doorbell = Inbox(8), asyncio.Event()
+    inbox.bind(loop)
+    inbox.ring(doorbell)
+    inbox.wake_for(frozenset({"k/loud"}))
+    quiet, loud = Message("k/quiet", b"q"), Message("k/loud", b"l")
+    await loop.run_in_executor(None, inbox.put, quiet)
+    await asyncio.sleep(0.02)
+    assert not doorbell.is_set() and len(inbox) == 1  # queued, silently
+    await loop.run_in_executor(None, inbox.put, loud)
+    await asyncio.wait_for(doorbell.wait(), 5.0)
+    assert inbox.drain() == [quiet, loud]  # in arrival order, the quiet one with the batch
+    inbox.wake_for(None)
+    doorbell.clear()
+    await loop.run_in_executor(None, inbox.put, quiet)
+    await asyncio.wait_for(doorbell.wait(), 5.0)  # every key wakes again
+
+
 # --------------------------------------------------------------------------- memory
 
 
