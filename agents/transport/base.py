@@ -71,9 +71,16 @@ class Inbox:
     def wake_for(self, keys: frozenset[str] | None) -> None:
         """Only messages on ``keys`` wake the loop (None: every message); the others are queued
         quietly and taken with the next batch (:meth:`drain`; :meth:`wait` and :meth:`get` see
-        them as they look)."""
+        them as they look). A message already queued on a key that becomes loud wakes the loop
+        now, as it would have on arrival."""
         with self._lock:
             self._loud = keys
+            wake = not self._wake_pending and any(
+                keys is None or m.key in keys for m in self._items
+            )
+            self._wake_pending |= wake
+        if wake:
+            self._wake()
 
     def ring(self, doorbell: asyncio.Event) -> None:
         """Set ``doorbell`` too whenever this inbox wakes its loop: one event that several inboxes

@@ -153,6 +153,12 @@ async def test_an_inbox_wakes_for_its_loud_keys_only_and_keeps_the_others_for_th
     await loop.run_in_executor(None, inbox.put, loud)
     await asyncio.wait_for(doorbell.wait(), 5.0)
     assert inbox.drain() == [quiet, loud]  # in arrival order, the quiet one with the batch
+    doorbell.clear()
+    await loop.run_in_executor(None, inbox.put, quiet)
+    await asyncio.sleep(0.02)
+    assert not doorbell.is_set()
+    inbox.wake_for(frozenset({"k/quiet"}))  # a key turned loud: what waits on it wakes now
+    assert doorbell.is_set() and inbox.drain() == [quiet]
     inbox.wake_for(None)
     doorbell.clear()
     await loop.run_in_executor(None, inbox.put, quiet)
