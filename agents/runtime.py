@@ -48,7 +48,8 @@ from agents.core import (
 )
 from agents.journal import Journal, MemoryLog, Record
 from agents.node import RobotNode
-from agents.transport.base import Inbox, Message, StackSubscriptions, Transport
+from agents.transport.base import Inbox, Message, Transport
+from agents.transport.subscriptions import StackSubscriptions
 
 if TYPE_CHECKING:
     from agents.ros2.bridge import Ros2Link

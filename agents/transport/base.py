@@ -276,27 +276,3 @@ def _match(pattern: list[str], chunks: list[str]) -> bool:
     if not chunks:
         return False
     return (head == "*" or head == chunks[0]) and _match(rest, chunks[1:])
-
-
-class StackSubscriptions:
-    """Whose stacks an agent subscribes to: every robot's (``stack/*``), or, in a simulated real
-    time run, only those of the robots its simulated radio hears at the coming step (the core's
-    ``Listen``): the stacks of robots out of range are then never sent to this agent at all,
-    instead of being received, handed to the loop and dropped there (two thirds of all stacks
-    in a 20-robot world)."""
-
-    def __init__(self, transport: Transport, keys: Keys, inbox: Inbox) -> None:
-        self.transport, self.keys, self.inbox = transport, keys, inbox
-        self.exprs: set[str] = set()
-
-    def follow(self, peers: frozenset[str] | None) -> bool:
-        """Subscribe to the stacks of ``peers`` only (None: of every robot); whether a
-        subscription was added."""
-        want = {self.keys.stack("*")} if peers is None else {self.keys.stack(p) for p in peers}
-        for expr in sorted(self.exprs - want):
-            self.transport.unsubscribe(expr, self.inbox)
-        added = sorted(want - self.exprs)
-        for expr in added:
-            self.transport.subscribe(expr, self.inbox)
-        self.exprs = want
-        return bool(added)

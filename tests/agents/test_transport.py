@@ -12,7 +12,8 @@ import pytest
 import zenoh
 
 from agents.transport import Inbox, Keys, MemoryBus, MemoryTransport, Message
-from agents.transport.base import Kind, StackSubscriptions, key_matches
+from agents.transport.base import Kind, key_matches
+from agents.transport.subscriptions import StackSubscriptions
 from agents.transport.zenoh_transport import ZenohSettings, ZenohTransport, settings_for
 from deploy.launch import free_ports
 
