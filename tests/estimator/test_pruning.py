@@ -275,3 +275,18 @@ def test_branch_with_the_ratio_rule_keeps_what_enumeration_then_pruning_keeps(se
     }
     assert got == expected
     assert beam.weighed <= full.weighed
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_class_marginals_sum_the_weights_of_every_objects_classes(seed: int) -> None:
+    """Against the per-class definition P(c_j = i) = Σ_k w_k [c_kj = i], on non-uniform weights;
+    an object with a class no realisation carries has a zero there."""
+    rng = np.random.default_rng(seed)
+    classes = rng.integers(0, 3, (40, 7))
+    classes[:, 2] = np.where(classes[:, 2] == 1, 0, classes[:, 2])  # object 2 never class 1
+    w = rng.dirichlet(np.full(40, 0.5))
+    want = np.array([[w[classes[:, j] == i].sum() for i in range(4)] for j in range(7)])
+    got = class_marginals(w, classes, 4)
+    np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-15)
+    assert got[2, 1] == 0.0 and (got[:, 3] == 0.0).all()
+    assert class_marginals(w[:0], classes[:0], 4).shape == (7, 4)
