@@ -29,6 +29,7 @@ import concurrent.futures
 import contextlib
 import functools
 import logging
+import math
 import time
 from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING
@@ -61,6 +62,7 @@ FRAME_INBOX_BYTES = 16 * 1024 * 1024
 CONTROL_INBOX_BYTES = 4 * 1024 * 1024
 SHUTDOWN_STEP_WAIT_S = 1.0
 LISTEN_ECHO_S = 0.05  # after subscribing to new peers' stacks (a declaration takes ~3 ms here)
+LINKS_SAMPLE_S = 1.0  # how often the gossip timer counts the session's links (a call into Zenoh)
 
 
 def execute_journal_actions(log: Journal | MemoryLog, actions: Sequence[Action]) -> list[Action]:
@@ -119,6 +121,7 @@ class Agent:
         self.loop_lag_max_s = 0.0  # the longest the loop was held beyond a 50 ms tick
         self.gossip_gap_max_s = 0.0  # the longest time between two gossip ticks
         self.links_max = {"stream": 0, "datagram": 0}  # the most links seen at a tick
+        self._links_sampled = -math.inf
         self._worker = concurrent.futures.ThreadPoolExecutor(1, f"agent-{self.robot}")
         self._stop = asyncio.Event()
 
@@ -203,8 +206,10 @@ class Agent:
             now = time.perf_counter()
             self.gossip_gap_max_s = max(self.gossip_gap_max_s, now - last)
             last = now
-            links = self.transport.links()
-            self.links_max = {k: max(n, links.get(k, 0)) for k, n in self.links_max.items()}
+            if now - self._links_sampled >= LINKS_SAMPLE_S:
+                self._links_sampled = now
+                links = self.transport.links()
+                self.links_max = {k: max(n, links.get(k, 0)) for k, n in self.links_max.items()}
             self._carry_out(self.core.on_timer(self.clock()))
 
     async def _watch_loop(self, tick: float = 0.05) -> None:
