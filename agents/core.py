@@ -685,13 +685,14 @@ class AgentCore:
 
     def _listen(self, initial: bool = False) -> list[Action]:
         """A :class:`Listen` when whom to hear changed (``initial``: always): with
-        ``listen_in_range`` in a simulated real time run, the robots heard at the coming step or
-        under any later links already here (:meth:`_heard_ahead`; nobody before the first
-        links); else every robot."""
+        ``listen_in_range`` in a simulated real time run, the robots heard at the coming step
+        (nobody before the first links); else every robot."""
         s = self.settings
         if not (s.listen_in_range and s.simulation and s.mode == "realtime"):
             return [Listen(None)] if initial else []
-        peers = self._heard_ahead() or frozenset()
+        due = [k for k in self._links if k <= self.node.k + 1]
+        peers = frozenset(self._links[max(due)].get(self.robot, ())) if due else frozenset()
+        peers -= {self.robot}
         if not initial and peers == self._listening:
             return []
         self._listening = peers
@@ -700,31 +701,22 @@ class AgentCore:
 
     def _hear(self) -> list[Action]:
         """A :class:`Hear` when the stacks worth waking for changed: in a simulated real time
-        run, those of the robots of :meth:`_heard_ahead`; before the first links, every stack."""
+        run, those of the robots heard under the links due at the coming step or under any later
+        links already here; before the first links, every stack."""
         s = self.settings
-        peers = self._heard_ahead() if s.simulation and s.mode == "realtime" else None
-        if peers is None:
+        if not (s.simulation and s.mode == "realtime") or not self._links:
             return []
-        keys = frozenset(self.keys.stack(r) for r in peers)
-        if keys == self._hearing:
-            return []
-        self._hearing = keys
-        return [Hear(keys)]
-
-    def _heard_ahead(self) -> frozenset[str] | None:
-        """The other robots heard under the links due at the coming step or under any later
-        links already received (the conductor publishes the next step's with every step's, so
-        that subscriptions and wake-ups are in place before those links are due; who is read is
-        still decided by :meth:`_heard`); None before any links."""
-        if not self._links:
-            return None
         due = [k for k in self._links if k <= self.node.k + 1]
         first = max(due) if due else min(self._links)
         robots: set[str] = set()
         for k, links in self._links.items():
             if k >= first:
                 robots.update(links.get(self.robot, ()))
-        return frozenset(robots - {self.robot})
+        keys = frozenset(self.keys.stack(r) for r in robots - {self.robot})
+        if keys == self._hearing:
+            return []
+        self._hearing = keys
+        return [Hear(keys)]
 
     def _heard(self, sender: str) -> bool:
         """In a simulation: whether the latest links published for the coming step let

@@ -170,18 +170,11 @@ class Conductor:
 
     def _publish_links(self, k: int) -> None:
         """Realtime simulations: who hears whom at step k, decided here on the true poses and
-        obeyed only by agents configured as simulated (``simulation = true``); and at step k+1,
-        a step ahead, so that an agent subscribes to (and wakes for) the stacks of a robot it is
-        about to hear before it hears it (a subscription declared as the links change misses
-        what the peer publishes meanwhile). ``links_at`` is a pure function of the step: the
-        verdict sent ahead is the one sent again when its step comes."""
+        obeyed only by agents configured as simulated (``simulation = true``)."""
         verdict = links_at(self.links, self.frames, self.robots, k)
         if self.on_links is not None:
             self.on_links(k, verdict)
         self.transport.publish(self.keys.sim_links(), encode_control(StepOrder(k, verdict)))
-        if all(k < len(self.frames[r]) for r in self.robots):
-            ahead = links_at(self.links, self.frames, self.robots, k + 1)
-            self.transport.publish(self.keys.sim_links(), encode_control(StepOrder(k + 1, ahead)))
 
     def pump(self) -> None:
         """Handle everything that arrived: liveliness, frame requests, estimates."""
