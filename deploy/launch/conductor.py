@@ -25,7 +25,7 @@ from numpy.typing import NDArray
 
 from agents.control import NeedFrames, StepOrder, Stop, decode_control, encode_control
 from agents.links import LinkModel
-from agents.transport.base import Inbox, Keys, Transport
+from agents.transport.base import Inbox, Keys, Message, Transport
 from deploy.launch.scoring import Scorer
 from estimator.models import SensorFrame
 from protocol.codec import decode
@@ -75,7 +75,23 @@ class Collected:
     on_time: dict[str, int] = field(default_factory=dict)
     final: dict[str, EstimateMessage] = field(default_factory=dict)
     estimates: dict[tuple[str, int], EstimateMessage] = field(default_factory=dict)
+    # observe_stacks: (arrival time, robot, {owner: stamp}) of every stack a robot published.
     stack_log: list[tuple[float, str, dict[str, int]]] = field(default_factory=list)
+    # Real time: when the links of each step were published (time.monotonic(), as stack_log).
+    links_published: dict[int, float] = field(default_factory=dict)
+
+
+@dataclass(frozen=True, slots=True)
+class _Arrived(Message):
+    at: float = 0.0
+
+
+class _ArrivalInbox(Inbox):
+    """An inbox that keeps each message's arrival time: the conductor drains its inboxes only
+    every 50 ms or on an estimate, too coarse to time a stack's publication by."""
+
+    def put(self, message: Message) -> None:
+        super().put(_Arrived(message.key, message.payload, message.kind, time.monotonic()))
 
 
 def without_truth(frame: SensorFrame) -> SensorFrame:
@@ -129,7 +145,7 @@ class Conductor:
         self.keep_estimates = keep_estimates
         self.observe_stacks = observe_stacks
         self.on_links = on_links
-        self.stacks = Inbox(100_000)
+        self.stacks: Inbox = _ArrivalInbox(100_000)
         self.estimates = Inbox(100_000)
         self.control = Inbox(10_000)
         self.alive_events = Inbox(10_000)
@@ -174,6 +190,7 @@ class Conductor:
         verdict = links_at(self.links, self.frames, self.robots, k)
         if self.on_links is not None:
             self.on_links(k, verdict)
+        self.collected.links_published[k] = time.monotonic()
         self.transport.publish(self.keys.sim_links(), encode_control(StepOrder(k, verdict)))
 
     def pump(self) -> None:
@@ -213,7 +230,7 @@ class Conductor:
                 held = message.stack.stamps()
                 if message.have is not None:
                     held = {owner: stamp for owner, (_, stamp) in message.have.items()}
-                self.collected.stack_log.append((now, robot, held))
+                self.collected.stack_log.append((getattr(m, "at", now), robot, held))
 
     def _on_estimate(self, data: bytes) -> None:
         try:

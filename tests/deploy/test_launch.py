@@ -332,12 +332,19 @@ def test_launch_relay_over_zenoh_links_between_neighbours_only(tmp_path: Path) -
 PARTITION = (5, 9)  # r3 hears nobody and nobody hears r3 from step 5 to step 9
 
 
-def resync_delays(log: StackLog, robots: Sequence[str], healed_after: int) -> dict[str, float]:
+def heal_time(outcome: LaunchOutcome, robots: Sequence[str], healed_after: int) -> float:
+    """When every link was up again: the links of step ``healed_after`` + 1 were published
+    (they come with that step's frames), and every robot had finished step ``healed_after``
+    (a robot still at an earlier step hears under that step's links, still cut)."""
+    own = own_stamps(outcome.collected.stack_log)
+    finished = max(next(t for t, s in own[r] if s >= healed_after) for r in robots)
+    return max(outcome.collected.links_published[healed_after + 1], finished)
+
+
+def resync_delays(log: StackLog, robots: Sequence[str], t_heal: float) -> dict[str, float]:
     """For each (holder, owner) pair: seconds from the heal until the holder published a stack
-    with the owner's slot at least as new as the owner's own stamp at the heal. The heal is the
-    moment the last robot finished step ``healed_after`` (from then on every link is up)."""
+    with the owner's slot at least as new as the owner's own stamp at the heal."""
     own = own_stamps(log)
-    t_heal = max(next(t for t, s in own[r] if s >= healed_after) for r in robots)
     at_heal = {r: max(s for t, s in own[r] if t <= t_heal) for r in robots}
     delays = {}
     for holder in robots:
@@ -358,6 +365,11 @@ def last_view_before(log: StackLog, holder: str, owner: str, t_end: float) -> in
 
 @pytest.mark.slow
 def test_launch_partition_heals_within_two_gossip_periods(tmp_path: Path) -> None:
+    """Every robot holds every other's slot of the heal within two gossip periods of the heal:
+    one for the exchange (a digest that shows what a peer lacks, and the push of it), one for
+    the holder to publish a stack, the only way the conductor sees what it holds. The clock
+    starts when the links came back up (:func:`heal_time`), and each stack is timed at its
+    arrival at the conductor."""
     robots = ["r1", "r2", "r3"]
     scenario = _world(tmp_path, world_text("close3", 3, 3.0, 14, 0.1))
     first, last = PARTITION
@@ -375,12 +387,11 @@ def test_launch_partition_heals_within_two_gossip_periods(tmp_path: Path) -> Non
     outcome = launch(plan)
     assert_all_agents_finished(outcome, scenario.steps)
     log = outcome.collected.stack_log
-    own = own_stamps(log)
-    t_heal = max(next(t for t, s in own[r] if s >= last) for r in robots)
+    t_heal = heal_time(outcome, robots, last)
     # The partition held: nobody's copy of the other side got newer than step first − 1.
     for holder, owner in (("r1", "r3"), ("r2", "r3"), ("r3", "r1"), ("r3", "r2")):
         assert last_view_before(log, holder, owner, t_heal) <= first - 1, (holder, owner)
-    delays = resync_delays(log, robots, last)
+    delays = resync_delays(log, robots, t_heal)
     print(f"resync after the heal (s): {delays}")
     assert max(delays.values()) <= 2 * GOSSIP, delays
 
