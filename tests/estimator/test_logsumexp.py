@@ -24,6 +24,8 @@ def test_equal_to_scipy_to_the_bit(seed: int) -> None:
         ((30, 7), 0),
         ((5, 6, 9), 2),
         ((4, 3, 5), None),
+        ((300, 500), 1),  # a belief's parents × samples (numpy sums these in blocks)
+        ((60, 3, 500), 2),
     ):
         a = rng.standard_normal(shape) * 10.0 ** rng.integers(-3, 4)
         a[rng.random(shape) < 0.1] = -np.inf
