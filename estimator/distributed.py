@@ -331,6 +331,7 @@ class DistributedBelief(HybridBelief):
                 children[n] = Hypothesis(tuple(classes_of[n]), cont, log_weight_of[n], used_phi)
         children_list = [children[n] for n in range(len(join.parent))]
         self.hypotheses = children_list
+        self._remember_classes(join.classes)
         self._normalise()
         for s in batch:
             if s.owner not in skipped:
@@ -414,10 +415,9 @@ class DistributedBelief(HybridBelief):
         """Join D's hypotheses with every slot's realisations on shared objects (bookkeeping only:
         no iSAM2 is touched). Returns the joins and the owners whose slot joined with nothing."""
         known = dict(self._object_index)
-        parent_cls = np.array([h.classes for h in self.hypotheses], dtype=np.int64)
         join = _Join(
             np.arange(len(self.hypotheses)),
-            parent_cls.reshape(len(self.hypotheses), len(known)),
+            self.class_matrix(),
             np.full((len(self.hypotheses), len(batch)), -1, dtype=np.int64),
             np.full((len(self.hypotheses), len(batch)), np.nan),
             np.array([h.log_weight for h in self.hypotheses]),

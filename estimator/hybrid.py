@@ -334,6 +334,8 @@ class HybridBelief:
             np.array(self.config.object_prior_sigmas)
         )
         self._log_prior = np.log(np.asarray(model.class_prior, dtype=float))
+        # class_matrix(): the classes tuples it was built from (kept alive, compared by identity)
+        self._class_rows: tuple[list[tuple[int, ...]], IntArray] | None = None
         geo_cov = model.geometric_noise.cov
         self._geo_cov = geo_cov
         self._geo_log_norm = -0.5 * float(np.linalg.slogdet(2.0 * np.pi * geo_cov)[1])
@@ -372,11 +374,40 @@ class HybridBelief:
         w = np.exp(lw - lw.max())
         return np.asarray(w / w.sum())
 
+    def class_matrix(self) -> IntArray:
+        """The classes (H, n) of every hypothesis, read-only, in ``object_ids`` order. Built once
+        per set of realisations: a step and a fusion leave theirs here as they make them, and
+        the step, its evidence, the summary and the snapshots of the same hypotheses reuse it
+        (each was a (300, n) conversion from tuples)."""
+        hyps = self.hypotheses
+        cached = self._class_rows
+        if (
+            cached is not None
+            and len(cached[0]) == len(hyps)
+            and all(c is h.classes for c, h in zip(cached[0], hyps, strict=True))
+        ):
+            return cached[1]
+        matrix = np.array([h.classes for h in hyps], dtype=np.int64)
+        return self._remember_classes(matrix.reshape(len(hyps), len(self.object_ids)))
+
+    def _classes_of(self, hyps: Sequence[Hypothesis]) -> IntArray:
+        """The classes (H, n) of ``hyps``: :meth:`class_matrix` when they are the belief's."""
+        if hyps is self.hypotheses:
+            return self.class_matrix()
+        return np.array([h.classes for h in hyps], dtype=np.int64).reshape(
+            len(hyps), len(self.object_ids)
+        )
+
+    def _remember_classes(self, matrix: IntArray) -> IntArray:
+        """Keep ``matrix`` as :meth:`class_matrix` of the current hypotheses (rows in order)."""
+        matrix = np.array(matrix, dtype=np.int64)  # an own copy, then frozen
+        matrix.flags.writeable = False
+        self._class_rows = ([h.classes for h in self.hypotheses], matrix)
+        return matrix
+
     def class_marginals(self) -> Array:
         """P(c_j = i) (n, M) for the known objects in ``object_ids`` order."""
-        classes = np.array([h.classes for h in self.hypotheses], dtype=np.int64)
-        classes = classes.reshape(len(self.hypotheses), len(self.object_ids))
-        return class_marginals(self.weights(), classes, self.model.num_classes)
+        return class_marginals(self.weights(), self.class_matrix(), self.model.num_classes)
 
     def map_hypothesis(self) -> Hypothesis:
         return max(self.hypotheses, key=lambda h: h.log_weight)
@@ -413,7 +444,7 @@ class HybridBelief:
                 len(conts), n, 3, 3
             )
         )
-        classes = np.array([h.classes for h in hyps], dtype=np.int64).reshape(len(hyps), n)
+        classes = self.class_matrix()
         weights = self.weights()
         out = {}
         for robot in robots:
@@ -455,7 +486,9 @@ class HybridBelief:
         for j in new_ids:
             self._object_index[j] = len(self.object_ids)
             self.object_ids.append(j)
+        parent_cls = self._classes_of(parents)
         self.hypotheses = self._materialise(parents, beam, detections)
+        self._remember_classes(np.concatenate([parent_cls[beam.parent], beam.classes], axis=1))
         self._relinearise_evidence()
         self._normalise()
         return StepStats(len(parents), beam.weighed, len(self.hypotheses))
@@ -466,7 +499,7 @@ class HybridBelief:
         conts, which = distinct_continuous(self.hypotheses)
         if not self.object_ids or all(c.ledger is None for c in conts):
             return
-        classes = np.array([h.classes for h in self.hypotheses], dtype=np.int64)
+        classes = self.class_matrix()
         columns = np.arange(len(self.object_ids))
         for g, c in enumerate(conts):
             if c.ledger is None:
@@ -490,6 +523,7 @@ class HybridBelief:
         needs. The integrals are evaluated once per continuous belief ``conts`` (``which`` (P,)
         maps the parents onto them), in chunks, vectorised within a chunk."""
         terms = self._semantic_terms(detections)
+        parent_cls = self._classes_of(parents)
         per_cont = len(detections) * self.config.num_samples * self.model.num_classes
         size = max(1, _EVIDENCE_CHUNK // max(per_cont, 1))
         accs, margs, lts = [], [], []
@@ -515,7 +549,7 @@ class HybridBelief:
                 log_lik = np.stack([ev.log_lik for ev in evs])
             members = np.flatnonzero((which >= start) & (which < start + len(chunk)))
             acc, marg, lt = self._reduce(
-                [parents[int(i)] for i in members],
+                parent_cls[members],
                 which[members] - start,
                 base,
                 log_lik,
@@ -532,7 +566,7 @@ class HybridBelief:
 
     def _reduce(
         self,
-        parents: Sequence[Hypothesis],
+        parent_cls: IntArray,
         which: IntArray,
         base: Array,
         log_lik: Array,
@@ -540,7 +574,8 @@ class HybridBelief:
         new_ids: Sequence[int],
     ) -> tuple[Array, Array, Array]:
         """Per-sample evidence for :meth:`_branch`: base (G, S) and semantic log-likelihoods
-        (G, S, D, M) of G continuous beliefs, and the parents that use them (``which`` (P,)) →
+        (G, S, D, M) of G continuous beliefs, and the parents that use them (``which`` (P,)),
+        with their classes ``parent_cls`` (P, n) →
         ``acc`` (P, S) per parent, with every new object's class summed out under its prior,
         ``marg`` (G, T, S) those sums per new object, and ``lt`` (G, T, M, S) Σ log P(z_d | c)
         over each new object's detections."""
@@ -565,12 +600,12 @@ class HybridBelief:
             marg[:, t] = logsumexp(summed + log_prior, axis=2)
         acc = base[which] + marg.sum(axis=1)[which]
         if old_cols:
-            cls = np.array([[h.classes[i] for i in old_index] for h in parents], dtype=np.int64)
+            cls = parent_cls[:, old_index]
             old = np.ascontiguousarray(np.moveaxis(log_lik[:, :, old_cols, :], 1, 3))  # (G,D,M,S)
             det = np.arange(len(old_cols))
             # Parents in slices, so that the gathered (P', D_old, S) stays within the chunk.
             rows = max(1, _EVIDENCE_CHUNK // max(1, len(old_cols) * samples))
-            for first in range(0, len(parents), rows):
+            for first in range(0, len(parent_cls), rows):
                 part = slice(first, first + rows)
                 picked = old[which[part, None], det[None, :], cls[part]]  # (P', D_old, S)
                 acc[part] += picked.sum(axis=1)
@@ -591,9 +626,7 @@ class HybridBelief:
         acc, marg, lt_all = evidence.acc, evidence.marg, evidence.lt
         samples = acc.shape[1]
         parent_lw = np.array([h.log_weight for h in parents])
-        parent_cls = np.array([h.classes for h in parents], dtype=np.int64).reshape(
-            len(parents), len(self.object_ids)
-        )
+        parent_cls = self._classes_of(parents)
         beam = _Beam(
             np.arange(len(parents)),
             np.zeros((len(parents), 0), dtype=np.int64),

@@ -35,10 +35,12 @@ def summarise(belief: HybridBelief) -> LocalSummary | None:
     prior_noise = gtsam.noiseModel.Diagonal.Sigmas(np.array(belief.config.object_prior_sigmas))
     conts, which = distinct_continuous(belief.hypotheses)
     xis = [_prior_divided_marginal(c, ids, prior_noise) for c in conts]
+    # Σ_j log P(c_j) of every hypothesis, summed left to right as Python's sum over its classes
+    # would (a cumulative sum is sequential): log φ to the bit.
+    prior_sum = np.cumsum(log_prior[belief.class_matrix()], axis=1)[:, -1].tolist()
     out = []
-    for h, g in zip(belief.hypotheses, which, strict=True):
-        log_phi = h.log_weight - float(sum(log_prior[c] for c in h.classes))
-        out.append(Realisation(h.classes, log_phi, xis[g]))
+    for h, g, p in zip(belief.hypotheses, which, prior_sum, strict=True):
+        out.append(Realisation(h.classes, h.log_weight - p, xis[g]))
     return LocalSummary(ids, tuple(out))
 
 

@@ -172,7 +172,8 @@ def _branch(
     base = np.stack([ev.base for ev in evidence])
     log_lik = np.stack([ev.log_lik for ev in evidence])
     own = np.arange(len(hyps))  # every parent its own continuous belief
-    reduced = _Evidence(*belief._reduce(hyps, own, base, log_lik, detections, new_ids), own)  # type: ignore[arg-type]
+    classes = belief._classes_of(hyps)  # type: ignore[arg-type]
+    reduced = _Evidence(*belief._reduce(classes, own, base, log_lik, detections, new_ids), own)
     return belief._branch(hyps, reduced, new_ids)  # type: ignore[arg-type]
 
 
