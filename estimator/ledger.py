@@ -63,7 +63,8 @@ class SemanticLedger:
         out = np.zeros((len(object_index), m))
         if not self.robot_keys:
             return out
-        robots = np.array([_pose(estimate, k) for k in self.robot_keys])
+        poses = {k: _pose(estimate, k) for k in dict.fromkeys(self.robot_keys)}  # once a pose
+        robots = np.array([poses[k] for k in self.robot_keys])
         objects = {j: _pose(estimate, object_key(j)) for j in set(self.object_ids)}
         psi = viewpoint(robots, np.array([objects[j] for j in self.object_ids]))
         now = all_log_likelihoods(model, np.stack(self.scores), psi[None, :])[0]  # (D, M)
