@@ -280,6 +280,7 @@ def _decode_snapshot(
     need(h >= 1, f"{where}.weights", "a belief has at least one hypothesis", InvalidValue)
     need(h <= lim.max_hypotheses, f"{where}.weights", f"{h} > {lim.max_hypotheses}", LimitExceeded)
     arrays: dict[str, Any] = {}
+    checked: dict[str, Any] = {}  # what the value rules read: a shared array once, not H times
     shares = version >= SHARED_VERSION
     for name, (dtype, per) in _LAYOUT.items():
         if name == "classes" and version == BYTE_CLASSES_VERSION:
@@ -292,9 +293,12 @@ def _decode_snapshot(
             # one value for every hypothesis: a read-only view, H times without a copy
             one = np.frombuffer(s[name], dtype=dtype).astype(np.float64).reshape(once)
             arrays[name] = np.broadcast_to(one, shape)
+            checked[name] = one
             continue
         need(got == size, f"{where}.{name}", f"expected {size} bytes for {shape}, got {got}")
         native = np.float64 if dtype == "<f8" else np.int64  # classes: int64, whatever the wire
-        arrays[name] = np.frombuffer(s[name], dtype=dtype).astype(native).reshape(shape)
-    _check_values(arrays, where, lim, InvalidValue)
+        arrays[name] = checked[name] = (
+            np.frombuffer(s[name], dtype=dtype).astype(native).reshape(shape)
+        )
+    _check_values(checked, where, lim, InvalidValue)
     return BeliefSnapshot(ids, **arrays)

@@ -548,6 +548,35 @@ def test_estimate_arrays_sent_once_are_refused_where_they_may_not_be() -> None:
         WIRE.assert_rejected(pack(bad), MalformedMessage, f"beliefs.local.{name}")
 
 
+@pytest.mark.parametrize(
+    ("name", "index", "value", "why"),
+    [
+        ("object_cov", 5, math.nan, "non-finite"),
+        ("object_pose", 2, math.inf, "non-finite"),
+        ("robot_cov", 1, None, "not symmetric"),  # (0, 1) but not (1, 0)
+        ("object_cov", 9 + 1, None, "not symmetric"),  # the second object's (0, 1)
+    ],
+)
+def test_estimate_array_sent_once_obeys_the_value_rules(
+    name: str, index: int, value: float | None, why: str
+) -> None:
+    """A pose array sent once for every hypothesis is checked once (not H times: 5 ms of a
+    300-hypothesis estimate of 60 objects) but checked: a bad value in it is refused, named."""
+    rng = np.random.default_rng(3)
+    doc = msgpack.unpackb(encode_estimate(EstimateMessage("r1", 3, {"local": _shared(rng, 6, 4)})))
+    raw = bytearray(doc["beliefs"]["local"][name])
+    assert len(raw) < 6 * 8 * 9 * 4  # sent once
+    if value is None:  # the largest |entry| with the sign opposite to (1, 0)'s: asymmetric
+        matrix = np.frombuffer(bytes(raw), dtype="<f8")[index - 1 : index + 8]
+        below = float(matrix[3])
+        value = -math.copysign(float(np.abs(matrix).max()) or 1.0, below or -1.0)
+    raw[8 * index : 8 * index + 8] = struct.pack("<d", value)
+    doc["beliefs"]["local"][name] = bytes(raw)
+    with pytest.raises(InvalidValue, match=why) as info:
+        decode_estimate(pack(doc))
+    assert info.value.field == f"beliefs.local.{name}"
+
+
 @pytest.mark.parametrize("kind", ["stack", "frame", "Estimate", "", None, b"estimate"])
 def test_estimate_unknown_message_type_is_unsupported(kind: Any) -> None:
     WIRE.assert_rejected(WIRE.with_(("type",), kind), UnsupportedVersion, "type")
