@@ -71,6 +71,10 @@ log = logging.getLogger(__name__)
 
 MODES = ("lockstep", "realtime")
 DIGEST_LIFE = 3  # gossip periods a peer's digest counts for (real time): then it is out of reach
+# Real time: a tick sends an unchanged digest alone only this many gossip periods after the last
+# (under DIGEST_LIFE, so that peers keep counting this robot), unless a peer's digest since then
+# holds a version this robot lacks (docs/wire.md, "Delta gossip").
+DIGEST_REFRESH = 2
 STACK_GOSSIP = ("delta", "full")
 MAX_REFUSED = 4096  # slot versions remembered as refused (oldest forgotten first)
 # How far ahead of the receiver's clock a slot's version may be (docs/wire.md, "Versions and
@@ -252,6 +256,8 @@ class _Outgoing:
     # Lock-step: the round whose stacks the next step needs, and the senders of the order whose
     # stack of it has not come (asked for by the timer, NeedRound).
     need_round: tuple[int, tuple[str, ...]] | None = None
+    # Real time: when a peer's digest last showed a version this robot lacks.
+    wanted_at: float = -math.inf
 
 
 class AgentCore:
@@ -304,6 +310,10 @@ class AgentCore:
         self._sent: dict[str, tuple[tuple[int, int], float]] = {}
         self._out_include: set[str] = set()  # the owners of the slots in ``_out.stack``
         self._tick_last: bytes | None = None  # the timer thread's own: the last stack it sent
+        # The timer thread's own: the digest its ticks last sent (alone or with slots), and when.
+        self._digest_sent: tuple[bytes | None, float] = (None, -math.inf)
+        self._wanted_at = -math.inf  # when a peer's digest last showed a version we lack
+        self.digests_skipped = 0  # ticks that sent nothing: an unchanged digest (timer thread)
         self.tick_bytes = 0  # bytes of stacks and digests the timer sent (timer thread only)
         # Lock-step re-sends (timer thread only): the round last re-sent, the periods to wait
         # before its next re-send, and the periods waited so far.
@@ -446,17 +456,35 @@ class AgentCore:
                 self.tick_bytes += len(out.stack) + len(out.previous or b"")
                 actions.append(Publish(self.keys.stack(self.robot), out.stack))
         elif out.stack is not None:
-            data = out.stack
+            data: bytes | None = out.stack
             if out.digest is not None and (not out.fresh or out.stack is self._tick_last):
                 data = out.digest  # nothing new since it was sent: the digest alone
+                if not self._digest_due(out, now):
+                    data = None
+                    self.digests_skipped += 1
             self._tick_last = out.stack
-            self.tick_bytes += len(data)
-            actions.append(Publish(self.keys.stack(self.robot), data))
+            if data is not None:
+                if out.digest is not None:
+                    self._digest_sent = (out.digest, now)
+                self.tick_bytes += len(data)
+                actions.append(Publish(self.keys.stack(self.robot), data))
         if out.need_from is not None:
             actions += self._need(out.need_from, now)
         if out.need_round is not None or self._round_need[0] is not None:
             actions += self._ask_for_round(out.need_round, now)
         return actions
+
+    def _digest_due(self, out: _Outgoing, now: float) -> bool:
+        """Whether a tick with nothing new to send sends the digest alone: when it changed since
+        the ticks last sent it (holdings, step or position), when that was ``DIGEST_REFRESH``
+        gossip periods ago, or when a peer's digest since then holds a version this robot lacks
+        (the pull of push–pull reconciliation: the peer learns what to push)."""
+        last, at = self._digest_sent
+        return (
+            out.digest != last
+            or now - at >= DIGEST_REFRESH * self.settings.gossip_period
+            or out.wanted_at > at
+        )
 
     def _ask_for_round(self, need: tuple[int, tuple[str, ...]] | None, now: float) -> list[Action]:
         """Lock-step: ask the senders whose stack of the coming step's round has not come for
@@ -748,6 +776,9 @@ class AgentCore:
             return
         self._digests.pop(sender, None)
         self._digests[sender] = (have, self._now)
+        held = self.node.stack
+        if any(v > (held.version_of(o) or (-1, -1)) for o, v in have.items()):
+            self._wanted_at = self._now
         while len(self._digests) > self.node.limits.max_slots:
             del self._digests[next(iter(self._digests))]
 
@@ -959,7 +990,14 @@ class AgentCore:
         data, digest, fresh = self._stack_payload()
         need = self._frames_missing()
         self._out = _Outgoing(
-            data, self._out.previous, need, digest, fresh, self.node.k, self._round_missing()
+            data,
+            self._out.previous,
+            need,
+            digest,
+            fresh,
+            self.node.k,
+            self._round_missing(),
+            self._wanted_at,
         )
 
     def _stack_payload(self) -> tuple[bytes, bytes | None, bool]:
@@ -1026,7 +1064,9 @@ class AgentCore:
 
     def _publish_stack(self, previous: bytes | None = None) -> list[Action]:
         data, digest, _ = self._stack_payload()
-        self._out = _Outgoing(data, previous, self._out.need_from, digest, False, self.node.k)
+        self._out = _Outgoing(
+            data, previous, self._out.need_from, digest, False, self.node.k, None, self._wanted_at
+        )
         self.node.mark_sent(len(data))
         return [Publish(self.keys.stack(self.robot), data)]
 
@@ -1079,6 +1119,7 @@ class AgentCore:
             "listen_changes": a.listen_changes,
             "bytes_sent": c.bytes_sent,
             "bytes_sent_ticks": self.tick_bytes,
+            "digests_skipped": self.digests_skipped,
             "bytes_received": c.bytes_received,
             "frames_processed": a.frames_processed,
             "fusions_deferred": a.fusions_deferred,

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from agents.core import AgentCore, CoreSettings, Publish
+from agents.core import DIGEST_REFRESH, AgentCore, CoreSettings, Publish
 from agents.runtime import MemoryLog, execute_journal_actions
 from agents.transport.base import Keys
 from deploy.build import belief_model, make_node
@@ -112,6 +112,50 @@ def test_a_peer_that_joins_late_gets_every_slot_it_lacks_and_nothing_else_is_res
     # Sent once: the next tick carries the digest alone again.
     later = [a.payload for a in r1.on_timer(now + 0.1) if isinstance(a, Publish)]
     assert len(decode(later[0]).stack) == 0
+
+
+def test_an_unchanged_digest_goes_only_when_due() -> None:
+    """Real time: a tick with nothing new sends the digest alone only when it changed, when the
+    last one went DIGEST_REFRESH gossip periods ago (peers keep counting this robot), or when a
+    peer's digest since then holds a version this robot lacks (the pull of push–pull)."""
+    frames = Simulator(load_scenario("paper"), 4).all_frames()
+    r1, log1 = _core("r1")
+    r2, log2 = _core("r2")
+    now = 0.0
+    for k in range(2):
+        now += 1.0
+        s1 = _stacks(
+            r1.on_message(KEYS.frames("r1"), encode_frame(frames["r1"][k]), now), log1, "r1"
+        )
+        s2 = _stacks(
+            r2.on_message(KEYS.frames("r2"), encode_frame(frames["r2"][k]), now), log2, "r2"
+        )
+        _stacks(r1.on_message(KEYS.stack("r2"), s2[-1], now), log1, "r1")
+        _stacks(r2.on_message(KEYS.stack("r1"), s1[-1], now), log2, "r2")
+    _stacks(r1.on_message(KEYS.stack("r2"), r2.node.encoded_delta(()), now), log1, "r1")
+    period = r1.settings.gossip_period
+
+    def tick(t: float) -> list[bytes]:
+        return [a.payload for a in r1.on_timer(t) if isinstance(a, Publish)]
+
+    assert len(tick(now)) == 1  # the first: sent
+    assert tick(now + 0.1) == [] and r1.digests_skipped == 1  # unchanged, 0.1 s later
+    assert tick(now + (DIGEST_REFRESH - 0.05) * period) == []
+    assert len(tick(now + DIGEST_REFRESH * period)) == 1  # due again
+    now += DIGEST_REFRESH * period
+    assert tick(now + 0.1) == []
+    # r2 steps; r1 hears only its digest, which holds a version of r2 that r1 lacks: r1's next
+    # tick sends its digest, so that r2 learns what to push.
+    _stacks(r2.on_message(KEYS.frames("r2"), encode_frame(frames["r2"][2]), now), log2, "r2")
+    _stacks(r1.on_message(KEYS.stack("r2"), r2.node.encoded_delta(()), now + 0.2), log1, "r1")
+    pulled = tick(now + 0.3)
+    assert len(pulled) == 1 and len(decode(pulled[0]).stack) == 0
+    assert tick(now + 0.4) == []
+    # r1 steps: its digest changed, so the next tick sends it.
+    now += 1.0
+    _stacks(r1.on_message(KEYS.frames("r1"), encode_frame(frames["r1"][2]), now), log1, "r1")
+    r1.on_timer(now)  # the new own slot (or the digest with it)
+    assert r1.counter_values()["digests_skipped"] == r1.digests_skipped == 4
 
 
 def test_digests_of_made_up_senders_are_bounded() -> None:
