@@ -120,9 +120,6 @@ def _check_arrays(
         need(bool((asymmetry <= lim.symmetry_tol * scale).all()), name, "not symmetric")
 
 
-# --------------------------------------------------------------------------- encode
-
-
 def _local(cond: bool, field: str, message: str) -> None:
     if not cond:
         raise LocalProtocolError(message, field)
@@ -279,8 +276,8 @@ def _decode_snapshot(
     h = len(w) // 8
     need(h >= 1, f"{where}.weights", "a belief has at least one hypothesis", InvalidValue)
     need(h <= lim.max_hypotheses, f"{where}.weights", f"{h} > {lim.max_hypotheses}", LimitExceeded)
-    arrays: dict[str, Any] = {}
     checked: dict[str, Any] = {}  # what the value rules read: a shared array once, not H times
+    shared: dict[str, Any] = {}  # those arrays, H times: read-only views
     shares = version >= SHARED_VERSION
     for name, (dtype, per) in _LAYOUT.items():
         if name == "classes" and version == BYTE_CLASSES_VERSION:
@@ -291,14 +288,11 @@ def _decode_snapshot(
         once = _shape(1, n, per)
         if shares and name in _SHAREABLE and h > 1 and got == 8 * int(np.prod(once)) != size:
             # one value for every hypothesis: a read-only view, H times without a copy
-            one = np.frombuffer(s[name], dtype=dtype).astype(np.float64).reshape(once)
-            arrays[name] = np.broadcast_to(one, shape)
-            checked[name] = one
+            checked[name] = np.frombuffer(s[name], dtype=dtype).astype(np.float64).reshape(once)
+            shared[name] = np.broadcast_to(checked[name], shape)
             continue
         need(got == size, f"{where}.{name}", f"expected {size} bytes for {shape}, got {got}")
         native = np.float64 if dtype == "<f8" else np.int64  # classes: int64, whatever the wire
-        arrays[name] = checked[name] = (
-            np.frombuffer(s[name], dtype=dtype).astype(native).reshape(shape)
-        )
+        checked[name] = np.frombuffer(s[name], dtype=dtype).astype(native).reshape(shape)
     _check_values(checked, where, lim, InvalidValue)
-    return BeliefSnapshot(ids, **arrays)
+    return BeliefSnapshot(ids, **(checked | shared))
