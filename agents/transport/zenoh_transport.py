@@ -1,8 +1,9 @@
 """The Zenoh transport: the only module that imports ``zenoh`` (design/zenoh-transport.md).
 
 Peer mode, multicast scouting always off, explicit listen/connect endpoints, shared memory off for
-simulations. ``zenoh.open`` and ``Session.close`` block, so they run in a worker thread. Zenoh's
-callbacks run on its own threads: they only copy the payload and hand it to the event loop with
+simulations. ``zenoh.open`` and ``Session.close`` block, so they run in a worker thread (a close
+is waited for at most ``CLOSE_WAIT_S``). Zenoh's callbacks run on its own threads: they only copy
+the payload and hand it to the event loop with
 ``call_soon_threadsafe``; a slow callback would stall every subscription of the session. Puts use
 ``CongestionControl.DROP``: gossip is latest-wins, and a blocked put could stall the loop for
 seconds. Zenoh peers never forward for each other, so multi-hop relay is the stacks' job.
@@ -15,8 +16,10 @@ configuration keys, and this is the only module allowed to import ``zenoh``.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import logging
+import threading
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -51,6 +54,11 @@ class ZenohConfigError(ValueError):
 # UDP link when it has one (a healed cut lets the next stack through at once, where TCP would
 # still be backing off its retransmissions for seconds), over its TCP link otherwise.
 BEST_EFFORT_KEYS = ("**/stack/*",)
+# How long close() waits for Zenoh's Session.close: it flushes and closes every link, which on a
+# lossy network can take seconds of TCP retransmissions. Then the process goes on (and exits: the
+# kernel closes the sockets), so that an agent's shutdown stays bounded — a launcher kills an
+# agent that has not exited 2.2 s after ctl/stop, before its stop record is written.
+CLOSE_WAIT_S = 0.5
 
 
 @dataclass(frozen=True, slots=True)
@@ -203,6 +211,7 @@ class ZenohTransport:
         self._publishers: dict[str, zenoh.Publisher] = {}
         self.sent = 0
         self.send_errors = 0
+        self.close_timeouts = 0  # closes that did not finish within CLOSE_WAIT_S
 
     @property
     def is_open(self) -> bool:
@@ -234,7 +243,26 @@ class ZenohTransport:
         self._handles.clear()
         self._subscribers.clear()
         self._publishers.clear()
-        await asyncio.to_thread(session.close)
+        loop = asyncio.get_running_loop()
+        closed: asyncio.Future[None] = loop.create_future()
+
+        def done() -> None:
+            if not closed.done():
+                closed.set_result(None)
+
+        def close() -> None:  # on a daemon thread: one that hangs does not hold the exit
+            try:
+                session.close()
+            finally:
+                with contextlib.suppress(RuntimeError):  # the loop is gone: nobody waits
+                    loop.call_soon_threadsafe(done)
+
+        threading.Thread(target=close, name="zenoh-close", daemon=True).start()
+        try:
+            await asyncio.wait_for(asyncio.shield(closed), CLOSE_WAIT_S)
+        except TimeoutError:
+            self.close_timeouts += 1
+            log.warning("the Zenoh session did not close within %.1f s: left to exit", CLOSE_WAIT_S)
 
     def close_now(self) -> None:
         """Close from a synchronous context (e.g. an ``atexit`` fallback)."""

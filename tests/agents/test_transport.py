@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import asyncio
 import dataclasses
+import threading
+import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -14,7 +16,12 @@ import zenoh
 from agents.transport import Inbox, Keys, MemoryBus, MemoryTransport, Message
 from agents.transport.base import Kind, key_matches
 from agents.transport.subscriptions import StackSubscriptions
-from agents.transport.zenoh_transport import ZenohSettings, ZenohTransport, settings_for
+from agents.transport.zenoh_transport import (
+    CLOSE_WAIT_S,
+    ZenohSettings,
+    ZenohTransport,
+    settings_for,
+)
 from deploy.launch import free_ports
 
 KEYS = Keys("t1")
@@ -279,6 +286,33 @@ async def test_zenoh_pair_on_loopback_put_reaches_the_inbox() -> None:
         await a.close()
     assert not a.is_open and not b.is_open
     a.publish(KEYS.stack("r1"), b"after close")  # a no-op, not an error
+
+
+@pytest.mark.asyncio
+async def test_zenoh_close_is_bounded_even_when_the_session_hangs() -> None:
+    """A real session closes within CLOSE_WAIT_S (no timeout counted); one whose close hangs (as
+    Zenoh's can for seconds on a lossy network) is left to the process's exit after
+    CLOSE_WAIT_S, counted, so that an agent still writes its stop record before a launcher's
+    SIGKILL."""
+    real = ZenohTransport(settings_for(free_ports(1)[0], []))
+    await real.open()
+    await real.close()
+    assert real.close_timeouts == 0 and not real.is_open
+
+    released = threading.Event()
+
+    class Hanging:
+        def close(self) -> None:
+            released.wait(10.0)
+
+    t = ZenohTransport(settings_for(free_ports(1)[0], []))
+    t._session = Hanging()  # type: ignore[assignment]
+    start = time.monotonic()
+    await t.close()
+    waited = time.monotonic() - start
+    released.set()
+    assert CLOSE_WAIT_S <= waited < 5.0, waited  # not the 10 s the close hangs
+    assert t.close_timeouts == 1 and not t.is_open
 
 
 @pytest.mark.asyncio
