@@ -15,6 +15,7 @@ from agents.transport.base import Keys
 from deploy.build import belief_model, make_node
 from deploy.launch import LaunchPlan, launch
 from estimator.hybrid import BeliefConfig
+from estimator.models import SensorFrame
 from protocol.codec import decode
 from protocol.frames import encode_frame
 from sim.loader import load_scenario, parse_scenario
@@ -74,12 +75,17 @@ def _stacks(actions: list[object], log: MemoryLog, robot: str) -> list[bytes]:
     return [a.payload for a in rest if isinstance(a, Publish) and a.key == KEYS.stack(robot)]
 
 
-def test_a_peer_that_joins_late_gets_every_slot_it_lacks_and_nothing_else_is_resent() -> None:
+_Pair = tuple[AgentCore, MemoryLog, AgentCore, MemoryLog, dict[str, list[SensorFrame]], float]
+
+
+def _hearing_pair(steps: int) -> _Pair:
+    """r1 and r2 of the paper scenario after ``steps`` steps, one a second, each hearing the
+    other's stack: (r1, its log, r2, its log, the frames, the time of the last step)."""
     frames = Simulator(load_scenario("paper"), 4).all_frames()
     r1, log1 = _core("r1")
     r2, log2 = _core("r2")
     now = 0.0
-    for k in range(3):  # r1 and r2 step and hear each other
+    for k in range(steps):
         now += 1.0
         s1 = _stacks(
             r1.on_message(KEYS.frames("r1"), encode_frame(frames["r1"][k]), now), log1, "r1"
@@ -89,6 +95,11 @@ def test_a_peer_that_joins_late_gets_every_slot_it_lacks_and_nothing_else_is_res
         )
         _stacks(r1.on_message(KEYS.stack("r2"), s2[-1], now), log1, "r1")
         _stacks(r2.on_message(KEYS.stack("r1"), s1[-1], now), log2, "r2")
+    return r1, log1, r2, log2, frames, now
+
+
+def test_a_peer_that_joins_late_gets_every_slot_it_lacks_and_nothing_else_is_resent() -> None:
+    r1, log1, r2, _, _, now = _hearing_pair(3)
     held = r1.node.current_stack().versions()
     assert set(held) == {"r1", "r2"}
     # r2's digest says it holds everything r1 has: a tick sends r1's digest alone.
@@ -118,20 +129,7 @@ def test_an_unchanged_digest_goes_only_when_due() -> None:
     """Real time: a tick with nothing new sends the digest alone only when it changed, when the
     last one went DIGEST_REFRESH gossip periods ago (peers keep counting this robot), or when a
     peer's digest since then holds a version this robot lacks (the pull of push–pull)."""
-    frames = Simulator(load_scenario("paper"), 4).all_frames()
-    r1, log1 = _core("r1")
-    r2, log2 = _core("r2")
-    now = 0.0
-    for k in range(2):
-        now += 1.0
-        s1 = _stacks(
-            r1.on_message(KEYS.frames("r1"), encode_frame(frames["r1"][k]), now), log1, "r1"
-        )
-        s2 = _stacks(
-            r2.on_message(KEYS.frames("r2"), encode_frame(frames["r2"][k]), now), log2, "r2"
-        )
-        _stacks(r1.on_message(KEYS.stack("r2"), s2[-1], now), log1, "r1")
-        _stacks(r2.on_message(KEYS.stack("r1"), s1[-1], now), log2, "r2")
+    r1, log1, r2, log2, frames, now = _hearing_pair(2)
     _stacks(r1.on_message(KEYS.stack("r2"), r2.node.encoded_delta(()), now), log1, "r1")
     period = r1.settings.gossip_period
 
