@@ -118,11 +118,10 @@ class CoreSettings:
     # send; "full": every held slot, every time (docs/wire.md, "Delta gossip").
     stack_gossip: str = "delta"
     catch_up: int = CATCH_UP_STEPS
-    # A simulated real time agent subscribes to the stacks of the peers in range only (off by
-    # default: a new subscription misses what its peer publishes while it is being declared; the
-    # shell gossips once more 50 ms later, and still a healed partition re-synced a few ms later
-    # than the two gossip periods test_launch requires in 3 of 8 runs; docs/agents.md).
-    listen_in_range: bool = False
+    # A simulated real time agent subscribes to the stacks of the peers in range only, from the
+    # links the simulator sends a step ahead (``sim/listen``; docs/agents.md): the stacks of the
+    # robots out of range are then not even sent to it.
+    listen_in_range: bool = True
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -288,6 +287,8 @@ class AgentCore:
         self._orders: dict[int, StepOrder] = {}
         self._rounds: dict[tuple[str, int], tuple[StackMessage, bytes]] = {}
         self._links: dict[int, dict[str, tuple[str, ...]]] = {}
+        # The links the simulator sends a step ahead (``sim/listen``): for subscriptions only.
+        self._ahead: dict[int, dict[str, tuple[str, ...]]] = {}
         self._refused: collections.OrderedDict[Version, None] = collections.OrderedDict()
         self._bad_frames: collections.OrderedDict[int, None] = collections.OrderedDict()
         self._uncommitted: list[Append] = []
@@ -425,7 +426,9 @@ class AgentCore:
             elif key.startswith(f"{keys.prefix}/stack/"):
                 actions += self._on_stack(key, payload)
             elif key == keys.sim_links():
-                self._on_links(payload)
+                self._on_links(payload, self._links)
+            elif key == keys.sim_listen():
+                self._on_links(payload, self._ahead)
             if not at_once:
                 actions += self._step_all()
         if at_once:
@@ -620,8 +623,9 @@ class AgentCore:
         self.counters.rounds_resent += 1
         return [Publish(self.keys.stack(self.robot), data)]
 
-    def _on_links(self, payload: bytes) -> None:
-        """The simulator's verdict of who hears whom at step k (simulations only)."""
+    def _on_links(self, payload: bytes, into: dict[int, dict[str, tuple[str, ...]]]) -> None:
+        """The simulator's verdict of who hears whom at step k (simulations only), kept
+        ``into`` the links obeyed (``sim/links``) or those sent a step ahead (``sim/listen``)."""
         if not self.settings.simulation:
             return
         try:
@@ -634,7 +638,7 @@ class AgentCore:
             return
         k = self.node.k
         if k <= order.k <= k + self.settings.window:
-            self._links[order.k] = order.links
+            into[order.k] = order.links
 
     def _on_frame(self, data: bytes) -> list[Action]:
         try:
@@ -713,14 +717,20 @@ class AgentCore:
 
     def _listen(self, initial: bool = False) -> list[Action]:
         """A :class:`Listen` when whom to hear changed (``initial``: always): with
-        ``listen_in_range`` in a simulated real time run, the robots heard at the coming step
-        (nobody before the first links); else every robot."""
+        ``listen_in_range`` in a simulated real time run, the robots heard at the coming step or
+        at any later step whose links are here, those sent a step ahead included (so that a
+        subscription is in place before its links are due: one declared as they change misses
+        what the peer publishes meanwhile); nobody before the first links. Else every robot."""
         s = self.settings
         if not (s.listen_in_range and s.simulation and s.mode == "realtime"):
             return [Listen(None)] if initial else []
         due = [k for k in self._links if k <= self.node.k + 1]
-        peers = frozenset(self._links[max(due)].get(self.robot, ())) if due else frozenset()
-        peers -= {self.robot}
+        first = max(due) if due else self.node.k + 1
+        robots: set[str] = set()
+        for later, links in [*self._links.items(), *self._ahead.items()]:
+            if later >= first:
+                robots.update(links.get(self.robot, ()))
+        peers = frozenset(robots - {self.robot})
         if not initial and peers == self._listening:
             return []
         self._listening = peers
@@ -964,6 +974,7 @@ class AgentCore:
         self._frames = {j: f for j, f in self._frames.items() if j > k}
         latest = max((j for j in self._links if j <= k + 1), default=None)
         self._links = {j: v for j, v in self._links.items() if j > k or j == latest}
+        self._ahead = {j: v for j, v in self._ahead.items() if j > k}
 
     def _frames_missing(self) -> int | None:
         nxt = self.node.k + 1

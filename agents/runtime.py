@@ -149,6 +149,7 @@ class Agent:
         t.subscribe(keys.ctl("**"), self.control)
         if self.settings.simulation:
             t.subscribe(keys.sim_links(), self.control)
+            t.subscribe(keys.sim_listen(), self.control)
         t.subscribe(keys.frames(self.robot), self.frames)
         t.declare_alive(keys.alive(self.robot))
         if self.ros2 is not None:

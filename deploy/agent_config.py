@@ -226,7 +226,7 @@ def _read_agent_config(path: Path, robot: str) -> AgentConfig:
         publish_local=a.boolean("publish_local") if a.has("publish_local") else True,
         simulation=a.boolean("simulation") if a.has("simulation") else False,
         catch_up=a.integer("catch_up", 0, 1000) if a.has("catch_up") else CATCH_UP_STEPS,
-        listen_in_range=a.boolean("listen_in_range") if a.has("listen_in_range") else False,
+        listen_in_range=(a.boolean("listen_in_range") if a.has("listen_in_range") else True),
     )
     endpoints = {}
     for name in ("listen", "connect"):

@@ -246,6 +246,11 @@ class Keys:
         """Simulations only: who hears whom at step k, as decided by the simulator."""
         return f"{self.prefix}/sim/links"
 
+    def sim_listen(self) -> str:
+        """Simulations only: who will hear whom at step k, sent by the simulator a step ahead,
+        for subscriptions only (who is heard is decided by :meth:`sim_links`)."""
+        return f"{self.prefix}/sim/listen"
+
     def ctl(self, *parts: str) -> str:
         return "/".join((self.prefix, "ctl", *parts))
 

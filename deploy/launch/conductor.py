@@ -186,12 +186,19 @@ class Conductor:
 
     def _publish_links(self, k: int) -> None:
         """Realtime simulations: who hears whom at step k, decided here on the true poses and
-        obeyed only by agents configured as simulated (``simulation = true``)."""
+        obeyed only by agents configured as simulated (``simulation = true``); and who will at
+        step k + 1, for their subscriptions (``sim/listen``)."""
         verdict = links_at(self.links, self.frames, self.robots, k)
         if self.on_links is not None:
             self.on_links(k, verdict)
         self.collected.links_published[k] = time.monotonic()
         self.transport.publish(self.keys.sim_links(), encode_control(StepOrder(k, verdict)))
+        if all(k < len(self.frames[r]) for r in self.robots):
+            # A step ahead, on its own key: an agent subscribes to the stacks of a robot it is
+            # about to hear before it hears it, but still obeys only the links of sim/links.
+            # ``links_at`` is a pure function of the step: this is the verdict sent at k + 1.
+            ahead = links_at(self.links, self.frames, self.robots, k + 1)
+            self.transport.publish(self.keys.sim_listen(), encode_control(StepOrder(k + 1, ahead)))
 
     def pump(self) -> None:
         """Handle everything that arrived: liveliness, frame requests, estimates."""

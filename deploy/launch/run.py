@@ -80,6 +80,7 @@ class LaunchPlan:
     gossip_period: float = GOSSIP_PERIOD_S
     stack_gossip: str = "delta"  # or "full" (docs/wire.md, "Delta gossip")
     catch_up: int = CATCH_UP_STEPS  # realtime: steps in a row that may defer fusion (agents.core)
+    listen_in_range: bool = True  # realtime simulation: subscribe to the peers in range only
     comm: str | None = None
     faults: Faults = field(default_factory=Faults)
     fleet: str = "launch"
@@ -284,6 +285,7 @@ class Launcher:
             "gossip_period": plan.gossip_period,
             "stack_gossip": plan.stack_gossip,
             "catch_up": plan.catch_up,
+            "listen_in_range": plan.listen_in_range,
             "journal": f"../journal/{robot}.log",
             "publish_local": plan.publish_local,
             # Loss, partitions and range are the simulator's: it publishes who hears whom

@@ -339,9 +339,56 @@ async def test_simulated_agent_subscribes_to_the_stacks_of_whom_the_simulator_sa
         c = agent.counter_values()
         assert (c["stacks_received"], c["ignored_out_of_range"], c["links_invalid"]) == (1, 0, 1)
         assert c["listen_changes"] == 2
-        world.publish(KEYS.sim_links(), _links(3, {"r1": ("r3",)}))  # stays at step 1's + 1
+        # Links of a later step already here: their robots are subscribed to as well (the agent
+        # will need them), and stay unread until their step comes.
+        world.publish(KEYS.sim_links(), _links(3, {"r1": ("r3",)}))
+        await _until(
+            lambda: agent.stack_subscriptions.exprs == {KEYS.stack(r) for r in ("r2", "r3")}
+        )
+        world.publish(KEYS.stack("r3"), _stack_from(peers["r3"]))
+        await _until(lambda: agent.counter_values()["ignored_out_of_range"] == 1)
+        assert agent.node.stack.stamps() == {"r1": 1, "r2": 1}
+        assert not task.done()
+
+
+@pytest.mark.asyncio
+async def test_links_sent_a_step_ahead_subscribe_but_are_not_obeyed(
+    frames: dict[str, list[SensorFrame]],
+) -> None:
+    """The simulator sends each step's links a step ahead on ``sim/listen``, with the frames of
+    the step before: the agent subscribes to the robots it will hear then (so that the
+    subscription is declared before their stacks come), but reads a stack only under the links
+    of ``sim/links`` due at its coming step — after step 1, those of step 1 until step 2's come;
+    links ahead beyond the agent's window are ignored, and bad ones counted."""
+    bus = MemoryBus()
+    world = MemoryTransport(bus)
+    await world.open()
+    peers = _nodes()
+    for r in ("r2", "r3"):
+        peers[r].on_frame(frames[r][0])
+    agent = _agent("r1", bus, "realtime", simulation=True, listen_in_range=True)
+    async with _running(agent) as (task,):
+        await _until(lambda: agent.counter_values()["listen_changes"] == 1)
+        world.publish(KEYS.sim_links(), _links(1, {"r1": ("r2",)}))
+        world.publish(KEYS.sim_listen(), _links(2, {"r1": ("r2", "r3")}))
+        world.publish(KEYS.sim_listen(), _links(10_000, {"r1": ("r4",)}))  # beyond the window
+        world.publish(KEYS.sim_listen(), b"\xff")
+        world.publish(KEYS.frames("r1"), encode_frame(frames["r1"][0]))
+        await _until(lambda: agent.node.k == 1)
+        want = {KEYS.stack(r) for r in ("r2", "r3")}
+        await _until(lambda: agent.stack_subscriptions.exprs == want)
+        # r3 is subscribed to but not heard before step 2's links come: its stack is not read.
+        world.publish(KEYS.stack("r3"), _stack_from(peers["r3"]))
+        world.publish(KEYS.stack("r2"), _stack_from(peers["r2"]))
+        await _until(lambda: agent.node.counters.stacks_received == 2)
+        await _until(lambda: agent.counter_values()["ignored_out_of_range"] == 1)
+        assert set(agent.node.stack.stamps()) == {"r1", "r2"}
+        assert agent.counter_values()["links_invalid"] == 1
+        world.publish(KEYS.sim_links(), _links(2, {"r1": ("r2", "r3")}))
         await asyncio.sleep(0.05)
-        assert agent.stack_subscriptions.exprs == {KEYS.stack("r2")}
+        world.publish(KEYS.stack("r3"), _stack_from(peers["r3"]))
+        await _until(lambda: "r3" in agent.node.stack.stamps())
+        assert agent.stack_subscriptions.exprs == want
         assert not task.done()
 
 
@@ -563,6 +610,45 @@ async def _conductor_and_a_robot(
         yield conductor, agent
     finally:
         await agent.close()
+        await side.close()
+
+
+@pytest.mark.asyncio
+async def test_realtime_conductor_sends_each_steps_links_a_step_ahead_too(
+    frames: dict[str, list[SensorFrame]],
+) -> None:
+    """With the frames of step k the conductor publishes the links of step k on ``sim/links``
+    and those of step k + 1 on ``sim/listen``: the verdict sent ahead is the one obeyed when its
+    step comes (links that change from step to step), and nothing goes ahead of the last frame."""
+    bus = MemoryBus()
+    side = MemoryTransport(bus)
+    changing = Schedule(((1, 1, "r1", "r2"), (2, 3, "r2", "r3"), (3, STEPS, "r1", "r3")))
+    conductor = Conductor(SCENARIO, frames, ROBOTS, side, KEYS, changing)
+    await conductor.open()
+    watcher = MemoryTransport(bus)
+    obeyed, ahead = Inbox(100), Inbox(100)
+    watcher.subscribe(KEYS.sim_links(), obeyed)
+    watcher.subscribe(KEYS.sim_listen(), ahead)
+    await watcher.open()
+    try:
+        await conductor.run_realtime(STEPS, 0.001, settle=0.0)
+        await asyncio.sleep(0.05)
+        links = {
+            o.k: o.links
+            for m in obeyed.drain()
+            if isinstance(o := decode_control(m.payload), StepOrder)
+        }
+        sent = {
+            o.k: o.links
+            for m in ahead.drain()
+            if isinstance(o := decode_control(m.payload), StepOrder)
+        }
+        assert sorted(links) == list(range(1, STEPS + 1))
+        assert sorted(sent) == list(range(2, STEPS + 1))
+        assert all(sent[k] == links[k] for k in sent)
+        assert links[1]["r1"] == ("r2",) and links[2]["r1"] == () and links[3]["r1"] == ("r3",)
+    finally:
+        await watcher.close()
         await side.close()
 
 
