@@ -14,6 +14,7 @@ each other (docs/distributed.md); the slot summary itself is :mod:`estimator.slo
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -97,7 +98,36 @@ class _Join:
 
 def _fits(parent: IntArray, real: IntArray) -> tuple[IntArray, IntArray]:
     """(row, realisation) pairs whose classes agree on every shared column: ``parent`` (J, s)
-    against ``real`` (R, s), in chunks of rows so that no temporary exceeds _FITS_CELLS."""
+    against ``real`` (R, s), rows ascending and each row's realisations ascending (the order of
+    ``np.nonzero`` on the (J, R) table of matches, which :func:`_fits_by_table` builds).
+
+    Each row's classes of the shared objects are one key (their digits in base M), so the
+    matches are found by sorting the R keys and looking up the J: O((J + R) log R + matches)
+    instead of J·R·s comparisons (a join of 6,000 rows with 100 realisations on 7 objects)."""
+    j, r, width = parent.shape[0], real.shape[0], parent.shape[1]
+    if j == 0 or r == 0:
+        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+    if width == 0:  # nothing shared: every pair
+        return np.repeat(np.arange(j), r), np.tile(np.arange(r), j)
+    low = min(int(parent.min()), int(real.min()))
+    base = max(int(parent.max()), int(real.max())) + 1
+    if low < 0 or width * math.log2(base) >= 62:
+        return _fits_by_table(parent, real)
+    digits = base ** np.arange(width, dtype=np.int64)
+    keys = real.astype(np.int64) @ digits
+    order = np.argsort(keys, kind="stable")  # equal keys keep their realisations ascending
+    ranked = keys[order]
+    wanted = parent.astype(np.int64) @ digits
+    first = np.searchsorted(ranked, wanted, side="left")
+    counts = np.searchsorted(ranked, wanted, side="right") - first
+    rows = np.repeat(np.arange(j), counts)
+    starts = np.repeat(first - (np.cumsum(counts) - counts), counts)
+    return rows, order[starts + np.arange(len(rows))]
+
+
+def _fits_by_table(parent: IntArray, real: IntArray) -> tuple[IntArray, IntArray]:
+    """:func:`_fits` by comparing every row with every realisation, in chunks of rows so that no
+    temporary exceeds _FITS_CELLS (for classes whose keys would not fit 62 bits)."""
     j, r = parent.shape[0], real.shape[0]
     step = max(1, _FITS_CELLS // max(1, r * max(1, parent.shape[1])))
     rows, cols = [], []
@@ -415,9 +445,12 @@ class DistributedBelief(HybridBelief):
         """Join D's hypotheses with every slot's realisations on shared objects (bookkeeping only:
         no iSAM2 is touched). Returns the joins and the owners whose slot joined with nothing."""
         known = dict(self._object_index)
+        # The join's classes in the smallest integer type that holds them: its matrices are copied
+        # and compared at every slot, and grow to max_join rows (classes are checked < M).
+        small = np.min_scalar_type(-max(1, self.model.num_classes))
         join = _Join(
             np.arange(len(self.hypotheses)),
-            self.class_matrix(),
+            self.class_matrix().astype(small),
             np.full((len(self.hypotheses), len(batch)), -1, dtype=np.int64),
             np.full((len(self.hypotheses), len(batch)), np.nan),
             np.array([h.log_weight for h in self.hypotheses]),
@@ -472,7 +505,7 @@ class DistributedBelief(HybridBelief):
             phis[:, b] = phi
             join = _Join(
                 join.parent[rows],
-                np.concatenate([join.classes[rows], new_cls[cols]], axis=1),
+                np.concatenate([join.classes[rows], new_cls[cols].astype(small)], axis=1),
                 picks,
                 phis,
                 lw,
