@@ -692,9 +692,18 @@ async def test_conductor_scores_a_step_once_however_often_its_estimate_comes(
 async def test_conductor_scores_during_the_run_only_what_exceeds_its_backlog(
     frames: dict[str, list[SensorFrame]], monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """Scoring waits for the end of the run, but never holds more than MAX_UNSCORED estimates:
-    beyond, the oldest are scored as they come."""
-    monkeypatch.setattr(conductor_module, "MAX_UNSCORED", 1)
+    """Scoring waits for the end of the run, but never holds more than MAX_UNSCORED_BYTES of
+    estimates: beyond, the oldest are scored as they come."""
+    nodes = _nodes()
+    sizes = [
+        len(
+            encode_estimate(
+                EstimateMessage(r, 1, {"distributed": nodes[r].distributed.snapshot(r)})
+            )
+        )
+        for r in ROBOTS
+    ]
+    monkeypatch.setattr(conductor_module, "MAX_UNSCORED_BYTES", max(sizes))
     async with _conductor_and_a_robot(frames) as (conductor, agent):
         nodes = _nodes()
         for r in ROBOTS:
