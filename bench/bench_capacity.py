@@ -4,10 +4,13 @@ and its last step 10 s later), CPU % and peak RSS per agent from /proc — and a
 lock-step launch of 50 agents that must complete. Target: 20 agents keep up at a 0.5 s step on 2
 cores (≤ 1 step behind at the end: every agent, one period after the last frame, in every run).
 
-At the target size the runs alternate with a baseline of the same run that never catches up
-(``catch_up = 0``: every step fuses; docs/agents.md, "Catching up"), with the fusions deferred
-and D's errors at the last step of both, so that what catching up buys and costs is measured
-on the same machine state.
+The agents gossip at the default gossip period (``agents.core.GOSSIP_PERIOD_S``, 0.5 s: what a
+launch or an agent config gets unless it says otherwise). At the target size the runs alternate
+with a baseline of the same run that never catches up (``catch_up = 0``: every step fuses;
+docs/agents.md, "Catching up"), with the fusions deferred and D's errors at the last step of
+both, so that what catching up buys and costs is measured on the same machine state; and with a
+run that gossips twice as often (``FAST_GOSSIP_S``, bench_agents' 0.25 s), the setting of this
+benchmark's earlier figures.
 """
 
 from __future__ import annotations
@@ -19,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from agents.core import CATCH_UP_STEPS
+from agents.core import CATCH_UP_STEPS, GOSSIP_PERIOD_S
 from bench import Result
 from bench.bench_agents import GOSSIP_S, PERIOD_S, _run_launch
 from deploy.launch import LaunchPlan
@@ -42,6 +45,11 @@ def notes() -> list[str]:
 # third between runs of the same launch), the others once.
 TARGET_AGENTS = 20
 REPEATS = {TARGET_AGENTS: int(os.environ.get("SEMFLEET_BENCH_CAPACITY_REPEATS", "3"))}
+FAST_GOSSIP_S = GOSSIP_S
+# (catch_up, gossip period) of the runs of each size: the target size also runs the baseline that
+# never catches up and the faster gossip.
+DEFAULT = (CATCH_UP_STEPS, GOSSIP_PERIOD_S)
+TARGET_VARIANTS = [DEFAULT, (0, GOSSIP_PERIOD_S), (CATCH_UP_STEPS, FAST_GOSSIP_S)]
 
 
 def _capacity_rows(tmp: Path) -> list[Result]:
@@ -51,14 +59,16 @@ def _capacity_rows(tmp: Path) -> list[Result]:
         path = tmp / f"gen{n}.toml"
         path.write_text(dump_scenario(s), encoding="utf-8")
         s = parse_scenario(path.read_text(encoding="utf-8"), str(path))
-        catch_ups = [CATCH_UP_STEPS, 0] if n == TARGET_AGENTS else [CATCH_UP_STEPS]
-        runs: dict[int, list[tuple[float, Collected, Usage]]] = {c: [] for c in catch_ups}
+        variants = TARGET_VARIANTS if n == TARGET_AGENTS else [DEFAULT]
+        runs: dict[tuple[int, float], list[tuple[float, Collected, Usage]]] = {
+            v: [] for v in variants
+        }
         for i in range(REPEATS.get(n, 1)):
-            for c in catch_ups:
+            for c, gossip in variants:
+                name = f"cap{n}-{i}-{c}-{round(1e3 * gossip)}"
                 plan = LaunchPlan(
-                    s, 0, list(s.robot_ids), tmp / f"cap{n}-{i}-{c}", mode="realtime",
-                    period=PERIOD_S, gossip_period=GOSSIP_S, fleet=f"cap{n}x{i}c{c}",
-                    publish_local=False, catch_up=c,
+                    s, 0, list(s.robot_ids), tmp / name, mode="realtime", period=PERIOD_S,
+                    gossip_period=gossip, fleet=name, publish_local=False, catch_up=c,
                 )  # fmt: skip
                 start = time.perf_counter()
                 try:
@@ -69,13 +79,13 @@ def _capacity_rows(tmp: Path) -> list[Result]:
                         Result(f"realtime capacity: {n} agents", n, float("nan"), note=note)
                     )
                     continue
-                runs[c].append((time.perf_counter() - start, outcome.collected, usage))
-        rows += [_capacity_row(n, s.steps, runs[c], c) for c in catch_ups if runs[c]]
+                runs[(c, gossip)].append((time.perf_counter() - start, outcome.collected, usage))
+        rows += [_capacity_row(n, s.steps, runs[v], *v) for v in variants if runs[v]]
     return rows
 
 
 def _capacity_row(
-    n: int, steps: int, runs: list[tuple[float, Collected, Usage]], catch_up: int
+    n: int, steps: int, runs: list[tuple[float, Collected, Usage]], catch_up: int, gossip: float
 ) -> Result:
     """Steps behind one period after the last frame (when every robot should have taken it),
     per run: mean and worst agent; the last step 10 s later; CPU and peak RSS per agent; the
@@ -122,7 +132,7 @@ def _capacity_row(
     )
     label = "" if catch_up == CATCH_UP_STEPS else f", catch_up {catch_up} (baseline)"
     return Result(
-        f"realtime capacity: {n} agents, period {PERIOD_S:g} s{label}",
+        f"realtime capacity: {n} agents, period {PERIOD_S:g} s, gossip {gossip:g} s{label}",
         n,
         1e3 * float(np.median([wall for wall, _, _ in runs])),
         note=f"steps behind one period after the last frame, {len(runs)} run(s): {per_run}"
