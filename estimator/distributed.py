@@ -73,27 +73,46 @@ class FusionStats:
 @dataclass(frozen=True, slots=True)
 class _Join:
     """Candidate children of a fusion: parent index (J,), classes of D's objects followed by the
-    objects new to D (J, n'), the realisation picked from every slot of the batch (J, B; −1 for
-    none), the log φ each child takes from every slot (J, B: the picked realisation's, or its
-    completion's, :func:`_nearest`), log-weights (J,), and the ids of the objects new to D in
-    column order."""
+    objects new to D (J, n'), log-weights (J,), the ids of the objects new to D in column order,
+    and how each row came to be (``steps``), from which :meth:`picks_and_phis` gives the
+    realisation picked from every slot of the batch (J, B; −1 for none) and the log φ each child
+    takes from every slot (J, B: the picked realisation's, or its completion's,
+    :func:`_nearest`). Those two are made once, for the rows that survive: copied at every slot
+    and every pruning of a join of up to ``max_join`` rows, they cost more than the join.
+
+    A step is (rows, b, cols, phi): row i of the join after it is row ``rows[i]`` of the join
+    before it, and took realisation ``cols[i]`` of slot ``b`` with log φ ``phi[i]`` (b = −1: a
+    pruning, rows only)."""
 
     parent: IntArray
     classes: IntArray
-    picks: IntArray
-    phis: Array
     log_weight: Array
     order: list[int]
+    width: int  # B, the slots of the batch
+    steps: tuple[tuple[IntArray, int, IntArray | None, Array | None], ...] = ()
 
     def keep(self, kept: IntArray, log_weight: Array | None = None) -> _Join:
         return _Join(
             self.parent[kept],
             self.classes[kept],
-            self.picks[kept],
-            self.phis[kept],
             self.log_weight[kept] if log_weight is None else log_weight,
             self.order,
+            self.width,
+            (*self.steps, (kept, -1, None, None)),
         )
+
+    def picks_and_phis(self) -> tuple[IntArray, Array]:
+        """The realisation picked from every slot (J, B; −1 for none) and each child's log φ of
+        every slot (J, B; NaN for none), followed back through the steps."""
+        picks = np.full((len(self.parent), self.width), -1, dtype=np.int64)
+        phis = np.full((len(self.parent), self.width), np.nan)
+        at = np.arange(len(self.parent))
+        for rows, b, cols, phi in reversed(self.steps):
+            if cols is not None and phi is not None:
+                picks[:, b] = cols[at]
+                phis[:, b] = phi[at]
+            at = rows[at]
+        return picks, phis
 
 
 def _fits(parent: IntArray, real: IntArray) -> tuple[IntArray, IntArray]:
@@ -327,9 +346,10 @@ class DistributedBelief(HybridBelief):
         conts, cont_of = distinct_continuous(parents)
         key = np.empty((len(join.parent), 1 + len(batch)), dtype=np.int64)
         key[:, 0] = np.asarray(cont_of, dtype=np.int64)[join.parent]
+        picked, phis = join.picks_and_phis()
         for b, sl in enumerate(batch):
             which = np.asarray(sl.summary.distinct_xi()[1], dtype=np.int64)
-            r = join.picks[:, b]
+            r = picked[:, b]
             key[:, 1 + b] = np.where(r >= 0, which[np.maximum(r, 0)], -1)
         _, first, group_of = np.unique(key, axis=0, return_index=True, return_inverse=True)
         group_of = group_of.reshape(-1)
@@ -337,15 +357,15 @@ class DistributedBelief(HybridBelief):
         last_of_cont = {int(key[first[g], 0]): g for g in order}  # the last group of a belief
         classes_of = join.classes.tolist()
         log_weight_of = join.log_weight.tolist()
-        picks_of = join.picks.tolist()
+        picks_of = picked.tolist()
         parent_of = join.parent.tolist()
         # Every row of the join picked a realisation of every slot that joined (a row that
         # matched none was dropped) and none of a skipped one: log φ per row of the used slots.
         used_cols = [b for b, sl in enumerate(batch) if sl.owner not in skipped]
         used_owners = [batch[b].owner for b in used_cols]
-        if not (join.picks[:, used_cols] >= 0).all():
+        if not (picked[:, used_cols] >= 0).all():
             raise AssertionError("a row of the join lacks a pick of a slot that joined")
-        phis_of = join.phis[:, used_cols].tolist()
+        phis_of = phis[:, used_cols].tolist()
         children: dict[int, Hypothesis] = {}
         xi = _XiFactors()
         for g in order:
@@ -451,10 +471,9 @@ class DistributedBelief(HybridBelief):
         join = _Join(
             np.arange(len(self.hypotheses)),
             self.class_matrix().astype(small),
-            np.full((len(self.hypotheses), len(batch)), -1, dtype=np.int64),
-            np.full((len(self.hypotheses), len(batch)), np.nan),
             np.array([h.log_weight for h in self.hypotheses]),
             [],
+            len(batch),
         )
         skipped: set[str] = set()
         self._completed = 0
@@ -499,17 +518,13 @@ class DistributedBelief(HybridBelief):
             lw = join.log_weight[rows] + phi + self._log_prior[new_cls[cols]].sum(axis=1)
             if self.fusion == "consistent":
                 lw -= old_log_phi[:, b][join.parent[rows]]
-            picks = join.picks[rows].copy()
-            picks[:, b] = cols
-            phis = join.phis[rows].copy()
-            phis[:, b] = phi
             join = _Join(
                 join.parent[rows],
                 np.concatenate([join.classes[rows], new_cls[cols].astype(small)], axis=1),
-                picks,
-                phis,
                 lw,
                 join.order + [ids[i] for i in fresh],
+                join.width,
+                (*join.steps, (rows, b, cols, phi)),
             )
             if len(rows) > _JOIN_GUARD * self.cap:
                 join = join.keep(self._select(join.log_weight, join.classes))
