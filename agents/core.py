@@ -730,6 +730,8 @@ class AgentCore:
         for later, links in [*self._links.items(), *self._ahead.items()]:
             if later >= first:
                 robots.update(links.get(self.robot, ()))
+        if self.node.roster is not None:  # a robot not in the roster is never subscribed to
+            robots &= self.node.roster
         peers = frozenset(robots - {self.robot})
         if not initial and peers == self._listening:
             return []

@@ -304,6 +304,20 @@ async def test_simulated_agent_hears_whom_the_simulator_says_and_counts_the_rest
         assert not task.done()
 
 
+async def _listening_r1(
+    frames: dict[str, list[SensorFrame]],
+) -> tuple[MemoryTransport, dict[str, RobotNode], Agent]:
+    """A bare transport to publish as the world, r2 and r3 after their step 1, and a simulated
+    real time r1 that subscribes to the peers in range only, on one bus."""
+    bus = MemoryBus()
+    world = MemoryTransport(bus)
+    await world.open()
+    peers = _nodes()
+    for r in ("r2", "r3"):
+        peers[r].on_frame(frames[r][0])
+    return world, peers, _agent("r1", bus, "realtime", simulation=True, listen_in_range=True)
+
+
 @pytest.mark.asyncio
 async def test_simulated_agent_subscribes_to_the_stacks_of_whom_the_simulator_says_only(
     frames: dict[str, list[SensorFrame]],
@@ -312,13 +326,7 @@ async def test_simulated_agent_subscribes_to_the_stacks_of_whom_the_simulator_sa
     the robots in range at the coming step only (nobody before the first links): a stack of a
     robot out of range is never even delivered to it. (The core's own filter, for a stack still
     in flight when the range changed, is tested in test_core.)"""
-    bus = MemoryBus()
-    world = MemoryTransport(bus)
-    await world.open()
-    peers = _nodes()
-    for r in ("r2", "r3"):
-        peers[r].on_frame(frames[r][0])
-    agent = _agent("r1", bus, "realtime", simulation=True, listen_in_range=True)
+    world, peers, agent = await _listening_r1(frames)
     async with _running(agent) as (task,):
         await _until(lambda: agent.counter_values()["listen_changes"] == 1)
         assert agent.stack_subscriptions.exprs == set()  # no links yet: nobody is heard
@@ -360,17 +368,12 @@ async def test_links_sent_a_step_ahead_subscribe_but_are_not_obeyed(
     subscription is declared before their stacks come), but reads a stack only under the links
     of ``sim/links`` due at its coming step — after step 1, those of step 1 until step 2's come;
     links ahead beyond the agent's window are ignored, and bad ones counted."""
-    bus = MemoryBus()
-    world = MemoryTransport(bus)
-    await world.open()
-    peers = _nodes()
-    for r in ("r2", "r3"):
-        peers[r].on_frame(frames[r][0])
-    agent = _agent("r1", bus, "realtime", simulation=True, listen_in_range=True)
+    world, peers, agent = await _listening_r1(frames)
+    agent.core.node.roster = frozenset(ROBOTS)  # x9, not in it, is never subscribed to
     async with _running(agent) as (task,):
         await _until(lambda: agent.counter_values()["listen_changes"] == 1)
         world.publish(KEYS.sim_links(), _links(1, {"r1": ("r2",)}))
-        world.publish(KEYS.sim_listen(), _links(2, {"r1": ("r2", "r3")}))
+        world.publish(KEYS.sim_listen(), _links(2, {"r1": ("r2", "r3", "x9")}))
         world.publish(KEYS.sim_listen(), _links(10_000, {"r1": ("r4",)}))  # beyond the window
         world.publish(KEYS.sim_listen(), b"\xff")
         world.publish(KEYS.frames("r1"), encode_frame(frames["r1"][0]))
