@@ -163,6 +163,8 @@ class Conductor:
         self._unscored: collections.deque[bytes] = collections.deque()  # validated estimates
         self._unscored_bytes = 0
         self._need_order_t = -math.inf  # when a frame request last made the order go again
+        # Real time: the links last sent a step ahead, and their step.
+        self._links_ahead: tuple[int, dict[str, tuple[str, ...]]] = (-1, {})
 
     async def open(self) -> None:
         self.transport.subscribe(self.keys.estimate("*"), self.estimates)
@@ -192,7 +194,9 @@ class Conductor:
         """Realtime simulations: who hears whom at step k, decided here on the true poses and
         obeyed only by agents configured as simulated (``simulation = true``); and who will at
         step k + 1, for their subscriptions (``sim/listen``)."""
-        verdict = links_at(self.links, self.frames, self.robots, k)
+        sent, verdict = self._links_ahead
+        if sent != k:
+            verdict = links_at(self.links, self.frames, self.robots, k)
         if self.on_links is not None:
             self.on_links(k, verdict)
         self.collected.links_published[k] = time.monotonic()
@@ -200,8 +204,10 @@ class Conductor:
         if all(k < len(self.frames[r]) for r in self.robots):
             # A step ahead, on its own key: an agent subscribes to the stacks of a robot it is
             # about to hear before it hears it, but still obeys only the links of sim/links.
-            # ``links_at`` is a pure function of the step: this is the verdict sent at k + 1.
+            # ``links_at`` is a pure function of the step: this is the verdict sent at k + 1,
+            # kept for it.
             ahead = links_at(self.links, self.frames, self.robots, k + 1)
+            self._links_ahead = (k + 1, ahead)
             self.transport.publish(self.keys.sim_listen(), encode_control(StepOrder(k + 1, ahead)))
 
     def pump(self) -> None:
