@@ -583,11 +583,17 @@ def _decode_doc(
     signed = version == SIGNED_VERSION
     if keys is not None and not signed and raw_slots:
         raise BadSignature("unsigned slots (wire version 1): this fleet signs its slots", "v")
+    headers = [_slot_header(raw, f"slots[{i}]", signed) for i, raw in enumerate(raw_slots)]
+    if signed and keys is not None:
+        # Every signature before any body: a message that carries one forged slot is refused
+        # whole, before a number is read; and the verifications run back to back, each one
+        # with the verifier's tables still in cache (interleaved with the parsing of bodies,
+        # each took half as long again, docs/wire.md).
+        for i, header in enumerate(headers):
+            _verify(header, f"slots[{i}]", keys, buf)
     slots, owners, reused = [], [], []
-    for i, raw in enumerate(raw_slots):
-        owner, slot, again = _decode_slot(
-            raw, f"slots[{i}]", lim, keys if signed else None, signed, hooks, buf
-        )
+    for i, header in enumerate(headers):
+        owner, slot, again = _decode_slot(header, f"slots[{i}]", lim, hooks, buf)
         owners.append(owner)
         if slot is not None:
             slots.append(slot)
@@ -630,18 +636,18 @@ def _decode_have(raw: Any, lim: Limits) -> dict[str, tuple[int, int]]:
     return out
 
 
-def _decode_slot(
-    raw: Any,
-    where: str,
-    lim: Limits,
-    keys: SigningKeys | None,
-    signed: bool,
-    hooks: tuple[Wanted | None, Parsed | None],
-    buf: bytes,
-) -> tuple[str, Slot | None, bool]:
-    """The slot's owner, the slot — None when ``wanted`` refuses its version — and whether it is
-    one ``parsed`` gave back."""
-    wanted, parsed = hooks
+@dataclass(frozen=True, slots=True)
+class _Header:
+    """A slot's header fields, checked; its bodies still as received (``frame.spans``)."""
+
+    frame: SlotFrame
+    owner: str
+    epoch: int
+    stamp: int
+    signature: bytes | None
+
+
+def _slot_header(raw: Any, where: str, signed: bool) -> _Header:
     frame = raw if isinstance(raw, SlotFrame) else None
     fields = frame.fields if frame is not None else raw
     if signed:
@@ -660,20 +666,41 @@ def _decode_slot(
             f"{where}.sig",
             f"expected {SIGNATURE_BYTES} bytes",
         )
-        if keys is not None and keys.get(owner) is None:
-            raise BadSignature(
-                f"no signing key for owner {owner!r} in the roster", f"{where}.owner"
-            )
     stamp = as_int(s["stamp"], f"{where}.stamp", 0, _MAX_STAMP)
     need(frame is not None, where, "expected a slot map")  # every one of a scan is a frame
     assert frame is not None
+    return _Header(frame, owner, epoch, stamp, signature)
+
+
+def _verify(header: _Header, where: str, keys: SigningKeys, buf: bytes) -> None:
+    """The owner's signature over the slot's bytes as received (a relay re-sends these bytes),
+    against the roster's key: every slot, wanted or not."""
+    key = keys.get(header.owner)
+    if key is None:
+        raise BadSignature(
+            f"no signing key for owner {header.owner!r} in the roster", f"{where}.owner"
+        )
+    (oa, ob), (ra, rb) = header.frame.spans["objects"], header.frame.spans["real"]
+    view = memoryview(buf)
+    found = digest_of_parts(header.owner, header.epoch, header.stamp, view[oa:ob], view[ra:rb])
+    assert header.signature is not None  # a signed message's headers all carry one
+    if not verify_digest(key, found, header.signature):
+        raise BadSignature(f"the signature of {header.owner} does not verify", f"{where}.sig")
+
+
+def _decode_slot(
+    header: _Header,
+    where: str,
+    lim: Limits,
+    hooks: tuple[Wanted | None, Parsed | None],
+    buf: bytes,
+) -> tuple[str, Slot | None, bool]:
+    """The slot's owner, the slot — None when ``wanted`` refuses its version — and whether it is
+    one ``parsed`` gave back."""
+    wanted, parsed = hooks
+    frame, owner, epoch, stamp = header.frame, header.owner, header.epoch, header.stamp
+    signature = header.signature
     bodies = {name: memoryview(buf)[a:b] for name, (a, b) in frame.spans.items()}
-    if signed and keys is not None:
-        # Every slot, wanted or not: a message that carries one forged slot is refused whole.
-        # Over the bytes as received, before a number is read (a relay re-sends these bytes).
-        found = digest_of_parts(owner, epoch, stamp, bodies["objects"], bodies["real"])
-        if not verify_digest(keys[owner], found, signature):  # type: ignore[arg-type]
-            raise BadSignature(f"the signature of {owner} does not verify", f"{where}.sig")
     if wanted is not None and not wanted(owner, epoch, stamp):
         return owner, None, False
     if parsed is not None:

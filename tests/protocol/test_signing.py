@@ -9,12 +9,13 @@ import dataclasses
 import msgpack
 import numpy as np
 import pytest
-from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
+from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey, Ed25519PublicKey
 
 from estimator.summary import LocalSummary, Realisation, Xi
+from protocol import codec
 from protocol.codec import Limits, StackMessage, decode, encode, sign_slot
 from protocol.errors import BadSignature, LocalProtocolError, RemoteProtocolError
-from protocol.signing import digest, verify_digest
+from protocol.signing import admitted, digest, verify_digest
 from protocol.stack import Slot, Stack
 
 LIMITS = Limits(num_classes=3)
@@ -130,7 +131,7 @@ def test_a_stack_is_all_signed_or_all_unsigned() -> None:
 
 
 def test_verification_accepts_exactly_the_owners_signature_of_the_digest() -> None:
-    """Signed by `cryptography` (OpenSSL), verified by libsodium: the same Ed25519. A malleated
+    """Signed by `cryptography` (OpenSSL), verified by ed25519-zebra: the same Ed25519. A malleated
     signature (S + ℓ, the same point equation), a truncated one, another key's and another
     digest's are refused."""
     key = Ed25519PrivateKey.generate()
@@ -146,3 +147,56 @@ def test_verification_accepts_exactly_the_owners_signature_of_the_digest() -> No
         assert not verify_digest(public, d, signature + b"\0")
         s = int.from_bytes(signature[32:], "little") + ED25519_ORDER
         assert not verify_digest(public, d, signature[:32] + s.to_bytes(32, "little"))
+
+
+# The eight points of small order (the identity, the point of order 2, two of order 4 and four of
+# order 8) and a non-canonical encoding of the identity (y = p + 1).
+SMALL_ORDER = [
+    bytes.fromhex(h)
+    for h in (
+        "0100000000000000000000000000000000000000000000000000000000000000",
+        "ecffffffffffffffffffffffffffffffffffffffffffffffffffffffffffff7f",
+        "0000000000000000000000000000000000000000000000000000000000000000",
+        "0000000000000000000000000000000000000000000000000000000000000080",
+        "26e8958fc2b227b045c3f489f2ef98f0d5dfac05d3c63339b13802886d53fc05",
+        "26e8958fc2b227b045c3f489f2ef98f0d5dfac05d3c63339b13802886d53fc85",
+        "c7176a703d4dd84fba3c0b760d10670f2a2053fa2c39ccc64ec7fd7792ac037a",
+        "c7176a703d4dd84fba3c0b760d10670f2a2053fa2c39ccc64ec7fd7792ac03fa",
+        "eeffffffffffffffffffffffffffffffffffffffffffffffffffffffffffff7f",
+    )
+]
+
+
+def test_a_key_of_small_order_verifies_nothing() -> None:
+    """Under the cofactored check (ZIP 215) a key A of small order "verifies" the signature
+    (R, 0) for every message when R is of small order too: [8]·0·B = [8]R + [8]hA = 0. The key
+    is refused before the signature is looked at, whatever the message."""
+    for seed in range(3):
+        d = digest(np.random.default_rng(seed).bytes(50 + seed))
+        for point in SMALL_ORDER:
+            key = Ed25519PublicKey.from_public_bytes(point)
+            for r in [*SMALL_ORDER[:2], point]:
+                assert not verify_digest(key, d, r + bytes(32)), point.hex()
+            assert not admitted(point)
+    genuine = Ed25519PrivateKey.generate().public_key().public_bytes_raw()
+    assert admitted(genuine) and not admitted(genuine[:31])
+
+
+def test_every_signature_is_verified_before_any_body_is_read(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A forged second slot refuses the message before the first slot's numbers are parsed, and
+    before a malformed body of the first slot could be reported instead."""
+    read: list[str] = []
+    unpack = codec._unpack
+    monkeypatch.setattr(
+        codec, "_unpack", lambda body, where: read.append(where) or unpack(body, where)
+    )
+    forged = sign_slot(_slot("r2", 5, 1), KEYS["r3"], LIMITS)
+    data = encode(StackMessage("r3", None, Stack((_signed("r1"), forged)), 3), LIMITS)
+    with pytest.raises(BadSignature) as err:
+        decode(data, LIMITS, PUBLIC)
+    assert err.value.field == "slots[1].sig" and read == []
+    genuine = encode(StackMessage("r3", None, Stack((_signed("r1"), _signed("r2", 5, 1))), 3))
+    assert len(decode(genuine, LIMITS, PUBLIC).stack) == 2
+    assert sorted(set(read)) == ["slots[0]", "slots[1]"]
