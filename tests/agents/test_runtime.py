@@ -16,6 +16,7 @@ from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass
 from pathlib import Path
 
+import msgpack
 import numpy as np
 import pytest
 
@@ -689,6 +690,43 @@ async def test_conductor_scores_a_step_once_however_often_its_estimate_comes(
         assert c.step_ms["distributed"] == [1.0]
         assert c.counters["r1"]["stacks_received"] == 3  # the latest estimate's counters
         assert np.isfinite(c.metrics["distributed"]["robot_error"][0, 0])
+
+
+@pytest.mark.asyncio
+async def test_conductor_reads_an_estimates_head_as_it_comes_and_its_arrays_when_scoring(
+    frames: dict[str, list[SensorFrame]],
+) -> None:
+    """While the agents run, the conductor reads only an estimate's robot, step and counters; an
+    estimate whose arrays are broken (a NaN weight) is counted as received then, and as invalid,
+    not scored, when it is scored. A broken head is refused at once, and so is an estimate on
+    another robot's key."""
+    nodes = _nodes()
+    good = encode_estimate(
+        EstimateMessage("r2", 1, {"distributed": nodes["r2"].distributed.snapshot("r2")})
+    )
+    doc = msgpack.unpackb(
+        encode_estimate(
+            EstimateMessage("r1", 1, {"distributed": nodes["r1"].distributed.snapshot("r1")})
+        )
+    )
+    weights = np.frombuffer(doc["beliefs"]["distributed"]["weights"]).copy()
+    weights[0] = np.nan
+    doc["beliefs"]["distributed"]["weights"] = weights.tobytes()
+    broken_arrays = msgpack.packb(doc)
+    doc["k"] = -1
+    broken_head = msgpack.packb(doc)
+    async with _conductor_and_a_robot(frames) as (conductor, agent):
+        for robot, data in (("r2", good), ("r1", broken_arrays), ("r1", broken_head)):
+            agent.publish(KEYS.estimate(robot), data)
+        agent.publish(KEYS.estimate("r3"), good)  # r2's estimate on r3's key
+        await asyncio.sleep(0.05)
+        conductor.pump()
+        c = conductor.collected
+        assert (c.received, c.invalid) == ({"r1": 1, "r2": 1}, 2)
+        conductor.score_pending()
+        assert c.invalid == 3
+        errors = c.metrics["distributed"]["robot_error"][:, 0]
+        assert np.isfinite(errors).tolist() == [False, True, False]
 
 
 @pytest.mark.asyncio

@@ -26,9 +26,16 @@ from protocol.errors import (
     LimitExceeded,
     LocalProtocolError,
     MalformedMessage,
+    RemoteProtocolError,
     UnsupportedVersion,
 )
-from protocol.estimate import EstimateLimits, EstimateMessage, decode_estimate, encode_estimate
+from protocol.estimate import (
+    EstimateLimits,
+    EstimateMessage,
+    decode_estimate,
+    decode_estimate_head,
+    encode_estimate,
+)
 from tests.protocol import fuzz
 from tests.protocol.fuzz import FUZZ, Path, field_name, get_at, pack
 
@@ -785,3 +792,53 @@ def test_estimate_encode_emits_only_what_decode_accepts(
         assert exc.field
         return
     assert_same_estimate(decode_estimate(blob), msg)
+
+
+# --------------------------------------------------------------------------- the head alone
+
+
+def _head_agrees(blob: bytes) -> None:
+    """``decode_estimate_head`` refuses what ``decode_estimate`` refuses for any field but the
+    beliefs' contents (same error, same field), and reads the same robot, step and counters."""
+    try:
+        full = decode_estimate(blob)
+    except RemoteProtocolError as exc:
+        full = exc
+    try:
+        head = decode_estimate_head(blob)
+    except RemoteProtocolError as exc:
+        assert isinstance(full, RemoteProtocolError)
+        assert (type(exc), exc.field) == (type(full), full.field)
+        return
+    assert head.beliefs == {}
+    if isinstance(full, RemoteProtocolError):
+        assert full.field.startswith("beliefs."), full  # refused for a belief's contents alone
+    else:
+        assert (head.robot, head.k, head.counters) == (full.robot, full.k, full.counters)
+
+
+@pytest.mark.parametrize("index", range(len(BASE_BLOBS)))
+def test_the_head_of_an_estimate_reads_what_the_whole_reads(index: int) -> None:
+    _head_agrees(BASE_BLOBS[index])
+    assert decode_estimate_head(BASE_BLOBS[index]).counters == BASE_MESSAGES[index].counters
+
+
+def test_the_head_of_an_estimate_leaves_the_arrays_to_the_whole() -> None:
+    blob = WIRE.poke((*LOCAL, "weights"), 1, math.nan)
+    assert decode_estimate_head(blob).robot == REF.robot
+    with pytest.raises(InvalidValue):
+        decode_estimate(blob)
+    for field, value in (("k", -1), ("robot", "no such id!"), ("counters", {"x": -1})):
+        doc = copy.deepcopy(REF_DOC)
+        doc[field] = value
+        with pytest.raises(RemoteProtocolError) as err:
+            decode_estimate_head(pack(doc))
+        assert err.value.field.split(".")[0] == field
+
+
+@settings(FUZZ, max_examples=500)
+@given(index=st.integers(0, len(BASE_BLOBS) - 1), edits=fuzz.BYTE_EDITS)
+def test_the_head_of_a_corrupted_estimate_agrees_with_the_whole(
+    index: int, edits: list[tuple[int, int]]
+) -> None:
+    _head_agrees(fuzz.corrupt(BASE_BLOBS[index], edits))
