@@ -19,6 +19,7 @@ from agents.ros2.messages import Ros2Unavailable, types_for
 from agents.ros2.wire import DISTROS, valid_ros_name
 from agents.transport.zenoh_transport import ZenohConfigError, ZenohSettings
 from protocol.codec import Limits
+from protocol.signing import admitted
 from protocol.validate import valid_id
 from sim.loader import FieldReader, parse_toml, read_file
 from sim.robot_model import RobotModel, load_robot_model
@@ -129,6 +130,9 @@ def _read_signing(sec: FieldReader, base: Path, robot: str, roster: list[str]) -
             keys[r] = Ed25519PublicKey.from_public_bytes(raw)
         except ValueError:
             raise entry.fail("signing_key", "not a base64 Ed25519 public key") from None
+        if not admitted(raw):  # it would verify nothing (protocol/signing.py), or anything
+            why = "of small order, outside the prime-order subgroup or not canonically encoded"
+            raise entry.fail("signing_key", f"not a usable Ed25519 public key: a point {why}")
     if keys[robot].public_bytes_raw() != key.public_key().public_bytes_raw():
         raise sec.fail("signing_key", f"not the key {roster_path} holds for {robot}")
     return Signing(key, keys)

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import json5
 import pytest
+import tomli_w
 from cryptography import x509
 from cryptography.hazmat.primitives import serialization
 from cryptography.hazmat.primitives.asymmetric import ec, ed25519
@@ -252,3 +253,11 @@ def test_hostile_security_files_are_one_line_errors(fleet: Path, tmp_path: Path)
     shutil.copy(fleet / "robots" / "r1" / "signing.key", folder / "signing.key")
     with pytest.raises(AgentConfigError, match="not a base64"):
         load_agent_config(folder / "agent.toml", "r1")
+    # A key of small order (here the identity) would "verify" a forged signature of anything.
+    roster = tomllib.loads((fleet / "robots" / "r1" / "roster.toml").read_text())
+    identity = base64.b64encode((1).to_bytes(32, "little")).decode()
+    roster["robots"]["r2"]["signing_key"] = identity
+    (folder / "roster.toml").write_text(tomli_w.dumps(roster))
+    with pytest.raises(AgentConfigError, match="small order") as err:
+        load_agent_config(folder / "agent.toml", "r1")
+    assert "r2" in str(err.value)
