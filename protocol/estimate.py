@@ -9,6 +9,10 @@ for weights, poses and covariances; classes one unsigned byte each (version 3), 
 :class:`RemoteProtocolError` subclasses naming the field, and ``encode_estimate`` raises
 :class:`LocalProtocolError` for exactly what the decoder would reject under the same limits (the
 value checks are one function shared by both).
+
+Over 300 lines for a reason: the encoder, the decoder and the head-only decoder the conductor
+reads arriving estimates with must refuse exactly the same documents, so the three, and the limits
+and value checks they share, are kept side by side in this one module.
 """
 
 from __future__ import annotations
