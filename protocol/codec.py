@@ -588,7 +588,7 @@ def _decode_doc(
         # Every signature before any body: a message that carries one forged slot is refused
         # whole, before a number is read; and the verifications run back to back, each one
         # with the verifier's tables still in cache (interleaved with the parsing of bodies,
-        # each took half as long again, docs/wire.md).
+        # they took a third longer, docs/wire.md).
         for i, header in enumerate(headers):
             _verify(header, f"slots[{i}]", keys, buf)
     slots, owners, reused = [], [], []
