@@ -57,13 +57,15 @@ class Stack:
         ``own``'s slot from someone else. Idempotent, commutative and associative on versions (an
         owner's version identifies its content); on equal versions the one held is kept."""
         held = self.by_owner()
+        newer = False
         for slot in incoming:
             if slot.owner == own:
                 continue
             current = held.get(slot.owner)
             if current is None or slot.version > current.version:
                 held[slot.owner] = slot
-        return Stack(tuple(held.values()))
+                newer = True
+        return Stack(tuple(held.values())) if newer else self  # most gossip brings nothing new
 
     def newer_than(self, used: Mapping[str, tuple[int, int]], own: str) -> list[Slot]:
         """Slots (never ``own``'s) whose version is newer than the one ``used`` records."""

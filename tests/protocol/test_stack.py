@@ -102,6 +102,19 @@ def test_stack_merge_keeps_held_version_on_equal_stamps() -> None:
 
 @PROPERTY
 @given(held=STACKS, incoming=BATCHES)
+def test_stack_merge_returns_the_stack_itself_when_nothing_is_newer(
+    held: Stack, incoming: list[Slot]
+) -> None:
+    merged = held.merge(incoming, OWN)
+    newer = any(
+        s.owner != OWN and s.version > (held.version_of(s.owner) or (-1, -1)) for s in incoming
+    )
+    assert (merged is not held) == newer
+    assert merged.merge(incoming, OWN) is merged
+
+
+@PROPERTY
+@given(held=STACKS, incoming=BATCHES)
 def test_stack_merge_is_idempotent(held: Stack, incoming: list[Slot]) -> None:
     once = held.merge(incoming, OWN)
     assert once.merge(incoming, OWN).slots == once.slots
