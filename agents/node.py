@@ -177,6 +177,9 @@ class RobotNode:
         self.k = 0
         self._rng_distributed = rng_distributed
         self._encoded: bytes | None = None
+        # encoded_delta's bytes per chosen owners, for one (stack, step, position)
+        self._deltas_at: tuple[Stack, int, tuple[float, float] | None] | None = None
+        self._deltas: dict[tuple[str, ...], bytes] = {}
         # Slots parsed and not yet held, by version (see ``decode_stack``).
         self._parsed: OrderedDict[tuple[str, int, int], Slot] = OrderedDict()
         self._own_slot_stale = False
@@ -449,13 +452,25 @@ class RobotNode:
         some peer lacks — and the digest of every version held (``have``). The own slot is left
         out, and counted, when the limits refuse it, as in :meth:`encoded_stack`."""
         stack = self.current_stack()
-        have = stack.versions()
         chosen = tuple(s for s in stack if s.owner in owners)
+        # The same delta is asked for again and again (after every batch of messages, for the
+        # digest and for what peers lack) while the stack, step and position stay: its bytes are
+        # kept until one of them changes (a deterministic encoding of the same message).
+        at = (stack, self.k, self.position)
+        if self._deltas_at != at or len(self._deltas) >= 8:
+            self._deltas_at, self._deltas = at, {}
+        key = tuple(s.owner for s in chosen)
+        known = self._deltas.get(key)
+        if known is not None:
+            return known
+        have = stack.versions()
         try:
-            return encode(
+            data = encode(
                 StackMessage(self.robot, self.position, Stack(chosen), self.k, have=have),
                 self.limits,
             )
+            self._deltas[key] = data
+            return data
         except LocalProtocolError as exc:
             self.counters.own_slot_invalid += 1
             self.counters.last_error = str(exc)

@@ -135,6 +135,39 @@ def test_node_outgoing_is_none_until_the_robot_sees_an_object(
     assert len(slot.summary.realisations) == len(node.local.hypotheses)
 
 
+def test_node_delta_bytes_are_those_of_the_node_now_even_when_kept(
+    frames: dict[str, list[SensorFrame]],
+) -> None:
+    """``encoded_delta`` keeps the bytes it made while the stack, step and position stay: what it
+    returns is always the encoding of the node as it is now (it used to re-encode every time)."""
+    r1, r2 = _node("r1"), _node("r2")
+
+    def fresh(node: RobotNode, owners: tuple[str, ...]) -> bytes:
+        stack = node.current_stack()
+        chosen = Stack(tuple(s for s in stack if s.owner in owners))
+        have = stack.versions()
+        return encode(StackMessage(node.robot, node.position, chosen, node.k, have=have))
+
+    for k in range(1, R2_FIRST_SIGHTING + 3):
+        _advance(r1, frames, k)
+        _advance(r2, frames, k)
+        for owners in ((), ("r1",), ("r1", "r2"), ()):
+            assert r1.encoded_delta(owners) == fresh(r1, owners), (k, owners)
+        digest = r1.encoded_delta(())
+        assert r1.encoded_delta(()) is digest  # kept, not made again
+        before = r1.current_stack()
+        data = r2.outgoing()
+        if data is not None and r1.on_stack(data):  # a newer slot of r2: a new stack
+            assert r1.current_stack() is not before
+            assert r1.encoded_delta(()) == fresh(r1, ())
+            assert r1.encoded_delta(("r2",)) == fresh(r1, ("r2",))
+            assert "r2" in decode(r1.encoded_delta(("r2",)), r1.limits).stack.by_owner()
+        else:  # nothing newer: the stack object itself is kept, and so are the bytes
+            assert r1.current_stack() is before
+            assert r1.encoded_delta(()) is digest
+    assert "r2" in r1.current_stack().by_owner()
+
+
 def test_node_own_slot_is_built_from_local_not_distributed(
     frames: dict[str, list[SensorFrame]],
 ) -> None:
