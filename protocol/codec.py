@@ -269,8 +269,9 @@ def _certified(info: Array, eta: Array, lim: Limits) -> bool:
 
 def _certified_one(info: Array, eta: Array, lim: Limits) -> bool:
     """:func:`_certified` for one (3n, 3n) Λ and its η (a slot's realisations nearly always share
-    one ξ): the same bounds in floats, and LAPACK's Cholesky called directly. A quarter of a
-    slot's decode time went into the batched form's overheads for a single matrix."""
+    one ξ): the same bounds in floats, and LAPACK's Cholesky called directly. For a single
+    matrix the batched form took a third of a paper stack's decode (0.12 of 0.38 ms), this one
+    half as long."""
     magnitude = np.abs(info)
     # Every |Λᵢⱼ| ≤ G: beyond the bound, G is too; within it, a row sum of 3n of them cannot
     # overflow (no floating-point error state to set up).
