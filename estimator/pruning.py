@@ -77,8 +77,7 @@ def select(
     protected = np.zeros(len(lw), dtype=bool)
     if rule.strategy == "marginal" and classes.shape[1] > 0:
         marg = class_marginals(w, classes, num_classes)
-        own = marg[np.arange(classes.shape[1])[None, :], classes]  # (K, n): P(c_j = c_hj)
-        keep |= w >= own.min(axis=1) / rule.marginal_ratio
+        keep |= w >= _least_own_marginal(marg, classes) / rule.marginal_ratio
         protected |= _support(w, classes, marg, rule.class_floor)
     keep &= finite
     keep |= protected
@@ -90,6 +89,30 @@ def select(
     return np.flatnonzero(keep).astype(np.int64)
 
 
+def _least_own_marginal(marg: Array, classes: IntArray) -> Array:
+    """min_j P(c_j = c_hj) of every realisation h: marginals (n, M), classes (K, n) → (K,).
+
+    Object by object on contiguous columns: the (K, n) gather and its row minima cost 2.5×
+    more on a join of 6000 rows (the minimum is exact, so the result is the same to the bit)."""
+    columns = np.ascontiguousarray(classes.T)
+    least = marg[0].take(columns[0])
+    for j in range(1, len(columns)):
+        np.minimum(least, marg[j].take(columns[j]), out=least)
+    return least
+
+
+def _heaviest_first(w: Array, count: int) -> IntArray:
+    """The first ``count`` indices of ``np.argsort(-w, kind="stable")`` (heaviest first, equal
+    weights by index), without sorting all of ``w``: every index at least as heavy as the
+    ``count``-th heaviest, sorted stably."""
+    if count >= len(w):
+        return np.argsort(-w, kind="stable")
+    neg = -w
+    bound = np.partition(neg, count - 1)[count - 1]
+    candidates = np.flatnonzero(neg <= bound)  # ascending: a stable sort keeps ties by index
+    return candidates[np.argsort(neg[candidates], kind="stable")[:count]]
+
+
 def _support(w: Array, classes: IntArray, marg: Array, floor: float) -> NDArray[np.bool_]:
     """The heaviest carrier of every (object, class) whose marginal is at least ``floor`` (and
     above 0: a class no row carries protects nothing), the first of equal weights.
@@ -97,13 +120,12 @@ def _support(w: Array, classes: IntArray, marg: Array, floor: float) -> NDArray[
     Rows are visited heaviest first in blocks of 64, 128, 256 …, and an (object, class) is done
     once a block holds a carrier: the carriers of the classes that matter are usually among the
     heaviest rows, so the whole class matrix is rarely compared (a join of 6000 rows: 0.6 ms
-    instead of 8)."""
+    instead of 8); only as many rows as the blocks visited are ranked."""
     out = np.zeros(len(w), dtype=bool)
     need = (marg >= floor) & (marg > 0.0)  # (n, M): the (object, class) still without a carrier
-    order = np.argsort(-w, kind="stable")  # heaviest first, equal weights by index
     start, size = 0, 64
     while start < len(w) and need.any():
-        block = order[start : start + size]
+        block = _heaviest_first(w, start + size)[start:]
         ranked = classes[block]  # (b, n)
         for i in np.flatnonzero(need.any(axis=0)):
             objects = np.flatnonzero(need[:, i])

@@ -13,7 +13,15 @@ from scipy.special import logsumexp
 from estimator.hybrid import BeliefConfig, BeliefModel, HybridBelief, _Beam, _Evidence
 from estimator.models import GaussianNoise
 from estimator.models.classifier import AliasedClassifier
-from estimator.pruning import PruningRule, _support, class_marginals, match_marginals, select
+from estimator.pruning import (
+    PruningRule,
+    _heaviest_first,
+    _least_own_marginal,
+    _support,
+    class_marginals,
+    match_marginals,
+    select,
+)
 from estimator.weights import SampledEvidence
 
 MARGINAL = PruningRule("marginal", 150.0, 1e-4, 300)
@@ -50,6 +58,28 @@ def test_support_is_the_heaviest_carrier_first_of_equal_weights(seed: int) -> No
                 best = max(w[r] for r in carriers)
                 expected[min(r for r in carriers if w[r] == best)] = True
     assert np.array_equal(_support(w, classes, marg, floor), expected)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_heaviest_first_is_the_prefix_of_the_stable_sort(seed: int) -> None:
+    """Ties (copies of one weight, zeros) straddle the cut: they are ranked by index."""
+    rng = np.random.default_rng(seed)
+    k = [1, 63, 700, 5000][seed]
+    w = rng.choice([0.0, 1e-9, 0.05, 0.05, 0.2, 1.0], k) * rng.choice([1.0, 1.0, 1.0 + 1e-12], k)
+    ranked = np.argsort(-w, kind="stable")
+    for count in {1, 2, 63, 64, 65, 192, k - 1, k, k + 5} - {0, -1}:
+        assert np.array_equal(_heaviest_first(w, count), ranked[:count]), count
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_least_own_marginal_is_the_row_minimum_of_the_marginals_of_its_classes(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    k, n, m = [(1, 1, 2), (50, 7, 3), (900, 40, 4), (300, 2, 5)][seed]
+    classes = rng.integers(0, m, (k, n)).astype([np.int64, np.int8][seed % 2])
+    w = _weights(rng.normal(0.0, 5.0, k))
+    marg = class_marginals(w, classes, m)
+    expected = [min(marg[j, classes[r, j]] for j in range(n)) for r in range(k)]
+    assert np.array_equal(_least_own_marginal(marg, classes), expected)
 
 
 @pytest.mark.parametrize("seed", range(5))
