@@ -255,8 +255,12 @@ class _Outgoing:
     # Lock-step: the round whose stacks the next step needs, and the senders of the order whose
     # stack of it has not come (asked for by the timer, NeedRound).
     need_round: tuple[int, tuple[str, ...]] | None = None
-    # Real time: when a peer's digest last showed a version this robot lacks.
-    wanted_at: float = -math.inf
+    # Real time: from when a digest of this robot would let a peer push a version it lacks
+    # (a gossip period after a peer's digest first showed that version; inf: nothing lacked).
+    pull_at: float = math.inf
+    # Real time: when the worker last published a stack that carried ``digest`` (a stack's
+    # ``have`` is its digest): a tick need not send the same digest again until it is due.
+    digest_sent_at: float = -math.inf
 
 
 class AgentCore:
@@ -312,8 +316,10 @@ class AgentCore:
         self._out_include: set[str] = set()  # the owners of the slots in ``_out.stack``
         self._tick_last: bytes | None = None  # the timer thread's own: the last stack it sent
         # The timer thread's own: the digest its ticks last sent (alone or with slots), and when.
-        self._digest_sent: tuple[bytes | None, float] = (None, -math.inf)
-        self._wanted_at = -math.inf  # when a peer's digest last showed a version we lack
+        # The step of the last digest sent (by a tick or with a stack) and when.
+        self._digest_sent: tuple[int | None, float] = (None, -math.inf)
+        # Versions peers' digests hold that this robot lacks: owner → (version, first seen).
+        self._wanted: dict[str, tuple[tuple[int, int], float]] = {}
         self.digests_skipped = 0  # ticks that sent nothing: an unchanged digest (timer thread)
         self.tick_bytes = 0  # bytes of stacks and digests the timer sent (timer thread only)
         # Lock-step re-sends (timer thread only): the round last re-sent, the periods to wait
@@ -397,6 +403,7 @@ class AgentCore:
 
     def start(self, now: float) -> list[Action]:
         """After start or restart: tell the fleet where this agent is."""
+        self._now = now
         actions = self._publish_stack()
         if self.node.k > 0:
             actions += self._publish_estimate()
@@ -439,14 +446,16 @@ class AgentCore:
         if out.fresh and out.digest is not None and out.stack is not None and self._out_include:
             # Delta gossip in real time: what a peer turned out to lack goes now, not at the
             # next tick (a tick then carries the digest alone).
-            self._out = dataclasses.replace(out, fresh=False)
+            self._out = dataclasses.replace(out, fresh=False, digest_sent_at=now)
             self.node.mark_sent(len(out.stack))
             actions.append(Publish(self.keys.stack(self.robot), out.stack))
         return actions
 
-    def on_timer(self, now: float) -> list[Action]:
+    def on_timer(self, now: float, announce: bool = False) -> list[Action]:
         """The gossip tick: re-send the stack (and, in lock-step, the previous round's, which a
-        slower peer may still need) and ask for missing frames. Safe during a running step."""
+        slower peer may still need) and ask for missing frames. Safe during a running step.
+        ``announce``: send the digest even when it is not due (new peers were just subscribed
+        to, and may have missed it)."""
         out = self._out
         self._now = now
         actions: list[Action] = []
@@ -462,13 +471,13 @@ class AgentCore:
             data: bytes | None = out.stack
             if out.digest is not None and (not out.fresh or out.stack is self._tick_last):
                 data = out.digest  # nothing new since it was sent: the digest alone
-                if not self._digest_due(out, now):
+                if not announce and not self._digest_due(out, now):
                     data = None
                     self.digests_skipped += 1
             self._tick_last = out.stack
             if data is not None:
                 if out.digest is not None:
-                    self._digest_sent = (out.digest, now)
+                    self._digest_sent = (out.k, now)
                 self.tick_bytes += len(data)
                 actions.append(Publish(self.keys.stack(self.robot), data))
         if out.need_from is not None:
@@ -478,15 +487,20 @@ class AgentCore:
         return actions
 
     def _digest_due(self, out: _Outgoing, now: float) -> bool:
-        """Whether a tick with nothing new to send sends the digest alone: when it changed since
-        the ticks last sent it (holdings, step or position), when that was ``DIGEST_REFRESH``
-        gossip periods ago, or when a peer's digest since then holds a version this robot lacks
-        (the pull of push–pull reconciliation: the peer learns what to push)."""
+        """Whether a tick with nothing new to send sends the digest alone. A digest went last
+        with a stack or on a tick; it goes again when this robot stepped since (its step and
+        position changed), when that was ``DIGEST_REFRESH`` gossip periods ago (peers keep
+        counting this robot), or to pull: when a peer could now push a version this robot lacks
+        (:meth:`_pull_at`) and no digest went since. Holdings that changed by merges alone are
+        told by the next digest: a peer acts on a digest only a period after it got a slot."""
         last, at = self._digest_sent
+        if out.digest_sent_at > at:  # the worker sent this digest with a stack since
+            last, at = out.k, out.digest_sent_at
+            self._digest_sent = (last, at)
         return (
-            out.digest != last
+            out.k != last
             or now - at >= DIGEST_REFRESH * self.settings.gossip_period
-            or out.wanted_at > at
+            or at < out.pull_at <= now
         )
 
     def _ask_for_round(self, need: tuple[int, tuple[str, ...]] | None, now: float) -> list[Action]:
@@ -696,7 +710,8 @@ class AgentCore:
             return []
         message = self._plausible(self._without_refused(message))
         heard = self.settings.mode == "lockstep" or not self.settings.simulation
-        if message.have is not None and (heard or self._heard(message.sender)):
+        noted = message.have is not None and (heard or self._heard(message.sender))
+        if noted:
             # What the sender holds: what it lacks is sent to it (a simulated agent takes the
             # digests of the robots it hears only, as a radio would).
             self._note_digest(message.sender, message.have)
@@ -713,7 +728,12 @@ class AgentCore:
             if self._links:  # before the simulator's first verdict nobody is out of range
                 self.counters.ignored_out_of_range += 1
             return []
-        return self._merge(message, payload)
+        actions = self._merge(message, payload)
+        if noted and message.have is not None:
+            # Versions the sender holds that this robot still lacks after taking what came
+            # with them: the next tick pulls them (sends the digest).
+            self._check_wanted(message.have)
+        return actions
 
     def _listen(self, initial: bool = False) -> list[Action]:
         """A :class:`Listen` when whom to hear changed (``initial``: always): with
@@ -788,11 +808,34 @@ class AgentCore:
             return
         self._digests.pop(sender, None)
         self._digests[sender] = (have, self._now)
-        held = self.node.stack
-        if any(v > (held.version_of(o) or (-1, -1)) for o, v in have.items()):
-            self._wanted_at = self._now
         while len(self._digests) > self.node.limits.max_slots:
             del self._digests[next(iter(self._digests))]
+
+    def _check_wanted(self, have: dict[str, tuple[int, int]]) -> None:
+        """Note the versions of a peer's digest this robot lacks, each with when it was first
+        seen (a newer version starts over: the peer got it just now); at most ``max_slots``."""
+        held = self.node.stack
+        for owner, version in have.items():
+            if version > (held.version_of(owner) or (-1, -1)):
+                known = self._wanted.get(owner)
+                if known is None or known[0] < version:
+                    self._wanted.pop(owner, None)
+                    self._wanted[owner] = (version, self._now)
+        while len(self._wanted) > self.node.limits.max_slots:
+            del self._wanted[next(iter(self._wanted))]
+
+    def _pull_at(self) -> float:
+        """When the ticks pull (send the digest even if unchanged): a gossip period after a
+        peer's digest first showed a version this robot still lacks. A peer pushes a slot only
+        to a digest that came a period after the slot came to it (docs/wire.md): an earlier
+        pull would change nothing."""
+        held = self.node.stack
+        for owner in [
+            o for o, (v, _) in self._wanted.items() if v <= (held.version_of(o) or (-1, -1))
+        ]:
+            del self._wanted[owner]
+        first = min((seen for _, seen in self._wanted.values()), default=math.inf)
+        return first + self.settings.gossip_period
 
     def _plausible(self, message: StackMessage) -> StackMessage:
         """Without the slots whose version is ahead of what their owner can have made by now:
@@ -1002,15 +1045,17 @@ class AgentCore:
         # Always, even empty: a lock-step peer ordered to hear us at round 1 needs our round 0.
         data, digest, fresh = self._stack_payload()
         need = self._frames_missing()
+        old = self._out
         self._out = _Outgoing(
             data,
-            self._out.previous,
+            old.previous,
             need,
             digest,
             fresh,
             self.node.k,
             self._round_missing(),
-            self._wanted_at,
+            self._pull_at(),
+            old.digest_sent_at if self.node.k == old.k else -math.inf,
         )
 
     def _stack_payload(self) -> tuple[bytes, bytes | None, bool]:
@@ -1078,7 +1123,15 @@ class AgentCore:
     def _publish_stack(self, previous: bytes | None = None) -> list[Action]:
         data, digest, _ = self._stack_payload()
         self._out = _Outgoing(
-            data, previous, self._out.need_from, digest, False, self.node.k, None, self._wanted_at
+            data,
+            previous,
+            self._out.need_from,
+            digest,
+            False,
+            self.node.k,
+            None,
+            self._pull_at(),
+            self._now,
         )
         self.node.mark_sent(len(data))
         return [Publish(self.keys.stack(self.robot), data)]

@@ -288,7 +288,7 @@ class Agent:
 
     def _echo(self) -> None:
         if not self._stop.is_set():
-            self._carry_out(self.core.on_timer(self.clock()))
+            self._carry_out(self.core.on_timer(self.clock(), announce=True))
 
     def counter_values(self) -> dict[str, int]:
         return self.core.counter_values()

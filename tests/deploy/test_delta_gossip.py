@@ -120,15 +120,22 @@ def test_a_peer_that_joins_late_gets_every_slot_it_lacks_and_nothing_else_is_res
     assert got.stack.versions() == held
     _stacks(r3.on_message(KEYS.stack("r1"), answer[0], now), log3, "r3")
     assert r3.node.stack.versions() == held
-    # Sent once: the next tick carries the digest alone again.
-    later = [a.payload for a in r1.on_timer(now + 0.1) if isinstance(a, Publish)]
-    assert len(decode(later[0]).stack) == 0
+    # Sent once. The answer carried r1's digest too, so the next tick sends nothing; the tick
+    # when the digest is due again carries it alone.
+    skipped = r1.digests_skipped
+    assert [a for a in r1.on_timer(now + 0.1) if isinstance(a, Publish)] == []
+    assert r1.digests_skipped == skipped + 1
+    due = now + DIGEST_REFRESH * r1.settings.gossip_period
+    later = [a.payload for a in r1.on_timer(due) if isinstance(a, Publish)]
+    assert len(later) == 1 and len(decode(later[0]).stack) == 0
 
 
 def test_an_unchanged_digest_goes_only_when_due() -> None:
-    """Real time: a tick with nothing new sends the digest alone only when it changed, when the
-    last one went DIGEST_REFRESH gossip periods ago (peers keep counting this robot), or when a
-    peer's digest since then holds a version this robot lacks (the pull of push–pull)."""
+    """Real time: a tick with nothing new sends the digest alone only when this robot stepped
+    since a digest last went (by a tick, or with a stack: a stack's ``have`` is the digest), when
+    that was DIGEST_REFRESH gossip periods ago (peers keep counting this robot), or to pull: a
+    period after a peer's digest first showed a version this robot lacks — the peer pushes a
+    slot only to a digest that comes a period after the slot came to it — once."""
     r1, log1, r2, log2, frames, now = _hearing_pair(2)
     _stacks(r1.on_message(KEYS.stack("r2"), r2.node.encoded_delta(()), now), log1, "r1")
     period = r1.settings.gossip_period
@@ -136,24 +143,47 @@ def test_an_unchanged_digest_goes_only_when_due() -> None:
     def tick(t: float) -> list[bytes]:
         return [a.payload for a in r1.on_timer(t) if isinstance(a, Publish)]
 
-    assert len(tick(now)) == 1  # the first: sent
-    assert tick(now + 0.1) == [] and r1.digests_skipped == 1  # unchanged, 0.1 s later
+    # r1's stack of its step carried this very digest, at ``now``.
+    assert tick(now) == [] and r1.digests_skipped == 1
+    assert tick(now + 0.1) == [] and r1.digests_skipped == 2  # unchanged, 0.1 s later
     assert tick(now + (DIGEST_REFRESH - 0.05) * period) == []
     assert len(tick(now + DIGEST_REFRESH * period)) == 1  # due again
     now += DIGEST_REFRESH * period
     assert tick(now + 0.1) == []
-    # r2 steps; r1 hears only its digest, which holds a version of r2 that r1 lacks: r1's next
-    # tick sends its digest, so that r2 learns what to push.
+    # r2 steps; r1 hears only its digest, which holds a version of r2 that r1 lacks. r1 pulls
+    # (sends its digest) a period after it first saw that version, not before, and once.
     _stacks(r2.on_message(KEYS.frames("r2"), encode_frame(frames["r2"][2]), now), log2, "r2")
     _stacks(r1.on_message(KEYS.stack("r2"), r2.node.encoded_delta(()), now + 0.2), log1, "r1")
-    pulled = tick(now + 0.3)
+    assert tick(now + 0.3) == []
+    _stacks(r1.on_message(KEYS.stack("r2"), r2.node.encoded_delta(()), now + 0.4), log1, "r1")
+    assert tick(now + 0.2 + period - 0.01) == []  # seen again: still from its first sight
+    pulled = tick(now + 0.2 + period)
     assert len(pulled) == 1 and len(decode(pulled[0]).stack) == 0
-    assert tick(now + 0.4) == []
-    # r1 steps: its digest changed, so the next tick sends it.
-    now += 1.0
-    _stacks(r1.on_message(KEYS.frames("r1"), encode_frame(frames["r1"][2]), now), log1, "r1")
-    r1.on_timer(now)  # the new own slot (or the digest with it)
-    assert r1.counter_values()["digests_skipped"] == r1.digests_skipped == 4
+    assert tick(now + 0.3 + period) == []
+    assert r1.counter_values()["digests_skipped"] == r1.digests_skipped == 7
+    # r2 answers the pull with its slot, at once.
+    pushed = _stacks(r2.on_message(KEYS.stack("r1"), pulled[0], now + 0.25 + period), log2, "r2")
+    assert [decode(p).stack.versions().get("r2") for p in pushed] == [
+        r2.node.stack.versions()["r2"]
+    ]
+    _stacks(r1.on_message(KEYS.stack("r2"), pushed[0], now + 0.3 + period), log1, "r1")
+    assert r1.node.stack.versions() == r2.node.stack.versions()
+    # r1 steps: the stack of its new own slot carries its digest, so the tick after it sends
+    # nothing; nor after r1 merges r2's next slot (holdings changed by merges are told by the
+    # next digest), until the digest is due.
+    now += 2.0
+    _stacks(r2.on_message(KEYS.frames("r2"), encode_frame(frames["r2"][3]), now), log2, "r2")
+    own = _stacks(r1.on_message(KEYS.frames("r1"), encode_frame(frames["r1"][2]), now), log1, "r1")
+    assert tick(now + 0.05) == []
+    _stacks(r2.on_message(KEYS.stack("r1"), own[-1], now + 0.1), log2, "r2")
+    got = r1.on_message(KEYS.stack("r2"), r2.node.encoded_delta(("r2",)), now + 0.1)
+    assert _stacks(got, log1, "r1") == []  # r2 lacks nothing of r1's
+    assert r1.node.stack.versions() == r2.node.stack.versions()
+    assert tick(now + 0.15) == []
+    assert tick(now + (DIGEST_REFRESH - 0.05) * period) == []
+    sent = tick(now + DIGEST_REFRESH * period)
+    assert len(sent) == 1 and len(decode(sent[0]).stack) == 0
+    assert decode(sent[0]).have == r1.node.stack.versions()
 
 
 def test_digests_of_made_up_senders_are_bounded() -> None:
