@@ -316,8 +316,8 @@ class AgentCore:
         self._out_include: set[str] = set()  # the owners of the slots in ``_out.stack``
         self._tick_last: bytes | None = None  # the timer thread's own: the last stack it sent
         # The timer thread's own: the digest its ticks last sent (alone or with slots), and when.
-        # The step of the last digest sent (by a tick or with a stack) and when.
-        self._digest_sent: tuple[int | None, float] = (None, -math.inf)
+        # The last digest sent (by a tick or with a stack) and when.
+        self._digest_sent: tuple[bytes | None, float] = (None, -math.inf)
         # Versions peers' digests hold that this robot lacks: owner → (version, first seen).
         self._wanted: dict[str, tuple[tuple[int, int], float]] = {}
         self.digests_skipped = 0  # ticks that sent nothing: an unchanged digest (timer thread)
@@ -477,7 +477,7 @@ class AgentCore:
             self._tick_last = out.stack
             if data is not None:
                 if out.digest is not None:
-                    self._digest_sent = (out.k, now)
+                    self._digest_sent = (out.digest, now)
                 self.tick_bytes += len(data)
                 actions.append(Publish(self.keys.stack(self.robot), data))
         if out.need_from is not None:
@@ -488,17 +488,17 @@ class AgentCore:
 
     def _digest_due(self, out: _Outgoing, now: float) -> bool:
         """Whether a tick with nothing new to send sends the digest alone. A digest went last
-        with a stack or on a tick; it goes again when this robot stepped since (its step and
-        position changed), when that was ``DIGEST_REFRESH`` gossip periods ago (peers keep
-        counting this robot), or to pull: when a peer could now push a version this robot lacks
-        (:meth:`_pull_at`) and no digest went since. Holdings that changed by merges alone are
-        told by the next digest: a peer acts on a digest only a period after it got a slot."""
+        with a stack or on a tick; it goes again when it changed since (holdings, step or
+        position: peers learn what they may pull from this robot), when that was
+        ``DIGEST_REFRESH`` gossip periods ago (peers keep counting this robot), or to pull: when
+        a peer could now push a version this robot lacks (:meth:`_pull_at`) and no digest went
+        since."""
         last, at = self._digest_sent
         if out.digest_sent_at > at:  # the worker sent this digest with a stack since
-            last, at = out.k, out.digest_sent_at
+            last, at = out.digest, out.digest_sent_at
             self._digest_sent = (last, at)
         return (
-            out.k != last
+            out.digest != last
             or now - at >= DIGEST_REFRESH * self.settings.gossip_period
             or at < out.pull_at <= now
         )
@@ -1055,7 +1055,7 @@ class AgentCore:
             self.node.k,
             self._round_missing(),
             self._pull_at(),
-            old.digest_sent_at if self.node.k == old.k else -math.inf,
+            old.digest_sent_at if digest == old.digest else -math.inf,
         )
 
     def _stack_payload(self) -> tuple[bytes, bytes | None, bool]:
