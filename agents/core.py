@@ -710,11 +710,11 @@ class AgentCore:
             return []
         message = self._plausible(self._without_refused(message))
         heard = self.settings.mode == "lockstep" or not self.settings.simulation
-        noted = message.have is not None and (heard or self._heard(message.sender))
-        if noted:
-            # What the sender holds: what it lacks is sent to it (a simulated agent takes the
-            # digests of the robots it hears only, as a radio would).
-            self._note_digest(message.sender, message.have)
+        # What the sender holds: what it lacks is sent to it (a simulated agent takes the
+        # digests of the robots it hears only, as a radio would).
+        noted = message.have if heard or self._heard(message.sender) else None
+        if noted is not None:
+            self._note_digest(message.sender, noted)
         if self.settings.mode == "lockstep":
             k = self.node.k
             if not k <= message.step <= k + self.settings.window:
@@ -729,10 +729,10 @@ class AgentCore:
                 self.counters.ignored_out_of_range += 1
             return []
         actions = self._merge(message, payload)
-        if noted and message.have is not None:
+        if noted is not None:
             # Versions the sender holds that this robot still lacks after taking what came
-            # with them: the next tick pulls them (sends the digest).
-            self._check_wanted(message.have)
+            # with them: the ticks pull them (send the digest) when the sender could push.
+            self._check_wanted(noted)
         return actions
 
     def _listen(self, initial: bool = False) -> list[Action]:
