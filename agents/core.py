@@ -732,7 +732,7 @@ class AgentCore:
         if noted is not None:
             # Versions the sender holds that this robot still lacks after taking what came
             # with them: the ticks pull them (send the digest) when the sender could push.
-            self._check_wanted(noted)
+            self._check_wanted(message.sender, noted)
         return actions
 
     def _listen(self, initial: bool = False) -> list[Action]:
@@ -811,11 +811,17 @@ class AgentCore:
         while len(self._digests) > self.node.limits.max_slots:
             del self._digests[next(iter(self._digests))]
 
-    def _check_wanted(self, have: dict[str, tuple[int, int]]) -> None:
+    def _check_wanted(self, sender: str, have: dict[str, tuple[int, int]]) -> None:
         """Note the versions of a peer's digest this robot lacks, each with when it was first
-        seen (a newer version starts over: the peer got it just now); at most ``max_slots``."""
+        seen (a newer version starts over: the peer got it just now); at most ``max_slots``,
+        and with a roster only roster robots' digests and slots (no other is ever taken)."""
+        roster = self.node.roster
+        if roster is not None and sender not in roster:
+            return
         held = self.node.stack
         for owner, version in have.items():
+            if roster is not None and owner not in roster:
+                continue
             if version > (held.version_of(owner) or (-1, -1)):
                 known = self._wanted.get(owner)
                 if known is None or known[0] < version:

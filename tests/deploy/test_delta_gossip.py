@@ -193,7 +193,32 @@ def test_digests_of_made_up_senders_are_bounded() -> None:
     r1, _ = _core("r1")
     for i in range(300):
         sender = f"x{i}"
-        data = encode(StackMessage(sender, None, Stack(), 0, have={}))
+        data = encode(StackMessage(sender, None, Stack(), 0, have={f"o{i}": (1, 1)}))
         r1.on_message(KEYS.stack(sender), data, float(i))
     assert len(r1._digests) == r1.node.limits.max_slots
     assert "x299" in r1._digests and "x0" not in r1._digests
+    # Nor what it keeps of the versions they claim to hold (each a version r1 lacks).
+    assert len(r1._wanted) == r1.node.limits.max_slots
+    assert "o299" in r1._wanted and "o0" not in r1._wanted
+
+
+def test_a_roster_fleet_wants_only_roster_robots_slots_from_roster_robots() -> None:
+    """A digest from outside the roster, or versions of robots outside it, never make an agent
+    pull: no such slot is ever taken, so it would want them for good."""
+    from protocol.codec import StackMessage, encode
+    from protocol.stack import Stack
+
+    s = load_scenario("paper")
+    roster = frozenset(s.robot_ids)
+
+    def make():  # type: ignore[no-untyped-def]
+        return make_node(
+            "r1", s.robot("r1").start, belief_model(s), 4, BeliefConfig(), roster=roster
+        )
+
+    r1 = AgentCore(make, KEYS, CoreSettings(gossip_period=0.5), MemoryLog().records)
+    outsider = encode(StackMessage("x1", None, Stack(), 0, have={"r2": (1, 5)}))
+    r1.on_message(KEYS.stack("x1"), outsider, 1.0)
+    claims = encode(StackMessage("r2", None, Stack(), 0, have={"x9": (1, 5), "r3": (1, 2)}))
+    r1.on_message(KEYS.stack("r2"), claims, 1.0)
+    assert set(r1._wanted) == {"r3"}
