@@ -25,7 +25,7 @@ from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey,
 from agents.node import RobotNode, Signing
 from agents.transport.zenoh_transport import ZenohSettings, ZenohTransport
 from bench import Result
-from bench.bench_agents import ROUNDS, _Pair, _paper_stacks, _plain_pair
+from bench.gossip_paths import ROUNDS, _Pair, _paper_stacks, _plain_pair
 from deploy.commands.scenario import model_text
 from deploy.fleet_init import init_fleet, loopback_spec
 from deploy.launch import free_ports

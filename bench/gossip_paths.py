@@ -1,0 +1,252 @@
+"""The gossip latency of the paper's largest stack against raw Zenoh, on two paths, for
+``bench_agents`` (and ``bench_secure``, which times its secure sessions the same way):
+
+- put on one Zenoh session → decoded and merged by a RobotNode behind a second session, on the
+  event loop (Zenoh thread → ``call_soon_threadsafe`` → inbox → decode → merge);
+- put → merged inside a running :class:`~agents.runtime.Agent`, whose loop hands every batch of
+  messages to its worker thread.
+
+The baseline of each is the raw Zenoh put → subscriber-callback latency for the same payload,
+measured in the same run. Every slot of the stack is a version the receiver lacks, so each is
+decoded and validated once, as a relay's peer must.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import statistics
+import time
+from collections.abc import Callable
+
+import numpy as np
+
+from agents.core import AgentCore, CoreSettings
+from agents.node import RobotNode
+from agents.runtime import Agent
+from agents.transport.base import Inbox, Keys
+from agents.transport.zenoh_transport import ZenohTransport, settings_for
+from bench import Result
+from deploy.fleet import link_model_for, make_nodes, run_fleet
+from deploy.launch import free_ports
+from deploy.study import belief_model, belief_rng
+from estimator.hybrid import BeliefConfig
+from protocol.codec import StackMessage, decode, encode
+from protocol.stack import Slot, Stack
+from sim.loader import load_scenario
+from sim.sensors import Simulator
+
+ROUNDS = 200
+
+
+def _paper_stacks(count: int) -> tuple[list[bytes], RobotNode]:
+    """``count`` encodings of the largest paper stack, each with a newer stamp of its slots, and
+    a fresh receiving node."""
+    blobs, make_receiver = _paper_stacks_and_receiver(count)
+    return blobs, make_receiver()
+
+
+def _paper_stacks_and_receiver(count: int) -> tuple[list[bytes], Callable[[], RobotNode]]:
+    """:func:`_paper_stacks`, with a maker of fresh receiving nodes."""
+    s = load_scenario("paper")
+    frames = Simulator(s, 0).all_frames()
+    model = belief_model(s)
+    nodes = make_nodes(s, model, BeliefConfig(), lambda r: belief_rng(0, [r]))
+    run_fleet(nodes, frames, link_model_for(s), s.steps)
+    node = max(nodes.values(), key=lambda n: len(n.outgoing() or b""))
+    stack = node.current_stack()
+    blobs = []
+    for i in range(count):
+        bumped = Stack(tuple(Slot(sl.owner, sl.stamp + 1 + i, sl.summary) for sl in stack))
+        blobs.append(encode(StackMessage(node.robot, node.position, bumped, node.k + i)))
+
+    def receiver() -> RobotNode:
+        # A receiver that owns none of the slots (so that it merges every one of them).
+        return RobotNode("rx", (0.0, 0.0, 0.0), model, belief_rng(0, ["rx"]), belief_rng(0, ["rx"]))
+
+    return blobs, receiver
+
+
+class _Pair:
+    """A publishing and a receiving session, open, with the receiver's subscriptions declared:
+    ``raw(data)`` times put → the subscriber's callback on Zenoh's thread, ``gossip(data,
+    receiver)`` put → inbox on the loop → decode → merge (and the decode inside it), in ms."""
+
+    def __init__(self, a: ZenohTransport, b: ZenohTransport, sender: str, capacity: int) -> None:
+        self.a, self.b, self.sender = a, b, sender
+        self.keys = Keys("bench")
+        self.inbox = Inbox(capacity)
+        self.arrivals: list[float] = []
+        self.got = asyncio.Event()
+
+    async def open(self) -> None:
+        loop = asyncio.get_running_loop()
+
+        def raw(_: bytes) -> None:
+            self.arrivals.append(time.perf_counter())
+            loop.call_soon_threadsafe(self.got.set)
+
+        self.b.subscribe(self.keys.stack(self.sender), self.inbox)
+        await self.a.open()
+        await self.b.open()
+        self.b.subscribe_raw(self.keys.estimate(self.sender), raw)
+        await asyncio.sleep(1.0)  # let the declarations reach the publisher (pitfall 9)
+
+    async def close(self) -> None:
+        await self.a.close()
+        await self.b.close()
+
+    async def raw(self, data: bytes) -> float:
+        self.got.clear()
+        t0 = time.perf_counter()
+        self.a.publish(self.keys.estimate(self.sender), data)
+        await asyncio.wait_for(self.got.wait(), 5)
+        return 1e3 * (self.arrivals[-1] - t0)
+
+    async def gossip(self, data: bytes, receiver: RobotNode) -> tuple[float, float]:
+        t0 = time.perf_counter()
+        self.a.publish(self.keys.stack(self.sender), data)
+        message = await asyncio.wait_for(self.inbox.get(), 5)
+        t1 = time.perf_counter()
+        decoded = receiver.decode_stack(message.payload)
+        t2 = time.perf_counter()
+        assert decoded is not None and receiver.merge(decoded)
+        return 1e3 * (time.perf_counter() - t0), 1e3 * (t2 - t1)
+
+
+def _plain_pair(sender: str, capacity: int) -> _Pair:
+    """Two sessions over plain TCP on loopback."""
+    a_port, b_port = free_ports(2)
+    a = ZenohTransport(settings_for(a_port, [], gossip=False))
+    b = ZenohTransport(settings_for(b_port, [a_port], gossip=False))
+    return _Pair(a, b, sender, capacity)
+
+
+async def _latencies(
+    blobs: list[bytes],
+    receiver: RobotNode,
+    sessions: tuple[ZenohTransport, ZenohTransport] | None = None,
+    sender: str = "r9",
+) -> tuple[list[float], list[float], list[float]]:
+    """Raw put → callback, and put → merged with the decode inside it timed on its own (ms).
+    ``sessions``: the publishing and the receiving session (default: plain TCP on loopback);
+    ``sender``: the robot whose keys the publisher uses (its stack, its estimate for raw puts).
+    Two separate passes over the same payloads (interleaving them lets one message's
+    transmission overlap the other's measurement); the first 10 of each are warm-up."""
+    pair = (
+        _plain_pair(sender, len(blobs) + 1)
+        if sessions is None
+        else _Pair(*sessions, sender, len(blobs) + 1)
+    )
+    try:
+        await pair.open()
+        raw_ms = [await pair.raw(data) for data in blobs]
+        timed = [await pair.gossip(data, receiver) for data in blobs]
+    finally:
+        await pair.close()
+    return raw_ms[10:], [g for g, _ in timed][10:], [d for _, d in timed][10:]
+
+
+async def _agent_latencies(
+    blobs: list[bytes], make_receiver: Callable[[], RobotNode]
+) -> tuple[list[float], list[float]]:
+    """Raw put → callback, and put → merged inside a running :class:`Agent` — the whole path of
+    an agent: Zenoh's thread → the event loop → the agent's worker thread → decode → merge — on
+    the same two sessions (ms). The worker is idle when a stack comes (the best case: a busy
+    one finishes its step first). The first 10 of each are warm-up."""
+    keys = Keys("bench")
+    sender = decode(blobs[0]).sender
+    loop = asyncio.get_running_loop()
+    merged: list[float] = []
+    got = asyncio.Event()
+
+    def timed_node() -> RobotNode:
+        node = make_receiver()
+        merge = node.merge
+
+        def timed(message: StackMessage) -> bool:
+            ok = merge(message)
+            if ok:
+                merged.append(time.perf_counter())
+                loop.call_soon_threadsafe(got.set)
+            return ok
+
+        node.merge = timed  # type: ignore[method-assign]
+        return node
+
+    a_port, b_port = free_ports(2)
+    a = ZenohTransport(settings_for(a_port, [], gossip=False))
+    b = ZenohTransport(settings_for(b_port, [a_port], gossip=False))
+    quiet = CoreSettings(mode="realtime", gossip_period=3600.0, publish_local=False)
+    agent = Agent(AgentCore(timed_node, keys, quiet), b)
+    arrivals: list[float] = []
+
+    def raw_arrival(_: bytes) -> None:
+        arrivals.append(time.perf_counter())
+        loop.call_soon_threadsafe(got.set)
+
+    await a.open()
+    task = asyncio.create_task(agent.run())
+    try:
+        await asyncio.sleep(1.0)  # the agent's session open, its subscriptions declared
+        b.subscribe_raw(keys.estimate(sender), raw_arrival)
+        await asyncio.sleep(1.0)  # let the declarations reach the publisher (pitfall 9)
+        raw_ms, agent_ms = [], []
+        for data in blobs:
+            got.clear()
+            t0 = time.perf_counter()
+            a.publish(keys.estimate(sender), data)
+            await asyncio.wait_for(got.wait(), 5)
+            raw_ms.append(1e3 * (arrivals[-1] - t0))
+        for data in blobs:
+            got.clear()
+            t0 = time.perf_counter()
+            a.publish(keys.stack(sender), data)
+            await asyncio.wait_for(got.wait(), 5)
+            agent_ms.append(1e3 * (merged[-1] - t0))
+    finally:
+        agent.stop("bench")
+        await task
+        await a.close()
+    return raw_ms[10:], agent_ms[10:]
+
+
+def gossip_rows() -> list[Result]:
+    blobs, make_receiver = _paper_stacks_and_receiver(ROUNDS)
+    raw_ms, gossip_ms, decode_times = asyncio.run(_latencies(blobs, make_receiver()))
+    raw, gossip = statistics.median(raw_ms), statistics.median(gossip_ms)
+    decode_ms = statistics.median(decode_times)  # the very decodes inside the gossip path
+    ratio = gossip / raw
+    beyond = (gossip - decode_ms) / raw  # the path without the validating decode
+    met = "met" if ratio <= 1.5 else "NOT met"
+    met5 = "met" if gossip <= 2 * raw + decode_ms else "NOT met"
+    return [
+        Result(
+            "gossip latency: put → merged at the peer",
+            ROUNDS,
+            gossip,
+            baseline_ms=raw,
+            note=f"median; baseline = raw Zenoh put → callback, same {len(blobs[0]):,}-byte "
+            f"paper stack, every slot a new version; decode (in the path) {decode_ms:.3f} ms; "
+            f"p95 {np.percentile(gossip_ms, 95):.3f} ms vs raw {np.percentile(raw_ms, 95):.3f}; "
+            f"gossip/raw {ratio:.1f} (issue 14 target ≤ 1.5) {met}; without the decode "
+            f"{beyond:.1f}x raw; ≤ 2×raw + decode = {2 * raw + decode_ms:.3f} ms (issue 5) {met5}",
+        ),
+        _agent_row(blobs, make_receiver),
+    ]
+
+
+def _agent_row(blobs: list[bytes], make_receiver: Callable[[], RobotNode]) -> Result:
+    raw_ms, agent_ms = asyncio.run(_agent_latencies(blobs, make_receiver))
+    raw, through = statistics.median(raw_ms), statistics.median(agent_ms)
+    met = "met" if through <= 1.5 * raw else "NOT met"
+    return Result(
+        "gossip latency: put → merged in a running agent",
+        len(agent_ms),
+        through,
+        baseline_ms=raw,
+        note=f"median; the agent's whole path (Zenoh's thread → event loop → worker thread → "
+        f"decode → merge), worker idle; baseline = raw Zenoh put → callback on the agent's own "
+        f"session, same stacks; p95 {np.percentile(agent_ms, 95):.3f} ms vs raw "
+        f"{np.percentile(raw_ms, 95):.3f}; agent/raw {through / raw:.1f} (issue 14 target ≤ 1.5) "
+        f"{met}",
+    )
