@@ -315,8 +315,8 @@ class AgentCore:
         self._sent: dict[str, tuple[tuple[int, int], float]] = {}
         self._out_include: set[str] = set()  # the owners of the slots in ``_out.stack``
         self._tick_last: bytes | None = None  # the timer thread's own: the last stack it sent
-        # The timer thread's own: the digest its ticks last sent (alone or with slots), and when.
-        # The last digest sent (by a tick or with a stack) and when.
+        # The timer thread's own: the digest last sent (by a tick, alone or with slots, or with a
+        # stack of the worker: ``_Outgoing.digest_sent_at``), and when.
         self._digest_sent: tuple[bytes | None, float] = (None, -math.inf)
         # Versions peers' digests hold that this robot lacks: owner → (version, first seen).
         self._wanted: dict[str, tuple[tuple[int, int], float]] = {}
