@@ -222,3 +222,25 @@ def test_a_roster_fleet_wants_only_roster_robots_slots_from_roster_robots() -> N
     claims = encode(StackMessage("r2", None, Stack(), 0, have={"x9": (1, 5), "r3": (1, 2)}))
     r1.on_message(KEYS.stack("r2"), claims, 1.0)
     assert set(r1._wanted) == {"r3"}
+
+
+def test_ever_newer_claimed_versions_add_no_digest_sends() -> None:
+    """A peer whose digests claim an ever newer version of a slot (forged: it never comes) does
+    not make an agent send more than its refreshing digests, however often its digests come."""
+    from protocol.codec import StackMessage, encode
+    from protocol.stack import Stack
+
+    r1, log1 = _core("r1")
+    period = r1.settings.gossip_period
+    _stacks(r1.start(0.0), log1, "r1")
+    pulls = 0
+    t = 0.0
+    for i in range(400):  # 20 s: a claim every 0.05 s, a tick every period
+        t = round(t + 0.05, 2)
+        claim = encode(StackMessage("r2", None, Stack(), 0, have={"r2": (1, 10**6 + i)}))
+        _stacks(r1.on_message(KEYS.stack("r2"), claim, t), log1, "r1")
+        if i % round(period / 0.05) == 0:
+            pulls += len([a for a in r1.on_timer(t) if isinstance(a, Publish)])
+    # Only the refreshes go: the version it lacks is always new, so no peer could push it yet.
+    assert pulls <= t / (DIGEST_REFRESH * period) + 1, pulls
+    assert len(r1._wanted) == 1
