@@ -3,6 +3,7 @@ the step period — whether they keep up (each agent's steps behind one period a
 and its last step 10 s later), CPU % and peak RSS per agent from /proc — and a
 lock-step launch of 50 agents that must complete. Target: 20 agents keep up at a 0.5 s step on 2
 cores (≤ 1 step behind at the end: every agent, one period after the last frame, in every run).
+The target size runs on three generated worlds (seeds 11, 12, 13), the other sizes on the first.
 
 The agents gossip at the default gossip period (``agents.core.GOSSIP_PERIOD_S``, 0.5 s: what a
 launch or an agent config gets unless it says otherwise). At the target size the runs alternate
@@ -19,6 +20,7 @@ import os
 import tempfile
 import time
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -29,12 +31,24 @@ from deploy.launch import LaunchPlan
 from deploy.launch.conductor import Collected
 from sim.generate import dump_scenario, generate_scenario
 from sim.loader import parse_scenario
+from sim.scenario import Scenario
 
 AGENT_COUNTS = tuple(
     int(n) for n in os.environ.get("SEMFLEET_BENCH_AGENTS", "5,10,20,30").split(",")
 )
 LOCKSTEP_AGENTS = int(os.environ.get("SEMFLEET_BENCH_LOCKSTEP_AGENTS", "50"))
 Usage = dict[str, dict[str, float]]  # per agent: CPU seconds and times sampled, peak RSS
+STEPS = 20
+
+
+class Run(NamedTuple):
+    """One launch: the seed of its world, its wall time (s), what the conductor collected and
+    each agent's CPU and memory."""
+
+    seed: int
+    wall: float
+    collected: Collected
+    usage: Usage
 
 
 def notes() -> list[str]:
@@ -42,8 +56,11 @@ def notes() -> list[str]:
 
 
 # Runs of each fleet size: the target size is run several times (this machine's speed varies by a
-# third between runs of the same launch), the others once.
+# third between runs of the same launch), each time on another generated world (consecutive seeds
+# from the one the other sizes use: a target met on one world may not be on the next), the others
+# once.
 TARGET_AGENTS = 20
+WORLD_SEED = 11
 REPEATS = {TARGET_AGENTS: int(os.environ.get("SEMFLEET_BENCH_CAPACITY_REPEATS", "3"))}
 FAST_GOSSIP_S = GOSSIP_S
 # (catch_up, gossip period) of the runs of each size: the target size also runs the baseline that
@@ -55,15 +72,10 @@ TARGET_VARIANTS = [DEFAULT, (0, GOSSIP_PERIOD_S), (CATCH_UP_STEPS, FAST_GOSSIP_S
 def _capacity_rows(tmp: Path) -> list[Result]:
     rows = []
     for n in AGENT_COUNTS:
-        s = generate_scenario(n, 3 * n, 3, seed=11, steps=20)
-        path = tmp / f"gen{n}.toml"
-        path.write_text(dump_scenario(s), encoding="utf-8")
-        s = parse_scenario(path.read_text(encoding="utf-8"), str(path))
         variants = TARGET_VARIANTS if n == TARGET_AGENTS else [DEFAULT]
-        runs: dict[tuple[int, float], list[tuple[float, Collected, Usage]]] = {
-            v: [] for v in variants
-        }
+        runs: dict[tuple[int, float], list[Run]] = {v: [] for v in variants}
         for i in range(REPEATS.get(n, 1)):
+            s = _world(tmp, n, WORLD_SEED + i)
             for c, gossip in variants:
                 name = f"cap{n}-{i}-{c}-{round(1e3 * gossip)}"
                 plan = LaunchPlan(
@@ -79,47 +91,58 @@ def _capacity_rows(tmp: Path) -> list[Result]:
                         Result(f"realtime capacity: {n} agents", n, float("nan"), note=note)
                     )
                     continue
-                runs[(c, gossip)].append((time.perf_counter() - start, outcome.collected, usage))
-        rows += [_capacity_row(n, s.steps, runs[v], *v) for v in variants if runs[v]]
+                wall = time.perf_counter() - start
+                runs[(c, gossip)].append(Run(WORLD_SEED + i, wall, outcome.collected, usage))
+        rows += [_capacity_row(n, STEPS, runs[v], *v) for v in variants if runs[v]]
     return rows
 
 
-def _capacity_row(
-    n: int, steps: int, runs: list[tuple[float, Collected, Usage]], catch_up: int, gossip: float
-) -> Result:
+def _world(tmp: Path, n: int, seed: int) -> Scenario:
+    """The generated world of ``n`` robots and 3n objects of ``seed``, through its file."""
+    path = tmp / f"gen{n}-{seed}.toml"
+    world = generate_scenario(n, 3 * n, 3, seed=seed, steps=STEPS)
+    path.write_text(dump_scenario(world), encoding="utf-8")
+    return parse_scenario(path.read_text(encoding="utf-8"), str(path))
+
+
+def _capacity_row(n: int, steps: int, runs: list[Run], catch_up: int, gossip: float) -> Result:
     """Steps behind one period after the last frame (when every robot should have taken it),
-    per run: mean and worst agent; the last step 10 s later; CPU and peak RSS per agent; the
-    stacks each agent received and the fusions it deferred; D's errors at the last step."""
-    behind = [[steps - c.on_time.get(r, 0) for r in c.on_time] for _, c, _ in runs]
-    later = [np.mean([c.last_step.get(r, 0) for r in c.on_time]) for _, c, _ in runs]
-    cpu = [
-        100 * (u["cpu"] - u["cpu0"]) / max(u["t"] - u["t0"], 1e-9)
-        for _, _, usage in runs
-        for u in usage.values()
-        if "cpu" in u
+    per run (and its world): mean and worst agent; the last step 10 s later; CPU and peak RSS per
+    agent; the stacks each agent received and the fusions it deferred; D's errors at the last
+    step."""
+    behind = [
+        [steps - run.collected.on_time.get(r, 0) for r in run.collected.on_time] for run in runs
     ]
-    rss = [u["rss"] for _, _, usage in runs for u in usage.values()]
+    later = [
+        np.mean([run.collected.last_step.get(r, 0) for r in run.collected.on_time]) for run in runs
+    ]
+    samples = [u for run in runs for u in run.usage.values()]
+    cpu = [
+        100 * (u["cpu"] - u["cpu0"]) / max(u["t"] - u["t0"], 1e-9) for u in samples if "cpu" in u
+    ]
+    rss = [u["rss"] for u in samples]
     # CPU per step taken while the frames came (sampled at every frame, so from frame 1 to the
     # last; the steps are those acknowledged one period later): what a step costs an agent on a
     # shared machine, less dependent on the scheduling than how far behind the agents end.
-    cpu_s = sum(u["cpu"] - u["cpu0"] for _, _, usage in runs for u in usage.values() if "cpu" in u)
-    taken = sum(max(1, c.on_time.get(r, 0) - 1) for _, c, usage in runs for r in usage)
+    cpu_s = sum(u["cpu"] - u["cpu0"] for u in samples if "cpu" in u)
+    taken = sum(max(1, run.collected.on_time.get(r, 0) - 1) for run in runs for r in run.usage)
     cpu_ms_per_step = 1e3 * cpu_s / max(1, taken)
     worst = max(max(b) for b in behind)
     met = "met" if worst <= 1 else "NOT met"
     per_run = "; ".join(
-        f"mean {np.mean(b):.2f}, worst {max(b)}, {100 * np.mean(np.array(b) <= 1):.0f} % ≤ 1"
-        for b in behind
+        f"world {run.seed}: mean {np.mean(b):.2f}, worst {max(b)}, "
+        f"{100 * np.mean(np.array(b) <= 1):.0f} % ≤ 1"
+        for run, b in zip(runs, behind, strict=True)
     )
     target = (
         f" (target for {TARGET_AGENTS}: every agent ≤ 1 behind) {met}" if n == TARGET_AGENTS else ""
     )
-    counters = [c.counters[r] for _, c, _ in runs for r in c.counters]
+    counters = [run.collected.counters[r] for run in runs for r in run.collected.counters]
     received = np.mean([x.get("stacks_received", 0) for x in counters])
     deferred = np.mean([x.get("fusions_deferred", 0) for x in counters])
     # Over the robots that reached the last step (none may have, at 30 agents).
     last = {
-        name: np.concatenate([c.metrics["distributed"][name][:, -1] for _, c, _ in runs])
+        name: np.concatenate([run.collected.metrics["distributed"][name][:, -1] for run in runs])
         for name in ("robot_error", "object_error")
     }
     reached = int(np.isfinite(last["robot_error"]).sum())
@@ -134,7 +157,7 @@ def _capacity_row(
     return Result(
         f"realtime capacity: {n} agents, period {PERIOD_S:g} s, gossip {gossip:g} s{label}",
         n,
-        1e3 * float(np.median([wall for wall, _, _ in runs])),
+        1e3 * float(np.median([run.wall for run in runs])),
         note=f"steps behind one period after the last frame, {len(runs)} run(s): {per_run}"
         f"{target}; mean last step 10 s later {', '.join(f'{x:.1f}' for x in later)} of "
         f"{steps}; CPU per agent {np.mean(cpu):.1f} % (max {np.max(cpu):.1f} %), "
