@@ -83,6 +83,10 @@ class Collected:
     stack_log: list[tuple[float, str, dict[str, int]]] = field(default_factory=list)
     # Real time: when the links of each step were published (time.monotonic(), as stack_log).
     links_published: dict[int, float] = field(default_factory=dict)
+    # Real time: seconds from the publication of a step (its links, then its frames) to the
+    # arrival of a robot's first estimate of it, per (robot, step): how close to the next frame
+    # each step ended (a robot that skipped a step's estimate while catching up has none).
+    answered_s: dict[tuple[str, int], float] = field(default_factory=dict)
 
 
 @dataclass(frozen=True, slots=True)
@@ -92,7 +96,8 @@ class _Arrived(Message):
 
 class _ArrivalInbox(Inbox):
     """An inbox that keeps each message's arrival time: the conductor drains its inboxes only
-    every 50 ms or on an estimate, too coarse to time a stack's publication by."""
+    every 50 ms or on an estimate, too coarse to time a stack's publication (or an estimate's
+    arrival, which it drains at once but may share the machine with busy agents) by."""
 
     def put(self, message: Message) -> None:
         super().put(_Arrived(message.key, message.payload, message.kind, time.monotonic()))
@@ -150,7 +155,7 @@ class Conductor:
         self.observe_stacks = observe_stacks
         self.on_links = on_links
         self.stacks: Inbox = _ArrivalInbox(100_000)
-        self.estimates = Inbox(100_000)
+        self.estimates: Inbox = _ArrivalInbox(100_000)
         self.control = Inbox(10_000)
         self.alive_events = Inbox(10_000)
         self.alive: set[str] = set()
@@ -231,7 +236,7 @@ class Conductor:
                     self._need_order_t = now
                     self._order(self.k)
         for m in self.estimates.drain():
-            self._on_estimate(m.payload, m.key)
+            self._on_estimate(m.payload, m.key, getattr(m, "at", None))
         while self._unscored_bytes > MAX_UNSCORED_BYTES:
             self._score(self._unscored.popleft())
         now = time.monotonic()
@@ -250,11 +255,12 @@ class Conductor:
                     held = {owner: stamp for owner, (_, stamp) in message.have.items()}
                 self.collected.stack_log.append((getattr(m, "at", now), robot, held))
 
-    def _on_estimate(self, data: bytes, key: str | None = None) -> None:
+    def _on_estimate(self, data: bytes, key: str | None = None, at: float | None = None) -> None:
         """An estimate as it comes: its robot, step and counters are read and checked at once;
         its beliefs' arrays (nine tenths of the decoding) when it is scored, unless every
         estimate is kept decoded (``keep_estimates``). In real time the conductor shares the
-        agents' CPU, and decoding 20 estimates a period in full took 2-3 % of the machine."""
+        agents' CPU, and decoding 20 estimates a period in full took 2-3 % of the machine.
+        ``at``: when it arrived (``time.monotonic()``), for :attr:`Collected.answered_s`."""
         try:
             est = decode_estimate(data) if self.keep_estimates else decode_estimate_head(data)
         except RemoteProtocolError as exc:
@@ -282,6 +288,8 @@ class Conductor:
             c.repeated += 1
             return
         self._scored.add((est.robot, est.k))
+        if at is not None and est.k in c.links_published:
+            c.answered_s[(est.robot, est.k)] = at - c.links_published[est.k]
         self._unscored.append(data)
         self._unscored_bytes += len(data)
         for belief, key in (("local", "step_us_local"), ("distributed", "step_us_distributed")):

@@ -327,6 +327,10 @@ def test_launch_relay_over_zenoh_links_between_neighbours_only(tmp_path: Path) -
     for r, c in outcome.collected.counters.items():
         assert c["ignored_out_of_range"] == 0, (r, c)
         assert c["stacks_merged"] > 0, (r, c)
+    # The answer time of every step answered: its estimate came after its frames went out.
+    answered = outcome.collected.answered_s
+    assert {(r, scenario.steps) for r in ids} <= answered.keys(), sorted(answered)
+    assert all(s > 0 for s in answered.values()), answered
 
 
 PARTITION = (5, 9)  # r3 hears nobody and nobody hears r3 from step 5 to step 9
