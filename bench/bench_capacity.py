@@ -138,7 +138,8 @@ def _capacity_row(n: int, steps: int, runs: list[Run], catch_up: int, gossip: fl
     met = "met" if worst <= 1 else "NOT met"
     per_run = "; ".join(
         f"world {run.seed}: mean {np.mean(b):.2f}, worst {max(b)}, "
-        f"{100 * np.mean(np.array(b) <= 1):.0f} % ≤ 1"
+        f"{100 * np.mean(np.array(b) <= 1):.0f} % ≤ 1, last step answered within "
+        f"{_slowest_ms(run, steps):.0f} ms"
         for run, b in zip(runs, behind, strict=True)
     )
     target = (
@@ -173,6 +174,11 @@ def _capacity_row(n: int, steps: int, runs: list[Run], catch_up: int, gossip: fl
         f"agent {np.mean(rss):.0f} MB (max {np.max(rss):.0f} MB); per agent {received:.0f} stacks "
         f"received, {deferred:.1f} fusions deferred; D at the last step: {errors}",
     )
+
+
+def _slowest_ms(run: Run, step: int) -> float:
+    """The last answer to ``step`` in ``run``: ms after its frames (inf if one never came)."""
+    return max(1e3 * run.collected.answered_s.get((r, step), np.inf) for r in run.usage)
 
 
 def _answered(last_ms: list[float], every_ms: list[float]) -> str:
