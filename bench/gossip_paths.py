@@ -45,8 +45,7 @@ SPACED_ROUNDS = 100
 
 
 def _paper_stacks(count: int) -> tuple[list[bytes], RobotNode]:
-    """``count`` encodings of the largest paper stack, each with a newer stamp of its slots, and
-    a fresh receiving node."""
+    """``count`` encodings of the largest paper stack (newer stamps each) and a receiving node."""
     blobs, make_receiver = _paper_stacks_and_receiver(count)
     return blobs, make_receiver()
 
@@ -129,23 +128,13 @@ def _plain_pair(sender: str, capacity: int) -> _Pair:
 
 
 async def _latencies(
-    blobs: list[bytes],
-    receiver: RobotNode,
-    sessions: tuple[ZenohTransport, ZenohTransport] | None = None,
-    sender: str = "r9",
-    gap: float = 0.0,
+    blobs: list[bytes], receiver: RobotNode, gap: float = 0.0
 ) -> tuple[list[float], list[float], list[float], list[float]]:
-    """Raw put → callback and raw put → loop, put → merged, and the decode inside it (ms).
-    ``gap``: seconds idle before each put (0: each put as soon as the last one was timed).
-    ``sessions``: the publishing and the receiving session (default: plain TCP on loopback);
-    ``sender``: the robot whose keys the publisher uses (its stack, its estimate for raw puts).
-    Two separate passes over the same payloads (interleaving them lets one message's
-    transmission overlap the other's measurement); the first 10 of each are warm-up."""
-    pair = (
-        _plain_pair(sender, len(blobs) + 1)
-        if sessions is None
-        else _Pair(*sessions, sender, len(blobs) + 1)
-    )
+    """Raw put → callback and raw put → loop, put → merged, and the decode inside it (ms), over
+    plain TCP on loopback. ``gap``: seconds idle before each put (0: each put as soon as the last
+    one was timed). Two separate passes over the same payloads (interleaving them lets one
+    message's transmission overlap the other's measurement); the first 10 of each are warm-up."""
+    pair = _plain_pair("r9", len(blobs) + 1)
     try:
         await pair.open()
         raw, timed = [], []
