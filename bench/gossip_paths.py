@@ -158,10 +158,9 @@ async def _agent_latencies(
     blobs: list[bytes], make_receiver: Callable[[], RobotNode]
 ) -> tuple[list[float], list[float], list[float]]:
     """Raw put → callback and raw put → loop, and put → merged inside a running :class:`Agent` —
-    the whole path of
-    an agent: Zenoh's thread → the event loop → the agent's worker thread → decode → merge — on
-    the same two sessions (ms). The worker is idle when a stack comes (the best case: a busy
-    one finishes its step first). The first 10 of each are warm-up."""
+    the whole path of an agent: Zenoh's thread → the event loop → the agent's worker thread →
+    decode → merge — on the same two sessions (ms). The worker is idle when a stack comes (the
+    best case: a busy one finishes its step first). The first 10 of each are warm-up."""
     keys = Keys("bench")
     sender = decode(blobs[0]).sender
     loop = asyncio.get_running_loop()
