@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import importlib.metadata
 import logging
+import os
 import signal
 import sys
 import threading
@@ -181,5 +182,21 @@ def _error(message: str) -> None:
     print(f"semfleet: error: {' '.join(message.split())}", file=sys.stderr)
 
 
+def entry() -> NoReturn:
+    """The ``semfleet`` command: :func:`main`, then the exit. A process that opened a Zenoh
+    session leaves at once (``os._exit``) with its output flushed, as ``semfleet agent`` does:
+    tearing the interpreter down while Zenoh's threads still run can abort it after the command
+    did its work (a Zenoh thread that calls into Python during finalisation is unwound through
+    Rust frames: "FATAL: exception not rethrown", SIGABRT; seen once in CI after a replay)."""
+    code = main()
+    zenoh_transport = sys.modules.get("agents.transport.zenoh_transport")
+    if zenoh_transport is not None and zenoh_transport.ZenohTransport.sessions_opened:
+        logging.shutdown()
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+    sys.exit(code)
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    entry()

@@ -23,7 +23,7 @@ import threading
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import json5
 import zenoh
@@ -198,6 +198,10 @@ def _set(doc: dict[str, Any], path: str, value: Any) -> None:
 class ZenohTransport:
     """The :class:`~agents.transport.base.Transport` protocol over one Zenoh session."""
 
+    # Sessions this process opened: one that did must not tear its interpreter down while Zenoh's
+    # threads may still call into it (``deploy.cli.entry``).
+    sessions_opened: ClassVar[int] = 0
+
     def __init__(self, settings: ZenohSettings) -> None:
         self.settings = settings
         self._session: zenoh.Session | None = None
@@ -224,6 +228,7 @@ class ZenohTransport:
         try:
             config = self.settings.config()
             self._session = await asyncio.to_thread(zenoh.open, config)
+            ZenohTransport.sessions_opened += 1
         except ZenohConfigError as exc:
             raise TransportError(str(exc)) from None
         except zenoh.ZError as exc:

@@ -513,3 +513,37 @@ def test_study_stopped_by_a_signal_leaves_no_worker_behind(
     ):
         time.sleep(0.1)
     assert not still, f"{still} outlived the study"
+
+
+class _Exited(Exception):
+    def __init__(self, code: int) -> None:
+        self.code = code
+
+
+@pytest.mark.parametrize("sessions", [0, 1])
+def test_the_command_leaves_at_once_only_after_a_zenoh_session(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str], sessions: int
+) -> None:
+    """A process that opened a Zenoh session exits through ``os._exit`` with the command's code
+    and its output flushed (interpreter teardown can abort it: deploy.cli.entry); any other
+    through ``sys.exit``, so that its cleanups run."""
+    import deploy.cli as cli
+    from agents.transport.zenoh_transport import ZenohTransport
+
+    def exit_now(code: int) -> None:
+        raise _Exited(code)
+
+    monkeypatch.setattr(cli.os, "_exit", exit_now)
+    monkeypatch.setattr(ZenohTransport, "sessions_opened", sessions)
+    monkeypatch.setattr(sys, "argv", ["semfleet", "scenario", "show", "nosuchscenario"])
+    with pytest.raises(_Exited if sessions else SystemExit) as left:
+        cli.entry()
+    assert left.value.code == 2  # a usage error's code, either way
+    assert "nosuchscenario" in capsys.readouterr().err
+
+
+def test_the_console_script_is_the_entry() -> None:
+    (script,) = [
+        e for e in importlib.metadata.entry_points(group="console_scripts") if e.name == "semfleet"
+    ]
+    assert script.value == "deploy.cli:entry"
