@@ -9,8 +9,9 @@ one 2-core machine runs in realtime mode, with CPU and memory per agent.
   relay's peer must).
 - Relay per hop: 4 agent processes on a line whose Zenoh links only join neighbours (gossip
   scouting off), realtime; the time from a new version of r1's slot in r1's stack to the same
-  version in r4's stack, over 3 hops. Agents gossip on a timer, so a hop costs on average half a
-  gossip period plus the transit.
+  version in r4's stack, over 3 hops; with delta gossip against full gossip, in the same run. With
+  full gossip a hop costs on average half a gossip period plus the transit; delta gossip first
+  gives a peer a period to get the version from its owner (docs/wire.md, "Delta gossip").
 - Capacity: bench/bench_capacity.py.
 """
 
@@ -69,6 +70,32 @@ def _proc_usage(pid: int) -> tuple[float, float]:
 
 
 def _relay_rows(tmp: Path) -> list[Result]:
+    """Relay per hop with delta gossip (the default) against full gossip, the same line run with
+    each in turn."""
+    full = _relay_per_hop(tmp, "full")
+    delta = _relay_per_hop(tmp, "delta")
+    if not full or not delta:
+        _notes.append("relay: r4 never held a version of r1's slot (no figure)")
+        return []
+    return [
+        Result(
+            "relay latency per hop (4 agents on a line)",
+            len(delta),
+            statistics.median(delta),
+            baseline_ms=statistics.median(full),
+            note=f"median over {len(delta)} versions of r1's slot reaching r4 over 3 hops; "
+            f"gossip period {GOSSIP_S * 1e3:.0f} ms; baseline = full gossip, the same launch "
+            f"({len(full)} versions): every tick re-sends every slot, so a hop waits for the next "
+            f"tick (≈ {GOSSIP_S * 500:.0f} ms + transit); delta gossip relays a version to a peer "
+            f"whose digest lacks it once that peer could have had it from its owner, a gossip "
+            f'period after it came (docs/wire.md, "Delta gossip")',
+        )
+    ]
+
+
+def _relay_per_hop(tmp: Path, gossip: str) -> list[float]:
+    """The time per hop (ms) of every version of r1's slot that reached r4 over a 4-robot line
+    whose Zenoh links join neighbours only, with ``gossip`` (``stack_gossip``)."""
     robots = [f"r{i}" for i in range(1, 5)]
     text = line_world(len(robots), steps=24)
     path = tmp / "line.toml"
@@ -78,31 +105,19 @@ def _relay_rows(tmp: Path) -> list[Result]:
         r: [robots[j] for j in (i - 1, i + 1) if 0 <= j < len(robots)] for i, r in enumerate(robots)
     }
     plan = LaunchPlan(
-        s, 0, robots, tmp / "relay", mode="realtime", period=PERIOD_S, gossip_period=GOSSIP_S,
-        fleet="relay", zenoh_neighbours=neighbours, observe_stacks=True, publish_local=False,
+        s, 0, robots, tmp / f"relay-{gossip}", mode="realtime", period=PERIOD_S,
+        gossip_period=GOSSIP_S, fleet="relay", zenoh_neighbours=neighbours, observe_stacks=True,
+        publish_local=False, stack_gossip=gossip,
     )  # fmt: skip
     outcome, _ = _run_launch(plan)
-    log = outcome.collected.stack_log
     first_seen: dict[tuple[str, int], dict[str, float]] = {}
-    for t, holder, stamps in log:
+    for t, holder, stamps in outcome.collected.stack_log:
         for owner, stamp in stamps.items():
             first_seen.setdefault((owner, stamp), {}).setdefault(holder, t)
-    per_hop = []
-    for (owner, _stamp), seen in first_seen.items():
-        if owner == "r1" and "r1" in seen and "r4" in seen:
-            per_hop.append(1e3 * (seen["r4"] - seen["r1"]) / 3)
-    if not per_hop:
-        _notes.append("relay: r4 never held a version of r1's slot (no figure)")
-        return []
     return [
-        Result(
-            "relay latency per hop (4 agents on a line)",
-            len(per_hop),
-            statistics.median(per_hop),
-            note=f"median over {len(per_hop)} versions of r1's slot reaching r4 over 3 hops; "
-            f"gossip period {GOSSIP_S * 1e3:.0f} ms (a hop waits for the next gossip: expected "
-            f"≈ {GOSSIP_S * 500:.0f} ms + transit)",
-        )
+        1e3 * (seen["r4"] - seen["r1"]) / 3
+        for (owner, _stamp), seen in first_seen.items()
+        if owner == "r1" and "r1" in seen and "r4" in seen
     ]
 
 
