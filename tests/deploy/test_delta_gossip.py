@@ -130,6 +130,43 @@ def test_a_peer_that_joins_late_gets_every_slot_it_lacks_and_nothing_else_is_res
     assert len(later) == 1 and len(decode(later[0]).stack) == 0
 
 
+def test_a_relayed_version_goes_once_the_peer_had_its_chance_and_again_only_if_lost() -> None:
+    """Real time: a peer whose digest lacks a version this robot relays gets it only once it had
+    its chance to get it from the owner itself — a digest of it that came a gossip period after
+    the version came here — then at once; and again only if a digest a period after the send
+    still lacks it (the send was lost). The own slot's new version goes at once."""
+    from protocol.codec import StackMessage, encode
+    from protocol.stack import Stack
+
+    r1, log1, r2, log2, frames, now = _hearing_pair(2)
+    period = r2.settings.gossip_period
+    now += 1.0
+    stepped = r1.on_message(KEYS.frames("r1"), encode_frame(frames["r1"][2]), now)
+    _stacks(r2.on_message(KEYS.stack("r1"), _stacks(stepped, log1, "r1")[-1], now), log2, "r2")
+    held = r2.node.current_stack().versions()
+    version = held["r1"]
+    assert version == r1.node.stack.versions()["r1"]
+    # r3 holds everything r2 holds but r1's newest version: the one before it.
+    have = {**held, "r1": (version[0], version[1] - 1)}
+    lacking = encode(StackMessage("r3", None, Stack(), 0, have=have))
+
+    def sent(messages: list[object]) -> list[dict[str, tuple[int, int]]]:
+        return [decode(p).stack.versions() for p in _stacks(messages, log2, "r2")]
+
+    def digest(t: float) -> list[dict[str, tuple[int, int]]]:
+        return sent(r2.on_message(KEYS.stack("r3"), lacking, t))
+
+    assert digest(now + 0.1) == []  # r3 may hear r1: not yet
+    assert all("r1" not in v for v in sent(r2.on_timer(now + 0.2)))
+    assert digest(now + period + 0.01) == [{"r1": version}]  # its chance went by: at once
+    assert digest(now + period + 0.1) == []  # just sent
+    assert all("r1" not in v for v in sent(r2.on_timer(now + period + 0.2)))
+    assert digest(now + 2 * period + 0.05) == [{"r1": version}]  # still lacking: lost, again
+    # r2's own new slot goes at once, with the stack of the step that made it.
+    own = r2.on_message(KEYS.frames("r2"), encode_frame(frames["r2"][2]), now + 2 * period + 0.1)
+    assert sent(own) == [{"r2": r2.node.current_stack().versions()["r2"]}]
+
+
 def test_an_unchanged_digest_goes_only_when_due() -> None:
     """Real time: a tick with nothing new sends the digest alone only when it changed since it
     last went (by a tick, or with a stack: a stack's ``have`` is the digest), when that was
