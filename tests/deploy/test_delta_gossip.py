@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from agents.core import DIGEST_REFRESH, AgentCore, CoreSettings, Publish
+from agents.core import DIGEST_LIFE, DIGEST_REFRESH, AgentCore, CoreSettings, Publish
 from agents.runtime import MemoryLog, execute_journal_actions
 from agents.transport.base import Keys
 from deploy.build import belief_model, make_node
@@ -219,6 +219,96 @@ def test_an_unchanged_digest_goes_only_when_due() -> None:
     assert len(sent) == 1 and len(decode(sent[0]).stack) == 0
     assert decode(sent[0]).have == r1.node.stack.versions()
     assert tick(now + 0.2) == []
+
+
+def test_a_tick_sends_a_digest_a_merge_changed_before_a_refresh_is_due() -> None:
+    """Real time: a merge that changes the holdings makes the next tick send the digest alone,
+    long before DIGEST_REFRESH periods have gone by (peers learn at once what they may pull)."""
+    r1, log1, r2, log2, frames, now = _hearing_pair(4)
+    _stacks(r1.on_message(KEYS.stack("r2"), r2.node.encoded_delta(()), now), log1, "r1")
+
+    def tick(t: float) -> list[bytes]:
+        return [a.payload for a in r1.on_timer(t) if isinstance(a, Publish)]
+
+    assert len(tick(now)) == 1  # r1 merged r2's slot after the stack of its step went
+    assert tick(now + 0.05) == []
+    stepped = _stacks(
+        r2.on_message(KEYS.frames("r2"), encode_frame(frames["r2"][4]), now + 0.1), log2, "r2"
+    )
+    assert _stacks(r1.on_message(KEYS.stack("r2"), stepped[-1], now + 0.1), log1, "r1") == []
+    assert r1.node.stack.versions() == r2.node.stack.versions()
+    sent = tick(now + 0.2)
+    assert len(sent) == 1 and len(decode(sent[0]).stack) == 0
+    assert decode(sent[0]).have == r1.node.current_stack().versions()
+
+
+def test_a_newer_version_in_a_peers_digest_starts_the_pull_period_over() -> None:
+    """Real time: the ticks pull a version a peer's digest shows a gossip period after they
+    first saw it; a newer version of the same slot starts that period over (the peer pushes only
+    to a digest that comes a period after the newest one came to it)."""
+    r1, log1, r2, log2, frames, now = _hearing_pair(4)
+    period = r1.settings.gossip_period
+
+    def tick(t: float) -> list[bytes]:
+        return [a.payload for a in r1.on_timer(t) if isinstance(a, Publish)]
+
+    assert len(tick(now)) == 1 and tick(now + 0.05) == []  # as above
+    for k, t in ((4, now + 0.1), (5, now + 0.3)):  # r1 hears r2's digests only
+        _stacks(r2.on_message(KEYS.frames("r2"), encode_frame(frames["r2"][k]), t), log2, "r2")
+        _stacks(r1.on_message(KEYS.stack("r2"), r2.node.encoded_delta(()), t), log1, "r1")
+    assert tick(now + 0.1 + period + 0.01) == []  # a period after the first: too early
+    pulled = tick(now + 0.3 + period + 0.01)
+    assert len(pulled) == 1 and len(decode(pulled[0]).stack) == 0
+
+
+def test_a_version_once_held_no_longer_times_the_pulls() -> None:
+    """Real time: a version a peer's digest showed is forgotten once it is held here, so that the
+    pull period of the next version lacked (another owner's) counts from its own first sight."""
+    from protocol.codec import StackMessage, encode
+    from protocol.stack import Stack
+
+    r1, log1, r2, log2, frames, now = _hearing_pair(4)
+    period = r1.settings.gossip_period
+
+    def tick(t: float) -> list[bytes]:
+        return [a.payload for a in r1.on_timer(t) if isinstance(a, Publish)]
+
+    assert len(tick(now)) == 1 and tick(now + 0.05) == []  # as above
+    stepped = r2.on_message(KEYS.frames("r2"), encode_frame(frames["r2"][4]), now + 0.1)
+    _stacks(r1.on_message(KEYS.stack("r2"), r2.node.encoded_delta(()), now + 0.1), log1, "r1")
+    slot = _stacks(stepped, log2, "r2")[-1]
+    _stacks(r1.on_message(KEYS.stack("r2"), slot, now + 0.2), log1, "r1")
+    assert r1.node.stack.versions() == r2.node.stack.versions()
+    assert len(tick(now + 0.25)) == 1  # the changed digest
+    have = {**r1.node.current_stack().versions(), "r3": (1, 5)}
+    claim = encode(StackMessage("r3", None, Stack(), 0, have=have))
+    assert _stacks(r1.on_message(KEYS.stack("r3"), claim, now + 0.3), log1, "r1") == []
+    assert tick(now + 0.1 + period + 0.01) == []  # r2's version is held: it times nothing
+    assert len(tick(now + 0.3 + period + 0.01)) == 1  # r3's, a period after it was first seen
+
+
+def test_a_peer_whose_digest_is_older_than_digest_life_gets_nothing() -> None:
+    """Real time: a peer counts while its digest is fresher than DIGEST_LIFE gossip periods;
+    then it is out of reach and its lacks send nothing, until its next digest."""
+    from protocol.codec import StackMessage, encode
+    from protocol.stack import Stack
+
+    r1, log1, _, _, frames, now = _hearing_pair(4)
+    period = r1.settings.gossip_period
+    held = r1.node.current_stack().versions()
+    assert "r1" in held
+    digest = encode(StackMessage("r3", None, Stack(), 0, have=held))
+    assert _stacks(r1.on_message(KEYS.stack("r3"), digest, now + 0.1), log1, "r1") == []
+    # r2's digest came at ``now``, r3's at now + 0.1: both out of reach by this step.
+    later = now + 0.1 + DIGEST_LIFE * period + 0.05
+    step = _stacks(
+        r1.on_message(KEYS.frames("r1"), encode_frame(frames["r1"][4]), later), log1, "r1"
+    )
+    own = r1.node.current_stack().versions()["r1"]
+    assert own > held["r1"] and [decode(s).stack.versions() for s in step] == [{}]
+    # r3 is heard again, still without r1's new version: it goes at once.
+    back = _stacks(r1.on_message(KEYS.stack("r3"), digest, later + 0.1), log1, "r1")
+    assert [decode(s).stack.versions() for s in back] == [{"r1": own}]
 
 
 def test_digests_of_made_up_senders_are_bounded() -> None:
