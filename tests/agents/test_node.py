@@ -298,6 +298,14 @@ def test_node_reuses_a_parsed_version_only_for_the_same_bytes(
     assert node.merge(again)
     assert node.decode_stack(data) is not None  # held now: skipped, not reused
     assert (c.slots_decoded, c.slots_reused, c.slots_skipped) == (1, 1, 1)
+    # A node whose roster leaves out the owner keeps nothing of its slots for later: every copy
+    # is parsed (and refused by the merge), so an outsider cannot crowd out the roster's slots.
+    outside = _node("r3")
+    outside.roster = frozenset({"r2", "r3"})
+    _advance(outside, frames, 2)
+    copies = [outside.decode_stack(data) for _ in range(2)]
+    assert [m.reused for m in copies if m is not None] == [(), ()]
+    assert outside.counters.slots_decoded == 2 and not outside.merge(copies[1])  # type: ignore[arg-type]
 
 
 def test_node_keeps_parsed_slots_within_a_message_of_bytes(
@@ -367,8 +375,11 @@ def test_node_never_takes_its_own_slot_from_a_relayed_stack(
     _advance(node, frames, 6)
     relayed = relay.outgoing()
     assert decode(relayed).stack.stamps() == {"r1": 3}
+    decoded, skipped = node.counters.slots_decoded, node.counters.slots_skipped
     assert not node.on_stack(relayed)
     assert node.counters.stacks_unchanged == 1
+    # An older version of its own slot is not even parsed.
+    assert (node.counters.slots_decoded, node.counters.slots_skipped) == (decoded, skipped + 1)
     own = _own_slot(node)
     assert own.stamp == node.k == 6
     assert len(own.summary.realisations) == len(node.local.hypotheses)
