@@ -346,6 +346,9 @@ def test_a_roster_fleet_wants_only_roster_robots_slots_from_roster_robots() -> N
     r1 = AgentCore(make, KEYS, CoreSettings(gossip_period=0.5), MemoryLog().records)
     outsider = encode(StackMessage("x1", None, Stack(), 0, have={"r2": (1, 5)}))
     r1.on_message(KEYS.stack("x1"), outsider, 1.0)
+    # Nor does an outsider's digest count as a peer's: what it lacks is never sent for it (an
+    # outsider's empty digests would otherwise have every robot re-send its whole stack).
+    assert "x1" not in r1._digests
     claims = encode(StackMessage("r2", None, Stack(), 0, have={"x9": (1, 5), "r3": (1, 2)}))
     r1.on_message(KEYS.stack("r2"), claims, 1.0)
     assert set(r1._wanted) == {"r3"}
