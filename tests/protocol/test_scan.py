@@ -11,7 +11,13 @@ import numpy as np
 import pytest
 
 from protocol.codec import StackMessage, decode, encode, sign_slot, with_wire
-from protocol.errors import BadSignature, InvalidValue, LocalProtocolError, RemoteProtocolError
+from protocol.errors import (
+    BadSignature,
+    InvalidValue,
+    LimitExceeded,
+    LocalProtocolError,
+    RemoteProtocolError,
+)
 from protocol.scan import BODY, SlotFrame, scan
 from protocol.signing import canonical_bytes, digest, digest_of_parts
 from protocol.stack import Stack
@@ -139,5 +145,14 @@ def test_a_digest_travels_with_a_delta_stack_and_a_bad_one_is_refused() -> None:
         with pytest.raises(RemoteProtocolError) as err:
             decode(bytes(msgpack.packb(doc, use_bin_type=True)), LIMITS)
         assert err.value.field == field, (bad, err.value)
+    # At most max_slots entries: a receiver keeps a digest per peer, so the count bounds that.
+    doc["have"] = [[f"r{i}", 0, 1] for i in range(LIMITS.max_slots + 1)]
+    with pytest.raises(LimitExceeded) as over:
+        decode(bytes(msgpack.packb(doc, use_bin_type=True)), LIMITS)
+    assert over.value.field == "have"
+    doc["have"] = doc["have"][:-1]
+    assert len(decode(bytes(msgpack.packb(doc, use_bin_type=True)), LIMITS).have or {}) == len(
+        doc["have"]
+    )
     with pytest.raises(LocalProtocolError, match="have"):
         encode(StackMessage("r1", None, Stack(), 3, have={"r1": (0, -2)}), LIMITS)
