@@ -97,6 +97,23 @@ def test_inbox_full_drops_the_oldest_and_counts_it() -> None:
     assert inbox.drain() == []
 
 
+def test_inbox_bounds_its_bytes_dropping_older_messages_of_the_same_key_first() -> None:
+    """Bounded in payload bytes too: a message that does not fit makes room by dropping older
+    messages on its own key first (stacks are latest-wins), then the oldest of all; one larger
+    than the whole bound is dropped at once. Every drop is counted."""
+    inbox = Inbox(100, max_bytes=10)
+    b1, a1, a2 = Message("b", b"b" * 4), Message("a", b"a" * 4), Message("a", b"A" * 4)
+    for m in (b1, a1, a2):  # a2 does not fit: a1 goes, though b1 is older
+        inbox.put(m)
+    assert (inbox.drain(), inbox.dropped) == ([b1, a2], 1)
+    c1 = Message("c", b"c" * 4)
+    for m in (b1, a1, c1):  # no older c: the oldest of all goes
+        inbox.put(m)
+    assert (inbox.drain(), inbox.dropped) == ([a1, c1], 2)
+    inbox.put(Message("d", b"d" * 11))  # larger than the bound on its own
+    assert (len(inbox), inbox.bytes, inbox.dropped, inbox.received) == (0, 0, 3, 7)
+
+
 def test_inbox_capacity_must_be_positive() -> None:
     with pytest.raises(ValueError, match="capacity"):
         Inbox(0)
@@ -372,8 +389,8 @@ async def test_memory_stack_subscriptions_follow_the_peers_heard() -> None:
     await b.open()
     stacks = Inbox(16)
     subs = StackSubscriptions(b, KEYS, stacks)
-    subs.follow(frozenset({"r2"}))
-    subs.follow(frozenset({"r2"}))  # no second subscription: one message per put
+    assert subs.follow(frozenset({"r2"}))  # a subscription added (the runtime echoes then)
+    assert not subs.follow(frozenset({"r2"}))  # no second one: one message per put
     for r in ("r1", "r2"):
         a.publish(KEYS.stack(r), r.encode())
     await asyncio.sleep(0)
