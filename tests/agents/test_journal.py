@@ -160,6 +160,14 @@ def test_journal_keeps_the_epoch_it_was_made_with(tmp_path: Path) -> None:
     assert journal.epoch == 0 and records == []
     with pytest.raises(ValueError, match="epoch"):
         Journal.open(tmp_path / "bad.journal", IDENTITY, -1)
+    for epoch in (-1, 2**63, 1.5):  # a header whose epoch no journal was made with
+        bad = tmp_path / f"epoch{epoch}.journal"
+        header = msgpack.packb({"format": 1, "identity": IDENTITY, "epoch": epoch})
+        payload = msgpack.packb(["header", header], use_bin_type=True)
+        prefix = len(payload).to_bytes(4, "little") + zlib.crc32(payload).to_bytes(4, "little")
+        bad.write_bytes(prefix + payload)
+        with pytest.raises(JournalError, match="epoch"):
+            Journal.open(bad, IDENTITY, 5)
 
 
 def test_journal_reopen_appends_after_existing_records(tmp_path: Path) -> None:
@@ -313,7 +321,7 @@ def test_journal_torn_tail_is_cut_back_at_every_offset(tmp_path: Path) -> None:
         assert got == [*records[:-1], Record("frame", b"again")], cut
 
 
-@pytest.mark.parametrize("where", ["length", "crc", "payload", "kind"])
+@pytest.mark.parametrize("where", ["length", "crc", "payload", "kind", "body"])
 def test_journal_corrupt_record_in_the_middle_is_copied_aside_with_all_later_ones(
     tmp_path: Path, where: str
 ) -> None:
@@ -327,7 +335,7 @@ def test_journal_corrupt_record_in_the_middle_is_copied_aside_with_all_later_one
     second = starts[2]  # RECORDS[1]
     offset = {"length": second, "crc": second + 4, "payload": starts[3] - 1}.get(where)
     if offset is None:  # a payload that passes its crc but is not [kind, body]
-        payload = msgpack.packb(["Not-A-Kind", b""])
+        payload = msgpack.packb(["Not-A-Kind", b""] if where == "kind" else ["frame", 7])
         record = len(payload).to_bytes(4, "little") + zlib.crc32(payload).to_bytes(4, "little")
         data[second : starts[3]] = record + payload
     else:
@@ -493,6 +501,12 @@ def test_read_quarantine_skips_a_torn_last_record(tmp_path: Path) -> None:
     qpath.write_bytes(full[:-1])
     assert read_quarantine(qpath) == QUARANTINED[:2]
     assert qpath.read_bytes() == full[:-1]  # read only
+    # A record intact by its crc but with an index no quarantine writes ends the prefix too.
+    for index in (-1, "3"):
+        payload = msgpack.packb(["frame", b"x", "reason", index], use_bin_type=True)
+        prefix = len(payload).to_bytes(4, "little") + zlib.crc32(payload).to_bytes(4, "little")
+        qpath.write_bytes(full + prefix + payload)
+        assert read_quarantine(qpath) == QUARANTINED
 
 
 @pytest.mark.parametrize("failure", ["write", "fsync", "open"])
