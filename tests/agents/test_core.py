@@ -5,12 +5,14 @@ buffer stays bounded. Real estimator, real codecs; the journal is the in-memory 
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 
 import msgpack
 import numpy as np
 import pytest
 
+import agents.core as core_module
 from agents.control import NeedRound, Status, StepOrder, decode_control, encode_control
 from agents.core import (
     Action,
@@ -666,6 +668,43 @@ def test_an_agent_that_skipped_estimates_while_catching_up_answers_with_its_curr
     assert _published(actions, KEYS.estimate("r1")) == []  # steps 2 and 3 were superseded
     again = e.core.on_messages(_frames_of(frames["r1"][2:3]), 1.0)  # frame 3 sent again
     assert [decode_estimate(b).k for b in _published(again, KEYS.estimate("r1"))] == [3]
+    # Frame 4 sent again, the very bytes that failed: not tried a second time.
+    failed = e.core.counter_values()["steps_failed"]
+    e.core.on_messages(_frames_of(frames["r1"][3:4]), 3.0)
+    assert (e.core.counter_values()["steps_failed"], e.core.node.k) == (failed, 3)
+
+
+def test_failed_frames_and_refused_slots_are_remembered_within_a_bound(
+    frames,
+    monkeypatch,  # type: ignore[no-untyped-def]
+) -> None:
+    """The frames whose bytes failed a step and the slot versions refused are remembered (so
+    that they are never tried again) up to MAX_REFUSED each, the oldest forgotten first: a flood
+    of distinct failing inputs cannot grow them."""
+    monkeypatch.setattr(core_module, "MAX_REFUSED", 3)
+
+    original = RobotNode.on_frame
+
+    def fails(self, frame, fuse=True):  # type: ignore[no-untyped-def]
+        if frame.k == 2:
+            raise FloatingPointError("step 2 cannot be taken")
+        return original(self, frame, fuse)
+
+    d = Driver()
+    d.frame(frames["r1"][0])
+    monkeypatch.setattr(RobotNode, "on_frame", fails)
+    second = frames["r1"][1]
+    variants = [dataclasses.replace(second, odometry=second.odometry + 1e-3 * i) for i in range(5)]
+    for f in variants:
+        d.frame(f)
+    assert d.core.counter_values()["steps_failed"] == 5 and d.core.node.k == 1
+    d.frame(variants[4])  # remembered: not tried again
+    assert d.core.counter_values()["steps_failed"] == 5
+    d.frame(variants[0])  # forgotten (the oldest of five, three kept): tried again
+    assert d.core.counter_values()["steps_failed"] == 6
+    for i in range(5):
+        d.core._refuse(("r2", (1, i)))
+    assert list(d.core._refused) == [("r2", (1, i)) for i in (2, 3, 4)]
 
 
 def test_a_fusion_that_fails_after_deferred_steps_refuses_the_slots_merged_before_them(
