@@ -78,6 +78,11 @@ def _stacks(actions: list[object], log: MemoryLog, robot: str) -> list[bytes]:
 _Pair = tuple[AgentCore, MemoryLog, AgentCore, MemoryLog, dict[str, list[SensorFrame]], float]
 
 
+def _tick(core: AgentCore, t: float) -> list[bytes]:
+    """The stacks ``core``'s gossip tick at ``t`` publishes."""
+    return [a.payload for a in core.on_timer(t) if isinstance(a, Publish)]
+
+
 def _hearing_pair(steps: int) -> _Pair:
     """r1 and r2 of the paper scenario after ``steps`` steps, one a second, each hearing the
     other's stack: (r1, its log, r2, its log, the frames, the time of the last step)."""
@@ -227,17 +232,14 @@ def test_a_tick_sends_a_digest_a_merge_changed_before_a_refresh_is_due() -> None
     r1, log1, r2, log2, frames, now = _hearing_pair(4)
     _stacks(r1.on_message(KEYS.stack("r2"), r2.node.encoded_delta(()), now), log1, "r1")
 
-    def tick(t: float) -> list[bytes]:
-        return [a.payload for a in r1.on_timer(t) if isinstance(a, Publish)]
-
-    assert len(tick(now)) == 1  # r1 merged r2's slot after the stack of its step went
-    assert tick(now + 0.05) == []
+    assert len(_tick(r1, now)) == 1  # r1 merged r2's slot after the stack of its step went
+    assert _tick(r1, now + 0.05) == []
     stepped = _stacks(
         r2.on_message(KEYS.frames("r2"), encode_frame(frames["r2"][4]), now + 0.1), log2, "r2"
     )
     assert _stacks(r1.on_message(KEYS.stack("r2"), stepped[-1], now + 0.1), log1, "r1") == []
     assert r1.node.stack.versions() == r2.node.stack.versions()
-    sent = tick(now + 0.2)
+    sent = _tick(r1, now + 0.2)
     assert len(sent) == 1 and len(decode(sent[0]).stack) == 0
     assert decode(sent[0]).have == r1.node.current_stack().versions()
 
@@ -249,15 +251,12 @@ def test_a_newer_version_in_a_peers_digest_starts_the_pull_period_over() -> None
     r1, log1, r2, log2, frames, now = _hearing_pair(4)
     period = r1.settings.gossip_period
 
-    def tick(t: float) -> list[bytes]:
-        return [a.payload for a in r1.on_timer(t) if isinstance(a, Publish)]
-
-    assert len(tick(now)) == 1 and tick(now + 0.05) == []  # as above
+    assert len(_tick(r1, now)) == 1 and _tick(r1, now + 0.05) == []  # as above
     for k, t in ((4, now + 0.1), (5, now + 0.3)):  # r1 hears r2's digests only
         _stacks(r2.on_message(KEYS.frames("r2"), encode_frame(frames["r2"][k]), t), log2, "r2")
         _stacks(r1.on_message(KEYS.stack("r2"), r2.node.encoded_delta(()), t), log1, "r1")
-    assert tick(now + 0.1 + period + 0.01) == []  # a period after the first: too early
-    pulled = tick(now + 0.3 + period + 0.01)
+    assert _tick(r1, now + 0.1 + period + 0.01) == []  # a period after the first: too early
+    pulled = _tick(r1, now + 0.3 + period + 0.01)
     assert len(pulled) == 1 and len(decode(pulled[0]).stack) == 0
 
 
@@ -270,21 +269,18 @@ def test_a_version_once_held_no_longer_times_the_pulls() -> None:
     r1, log1, r2, log2, frames, now = _hearing_pair(4)
     period = r1.settings.gossip_period
 
-    def tick(t: float) -> list[bytes]:
-        return [a.payload for a in r1.on_timer(t) if isinstance(a, Publish)]
-
-    assert len(tick(now)) == 1 and tick(now + 0.05) == []  # as above
+    assert len(_tick(r1, now)) == 1 and _tick(r1, now + 0.05) == []  # as above
     stepped = r2.on_message(KEYS.frames("r2"), encode_frame(frames["r2"][4]), now + 0.1)
     _stacks(r1.on_message(KEYS.stack("r2"), r2.node.encoded_delta(()), now + 0.1), log1, "r1")
     slot = _stacks(stepped, log2, "r2")[-1]
     _stacks(r1.on_message(KEYS.stack("r2"), slot, now + 0.2), log1, "r1")
     assert r1.node.stack.versions() == r2.node.stack.versions()
-    assert len(tick(now + 0.25)) == 1  # the changed digest
+    assert len(_tick(r1, now + 0.25)) == 1  # the changed digest
     have = {**r1.node.current_stack().versions(), "r3": (1, 5)}
     claim = encode(StackMessage("r3", None, Stack(), 0, have=have))
     assert _stacks(r1.on_message(KEYS.stack("r3"), claim, now + 0.3), log1, "r1") == []
-    assert tick(now + 0.1 + period + 0.01) == []  # r2's version is held: it times nothing
-    assert len(tick(now + 0.3 + period + 0.01)) == 1  # r3's, a period after it was first seen
+    assert _tick(r1, now + 0.1 + period + 0.01) == []  # r2's version is held: it times nothing
+    assert len(_tick(r1, now + 0.3 + period + 0.01)) == 1  # r3's, a period after it was first seen
 
 
 def test_a_peer_whose_digest_is_older_than_digest_life_gets_nothing() -> None:
