@@ -40,3 +40,8 @@ def test_edge_cases_of_the_keyed_join() -> None:
     real = np.concatenate([wide[::3], wide[:2] + 1])
     for g, w in zip(_fits(wide, real), _fits_by_table(wide, real), strict=True):
         np.testing.assert_array_equal(g, w)
+    # There keys would wrap: 12 objects of 64 classes take 72 bits, and the last object's digit
+    # 64**11 = 2**66 is 0 modulo 2**64, so tuples that differ only there would match.
+    parent = np.zeros((2, 12), dtype=np.int64)
+    parent[0, 11], parent[1] = 1, 63
+    assert [x.tolist() for x in _fits(parent, np.zeros((1, 12), dtype=np.int64))] == [[], []]
