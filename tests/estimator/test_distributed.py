@@ -249,3 +249,21 @@ def test_a_budgeted_distributed_belief_grows_its_budget_with_the_robots_it_holds
 
     run_fleet(nodes, frames, Schedule(((1, 20, "r1", "r2"), (1, 20, "r2", "r3"))), 20, on_step)
     assert max(most.values()) > 3  # D outgrew a single robot's budget once it held slots
+
+
+def test_a_fusion_builds_at_most_max_join_pairs_from_the_heaviest_hypotheses() -> None:
+    """BeliefConfig.max_join bounds the (hypothesis, realisation) pairs a fusion builds for a
+    slot before anything is built; the lightest hypotheses are left out first, so the most
+    probable hypothesis is that of the unbounded fusion."""
+    s = _truncate(load_scenario("paper"), 12)
+    frames = Simulator(s, 2).all_frames()
+    config = BeliefConfig()
+    slots = [Slot(r, s.steps, summarise(_local(s, r, 2, frames, config))) for r in ("r2", "r3")]
+    fused = {}
+    for most in (250_000, 20):
+        d = _distributed(s, "r1", 2, frames, dataclasses.replace(config, max_join=most))
+        stats = d.integrate(slots)
+        classes = dict(zip(d.object_ids, d.map_hypothesis().classes, strict=True))
+        fused[most] = (stats.candidates, classes)
+    assert fused[20][0] <= 20 < fused[250_000][0]
+    assert fused[20][1] == fused[250_000][1]
