@@ -321,3 +321,20 @@ def test_class_marginals_sum_the_weights_of_every_objects_classes(seed: int) -> 
     np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-15)
     assert got[2, 1] == 0.0 and (got[:, 3] == 0.0).all()
     assert class_marginals(w[:0], classes[:0], 4).shape == (7, 4)
+
+
+def test_select_never_keeps_a_non_finite_weight_even_as_the_only_carrier_of_a_class() -> None:
+    """A -inf or NaN log-weight never survives: not by the marginal rule (a class no finite row
+    carries has marginal 0, and weight 0 is not below 0 / marginal_ratio), nor as a carrier."""
+    classes = np.array([[0], [1], [1]])
+    for bad in (-np.inf, np.nan):
+        kept = select(np.array([0.0, bad, bad]), classes, 2, MARGINAL)
+        assert kept.tolist() == [0], bad
+
+
+def test_the_cap_keeps_the_protected_carrier_of_a_class_before_heavier_rows() -> None:
+    """Over max_hypotheses, the heaviest row goes first, then the protected carriers of classes
+    at or above class_floor, then by weight: a light sole carrier of a class survives the cap."""
+    rule = PruningRule("marginal", 1e4, 1e-4, 2)
+    kept = select(np.array([0.0, -0.1, -5.0]), np.array([[0], [0], [1]]), 2, rule)
+    assert kept.tolist() == [0, 2]
