@@ -16,7 +16,7 @@ from deploy.study import belief_model
 from estimator.factors import diagonal_noise, object_key, pose_key, semantic_factor
 from estimator.hybrid import BeliefConfig, BeliefModel, Hypothesis
 from estimator.models import SensorFrame, viewpoint
-from estimator.slots import summarise
+from estimator.slots import EIGEN_FLOOR, _floor_eigenvalues, summarise
 from sim.sensors import Simulator
 from tests.estimator.exact_worlds import PRIORS, local_belief, no_pruning, prior_world
 from tests.tolerance import assert_close
@@ -155,3 +155,18 @@ def test_summarise_log_phi_divides_the_class_prior_out_of_every_weight(classes: 
     phi = np.array([r.log_phi for r in summary.realisations])
     lw = np.array([h.log_weight for h in belief.hypotheses])
     assert np.ptp(phi - lw) > 1.0
+
+
+def test_a_xi_left_improper_by_the_prior_division_is_floored_to_a_proper_gaussian() -> None:
+    """Dividing out the object prior of a barely constrained object can leave Λ with a
+    non-positive eigenvalue: every eigenvalue is raised to EIGEN_FLOOR × the largest (the
+    eigenvectors kept); a Λ already above the floor is only symmetrised."""
+    rng = np.random.default_rng(3)
+    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    info = (q * np.array([4.0, 1.0, -1e-3])) @ q.T
+    floored = _floor_eigenvalues(info)
+    vals, vecs = np.linalg.eigh(floored)
+    np.testing.assert_allclose(vals, [EIGEN_FLOOR * 4.0, 1.0, 4.0], rtol=1e-6, atol=1e-12)
+    np.testing.assert_allclose(abs(vecs.T @ q), np.eye(3)[[2, 1, 0]], atol=1e-6)
+    proper = (q * np.array([4.0, 1.0, 0.5])) @ q.T
+    np.testing.assert_array_equal(_floor_eigenvalues(proper), 0.5 * (proper + proper.T))
