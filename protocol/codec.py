@@ -132,6 +132,10 @@ class StackMessage:
     have: dict[str, tuple[int, int]] | None = None
     # Owners of the slots ``decode`` took, unparsed, from the receiver's ``parsed`` (same bytes).
     reused: tuple[str, ...] = ()
+    # Delta gossip in real time (docs/wire.md): owner → relay, the owners whose newer version
+    # the sender lacks, does not hear from the owner, and asks that relay for now; only with
+    # ``have``. None: no ask.
+    ask: dict[str, str] | None = None
 
 
 @functools.lru_cache(maxsize=64)
@@ -377,17 +381,27 @@ def encode(message: StackMessage, limits: Limits | None = None) -> bytes:
             ok = valid_id(o) and 0 <= e <= MAX_EPOCH and 0 <= k <= _MAX_STAMP
             _local(ok, "have", f"invalid entry {[o, e, k]!r}")
         have = [[o, int(e), int(k)] for o, (e, k) in entries]
+    ask: list[list[str]] | None = None
+    if message.ask is not None:
+        _local(have is not None, "ask", "an ask goes only with a digest (have)")
+        pairs = sorted(message.ask.items())
+        _local(len(pairs) <= lim.max_slots, "ask", f"{len(pairs)} > {lim.max_slots}")
+        for o, r in pairs:
+            _local(valid_id(o) and valid_id(r), "ask", f"invalid entry {[o, r]!r}")
+        ask = [[o, r] for o, r in pairs]
     # What msgpack.packb of the whole map would write, with each slot's bytes spliced in: a
     # slot that carries its wire form (received and validated, or made once) is not re-encoded.
     packer = msgpack.Packer(use_bin_type=True)
     parts = [packer.pack_map_header(len(head) + 1)]
     for key, value in head.items():
         parts += [packer.pack(key), packer.pack(value)]
-    parts[0] = packer.pack_map_header(len(head) + 1 + (have is not None))
+    parts[0] = packer.pack_map_header(len(head) + 1 + (have is not None) + (ask is not None))
     parts += [packer.pack("slots"), packer.pack_array_header(len(slots))]
     parts += [_slot_bytes(s, f"slots[{i}]", lim, packer) for i, s in enumerate(slots)]
     if have is not None:
         parts += [packer.pack("have"), packer.pack(have)]
+    if ask is not None:
+        parts += [packer.pack("ask"), packer.pack(ask)]
     blob = b"".join(parts)
     size_ok = len(blob) <= lim.max_message_bytes
     _local(size_ok, "message", f"{len(blob)} bytes > {lim.max_message_bytes}")
@@ -598,7 +612,7 @@ def _decode_doc(
     if "v" in doc and (type(version) is not int or version not in (VERSION, SIGNED_VERSION)):
         speaks = f"{VERSION} and {SIGNED_VERSION}"
         raise UnsupportedVersion(f"schema version {doc['v']!r} (this side speaks {speaks})", "v")
-    top = as_map(doc, "message", _TOP_KEYS | ({"have"} if "have" in doc else set()))
+    top = as_map(doc, "message", _TOP_KEYS | ({"have", "ask"} & doc.keys()))
     if top["type"] != STACK:
         raise UnsupportedVersion(f"message type {top['type']!r}", "type")
     sender = robot_id(top["sender"], "sender")
@@ -644,7 +658,26 @@ def _decode_doc(
     need(len(set(owners)) == len(owners), "slots", f"duplicate owners {owners}", InvalidValue)
     skipped = tuple(o for o in owners if o not in {s.owner for s in slots})
     have = _decode_have(top["have"], lim) if "have" in top else None
-    return StackMessage(sender, position, Stack(tuple(slots)), step, skipped, have, tuple(reused))
+    ask = None
+    if "ask" in top:
+        need(have is not None, "ask", "an ask goes only with a digest (have)")
+        ask = _decode_ask(top["ask"], lim)
+    return StackMessage(
+        sender, position, Stack(tuple(slots)), step, skipped, have, tuple(reused), ask
+    )
+
+
+def _decode_ask(raw: Any, lim: Limits) -> dict[str, str]:
+    need(isinstance(raw, list), "ask", "expected an array")
+    need(len(raw) <= lim.max_slots, "ask", f"{len(raw)} > {lim.max_slots}", LimitExceeded)
+    out: dict[str, str] = {}
+    for i, entry in enumerate(raw):
+        where = f"ask[{i}]"
+        need(isinstance(entry, list) and len(entry) == 2, where, "expected [owner, relay]")
+        owner = robot_id(entry[0], where)
+        need(owner not in out, where, f"owner {owner!r} twice", InvalidValue)
+        out[owner] = robot_id(entry[1], where)
+    return out
 
 
 def _decode_have(raw: Any, lim: Limits) -> dict[str, tuple[int, int]]:

@@ -156,3 +156,52 @@ def test_a_digest_travels_with_a_delta_stack_and_a_bad_one_is_refused() -> None:
     )
     with pytest.raises(LocalProtocolError, match="have"):
         encode(StackMessage("r1", None, Stack(), 3, have={"r1": (0, -2)}), LIMITS)
+
+
+def test_an_ask_travels_with_a_digest_and_a_bad_one_is_refused() -> None:
+    """``ask`` (docs/wire.md, "Asks"): owner → relay pairs, sorted by owner, only with a digest;
+    a malformed one refuses the message, naming the entry."""
+    have = {"r1": (0, 3), "r2": (17, 5)}
+    ask = {"r4": "r2", "r3": "r2", "r5": "r1"}
+    data = encode(StackMessage("r1", None, Stack(), 3, have=have, ask=ask), LIMITS)
+    got = decode(data, LIMITS)
+    assert got.ask == ask and got.have == have
+    assert msgpack.unpackb(data, raw=False)["ask"] == [["r3", "r2"], ["r4", "r2"], ["r5", "r1"]]
+    assert decode(encode(StackMessage("r1", None, Stack(), 3, have=have), LIMITS)).ask is None
+    doc = msgpack.unpackb(data, raw=False)
+    for bad, field in (
+        ([["r3", "r2"], ["r3", "r1"]], "ask[1]"),  # an owner twice
+        ([["r3"]], "ask[0]"),
+        ([["r3", "r2", "r1"]], "ask[0]"),
+        ("r3", "ask"),
+        ({"r3": "r2"}, "ask"),
+        ([["bad id!", "r2"]], "ask[0]"),
+        ([["r3", "bad id!"]], "ask[0]"),
+        ([["r3", 2]], "ask[0]"),
+        ([[b"r3", "r2"]], "ask[0]"),  # a robot id is a str, not a bin
+    ):
+        doc["ask"] = bad
+        with pytest.raises(RemoteProtocolError) as err:
+            decode(bytes(msgpack.packb(doc, use_bin_type=True)), LIMITS)
+        assert err.value.field == field, (bad, err.value)
+    # At most max_slots entries (a receiver keeps the asks of every peer's digest).
+    doc["ask"] = [[f"r{i}", "r1"] for i in range(LIMITS.max_slots + 1)]
+    with pytest.raises(LimitExceeded) as over:
+        decode(bytes(msgpack.packb(doc, use_bin_type=True)), LIMITS)
+    assert over.value.field == "ask"
+    doc["ask"] = doc["ask"][:-1]
+    assert len(decode(bytes(msgpack.packb(doc, use_bin_type=True)), LIMITS).ask or {}) == len(
+        doc["ask"]
+    )
+    # An ask goes only with a digest: what a receiver should push depends on what is held.
+    del doc["have"]
+    with pytest.raises(RemoteProtocolError) as alone:
+        decode(bytes(msgpack.packb(doc, use_bin_type=True)), LIMITS)
+    assert alone.value.field == "ask"
+    with pytest.raises(LocalProtocolError, match="ask"):
+        encode(StackMessage("r1", None, Stack(), 3, ask={"r3": "r2"}), LIMITS)
+    with pytest.raises(LocalProtocolError, match="ask"):
+        encode(StackMessage("r1", None, Stack(), 3, have=have, ask={"r3": "no way"}), LIMITS)
+    many = {f"r{i}": "r1" for i in range(LIMITS.max_slots + 1)}
+    with pytest.raises(LocalProtocolError, match="ask"):
+        encode(StackMessage("r1", None, Stack(), 3, have=have, ask=many), LIMITS)
