@@ -75,7 +75,7 @@ DIGEST_LIFE = 3  # gossip periods a peer's digest counts for (real time): then i
 # (under DIGEST_LIFE, so that peers keep counting this robot), unless a peer's digest since then
 # holds a version this robot lacks (docs/wire.md, "Delta gossip").
 DIGEST_REFRESH = 2
-STACK_GOSSIP = ("delta", "full")
+STACK_GOSSIP = ("delta", "ask", "full")
 MAX_REFUSED = 4096  # slot versions remembered as refused (oldest forgotten first)
 # How far ahead of the receiver's clock a slot's version may be (docs/wire.md, "Versions and
 # epochs"): an epoch is its owner's start in ms, so a stamp (a step) can be at most what the owner
@@ -115,7 +115,9 @@ class CoreSettings:
     publish_local: bool = True
     simulation: bool = False
     # "delta": a stack carries the held slots some peer lacks, by the digests (``have``) peers
-    # send; "full": every held slot, every time (docs/wire.md, "Delta gossip").
+    # send; "ask": delta, and a version of an owner this robot does not hear is asked of the
+    # relay whose digest shows it, at once; "full": every held slot, every time (docs/wire.md,
+    # "Delta gossip" and "Asks").
     stack_gossip: str = "delta"
     catch_up: int = CATCH_UP_STEPS
     # A simulated real time agent subscribes to the stacks of the peers in range only, from the
@@ -127,7 +129,8 @@ class CoreSettings:
         if self.mode not in MODES:
             raise ValueError(f"mode {self.mode!r} (known: {', '.join(MODES)})")
         if self.stack_gossip not in STACK_GOSSIP:
-            raise ValueError(f"stack gossip {self.stack_gossip!r} (known: delta, full)")
+            known = ", ".join(STACK_GOSSIP)
+            raise ValueError(f"stack gossip {self.stack_gossip!r} (known: {known})")
         if not (self.gossip_period > 0 and self.retry_period > 0):
             raise ValueError("gossip and retry periods must be positive")
         if self.window < 1 or self.max_control_bytes < 64:
@@ -237,6 +240,8 @@ class CoreCounters:
     replayed_frames: int = 0
     replayed_stacks: int = 0
     records_quarantined: int = 0
+    relays_asked: int = 0  # (owner, relay) asks made: an owner this robot does not hear
+    asks_answered: int = 0  # slots sent at once because a peer asked this robot for them
     last_invalid: dict[str, float] = field(default_factory=dict)
 
 
@@ -308,9 +313,10 @@ class AgentCore:
         self._step_us = (0, 0)
         self._out = _Outgoing()
         self._now = 0.0
-        # Delta gossip: every peer's latest digest and when it came; when each held version came
-        # and when each was last sent (owner → (version, time)).
-        self._digests: dict[str, tuple[dict[str, tuple[int, int]], float]] = {}
+        # Delta gossip: every peer's latest digest, when it came and the owners it asked this
+        # robot for; when each held version came and when each was last sent (owner → (version,
+        # time)).
+        self._digests: dict[str, tuple[dict[str, tuple[int, int]], float, frozenset[str]]] = {}
         self._got: dict[str, float] = {}
         self._sent: dict[str, tuple[tuple[int, int], float]] = {}
         self._out_include: set[str] = set()  # the owners of the slots in ``_out.stack``
@@ -320,6 +326,14 @@ class AgentCore:
         self._digest_sent: tuple[bytes | None, float] = (None, -math.inf)
         # Versions peers' digests hold that this robot lacks: owner → (version, first seen).
         self._wanted: dict[str, tuple[tuple[int, int], float]] = {}
+        # Standing asks (``stack_gossip = "ask"``): owner → (the relay asked to push its new
+        # versions, when); since when a peer's digest has shown a version of an owner newer
+        # than the one held, without a break; whether the current batch of messages changed
+        # the asks, and when a digest last went at once for that (at most once a period).
+        self._asks: dict[str, tuple[str, float]] = {}
+        self._behind: dict[str, float] = {}
+        self._asked_now = False
+        self._asked_sent_at = -math.inf
         self.digests_skipped = 0  # ticks that sent nothing: an unchanged digest (timer thread)
         self.tick_bytes = 0  # bytes of stacks and digests the timer sent (timer thread only)
         # Lock-step re-sends (timer thread only): the round last re-sent, the periods to wait
@@ -445,10 +459,20 @@ class AgentCore:
         out = self._out
         if out.fresh and out.digest is not None and out.stack is not None and self._out_include:
             # Delta gossip in real time: what a peer turned out to lack goes now, not at the
-            # next tick (a tick then carries the digest alone).
+            # next tick (a tick then carries the digest alone); so does a new ask.
             self._out = dataclasses.replace(out, fresh=False, digest_sent_at=now)
             self.node.mark_sent(len(out.stack))
             actions.append(Publish(self.keys.stack(self.robot), out.stack))
+        elif (
+            self._asked_now
+            and out.digest is not None
+            and now - self._asked_sent_at >= self.settings.gossip_period
+        ):  # else the changed digest goes at the next tick
+            self._asked_sent_at = now
+            self._out = dataclasses.replace(out, digest_sent_at=now)
+            self.node.mark_sent(len(out.digest))
+            actions.append(Publish(self.keys.stack(self.robot), out.digest))
+        self._asked_now = False
         return actions
 
     def on_timer(self, now: float, announce: bool = False) -> list[Action]:
@@ -714,7 +738,10 @@ class AgentCore:
         # digests of the robots it hears only, as a radio would).
         noted = message.have if heard or self._heard(message.sender) else None
         if noted is not None:
-            self._note_digest(message.sender, noted)
+            asked = (message.ask or {}).items()
+            self._note_digest(
+                message.sender, noted, frozenset(o for o, r in asked if r == self.robot)
+            )
         if self.settings.mode == "lockstep":
             k = self.node.k
             if not k <= message.step <= k + self.settings.window:
@@ -800,25 +827,32 @@ class AgentCore:
         self.counters.slots_refused += len(message.stack) - len(kept)
         return dataclasses.replace(message, stack=Stack(tuple(kept)))  # the digest stays
 
-    def _note_digest(self, sender: str, have: dict[str, tuple[int, int]]) -> None:
-        """Keep ``sender``'s digest: only a roster robot's, and at most ``max_slots`` peers'
-        (the longest unheard forgotten first), so that made-up senders cannot grow it."""
+    def _note_digest(
+        self, sender: str, have: dict[str, tuple[int, int]], asked: frozenset[str]
+    ) -> None:
+        """Keep ``sender``'s digest and the owners it asked this robot for (until its next
+        digest): only a roster robot's, and at most ``max_slots`` peers' (the longest unheard
+        forgotten first), so that made-up senders cannot grow it."""
         roster = self.node.roster
         if roster is not None and sender not in roster:
             return
         self._digests.pop(sender, None)
-        self._digests[sender] = (have, self._now)
+        self._digests[sender] = (have, self._now, asked)
         while len(self._digests) > self.node.limits.max_slots:
             del self._digests[next(iter(self._digests))]
 
     def _check_wanted(self, sender: str, have: dict[str, tuple[int, int]]) -> None:
         """Note the versions of a peer's digest this robot lacks, each with when it was first
         seen (a newer version starts over: the peer got it just now); at most ``max_slots``,
-        and with a roster only roster robots' digests and slots (no other is ever taken)."""
+        and with a roster only roster robots' digests and slots (no other is ever taken).
+
+        With ``stack_gossip = "ask"``, this robot asks a relay to push the versions of an
+        owner it does not hear (they will not come from the owner): :meth:`_ask`."""
         roster = self.node.roster
         if roster is not None and sender not in roster:
             return
         held = self.node.stack
+        asks = self.settings.stack_gossip == "ask"
         for owner, version in have.items():
             if roster is not None and owner not in roster:
                 continue
@@ -827,8 +861,54 @@ class AgentCore:
                 if known is None or known[0] < version:
                     self._wanted.pop(owner, None)
                     self._wanted[owner] = (version, self._now)
+                if asks and owner != self.robot and not self._hears(owner):
+                    self._ask(owner, sender)
         while len(self._wanted) > self.node.limits.max_slots:
             del self._wanted[next(iter(self._wanted))]
+
+    def _hears(self, robot: str) -> bool:
+        """Whether ``robot``'s own digest came within ``DIGEST_LIFE`` gossip periods."""
+        noted = self._digests.get(robot)
+        horizon = self._now - DIGEST_LIFE * self.settings.gossip_period
+        return noted is not None and noted[1] >= horizon
+
+    def _ask(self, owner: str, relay: str) -> None:
+        """Behind on ``owner``, whom this robot does not hear, by ``relay``'s digest: ask
+        ``relay`` to push ``owner``'s versions — unless a relay asked before is still heard and
+        either was asked less than a gossip period ago or has not left this robot behind for a
+        period (then the peers that could push after their chance would have). One relay per
+        owner, so that a robot's neighbours do not all push the same slot (docs/wire.md,
+        "Asks"); at most ``max_slots`` owners."""
+        now, period = self._now, self.settings.gossip_period
+        behind = self._behind.setdefault(owner, now)
+        known = self._asks.get(owner)
+        if known is not None:
+            current, since = known
+            if current == relay:
+                return
+            if self._hears(current) and (now - behind <= period or now - since <= period):
+                return
+        self._asks.pop(owner, None)
+        self._asks[owner] = (relay, now)
+        self._asked_now = True
+        self.counters.relays_asked += 1
+        while len(self._asks) > self.node.limits.max_slots:
+            del self._asks[next(iter(self._asks))]
+
+    def _current_asks(self) -> dict[str, str]:
+        """The asks in force (owner → relay): those whose owner is still not heard and whose
+        relay still is. An owner stops being behind once this robot holds the newest version a
+        digest showed it (``_wanted``)."""
+        held = self.node.stack
+        for owner in list(self._behind):
+            newest = self._wanted.get(owner)
+            if newest is None or newest[0] <= (held.version_of(owner) or (-1, -1)):
+                del self._behind[owner]
+        for owner in [
+            o for o, (r, _) in self._asks.items() if self._hears(o) or not self._hears(r)
+        ]:
+            del self._asks[owner]
+        return {o: r for o, (r, _) in self._asks.items()}
 
     def _pull_at(self) -> float:
         """When the ticks pull (send the digest even if unchanged): a gossip period after a
@@ -1086,14 +1166,14 @@ class AgentCore:
             digests = {p: d for p, d in digests.items() if d[1] >= horizon}
         if strict and node.roster is not None:
             for peer in node.roster - {self.robot} - set(digests):
-                digests[peer] = ({}, -math.inf)
+                digests[peer] = ({}, -math.inf, frozenset())
         include: set[str] = set()
         if not strict and self._out.fresh and self._tick_last is not self._out.stack:
             include |= self._out_include & set(stack.by_owner())  # computed, not sent yet
         for slot in stack:
             version = slot.version
             sent_version, sent_at = self._sent.get(slot.owner, ((-1, -1), -math.inf))
-            for peer, (have, heard_at) in digests.items():
+            for peer, (have, heard_at, asked) in digests.items():
                 if peer == slot.owner or have.get(slot.owner, (-1, -1)) >= version:
                     continue
                 if strict:
@@ -1101,16 +1181,20 @@ class AgentCore:
                     break
                 resend = sent_version != version or heard_at > sent_at + period
                 chance = (
-                    slot.owner == self.robot or heard_at > self._got.get(slot.owner, 0.0) + period
+                    slot.owner == self.robot
+                    or heard_at > self._got.get(slot.owner, 0.0) + period
+                    or slot.owner in asked  # the peer does not hear the owner
                 )
                 if resend and chance:
                     include.add(slot.owner)
+                    self.counters.asks_answered += slot.owner in asked
                     break
         for owner in include:
             self._sent[owner] = (stack.by_owner()[owner].version, self._now)
         self._out_include = include
-        data = node.encoded_delta(include)
-        digest = None if strict else node.encoded_delta(())
+        asks = None if strict else self._current_asks()
+        data = node.encoded_delta(include, asks)
+        digest = None if strict else node.encoded_delta((), asks)
         return data, digest, bool(include)
 
     # -- output ------------------------------------------------------------------------------
@@ -1192,6 +1276,8 @@ class AgentCore:
             "bytes_sent": c.bytes_sent,
             "bytes_sent_ticks": self.tick_bytes,
             "digests_skipped": self.digests_skipped,
+            "relays_asked": a.relays_asked,
+            "asks_answered": a.asks_answered,
             "bytes_received": c.bytes_received,
             "frames_processed": a.frames_processed,
             "fusions_deferred": a.fusions_deferred,

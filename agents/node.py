@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import logging
 from collections import OrderedDict
-from collections.abc import Collection, Iterable
+from collections.abc import Collection, Iterable, Mapping
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -179,7 +179,7 @@ class RobotNode:
         self._encoded: bytes | None = None
         # encoded_delta's bytes per chosen owners, for one (stack, step, position)
         self._deltas_at: tuple[Stack, int, tuple[float, float] | None] | None = None
-        self._deltas: dict[tuple[str, ...], bytes] = {}
+        self._deltas: dict[tuple[tuple[str, ...], tuple[tuple[str, str], ...]], bytes] = {}
         # Slots parsed and not yet held, by version (see ``decode_stack``).
         self._parsed: OrderedDict[tuple[str, int, int], Slot] = OrderedDict()
         self._own_slot_stale = False
@@ -447,10 +447,11 @@ class RobotNode:
                 self._encoded = encode(message, self.limits)
         return self._encoded
 
-    def encoded_delta(self, owners: Collection[str]) -> bytes:
+    def encoded_delta(self, owners: Collection[str], ask: Mapping[str, str] | None = None) -> bytes:
         """A delta stack (docs/wire.md, "Delta gossip"): the held slots of ``owners`` only — what
-        some peer lacks — and the digest of every version held (``have``). The own slot is left
-        out, and counted, when the limits refuse it, as in :meth:`encoded_stack`."""
+        some peer lacks — the digest of every version held (``have``) and ``ask`` (owner → the
+        relay asked for its slot now; None or empty: none). The own slot is left out, and
+        counted, when the limits refuse it, as in :meth:`encoded_stack`."""
         stack = self.current_stack()
         chosen = tuple(s for s in stack if s.owner in owners)
         # The same delta is asked for again and again (after every batch of messages, for the
@@ -459,14 +460,15 @@ class RobotNode:
         at = (stack, self.k, self.position)
         if self._deltas_at != at or len(self._deltas) >= 8:
             self._deltas_at, self._deltas = at, {}
-        key = tuple(s.owner for s in chosen)
+        asks = dict(ask) if ask else None
+        key = (tuple(s.owner for s in chosen), tuple(sorted(asks.items())) if asks else ())
         known = self._deltas.get(key)
         if known is not None:
             return known
         have = stack.versions()
         try:
             data = encode(
-                StackMessage(self.robot, self.position, Stack(chosen), self.k, have=have),
+                StackMessage(self.robot, self.position, Stack(chosen), self.k, have=have, ask=asks),
                 self.limits,
             )
             self._deltas[key] = data
@@ -476,7 +478,9 @@ class RobotNode:
             self.counters.last_error = str(exc)
             log.error("%s: own slot or position not sendable: %s", self.robot, exc)
             others = Stack(tuple(s for s in chosen if s.owner != self.robot))
-            return encode(StackMessage(self.robot, None, others, self.k, have=have), self.limits)
+            return encode(
+                StackMessage(self.robot, None, others, self.k, have=have, ask=asks), self.limits
+            )
 
     def mark_sent(self, size: int) -> None:
         """Tell the node a stack of ``size`` bytes went out (for its counters)."""
