@@ -227,8 +227,9 @@ LOSS_TOL_M = 0.1
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize("gossip", ["delta", "ask"])
 def test_launch_realtime_with_30_percent_loss_completes_close_to_lossless(
-    tmp_path: Path, reference: Reference
+    tmp_path: Path, reference: Reference, gossip: str
 ) -> None:
     plan = _plan(
         tmp_path,
@@ -237,6 +238,7 @@ def test_launch_realtime_with_30_percent_loss_completes_close_to_lossless(
         period=PERIOD,
         gossip_period=GOSSIP,
         faults=Faults(drop=0.3),
+        stack_gossip=gossip,
     )
     outcome = launch(plan)
     assert_all_agents_finished(outcome, STEPS)
@@ -293,14 +295,17 @@ def own_stamps(log: StackLog) -> dict[str, list[tuple[float, int]]]:
 
 
 @pytest.mark.slow
-def test_launch_relay_over_zenoh_links_between_neighbours_only(tmp_path: Path) -> None:
+@pytest.mark.parametrize("gossip", ["delta", "ask"])
+def test_launch_relay_over_zenoh_links_between_neighbours_only(tmp_path: Path, gossip: str) -> None:
     """Six robots 8 m apart on a line, range 10 m: only neighbours are in range, and Zenoh links
     only neighbours (gossip scouting off). r1's final slot reaches r6 through four relays (and
     every robot's reaches every other), and no agent ever received a stack from a non-neighbour:
     it would have been refused by the proximity filter and counted in ``ignored_out_of_range``.
     Realtime, because only there the agent filters by range itself (in lock-step the conductor's
     orders decide). A relay hop waits for the receiver's current step, so on a loaded machine the
-    run can end before the last slots arrived: the launch lingers until they have."""
+    run can end before the last slots arrived: the launch lingers until they have. With
+    ``stack_gossip = "ask"`` every robot asks a neighbour for the slots of the robots it does
+    not hear, and the neighbours push them."""
     ids = [f"r{i}" for i in range(1, 7)]
     scenario = _world(tmp_path, world_text("line6", 6, 8.0, 12, 0.05))
     neighbours = {
@@ -317,6 +322,7 @@ def test_launch_relay_over_zenoh_links_between_neighbours_only(tmp_path: Path) -
         zenoh_neighbours=neighbours,
         observe_stacks=True,
         linger=60.0,  # a guard against a hang, not a speed check
+        stack_gossip=gossip,
     )
     outcome = launch(plan)
     assert_all_agents_finished(outcome, scenario.steps)
@@ -327,6 +333,12 @@ def test_launch_relay_over_zenoh_links_between_neighbours_only(tmp_path: Path) -
     for r, c in outcome.collected.counters.items():
         assert c["ignored_out_of_range"] == 0, (r, c)
         assert c["stacks_merged"] > 0, (r, c)
+        # Every robot out of a robot's range asked for (one relay each, at least), and every
+        # relay but the line's ends answered asks.
+        unheard = len(ids) - 1 - len(neighbours[r])
+        assert (c["relays_asked"] >= unheard) == (gossip == "ask"), (r, c)
+        if r not in ("r1", "r6"):
+            assert (c["asks_answered"] > 0) == (gossip == "ask"), (r, c)
     # The answer time of every step answered: its estimate came after its frames went out.
     answered = outcome.collected.answered_s
     assert {(r, scenario.steps) for r in ids} <= answered.keys(), sorted(answered)
@@ -368,7 +380,8 @@ def last_view_before(log: StackLog, holder: str, owner: str, t_end: float) -> in
 
 
 @pytest.mark.slow
-def test_launch_partition_heals_within_two_gossip_periods(tmp_path: Path) -> None:
+@pytest.mark.parametrize("gossip", ["delta", "ask"])
+def test_launch_partition_heals_within_two_gossip_periods(tmp_path: Path, gossip: str) -> None:
     """Every robot holds every other's slot of the heal within two gossip periods of the heal:
     one for the exchange (a digest that shows what a peer lacks, and the push of it), one for
     the holder to publish a stack, the only way the conductor sees what it holds. The clock
@@ -387,6 +400,7 @@ def test_launch_partition_heals_within_two_gossip_periods(tmp_path: Path) -> Non
         gossip_period=GOSSIP,
         faults=Faults(partitions=(Partition(frozenset({"r3"}), first, last),)),
         observe_stacks=True,
+        stack_gossip=gossip,
     )
     outcome = launch(plan)
     assert_all_agents_finished(outcome, scenario.steps)
