@@ -11,7 +11,9 @@ one 2-core machine runs in realtime mode, with CPU and memory per agent.
   scouting off), realtime; the time from a new version of r1's slot in r1's stack to the same
   version in r4's stack, over 3 hops; with delta gossip against full gossip, in the same run. With
   full gossip a hop costs on average half a gossip period plus the transit; delta gossip first
-  gives a peer a period to get the version from its owner (docs/wire.md, "Delta gossip").
+  gives a peer a period to get the version from its owner (docs/wire.md, "Delta gossip"); with
+  ``stack_gossip = "ask"`` a robot asks a neighbour to push the slots of the robots it does not
+  hear, and the neighbour pushes each new version at once (docs/wire.md, "Asks").
 - Capacity: bench/bench_capacity.py.
 """
 
@@ -70,11 +72,12 @@ def _proc_usage(pid: int) -> tuple[float, float]:
 
 
 def _relay_rows(tmp: Path) -> list[Result]:
-    """Relay per hop with delta gossip (the default) against full gossip, the same line run with
-    each in turn."""
+    """Relay per hop with delta gossip (the default) and with standing asks, against full
+    gossip, the same line run with each in turn."""
     full = _relay_per_hop(tmp, "full")
     delta = _relay_per_hop(tmp, "delta")
-    if not full or not delta:
+    ask = _relay_per_hop(tmp, "ask")
+    if not full or not delta or not ask:
         _notes.append("relay: r4 never held a version of r1's slot (no figure)")
         return []
     return [
@@ -89,7 +92,17 @@ def _relay_rows(tmp: Path) -> list[Result]:
             f"tick (≈ {GOSSIP_S * 500:.0f} ms + transit); delta gossip relays a version to a peer "
             f"whose digest lacks it once that peer could have had it from its owner, a gossip "
             f'period after it came (docs/wire.md, "Delta gossip")',
-        )
+        ),
+        Result(
+            'relay latency per hop, stack_gossip = "ask" (4 agents on a line)',
+            len(ask),
+            statistics.median(ask),
+            baseline_ms=statistics.median(full),
+            note=f"median over {len(ask)} versions, as above; each robot asks a neighbour to "
+            f"push the slots of the robots it does not hear, and the neighbour pushes each new "
+            f"version when it merges it; what remains is mostly r4's wait for its next digest, "
+            f'which is when the benchmark sees what r4 holds (docs/wire.md, "Asks")',
+        ),
     ]
 
 
