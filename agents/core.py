@@ -115,9 +115,9 @@ class CoreSettings:
     publish_local: bool = True
     simulation: bool = False
     # "delta": a stack carries the held slots some peer lacks, by the digests (``have``) peers
-    # send; "ask": delta, and a version of an owner this robot does not hear is asked of the
-    # relay whose digest shows it, at once; "full": every held slot, every time (docs/wire.md,
-    # "Delta gossip" and "Asks").
+    # send; "ask": delta, and this robot asks one relay to push, as they come, the versions of
+    # each owner it does not hear; "full": every held slot, every time (docs/wire.md, "Delta
+    # gossip" and "Asks").
     stack_gossip: str = "delta"
     catch_up: int = CATCH_UP_STEPS
     # A simulated real time agent subscribes to the stacks of the peers in range only, from the
@@ -898,7 +898,7 @@ class AgentCore:
     def _current_asks(self) -> dict[str, str]:
         """The asks in force (owner → relay): those whose owner is still not heard and whose
         relay still is. An owner stops being behind once this robot holds the newest version a
-        digest showed it (``_wanted``)."""
+        digest showed it, or that version is forgotten (``_wanted``, at most ``max_slots``)."""
         held = self.node.stack
         for owner in list(self._behind):
             newest = self._wanted.get(owner)
@@ -1181,13 +1181,12 @@ class AgentCore:
                     break
                 resend = sent_version != version or heard_at > sent_at + period
                 chance = (
-                    slot.owner == self.robot
-                    or heard_at > self._got.get(slot.owner, 0.0) + period
-                    or slot.owner in asked  # the peer does not hear the owner
+                    slot.owner == self.robot or heard_at > self._got.get(slot.owner, 0.0) + period
                 )
-                if resend and chance:
+                on_ask = not chance and slot.owner in asked  # the peer does not hear the owner
+                if resend and (chance or on_ask):
                     include.add(slot.owner)
-                    self.counters.asks_answered += slot.owner in asked
+                    self.counters.asks_answered += on_ask
                     break
         for owner in include:
             self._sent[owner] = (stack.by_owner()[owner].version, self._now)

@@ -450,7 +450,7 @@ class RobotNode:
     def encoded_delta(self, owners: Collection[str], ask: Mapping[str, str] | None = None) -> bytes:
         """A delta stack (docs/wire.md, "Delta gossip"): the held slots of ``owners`` only — what
         some peer lacks — the digest of every version held (``have``) and ``ask`` (owner → the
-        relay asked for its slot now; None or empty: none). The own slot is left out, and
+        relay asked to push its versions; None or empty: none). The own slot is left out, and
         counted, when the limits refuse it, as in :meth:`encoded_stack`."""
         stack = self.current_stack()
         chosen = tuple(s for s in stack if s.owner in owners)

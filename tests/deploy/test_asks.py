@@ -173,3 +173,17 @@ def test_two_relays_whose_digests_alternate_make_at_most_one_switch_a_period() -
         t = 1.0 + 0.05 * i
         _stacks(r3.on_message(KEYS.stack("r2"), _digest("r2", {"r1": (1, 9)}), t), log3, "r3")
     assert r3.counter_values()["relays_asked"] == 1
+
+
+def test_what_an_asker_keeps_is_bounded_by_the_slot_limit() -> None:
+    """Digests claiming ever new owners (forged) cannot grow the asks, or what the asker
+    remembers of being behind, beyond ``max_slots``; its digest stays sendable."""
+    r3, log3 = _asker()
+    _stacks(r3.start(0.0), log3, "r3")
+    limit = r3.node.limits.max_slots
+    for i in range(300):
+        claim = _digest("x", {f"o{j}": (1, 1) for j in range(i, i + 3)})
+        _stacks(r3.on_message(KEYS.stack("x"), claim, 1.0 + 0.01 * i), log3, "r3")
+    assert len(r3._asks) == limit and len(r3._behind) <= limit
+    tick = [decode(a.payload) for a in r3.on_timer(4.5) if isinstance(a, Publish)]
+    assert len(tick) == 1 and len(tick[0].ask or {}) == limit
