@@ -34,20 +34,24 @@ def test_delta_and_full_gossip_give_the_same_beliefs_in_lockstep_on_a_chain(
     scenario = parse_scenario(text, str(tmp_path / "line6.toml"))
     ids = list(scenario.robot_ids)
     runs = {}
-    for gossip in ("full", "delta"):
+    for gossip in ("full", "delta", "ask"):  # lock-step makes no asks: "ask" is "delta" there
         plan = LaunchPlan(
             scenario, 3, ids, tmp_path / gossip, keep_estimates=True, stack_gossip=gossip
         )
         runs[gossip] = launch(plan)
-    full, delta = runs["full"].collected, runs["delta"].collected
-    assert (
-        set(full.estimates)
-        == set(delta.estimates)
-        == {(r, k) for r in ids for k in range(1, scenario.steps + 1)}
-    )
-    for key, est in full.estimates.items():
-        for belief, snap in est.beliefs.items():
-            assert_same_snapshot(delta.estimates[key].beliefs[belief], snap, f"{key} {belief}")
+    full = runs["full"].collected
+    for gossip in ("delta", "ask"):
+        other = runs[gossip].collected
+        assert (
+            set(full.estimates)
+            == set(other.estimates)
+            == {(r, k) for r in ids for k in range(1, scenario.steps + 1)}
+        )
+        for key, est in full.estimates.items():
+            for belief, snap in est.beliefs.items():
+                got = other.estimates[key].beliefs[belief]
+                assert_same_snapshot(got, snap, f"{gossip} {key} {belief}")
+        assert all(c["relays_asked"] == 0 for c in other.counters.values())
     final = full.estimates[("r6", scenario.steps)].beliefs["distributed"]
     assert len(final.object_ids) == 12  # r1's objects reached r6 over four relays
     sent = {g: sum(c["bytes_sent"] for c in runs[g].collected.counters.values()) for g in runs}
