@@ -12,6 +12,7 @@ import numpy as np
 from rich.console import Console
 from rich.table import Table
 
+from agents.core import STACK_GOSSIP
 from agents.links import Partition
 from deploy.args import positive_float, positive_int, seed
 from deploy.commands import conductor_only
@@ -79,6 +80,12 @@ def _steps(scenario: Scenario, steps: int | None) -> int | None:
     return steps
 
 
+def _stack_gossip(args: argparse.Namespace) -> str:
+    if args.stack_gossip is not None and getattr(args, "conductor_only", False):
+        raise UsageError("--stack-gossip: not with --conductor-only (the agents' configs decide)")
+    return str(args.stack_gossip or "delta")
+
+
 def run_launch(args: argparse.Namespace, console: Console) -> int:
     scenario = load_scenario(args.scenario)
     plan = LaunchPlan(
@@ -92,6 +99,7 @@ def run_launch(args: argparse.Namespace, console: Console) -> int:
         steps=_steps(scenario, args.steps),
         secure=args.secure,
         keep_estimates=bool(args.view or args.record),
+        stack_gossip=_stack_gossip(args),
         **conductor_only.plan_fields(args),
     )
     conductor_only.announce(plan, console)
@@ -115,6 +123,8 @@ def run_chaos(args: argparse.Namespace, console: Console) -> int:
     if args.attack is not None:
         if args.view or args.record:
             raise UsageError("--view/--record: not with --attack (one run per attack)")
+        if args.stack_gossip is not None:
+            raise UsageError("--stack-gossip: not with --attack (each attack sets up its fleet)")
         return run_attacks_command(args, console)
     scenario = load_scenario(args.scenario)
     kills, restarts = tuple(args.kill), tuple(args.restart)
@@ -135,6 +145,7 @@ def run_chaos(args: argparse.Namespace, console: Console) -> int:
         secure=args.secure,
         net=args.net,
         keep_estimates=bool(args.view or args.record),
+        stack_gossip=_stack_gossip(args),
     )
     if plan.net == "netns":
         require_netns()
@@ -199,6 +210,13 @@ def _common(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--steps", type=positive_int, default=None, help="run only the first N steps")
     p.add_argument("--secure", action="store_true", help=SECURE_HELP)
+    p.add_argument(
+        "--stack-gossip",
+        choices=STACK_GOSSIP,
+        default=None,
+        help='what stacks carry (default delta): "ask" also asks a neighbour to push the slots '
+        'of robots out of range as they come, "full" every held slot (docs/wire.md)',
+    )
     add_view_options(p)
 
 

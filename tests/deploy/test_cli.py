@@ -203,6 +203,18 @@ def test_demo_launches_three_agents_over_zenoh_and_prints_the_final_table(tmp_pa
         assert "up at step 0" in (demo / "logs" / f"{robot}.log").read_text()
 
 
+def test_launch_stack_gossip_reaches_every_agents_config(tmp_path: Path) -> None:
+    r = semfleet(
+        "launch", "--scenario", "paper", "--mode", "realtime", "--steps", "3",
+        "--stack-gossip", "ask", "--out", "out", cwd=tmp_path,
+    )  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    for robot in ("r1", "r2", "r3"):
+        assert 'stack_gossip = "ask"' in (tmp_path / "out" / "agents" / f"{robot}.toml").read_text()
+    bad = semfleet("launch", "--scenario", "paper", "--stack-gossip", "rumour", cwd=tmp_path)
+    assert bad.returncode == 2 and "--stack-gossip: invalid choice: 'rumour'" in bad.stderr
+
+
 # --------------------------------------------------------------------------- errors → exit codes
 
 
@@ -218,6 +230,14 @@ GENERATE = ["scenario", "generate", "--robots", "1", "--objects", "2", "--classe
         (["launch", "--scenario", "paper", "--robots", "r1,r9"], "--robots: unknown robots"),
         (["launch", "--scenario", "paper", "--steps", "61"], "--steps: 61 outside 1..60"),
         (["chaos", "--scenario", "paper", "--kill", "r9@3"], "--kill/--restart: unknown robot"),
+        (
+            ["chaos", "--scenario", "paper", "--attack", "all", "--stack-gossip", "ask"],
+            "--stack-gossip: not with --attack",
+        ),
+        (
+            ["launch", "--scenario", "paper", "--conductor-only", "--stack-gossip", "full"],
+            "--stack-gossip: not with --conductor-only",
+        ),
         (
             ["launch", "--scenario", "paper", "--advertise", "tcp/10.0.0.1:7447"],
             "--advertise: only",
