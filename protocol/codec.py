@@ -231,11 +231,11 @@ def _at(where: str, bad: Any, name: str, rows: IntArray | None = None) -> str:
 
 def _eta_norm(eta: Array) -> Array:
     """‖η‖₂ per row of (R, m), scaled by max|ηᵢ| first: squares of tiny or huge entries would
-    under- or overflow."""
+    under- or overflow (a norm beyond the largest float is inf, without a warning)."""
     scale = np.abs(eta).max(axis=1)
-    return np.asarray(
-        scale * np.linalg.norm(eta / np.where(scale > 0.0, scale, 1.0)[:, None], axis=1)
-    )
+    unit = np.linalg.norm(eta / np.where(scale > 0.0, scale, 1.0)[:, None], axis=1)
+    with np.errstate(over="ignore"):
+        return np.asarray(scale * unit)
 
 
 def _certified(info: Array, eta: Array, lim: Limits) -> bool:
@@ -256,11 +256,11 @@ def _certified(info: Array, eta: Array, lim: Limits) -> bool:
         return False
     largest_diagonal = np.diagonal(info, axis1=1, axis2=2).max(axis=1)
     reach = largest_diagonal * eta_bound(info.shape[1] // 3, lim)
-    # ‖η‖ ≤ √m·max|ηᵢ|: that bound decides most slots without the norm itself
-    if (
-        not (math.sqrt(eta.shape[1]) * np.abs(eta).max(axis=1) <= reach).all()
-        and not (_eta_norm(eta) <= reach).all()
-    ):
+    # ‖η‖ ≤ √m·max|ηᵢ|: that bound decides most slots without the norm itself (an overflow to
+    # inf fails it, and the scaled norm decides)
+    with np.errstate(over="ignore"):
+        quick = (math.sqrt(eta.shape[1]) * np.abs(eta).max(axis=1) <= reach).all()
+    if not quick and not (_eta_norm(eta) <= reach).all():
         return False
     floor = lim.world_extent**-2
     shift = np.maximum((gershgorin + floor) / lim.max_condition - floor, 0.0)

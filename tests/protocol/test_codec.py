@@ -1109,6 +1109,8 @@ NUMBER_CASES: list[tuple[str, dict[str, Any], type[RemoteProtocolError] | None, 
     ("eta-over", {"eta": _eta_at_bound(R1B.info, 1.001)}, LimitExceeded, "eta", DEFAULT),
     ("eta-under", {"eta": _eta_at_bound(R1B.info, 0.999)}, None, "", DEFAULT),
     ("eta-huge", {"eta": np.full(9, 1e300)}, LimitExceeded, "eta", DEFAULT),
+    # √m·max|ηᵢ| overflows to inf (no warning): the scaled norm decides.
+    ("eta-near-float-max", {"eta": np.full(9, 1.7e308)}, LimitExceeded, "eta", DEFAULT),
     (
         "eta-of-zero-info",
         {"info": np.zeros((9, 9)), "eta": np.full(9, 1e-300)},
@@ -1121,6 +1123,7 @@ NUMBER_CASES: list[tuple[str, dict[str, Any], type[RemoteProtocolError] | None, 
 ]
 
 
+@pytest.mark.filterwarnings("error")  # a bound is decided without floating-point warnings
 @pytest.mark.parametrize(
     ("changes", "error", "suffix", "limits"),
     [pytest.param(c, e, s, lim, id=name) for name, c, e, s, lim in NUMBER_CASES],
