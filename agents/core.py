@@ -115,10 +115,10 @@ class CoreSettings:
     publish_local: bool = True
     simulation: bool = False
     # "delta": a stack carries the held slots some peer lacks, by the digests (``have``) peers
-    # send; "ask": delta, and this robot asks one relay to push, as they come, the versions of
-    # each owner it does not hear; "full": every held slot, every time (docs/wire.md, "Delta
-    # gossip" and "Asks").
-    stack_gossip: str = "delta"
+    # send; "ask" (the default): delta, and this robot asks one relay to push it the versions of
+    # each owner it does not hear, each with the relay's next gossip tick; "full": every held
+    # slot, every time (docs/wire.md, "Delta gossip" and "Asks").
+    stack_gossip: str = "ask"
     catch_up: int = CATCH_UP_STEPS
     # A simulated real time agent subscribes to the stacks of the peers in range only, from the
     # links the simulator sends a step ahead (``sim/listen``; docs/agents.md): the stacks of the
@@ -320,6 +320,7 @@ class AgentCore:
         self._got: dict[str, float] = {}
         self._sent: dict[str, tuple[tuple[int, int], float]] = {}
         self._out_include: set[str] = set()  # the owners of the slots in ``_out.stack``
+        self._out_urgent = False  # whether ``_out.stack`` goes at once (not only asked slots)
         self._tick_last: bytes | None = None  # the timer thread's own: the last stack it sent
         # The timer thread's own: the digest last sent (by a tick, alone or with slots, or with a
         # stack of the worker: ``_Outgoing.digest_sent_at``), and when.
@@ -457,9 +458,10 @@ class AgentCore:
         actions += self._listen() + self._hear()
         self._refresh()
         out = self._out
-        if out.fresh and out.digest is not None and out.stack is not None and self._out_include:
+        if out.fresh and out.digest is not None and out.stack is not None and self._out_urgent:
             # Delta gossip in real time: what a peer turned out to lack goes now, not at the
-            # next tick (a tick then carries the digest alone); so does a new ask.
+            # next tick (a tick then carries the digest alone) — but a slot only a peer's ask
+            # sends waits for the tick (docs/wire.md, "Asks"); a changed ask goes now.
             self._out = dataclasses.replace(out, fresh=False, digest_sent_at=now)
             self.node.mark_sent(len(out.stack))
             actions.append(Publish(self.keys.stack(self.robot), out.stack))
@@ -1153,7 +1155,9 @@ class AgentCore:
         would bring. Real time: a slot goes to a peer whose digest lacks it only once that peer
         had its chance — a digest that came a gossip period after the slot came here (from its
         owner, whom the peer may hear itself) and after this agent last sent it; the own slot's
-        new version goes at once. A peer that joined (an empty digest) so gets a whole stack."""
+        new version goes at once. A peer that joined (an empty digest) so gets a whole stack. A
+        peer that asks this robot for an owner (it does not hear that owner) has no chance to
+        wait for: the slot goes with the next tick (docs/wire.md, "Asks")."""
         node = self.node
         if self.settings.stack_gossip == "full":
             return node.encoded_stack(), None, True
@@ -1168,6 +1172,7 @@ class AgentCore:
             for peer in node.roster - {self.robot} - set(digests):
                 digests[peer] = ({}, -math.inf, frozenset())
         include: set[str] = set()
+        urgent = False
         if not strict and self._out.fresh and self._tick_last is not self._out.stack:
             include |= self._out_include & set(stack.by_owner())  # computed, not sent yet
         for slot in stack:
@@ -1187,10 +1192,12 @@ class AgentCore:
                 if resend and (chance or on_ask):
                     include.add(slot.owner)
                     self.counters.asks_answered += on_ask
+                    urgent |= not on_ask
                     break
         for owner in include:
             self._sent[owner] = (stack.by_owner()[owner].version, self._now)
         self._out_include = include
+        self._out_urgent = urgent
         asks = None if strict else self._current_asks()
         data = node.encoded_delta(include, asks)
         digest = None if strict else node.encoded_delta((), asks)

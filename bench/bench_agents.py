@@ -11,9 +11,10 @@ one 2-core machine runs in realtime mode, with CPU and memory per agent.
   scouting off), realtime; the time from a new version of r1's slot in r1's stack to the same
   version in r4's stack, over 3 hops; with delta gossip against full gossip, in the same run. With
   full gossip a hop costs on average half a gossip period plus the transit; delta gossip first
-  gives a peer a period to get the version from its owner (docs/wire.md, "Delta gossip"); with
-  ``stack_gossip = "ask"`` a robot asks a neighbour to push the slots of the robots it does not
-  hear, and the neighbour pushes each new version at once (docs/wire.md, "Asks").
+  gives a peer a period to get the version from its owner (docs/wire.md, "Delta gossip"), unless
+  the peer asked for it (the default, ``stack_gossip = "ask"``): a robot asks a neighbour to push
+  the slots of the robots it does not hear, and the neighbour sends each new version with its
+  next tick (docs/wire.md, "Asks").
 - Capacity: bench/bench_capacity.py.
 """
 
@@ -72,8 +73,8 @@ def _proc_usage(pid: int) -> tuple[float, float]:
 
 
 def _relay_rows(tmp: Path) -> list[Result]:
-    """Relay per hop with delta gossip (the default) and with standing asks, against full
-    gossip, the same line run with each in turn."""
+    """Relay per hop with the default (delta gossip with asks) and with ``"delta"`` (no asks),
+    against full gossip, the same line run with each in turn."""
     full = _relay_per_hop(tmp, "full")
     delta = _relay_per_hop(tmp, "delta")
     ask = _relay_per_hop(tmp, "ask")
@@ -83,25 +84,24 @@ def _relay_rows(tmp: Path) -> list[Result]:
     return [
         Result(
             "relay latency per hop (4 agents on a line)",
-            len(delta),
-            statistics.median(delta),
-            baseline_ms=statistics.median(full),
-            note=f"median over {len(delta)} versions of r1's slot reaching r4 over 3 hops; "
-            f"gossip period {GOSSIP_S * 1e3:.0f} ms; baseline = full gossip, the same launch "
-            f"({len(full)} versions): every tick re-sends every slot, so a hop waits for the next "
-            f"tick (≈ {GOSSIP_S * 500:.0f} ms + transit); delta gossip relays a version to a peer "
-            f"whose digest lacks it once that peer could have had it from its owner, a gossip "
-            f'period after it came (docs/wire.md, "Delta gossip")',
-        ),
-        Result(
-            'relay latency per hop, stack_gossip = "ask" (4 agents on a line)',
             len(ask),
             statistics.median(ask),
             baseline_ms=statistics.median(full),
-            note=f"median over {len(ask)} versions, as above; each robot asks a neighbour to "
-            f"push the slots of the robots it does not hear, and the neighbour pushes each new "
-            f"version when it merges it; what remains is mostly r4's wait for its next digest, "
-            f'which is when the benchmark sees what r4 holds (docs/wire.md, "Asks")',
+            note=f"median over {len(ask)} versions of r1's slot reaching r4 over 3 hops, the "
+            f"default (each robot asks a neighbour to push it the slots of the robots it does not "
+            f"hear, and the neighbour sends each new version with its next tick); gossip period "
+            f"{GOSSIP_S * 1e3:.0f} ms; baseline = full gossip, the same launch ({len(full)} "
+            f"versions): every tick re-sends every slot, so a hop waits for the next tick "
+            f'(≈ {GOSSIP_S * 500:.0f} ms + transit) (docs/wire.md, "Asks")',
+        ),
+        Result(
+            'relay latency per hop, stack_gossip = "delta" (4 agents on a line)',
+            len(delta),
+            statistics.median(delta),
+            baseline_ms=statistics.median(full),
+            note=f"median over {len(delta)} versions, as above, without asks: a version goes to a "
+            f"peer whose digest lacks it once that peer could have had it from its owner, a "
+            f'gossip period after it came (docs/wire.md, "Delta gossip")',
         ),
     ]
 

@@ -219,7 +219,7 @@ def _read_agent_config(path: Path, robot: str) -> AgentConfig:
     period = a.number("gossip_period") if a.has("gossip_period") else GOSSIP_PERIOD_S
     if not 0.01 <= period <= 3600:
         raise a.fail("gossip_period", "must be in 0.01..3600 s")
-    stack_gossip = a.string("stack_gossip") if a.has("stack_gossip") else "delta"
+    stack_gossip = a.string("stack_gossip") if a.has("stack_gossip") else "ask"
     if stack_gossip not in STACK_GOSSIP:
         raise a.fail("stack_gossip", f"{stack_gossip!r} (known: {', '.join(STACK_GOSSIP)})")
     runtime = CoreSettings(

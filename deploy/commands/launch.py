@@ -83,7 +83,7 @@ def _steps(scenario: Scenario, steps: int | None) -> int | None:
 def _stack_gossip(args: argparse.Namespace) -> str:
     if args.stack_gossip is not None and getattr(args, "conductor_only", False):
         raise UsageError("--stack-gossip: not with --conductor-only (the agents' configs decide)")
-    return str(args.stack_gossip or "delta")
+    return str(args.stack_gossip or "ask")
 
 
 def run_launch(args: argparse.Namespace, console: Console) -> int:
@@ -214,8 +214,9 @@ def _common(p: argparse.ArgumentParser) -> None:
         "--stack-gossip",
         choices=STACK_GOSSIP,
         default=None,
-        help='what stacks carry (default delta): "ask" also asks a neighbour to push the slots '
-        'of robots out of range as they come, "full" every held slot (docs/wire.md)',
+        help='what stacks carry: "ask" (default) what peers lack, and a robot asks a neighbour '
+        'for the slots of robots out of its range; "delta" without asks; "full" every held '
+        "slot (docs/wire.md)",
     )
     add_view_options(p)
 

@@ -78,7 +78,7 @@ class LaunchPlan:
     mode: str = "lockstep"
     period: float = 0.5
     gossip_period: float = GOSSIP_PERIOD_S
-    stack_gossip: str = "delta"  # or "ask", "full" (docs/wire.md, "Delta gossip", "Asks")
+    stack_gossip: str = "ask"  # or "delta", "full" (docs/wire.md, "Delta gossip", "Asks")
     catch_up: int = CATCH_UP_STEPS  # realtime: steps in a row that may defer fusion (agents.core)
     listen_in_range: bool = True  # realtime simulation: subscribe to the peers in range only
     comm: str | None = None

@@ -97,11 +97,11 @@ def test_agent_config_world_extent_sets_the_limits(tmp_path: Path) -> None:
     assert c.limits.num_classes == c.model.num_classes
 
 
-def test_agent_config_stack_gossip_is_one_of_the_known_ways(tmp_path: Path) -> None:
+def test_agent_config_stack_gossip_is_one_of_the_known_ways_ask_by_default(tmp_path: Path) -> None:
     for way in ("delta", "ask", "full"):
         text = _set("agent.stack_gossip", f'"{way}"')
         assert load_agent_config(_write(tmp_path, text), "r1").runtime.stack_gossip == way
-    assert load_agent_config(_write(tmp_path, MINIMAL), "r2").runtime.stack_gossip == "delta"
+    assert load_agent_config(_write(tmp_path, MINIMAL), "r2").runtime.stack_gossip == "ask"
 
 
 def test_agent_config_defaults(tmp_path: Path) -> None:

@@ -1,7 +1,8 @@
-"""Standing asks (``stack_gossip = "ask"``; docs/wire.md, "Asks"): a robot that does not hear an
-owner asks one relay to push that owner's versions; the relay pushes each new version at once,
-not a gossip period later; a forged or repeated ask sends nothing more than a lacking digest
-would. Real cores and codecs, simulated time."""
+"""Standing asks (``stack_gossip = "ask"``, the default; docs/wire.md, "Asks"): a robot that does
+not hear an owner asks one relay to push that owner's versions; the relay pushes each new
+version with its next gossip tick, not a gossip period after the version came; a forged or
+repeated ask sends nothing more than a lacking digest would. Real cores and codecs, simulated
+time."""
 
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ from protocol.codec import StackMessage, decode, encode
 from protocol.frames import encode_frame
 from protocol.stack import Stack
 from sim.loader import load_scenario
-from tests.deploy.test_delta_gossip import KEYS, _hearing_pair, _stacks
+from tests.deploy.test_delta_gossip import KEYS, _hearing_pair, _stacks, _tick
 
 PERIOD = 0.5
 
@@ -34,9 +35,11 @@ def _digest(sender: str, have: dict[str, tuple[int, int]]) -> bytes:
     return encode(StackMessage(sender, None, Stack(), 0, have=have))
 
 
-def test_a_robot_asks_one_relay_for_an_owner_it_does_not_hear_and_the_relay_pushes_at_once() -> (
-    None
-):
+def _slots_of(payloads: list[bytes], owner: str) -> list[tuple[int, int] | None]:
+    return [decode(p).stack.versions().get(owner) for p in payloads]
+
+
+def test_a_robot_asks_one_relay_for_an_owner_it_does_not_hear_and_it_pushes_at_its_tick() -> None:
     r1, log1, r2, log2, frames, now = _hearing_pair(2)
     r3, log3 = _asker()
     _stacks(r3.start(now), log3, "r3")
@@ -45,18 +48,22 @@ def test_a_robot_asks_one_relay_for_an_owner_it_does_not_hear_and_the_relay_push
     sent = _stacks(r3.on_message(KEYS.stack("r2"), r2.node.encoded_delta(()), now), log3, "r3")
     assert [decode(p).ask for p in sent] == [{"r1": "r2"}]
     assert r3.counter_values()["relays_asked"] == 1
-    # r2 pushes r1's slot to it at once, although r1's version came to r2 just now (without the
-    # ask it waits a gossip period: r3 might hear r1 itself).
+    # Without the ask, r1's slot waits for r3's chance (a gossip period after the version came to
+    # r2: r3 might hear r1 itself); r2's next tick does not carry it.
     plain = _digest("r3", r3.node.current_stack().versions())
-    assert all("r1" not in decode(p).stack.by_owner() for p in _stacks(
-        r2.on_message(KEYS.stack("r3"), plain, now + 0.01), log2, "r2"
-    ))  # fmt: skip
-    pushed = _stacks(r2.on_message(KEYS.stack("r3"), sent[0], now + 0.02), log2, "r2")
-    assert [decode(p).stack.versions().get("r1") for p in pushed] == [held["r1"]]
+    assert _slots_of(_stacks(r2.on_message(KEYS.stack("r3"), plain, now + 0.01), log2, "r2"),
+                     "r1") == []  # fmt: skip
+    assert all(v is None for v in _slots_of(_tick(r2, now + 0.02), "r1"))
+    # With it, not at once either (a tick comes within a period), but with r2's next tick.
+    assert _stacks(r2.on_message(KEYS.stack("r3"), sent[0], now + 0.03), log2, "r2") == []
+    pushed = _tick(r2, now + 0.04)
+    assert [v for v in _slots_of(pushed, "r1") if v] == [held["r1"]]
     assert r2.counter_values()["asks_answered"] == 1
-    _stacks(r3.on_message(KEYS.stack("r2"), pushed[0], now + 0.03), log3, "r3")
+    for p in pushed:
+        _stacks(r3.on_message(KEYS.stack("r2"), p, now + 0.05), log3, "r3")
     assert r3.node.stack.versions()["r1"] == held["r1"]
-    # The ask stands in r3's digests, and r2 pushes r1's next version the moment it merges it.
+    # The ask stands in r3's digests, and r2 pushes r1's next version with the tick after it
+    # merged it.
     tick = [decode(a.payload) for a in r3.on_timer(now + 0.1) if isinstance(a, Publish)]
     assert [m.ask for m in tick] == [{"r1": "r2"}]
     _stacks(r2.on_message(KEYS.stack("r3"), r3.node.encoded_delta((), {"r1": "r2"}), now + 0.1),
@@ -65,10 +72,10 @@ def test_a_robot_asks_one_relay_for_an_owner_it_does_not_hear_and_the_relay_push
     stepped = _stacks(
         r1.on_message(KEYS.frames("r1"), encode_frame(frames["r1"][2]), now), log1, "r1"
     )
-    relayed = _stacks(r2.on_message(KEYS.stack("r1"), stepped[-1], now + 0.01), log2, "r2")
+    merged = _stacks(r2.on_message(KEYS.stack("r1"), stepped[-1], now + 0.01), log2, "r2")
     newest = r1.node.stack.versions()["r1"]
-    assert newest > held["r1"]
-    assert [decode(p).stack.versions().get("r1") for p in relayed] == [newest]
+    assert newest > held["r1"] and _slots_of(merged, "r1") == []
+    assert [v for v in _slots_of(_tick(r2, now + 0.02), "r1") if v] == [newest]
     # Another relay's digest showing the same version does not make r3 ask again.
     again = _stacks(r3.on_message(KEYS.stack("r4"), _digest("r4", {"r1": newest}), now + 0.02),
                     log3, "r3")  # fmt: skip
@@ -133,12 +140,13 @@ def test_a_repeated_or_forged_ask_pushes_once_a_period_and_asks_go_at_once_once_
     lacking = encode(StackMessage("r3", None, Stack(), 0, have={}, ask={"r1": "r2"}))
 
     def pushed(t: float) -> list[tuple[int, int] | None]:
+        """r1's versions in what r2 sends on r3's ask at ``t`` and at its tick just after."""
         got = _stacks(r2.on_message(KEYS.stack("r3"), lacking, t), log2, "r2")
-        return [decode(p).stack.versions().get("r1") for p in got]
+        return [v for v in _slots_of(got + _tick(r2, t + 0.001), "r1") if v]
 
     assert pushed(now + 0.01) == [version]
     for i in range(9):  # the same ask, over and over, within the period: nothing more
-        assert all(v is None for v in pushed(now + 0.02 + 0.05 * i))
+        assert pushed(now + 0.02 + 0.05 * i) == []
     assert pushed(now + PERIOD + 0.05) == [version]  # still lacking a period later: lost, again
     # An asker sends at once at most once a gossip period, whatever forged digests make it ask.
     r3, log3 = _asker()

@@ -206,11 +206,12 @@ def test_demo_launches_three_agents_over_zenoh_and_prints_the_final_table(tmp_pa
 def test_launch_stack_gossip_reaches_every_agents_config(tmp_path: Path) -> None:
     r = semfleet(
         "launch", "--scenario", "paper", "--mode", "realtime", "--steps", "3",
-        "--stack-gossip", "ask", "--out", "out", cwd=tmp_path,
+        "--stack-gossip", "delta", "--out", "out", cwd=tmp_path,
     )  # fmt: skip
     assert r.returncode == 0, r.stderr
-    for robot in ("r1", "r2", "r3"):
-        assert 'stack_gossip = "ask"' in (tmp_path / "out" / "agents" / f"{robot}.toml").read_text()
+    for robot in ("r1", "r2", "r3"):  # not the default ("ask")
+        text = (tmp_path / "out" / "agents" / f"{robot}.toml").read_text()
+        assert 'stack_gossip = "delta"' in text
     bad = semfleet("launch", "--scenario", "paper", "--stack-gossip", "rumour", cwd=tmp_path)
     assert bad.returncode == 2 and "--stack-gossip: invalid choice: 'rumour'" in bad.stderr
 
