@@ -241,7 +241,7 @@ class CoreCounters:
     replayed_stacks: int = 0
     records_quarantined: int = 0
     relays_asked: int = 0  # (owner, relay) asks made: an owner this robot does not hear
-    asks_answered: int = 0  # slots sent at once because a peer asked this robot for them
+    asks_answered: int = 0  # slots sent (with the next tick) only because a peer asked for them
     last_invalid: dict[str, float] = field(default_factory=dict)
 
 
