@@ -87,7 +87,7 @@ def runs(world: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
     merge = ["study", "merge", str(root / "s0"), str(root / "s1")]
     assert main([*merge, "--out", str(root / "m")]) == 0
     with LocalCluster(
-        n_workers=1, processes=False, threads_per_worker=1, dashboard_address=None
+        n_workers=1, processes=False, threads_per_worker=1, dashboard_address="127.0.0.1:0"
     ) as cluster:
         argv = ["study", "--scenario", str(world), *STUDY, "--out", str(root / "full")]
         assert main([*argv, "--cluster", cluster.scheduler_address]) == 0
