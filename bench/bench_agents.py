@@ -6,7 +6,8 @@ one 2-core machine runs in realtime mode, with CPU and memory per agent.
   raw Zenoh put → subscriber-callback latency for the same payload, measured in the same run.
   Targets: ≤ 2 × raw + decode time (issue 5); ≤ 1.5 × raw (issue 14, for a relayed slot: every
   slot of the stack is a version the receiver lacks, so each is decoded and validated once, as a
-  relay's peer must).
+  relay's peer must). A fifth row times the floor of any validating receiver: the decode on
+  Zenoh's own thread, before any hand-off.
 - Relay per hop: 4 agent processes on a line whose Zenoh links only join neighbours (gossip
   scouting off), realtime; the time from a new version of r1's slot in r1's stack to the same
   version in r4's stack, over 3 hops; with delta gossip against full gossip, in the same run. With
