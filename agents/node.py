@@ -337,6 +337,8 @@ class RobotNode:
             log_w = np.array([h.log_weight for h in belief.hypotheses])
             if not (len(log_w) and np.isfinite(log_w).all()):
                 raise BeliefError(f"{self.robot}: {name} has non-finite hypothesis weights")
+            if belief.per_object and not np.isfinite(belief.class_log_posterior()).all():
+                raise BeliefError(f"{self.robot}: {name} has non-finite class evidence")
             position = belief.position(self.robot)
             if not all(np.isfinite(position)):
                 raise BeliefError(f"{self.robot}: {name} has a non-finite robot pose")

@@ -282,6 +282,11 @@ class DistributedBelief(HybridBelief):
         # Owner → (epoch, stamp) of the slot version D used (Slot.version).
         self.versions: dict[str, tuple[int, int]] = {}
         self._incoming: set[str] = set()  # owners of the batch being integrated
+        # Per-object classes: owner → (rows in ``object_ids``, log φ (n_i, M)) of the class
+        # evidence D holds of that robot — its newest version's (consistent fusion: replacing
+        # it divides out the version used before, Eq. 20 per object), or the sum of every
+        # version's (double counting).
+        self.object_phi: dict[str, tuple[IntArray, Array]] = {}
         self._completed = 0  # rows of the join being built that were completed (_nearest)
 
     @property
@@ -292,6 +297,13 @@ class DistributedBelief(HybridBelief):
     def information_sources(self) -> int:
         """The owner and every robot whose slot D holds or is integrating."""
         return 1 + len(set(self.versions) | self._incoming)
+
+    def class_log_posterior(self) -> Array:
+        """Per-object classes: the prior, D's own evidence and every held robot's log φ."""
+        out = np.array(super().class_log_posterior())
+        for rows, phi in self.object_phi.values():
+            out[rows] += phi
+        return out
 
     def wants(self, owner: str, version: tuple[int, int]) -> bool:
         """Whether a slot version (epoch, stamp) is new to this belief (never its own slot)."""
@@ -315,9 +327,51 @@ class DistributedBelief(HybridBelief):
             return FusionStats((), (), 0, len(self.hypotheses))
         self._incoming = set(owners)
         try:
+            if self.per_object:
+                return self._integrate_per_object(batch, settle)
             return self._integrate(batch, settle)
         finally:
             self._incoming = set()
+
+    def _integrate_per_object(self, batch: list[Slot], settle: bool) -> FusionStats:
+        """Per-object classes: every slot's ξ into the one continuous belief (its version used
+        before divided out, as for a realisation), every slot's class log φ replacing the one
+        D held of its owner (added to it under double counting). No join: nothing to leave out.
+        """
+        new: list[int] = []
+        for s in batch:
+            for j in s.summary.object_ids:
+                if j not in self._object_index and j not in new:
+                    new.append(j)
+        for j in new:
+            self._object_index[j] = len(self.object_ids)
+            self.object_ids.append(j)
+        grown = np.zeros((len(self.object_ids), self.model.num_classes))
+        grown[: len(self.log_evidence)] = self.log_evidence
+        self.log_evidence = grown
+        cont = self.hypotheses[0].continuous
+        picks = [(b, 0) for b in range(len(batch))]
+        self._fuse(cont, picks, batch, new, settle, _XiFactors())
+        n, m = len(self.object_ids), self.model.num_classes
+        for s in batch:
+            per_object = s.summary.per_object
+            assert per_object is not None  # check() refused any other slot
+            rows = np.array([self._object_index[j] for j in s.summary.object_ids], dtype=np.int64)
+            phi = np.asarray(per_object.log_phi, dtype=float)
+            held = self.object_phi.get(s.owner)
+            if self.fusion == "double_count" and held is not None:
+                total = np.zeros((n, m))
+                known = np.zeros(n, dtype=bool)
+                for r, p in (held, (rows, phi)):
+                    total[r] += p
+                    known[r] = True
+                rows = np.flatnonzero(known)
+                phi = total[rows]
+            self.object_phi[s.owner] = (rows, phi)
+            self.versions[s.owner] = s.version
+        self._set_map_classes()
+        owners = tuple(s.owner for s in batch)
+        return FusionStats(owners, (), 1, 1)
 
     def _integrate(self, batch: list[Slot], settle: bool) -> FusionStats:
         join, skipped = self._join(batch)
@@ -413,6 +467,8 @@ class DistributedBelief(HybridBelief):
             )
         self.object_ids = list(local.object_ids)
         self._object_index = {j: i for i, j in enumerate(self.object_ids)}
+        self.log_evidence = np.array(local.log_evidence)
+        self.object_phi = {}
         conts, which = distinct_continuous(local.hypotheses)
         copies = [c.copy() for c in conts]  # with L's semantic ledger; L holds no slot
         self.hypotheses = [
@@ -420,6 +476,7 @@ class DistributedBelief(HybridBelief):
             for h, g in zip(local.hypotheses, which, strict=True)
         ]
         self.versions = {}
+        self._class_rows = None
         stats = self.integrate([s for s in held if s.owner != self.owner], settle)
         return FusionStats(
             stats.integrated,
@@ -437,7 +494,7 @@ class DistributedBelief(HybridBelief):
         n = len(s.summary.object_ids)
         # As if every hypothesis held its own ξ: it bounds the slot's objects (223 with the
         # defaults), and with them the work of building and eliminating its dense ξ factor.
-        fusion_bytes = self.cap * (3 * n) ** 2 * 8
+        fusion_bytes = (1 if self.per_object else self.cap) * (3 * n) ** 2 * 8
         if fusion_bytes > self.config.max_fusion_bytes:
             cap = self.config.max_fusion_bytes / 2**20
             raise SlotError(
@@ -446,6 +503,20 @@ class DistributedBelief(HybridBelief):
             )
         if len(set(s.summary.object_ids)) != n:
             raise SlotError(f"slot of {s.owner}: duplicate object ids")
+        ours = "per_object" if self.per_object else "table"
+        if s.summary.kind != ours:
+            raise SlotError(
+                f"slot of {s.owner}: classes {s.summary.kind!r}, this belief's are {ours!r} "
+                "(every robot of a fleet must run the same BeliefConfig.classes)"
+            )
+        if s.summary.per_object is not None:
+            phi = np.asarray(s.summary.per_object.log_phi)
+            if phi.shape != (n, m) or not np.isfinite(phi).all():
+                raise SlotError(f"slot of {s.owner}: class log φ is not finite ({n}, {m})")
+            x = s.summary.per_object.xi
+            if x.lin.shape != (n, 3) or x.info.shape != (3 * n, 3 * n) or x.eta.shape != (3 * n,):
+                raise SlotError(f"slot of {s.owner}: ξ shapes do not fit {n} objects")
+            return
         rs = s.summary.realisations
         fits = isinstance(rs, Realisations) or all(len(r.classes) == n for r in rs)
         cls = s.summary.class_matrix() if fits else None
@@ -550,7 +621,8 @@ class DistributedBelief(HybridBelief):
         positions = []  # (slot, ξ, carried factor indices, graph position of its ξ factor)
         for b, r in picks:
             s = batch[b]
-            real = s.summary.realisations[r].xi
+            per_object = s.summary.per_object
+            real = s.summary.realisations[r].xi if per_object is None else per_object.xi
             ids = s.summary.object_ids
             for i, j in enumerate(ids):
                 if j in new_objects and j not in h.object_priors:

@@ -48,6 +48,9 @@ IntArray = NDArray[np.int64]
 
 log = logging.getLogger(__name__)
 
+# How a belief represents its classes (``BeliefConfig.classes``).
+CLASS_KINDS = ("joint", "per_object")
+
 
 @dataclass(frozen=True, slots=True)
 class BeliefConfig:
@@ -77,6 +80,12 @@ class BeliefConfig:
     from the root only through cliques with a variable over the threshold; False: check every
     variable) and the number of ``extra_updates`` after each measurement update.
 
+    ``classes``: ``"joint"`` keeps weighted joint class realisations (Eq. 4, pruned as above);
+    ``"per_object"`` keeps per object its class log-evidence (M numbers): with one continuous
+    belief the classes of different objects couple only through the Monte Carlo draws the
+    detections of one step share, so the posterior is taken as a product over objects
+    (docs/estimator.md, "Per-object classes"); no realisation, no branching, no pruning.
+
     ``semantic_poses``: whether the semantic factors also enter the Gaussians, so that every
     class realisation has a continuous belief of its own (Eq. 5 taken literally, the paper's
     model; ``BeliefConfig.paper()``). By default they do not: the semantic measurements weigh the
@@ -102,8 +111,15 @@ class BeliefConfig:
     partial_relinearization: bool = True
     extra_updates: int = 1
     semantic_poses: bool = False
+    classes: str = "joint"
 
     def __post_init__(self) -> None:
+        if self.classes not in CLASS_KINDS:
+            raise ValueError(f"classes {self.classes!r} (known: {', '.join(CLASS_KINDS)})")
+        if self.classes == "per_object" and self.semantic_poses:
+            raise ValueError(
+                'classes = "per_object" needs one continuous belief (semantic_poses = False)'
+            )
         if self.weight_estimator not in WEIGHT_ESTIMATORS:
             known = ", ".join(WEIGHT_ESTIMATORS)
             raise ValueError(f"weight_estimator {self.weight_estimator!r} (known: {known})")
@@ -351,6 +367,14 @@ class HybridBelief:
         ledger = None if self.config.semantic_poses else SemanticLedger()
         first = Continuous(isam, isam.calculateEstimate(), ledger=ledger)
         self.hypotheses = [Hypothesis((), first, 0.0)]
+        # Per-object classes: every known object's class log-evidence L (n, M), the prior left
+        # out (P(c_j) ∝ P(c) · exp(L_j)); empty and unused for joint realisations.
+        self.log_evidence = np.zeros((0, model.num_classes))
+
+    @property
+    def per_object(self) -> bool:
+        """Whether classes are per-object beliefs (``BeliefConfig.classes``)."""
+        return self.config.classes == "per_object"
 
     # -- keys and queries -------------------------------------------------------------------
 
@@ -407,7 +431,15 @@ class HybridBelief:
 
     def class_marginals(self) -> Array:
         """P(c_j = i) (n, M) for the known objects in ``object_ids`` order."""
+        if self.per_object:
+            log_post = self.class_log_posterior()
+            return np.asarray(np.exp(log_post - np.asarray(logsumexp(log_post, axis=1))[:, None]))
         return class_marginals(self.weights(), self.class_matrix(), self.model.num_classes)
+
+    def class_log_posterior(self) -> Array:
+        """Per-object classes: log P(c_j = i) + const (n, M), prior and every piece of evidence
+        this belief holds."""
+        return self._log_prior[None, :] + self.log_evidence
 
     def map_hypothesis(self) -> Hypothesis:
         return max(self.hypotheses, key=lambda h: h.log_weight)
@@ -446,6 +478,7 @@ class HybridBelief:
         )
         classes = self.class_matrix()
         weights = self.weights()
+        probs = self.class_marginals() if self.per_object else None
         out = {}
         for robot in robots:
             xk = self.pose_key(robot)
@@ -457,6 +490,7 @@ class HybridBelief:
                 per_hypothesis(np.array([c.isam.marginalCovariance(xk) for c in conts])),
                 object_pose,
                 object_cov,
+                probs,
             )
         return out
 
@@ -472,6 +506,8 @@ class HybridBelief:
             if d.object_id not in self._object_index and d.object_id not in first:
                 new_ids.append(d.object_id)
                 first[d.object_id] = (f, d)
+        if self.per_object:
+            return self._step_per_object(frames, detections, new_ids, first, rng)
         parents = self.hypotheses
         conts, which = distinct_continuous(parents)
         for c in conts:
@@ -493,9 +529,87 @@ class HybridBelief:
         self._normalise()
         return StepStats(len(parents), beam.weighed, len(self.hypotheses))
 
+    def _step_per_object(
+        self,
+        frames: Sequence[SensorFrame],
+        detections: Sequence[tuple[SensorFrame, Detection]],
+        new_ids: Sequence[int],
+        first: Mapping[int, tuple[SensorFrame, Detection]],
+        rng: np.random.Generator,
+    ) -> StepStats:
+        """The step with per-object classes: the one continuous belief is propagated, every
+        detected object's class log-evidence moves by its share of the weight integral (Eq. 6
+        with the objects' classes summed out one by one: log (1/S) Σ_s Π_{d of j} P(z_d | c,
+        ψ_ds), the same draws as the joint path), then the geometric factors enter."""
+        cont = self.hypotheses[0].continuous
+        self._propagate(cont, frames, first)
+        for f in frames:
+            self.step_of[f.robot] = f.k
+        for j in new_ids:
+            self._object_index[j] = len(self.object_ids)
+            self.object_ids.append(j)
+        m = self.model.num_classes
+        grown = np.zeros((len(self.object_ids), m))
+        grown[: len(self.log_evidence)] = self.log_evidence
+        self.log_evidence = grown
+        if detections:
+            rows, evidence = self._object_evidence(cont, detections, rng)
+            self.log_evidence[rows] += evidence
+            self._measure(cont, (), detections)
+        self._relinearise_evidence()
+        self._set_map_classes()
+        return StepStats(1, 1, 1)
+
+    def _object_evidence(
+        self,
+        cont: Continuous,
+        detections: Sequence[tuple[SensorFrame, Detection]],
+        rng: np.random.Generator,
+    ) -> tuple[IntArray, Array]:
+        """The detected objects' rows in ``object_ids`` (T,) and the class log-evidence (T, M)
+        this step's detections give each: log Σ_s w_s Π_{d of j} P(z_d | c, ψ_ds), w_s the
+        normalised sample weights (uniform for ``geo_conditioned``)."""
+        terms = self._semantic_terms(detections)
+        g = self._involved(cont, detections)
+        if self.config.weight_estimator == "geo_conditioned":
+            eps = rng.standard_normal((self.config.num_samples, len(g.info)))
+            base_all, log_lik_all = geo_conditioned_batch([g], terms, self.model.classifier, eps)
+            base, log_lik = base_all[0], log_lik_all[0]
+        else:
+            z_geo = np.array([d.z_geo for _, d in detections])
+            geo_terms = (terms.robot_var, terms.object_var, z_geo, self._geo_cov)
+            ev = paper_mc_samples(
+                g, terms, geo_terms, self.model.classifier, self.config.num_samples, rng
+            )
+            base, log_lik = ev.base, ev.log_lik
+        det_rows = np.array([self._object_index[d.object_id] for _, d in detections])
+        rows, group = np.unique(det_rows, return_inverse=True)
+        onehot = group.reshape(-1)[:, None] == np.arange(len(rows))[None, :]  # (D, T)
+        per_object = np.einsum("sdm,dt->stm", log_lik, onehot.astype(float))  # (S, T, M)
+        log_w = base - logsumexp(base)  # (S,)
+        evidence = logsumexp(per_object + log_w[:, None, None], axis=0)
+        if not np.isfinite(evidence).all():
+            raise FloatingPointError("a detection has zero likelihood under every class")
+        return rows.astype(np.int64), np.asarray(evidence)
+
+    def _set_map_classes(self) -> None:
+        """Per-object classes: the one hypothesis carries every object's most probable class
+        (what snapshots and plots show as its realisation)."""
+        h = self.hypotheses[0]
+        h.classes = tuple(np.argmax(self.class_log_posterior(), axis=1).tolist())
+        h.log_weight = 0.0
+        self._class_rows = None
+
     def _relinearise_evidence(self) -> None:
         """Move every hypothesis' weight by the change of its semantic evidence since the
         weights last saw its continuous belief's estimate (``estimator.ledger``)."""
+        if self.per_object:
+            ledger = self.hypotheses[0].continuous.ledger
+            if ledger is not None and self.object_ids:
+                cont = self.hypotheses[0].continuous
+                model = self.model.classifier
+                self.log_evidence += ledger.refresh(cont.estimate, model, self._object_index)
+            return
         conts, which = distinct_continuous(self.hypotheses)
         if not self.object_ids or all(c.ledger is None for c in conts):
             return

@@ -17,7 +17,7 @@ from numpy.typing import NDArray
 
 from estimator.factors import object_key
 from estimator.hybrid import Continuous, HybridBelief, distinct_continuous
-from estimator.summary import LocalSummary, Realisation, Xi
+from estimator.summary import LocalSummary, ObjectClasses, Realisation, Xi
 
 Array = NDArray[np.float64]
 
@@ -25,14 +25,23 @@ Array = NDArray[np.float64]
 # Gaussian after the prior division even when an object is barely constrained.
 EIGEN_FLOOR = 1e-9
 
+# A class ruled out by more than this many nats against an object's most probable class is held
+# here in a slot (P ≤ e^-1000: no difference to any probability, and the wire's bound on log φ
+# holds however long the mission).
+PHI_FLOOR = -1000.0
+
 
 def summarise(belief: HybridBelief) -> LocalSummary | None:
-    """ξ and log φ for every hypothesis of ``belief``; None while it knows no object."""
+    """ξ and log φ for every hypothesis of ``belief`` (per-object classes: the one ξ and every
+    object's class log φ); None while it knows no object."""
     if not belief.object_ids:
         return None
     ids = tuple(belief.object_ids)
-    log_prior = np.log(np.asarray(belief.model.class_prior, dtype=float))
     prior_noise = gtsam.noiseModel.Diagonal.Sigmas(np.array(belief.config.object_prior_sigmas))
+    if belief.per_object:
+        xi = _prior_divided_marginal(belief.hypotheses[0].continuous, ids, prior_noise)
+        return LocalSummary(ids, (), ObjectClasses(object_log_phi(belief.log_evidence), xi))
+    log_prior = np.log(np.asarray(belief.model.class_prior, dtype=float))
     conts, which = distinct_continuous(belief.hypotheses)
     xis = [_prior_divided_marginal(c, ids, prior_noise) for c in conts]
     # Σ_j log P(c_j) of every hypothesis, summed left to right as Python's sum over its classes
@@ -42,6 +51,17 @@ def summarise(belief: HybridBelief) -> LocalSummary | None:
     for h, g, p in zip(belief.hypotheses, which, prior_sum, strict=True):
         out.append(Realisation(h.classes, h.log_weight - p, xis[g]))
     return LocalSummary(ids, tuple(out))
+
+
+def object_log_phi(log_evidence: Array) -> Array:
+    """A slot's per-object class log φ from a belief's class log-evidence L (n, M): each row
+    moved so that its largest entry is 0 (the posterior is unchanged: L is defined up to a
+    constant per object), and a class ruled out beyond ``PHI_FLOOR`` nats held there, so that
+    the numbers stay bounded over any mission. Read-only."""
+    phi = log_evidence - log_evidence.max(axis=1, keepdims=True)
+    phi = np.maximum(phi, PHI_FLOOR)
+    phi.flags.writeable = False
+    return phi
 
 
 def _prior_divided_marginal(

@@ -22,6 +22,11 @@ class BeliefSnapshot:
     ``object_ids`` (n,); ``weights`` (H,) normalised; ``classes`` (H, n); ``robot_pose`` (H, 3) and
     ``robot_cov`` (H, 3, 3) of the robot's latest pose (body-frame tangent covariance);
     ``object_pose`` (H, n, 3) and ``object_cov`` (H, n, 3, 3).
+
+    ``class_probs`` (n, M): the class marginals of a belief with per-object class beliefs
+    (``BeliefConfig.classes = "per_object"``), which has one hypothesis (H = 1, its ``classes``
+    the most probable class of every object); None for a realisation table, whose marginals are
+    summed from ``weights`` and ``classes``. Read them with :meth:`marginals`.
     """
 
     object_ids: tuple[int, ...]
@@ -31,3 +36,13 @@ class BeliefSnapshot:
     robot_cov: Array
     object_pose: Array
     object_cov: Array
+    class_probs: Array | None = None
+
+    def marginals(self, num_classes: int) -> Array:
+        """P(c_j = i) (n, M) of the known objects."""
+        if self.class_probs is not None:
+            return self.class_probs
+        out = np.zeros((self.classes.shape[1], num_classes))
+        for i in range(num_classes):  # as estimator.pruning.class_marginals, to the bit
+            out[:, i] = self.weights @ (self.classes == i)
+        return out

@@ -1,4 +1,5 @@
-"""The numeric content of a slot: a local belief summarised per class realisation (ξ, φ)."""
+"""The numeric content of a slot: a local belief summarised per class realisation (ξ, φ), or per
+object (one ξ and a class log φ per object, :class:`ObjectClasses`)."""
 
 from __future__ import annotations
 
@@ -105,16 +106,41 @@ class Realisations(Sequence[Realisation]):
 
 
 @dataclass(frozen=True, slots=True, eq=False)
+class ObjectClasses:
+    """The class summary of a belief with per-object class beliefs (``BeliefConfig.classes =
+    "per_object"``; docs/estimator.md, "Per-object classes"): ``log_phi`` (n, M), every object's
+    class log-evidence with the class prior divided out (P(c_j) ∝ P(c) · exp(log_phi[j]) on the
+    owner's data alone; defined up to a constant per row), and the one ξ of its continuous
+    belief. Kept read-only."""
+
+    log_phi: Array
+    xi: Xi
+
+
+@dataclass(frozen=True, slots=True, eq=False)
 class LocalSummary:
-    """Every unpruned realisation of a local belief over the owner's objects ``object_ids``:
-    a tuple of :class:`Realisation`, or the same as columns (:class:`Realisations`)."""
+    """A local belief over the owner's objects ``object_ids``, summarised in one of two kinds:
+
+    - a realisation table (the joint class realisations of ``--hypotheses paper``/``exact`` and
+      of ``classes = "joint"``): every unpruned realisation, a tuple of :class:`Realisation` or
+      the same as columns (:class:`Realisations`); ``per_object`` None;
+    - per object (``per_object`` set): one ξ and an (n, M) class log φ; ``realisations`` empty.
+    """
 
     object_ids: tuple[int, ...]
     realisations: tuple[Realisation, ...] | Realisations
+    per_object: ObjectClasses | None = None
+
+    @property
+    def kind(self) -> str:
+        """``"per_object"`` or ``"table"``."""
+        return "table" if self.per_object is None else "per_object"
 
     def distinct_xi(self) -> tuple[list[Xi], list[int]]:
         """The distinct ξ of the realisations (by identity, in order of first use) and the index
-        of each realisation's ξ in that list."""
+        of each realisation's ξ in that list (per object: the one ξ, and no realisation)."""
+        if self.per_object is not None:
+            return [self.per_object.xi], []
         rs = self.realisations
         if isinstance(rs, Realisations):
             return rs.distinct_xi()
