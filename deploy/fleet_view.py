@@ -18,7 +18,6 @@ from numpy.typing import NDArray
 from agents.transport.base import Keys, Message
 from estimator.hybrid import BeliefSnapshot
 from estimator.metrics import mixture_position_moments
-from estimator.pruning import class_marginals
 from protocol.errors import RemoteProtocolError
 from protocol.estimate import EstimateLimits, EstimateMessage, decode_estimate
 
@@ -121,11 +120,18 @@ def belief_doc(snap: BeliefSnapshot, num_classes: int) -> dict[str, Any]:
     top = int(np.argmax(snap.weights))
     robot_pose, robot_cov = mixture_moments(snap.weights, snap.robot_pose, snap.robot_cov)
     obj_pose, obj_cov = mixture_moments(snap.weights, snap.object_pose, snap.object_cov)
-    marginals = class_marginals(snap.weights, snap.classes, num_classes)
+    marginals = snap.marginals(num_classes)
+    if marginals.shape[1] < num_classes:  # per-object marginals of fewer classes than are seen
+        marginals = np.pad(marginals, ((0, 0), (0, num_classes - marginals.shape[1])))
+    # MAP class: the top hypothesis' (a realisation table), or the most probable per object
+    if snap.class_probs is None:
+        map_class = snap.classes[top]
+    else:
+        map_class = np.argmax(snap.class_probs, axis=1)
     objects = [
         {
             "id": int(j),
-            "map_class": int(snap.classes[top, i]),
+            "map_class": int(map_class[i]),
             "marginals": marginals[i].tolist(),
             "pose": obj_pose[i].tolist(),
             "cov_xy": obj_cov[i].tolist(),
@@ -142,7 +148,8 @@ def belief_doc(snap: BeliefSnapshot, num_classes: int) -> dict[str, Any]:
 
 
 def classes_seen(view: FleetView) -> int:
-    """1 + the largest class index any hypothesis holds (estimates do not carry M; a class no
+    """1 + the largest class index any hypothesis holds, or M of a belief with per-object class
+    marginals (``class_probs`` (n, M)) if more (a realisation table does not carry M; a class no
     hypothesis holds has probability 0)."""
     top = 0
     for state in view.robots.values():
@@ -150,6 +157,8 @@ def classes_seen(view: FleetView) -> int:
             for snap in state.estimate.beliefs.values():
                 if snap.classes.size:
                     top = max(top, int(snap.classes.max()) + 1)
+                if snap.class_probs is not None:
+                    top = max(top, snap.class_probs.shape[1])
     return max(top, 1)
 
 

@@ -201,7 +201,7 @@ def plot_hypotheses(
 ) -> None:
     """Fig. 3b/3c: the heaviest hypotheses' robot and object estimates with 2σ ellipses over the
     truth, and P(c = 1) per known object against its true class."""
-    from estimator.metrics import class_marginals, world_position_cov
+    from estimator.metrics import world_position_cov
 
     s = world.scenario
     w = snap.weights
@@ -233,7 +233,7 @@ def plot_hypotheses(
     ax_map.set_title(f"{robot} at k = {k}: top {len(order)} of {len(w)} hypotheses (2σ)")
     ax_map.legend(fontsize=7)
     ax_map.grid(True, alpha=0.3)
-    prob = class_marginals(w, snap.classes, s.num_classes)
+    prob = snap.marginals(s.num_classes)
     x = np.arange(len(ids))
     true_c1 = np.array([1.0 if truth[j].class_index == 0 else 0.0 for j in ids])
     ax_class.bar(x, prob[:, 0], color="tab:blue", label="P(c = 1)")

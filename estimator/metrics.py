@@ -13,7 +13,6 @@ from numpy.typing import NDArray
 
 from estimator.hybrid import BeliefSnapshot
 from estimator.models import se2
-from estimator.pruning import class_marginals
 
 Array = NDArray[np.float64]
 
@@ -156,7 +155,8 @@ def mixture_position_nees(weights: Array, pose: Array, cov: Array, truth_xy: Arr
 
 
 def with_truth(snap: BeliefSnapshot, true_objects: Mapping[int, object]) -> BeliefSnapshot:
-    """``snap`` restricted to the objects that have a ground truth (itself if all of them do)."""
+    """``snap`` restricted to the objects that have a ground truth (itself if all of them do),
+    its per-object class marginals (``class_probs``) too."""
     keep = [i for i, j in enumerate(snap.object_ids) if j in true_objects]
     if len(keep) == len(snap.object_ids):
         return snap
@@ -164,6 +164,7 @@ def with_truth(snap: BeliefSnapshot, true_objects: Mapping[int, object]) -> Beli
         snap,
         object_ids=tuple(snap.object_ids[i] for i in keep),
         classes=snap.classes[:, keep],
+        class_probs=None if snap.class_probs is None else snap.class_probs[keep],
         object_pose=snap.object_pose[:, keep],
         object_cov=snap.object_cov[:, keep],
     )
@@ -180,7 +181,8 @@ def evaluate(
     ``true_pose`` (3,) is the robot's true pose; ``true_objects`` maps object id → (pose (3,),
     class index). Object metrics are NaN while the belief knows no object. Objects the belief
     holds but the world does not (a phantom: a forged slot or frame) have no error to measure and
-    are left out of the object metrics (:func:`with_truth`).
+    are left out of the object metrics (:func:`with_truth`). The class metrics score
+    :meth:`BeliefSnapshot.marginals` (a belief's per-object ``class_probs`` when it has them).
     """
     snap = with_truth(snap, true_objects)
     w = snap.weights
@@ -202,7 +204,7 @@ def evaluate(
         return out
     truth = np.array([true_objects[j][0] for j in snap.object_ids])
     true_classes = np.array([true_objects[j][1] for j in snap.object_ids], dtype=np.int64)
-    prob = class_marginals(w, snap.classes, num_classes)
+    prob = snap.marginals(num_classes)
     out["msde"] = msde(prob, true_classes)
     out["class_log_loss"] = class_log_loss(prob, true_classes)
     out["class_ece"] = class_ece(prob, true_classes)
@@ -226,7 +228,7 @@ def evaluate_calibration(
     poolable counterpart of ``evaluate(...)["class_ece"]``; zeros while no object is known."""
     snap = with_truth(snap, true_objects)
     true_classes = np.array([true_objects[j][1] for j in snap.object_ids], dtype=np.int64)
-    prob = class_marginals(snap.weights, snap.classes, num_classes)
+    prob = snap.marginals(num_classes)
     return calibration_stats(prob, true_classes)
 
 

@@ -5,7 +5,11 @@ An estimate is a msgpack map ``{"v": 3, "type": "estimate", "robot": str, "k": i
 object ids as a msgpack int array and every other array as one raw little-endian binary: float64
 for weights, poses and covariances; classes one unsigned byte each (version 3), or int64 (versions
 1 and 2, and any message with a class over 255), decoded and checked in one ``frombuffer``
-(docs/wire.md, "Estimates"). As in ``protocol.codec``, ``decode_estimate`` raises only
+(docs/wire.md, "Estimates"). A snapshot with per-object class marginals (``class_probs`` (n, M))
+adds two keys, ``num_classes`` (M) and ``class_probs`` (float64, C order), written only then: a
+message without them is byte for byte what it was, and the version is unchanged (an older
+decoder refuses a snapshot with them as unknown keys, but its ``decode_estimate_head`` still
+reads the message). As in ``protocol.codec``, ``decode_estimate`` raises only
 :class:`RemoteProtocolError` subclasses naming the field, and ``encode_estimate`` raises
 :class:`LocalProtocolError` for exactly what the decoder would reject under the same limits (the
 value checks are one function shared by both).
@@ -59,6 +63,11 @@ _LAYOUT: dict[str, tuple[str, tuple[str | int, ...]]] = {
     "object_cov": ("<f8", ("n", 3, 3)),
 }
 _SNAPSHOT_KEYS = frozenset({"objects", *_LAYOUT})
+# Optional, both or neither: a belief's per-object class marginals (n, M) and M.
+_PROBS = "class_probs"
+_NUM_CLASSES = "num_classes"
+_PROBS_KEYS = frozenset({_NUM_CLASSES, _PROBS})
+_PROBS_SNAPSHOT_KEYS = _SNAPSHOT_KEYS | _PROBS_KEYS
 # Arrays that may travel once for every hypothesis: a belief whose hypotheses share one
 # continuous belief (the default, docs/estimator.md) has the same poses and covariances in each,
 # and sending them H times made a 300-hypothesis estimate of 50 objects 1.6 MB instead of 0.15.
@@ -122,6 +131,14 @@ def _check_arrays(
         asymmetry = np.abs(cov - cov.transpose(0, 2, 1)).max(axis=(1, 2), initial=0.0)
         scale = np.abs(cov).max(axis=(1, 2), initial=0.0)
         need(bool((asymmetry <= lim.symmetry_tol * scale).all()), name, "not symmetric")
+    p = arrays.get(_PROBS)
+    if p is not None:  # (n, M) of the right shape
+        need(bool(np.isfinite(p).all()), _PROBS, "non-finite number")
+        need(bool(((p >= 0) & (p <= 1)).all()), _PROBS, "probability outside [0, 1]")
+        sums = np.sum(p, axis=1)
+        off = np.flatnonzero(np.abs(sums - 1.0) > lim.weight_tol)
+        if off.size:
+            need(False, _PROBS, f"row {int(off[0])} sums to {float(sums[off[0]])!r}, not 1")
 
 
 def _local(cond: bool, field: str, message: str) -> None:
@@ -195,6 +212,8 @@ def _encode_snapshot(snap: BeliefSnapshot, where: str, lim: EstimateLimits) -> d
         _local(a.shape == shape, f"{where}.{name}", f"expected shape {shape}, got {a.shape}")
         kinds = "iu" if dtype == "<i8" else "fiu"
         _local(a.dtype.kind in kinds, f"{where}.{name}", f"wrong dtype {a.dtype}")
+    if snap.class_probs is not None:
+        arrays[_PROBS] = _class_probs(snap.class_probs, n, where, lim)
     out: dict[str, Any] = {"objects": [int(j) for j in ids], _SHARED: False}
     for name in _SHAREABLE:
         a = arrays[name]
@@ -206,7 +225,30 @@ def _encode_snapshot(snap: BeliefSnapshot, where: str, lim: EstimateLimits) -> d
         out[name] = np.ascontiguousarray(arrays[name], dtype=dtype)
         if name != "classes":  # classes: bytes once the message's version is known
             out[name] = out[name].tobytes()
+    if _PROBS in arrays:
+        out[_NUM_CLASSES] = int(arrays[_PROBS].shape[1])
+        out[_PROBS] = np.ascontiguousarray(arrays[_PROBS], dtype="<f8").tobytes()
     return out
+
+
+def _class_probs(value: Any, n: int, where: str, lim: EstimateLimits) -> np.ndarray:
+    """A snapshot's ``class_probs`` as (n, M) float64, 1 ≤ M ≤ ``num_classes``: the values the
+    decoder will check."""
+    field = f"{where}.{_PROBS}"
+    try:
+        p = np.asarray(value)
+    except (TypeError, ValueError):
+        raise LocalProtocolError("expected an array", field) from None
+    ok = p.ndim == 2 and p.shape[0] == n
+    _local(ok, field, f"expected shape ({n}, M), got {p.shape}")
+    m = p.shape[1]
+    _local(
+        1 <= m <= lim.num_classes,
+        f"{where}.{_NUM_CLASSES}",
+        f"M = {m} outside 1..{lim.num_classes}",
+    )
+    _local(p.dtype.kind in "fiu", field, f"wrong dtype {p.dtype}")
+    return p.astype(np.float64)
 
 
 def _same_in_every_row(a: np.ndarray) -> bool:
@@ -288,7 +330,8 @@ def _decode_head(
 def _decode_snapshot(
     value: Any, where: str, lim: EstimateLimits, version: int = VERSION
 ) -> BeliefSnapshot:
-    s = as_map(value, where, _SNAPSHOT_KEYS)
+    probs = isinstance(value, dict) and not _PROBS_KEYS.isdisjoint(value)
+    s = as_map(value, where, _PROBS_SNAPSHOT_KEYS if probs else _SNAPSHOT_KEYS)
     objects = s["objects"]
     need(isinstance(objects, list), f"{where}.objects", "expected an array")
     n = len(objects)
@@ -320,5 +363,13 @@ def _decode_snapshot(
         need(got == size, f"{where}.{name}", f"expected {size} bytes for {shape}, got {got}")
         native = np.float64 if dtype == "<f8" else np.int64  # classes: int64, whatever the wire
         checked[name] = np.frombuffer(s[name], dtype=dtype).astype(native).reshape(shape)
+    if probs:
+        m = as_int(s[_NUM_CLASSES], f"{where}.{_NUM_CLASSES}", 1, lim.num_classes)
+        raw = s[_PROBS]
+        need(isinstance(raw, bytes), f"{where}.{_PROBS}", "expected binary data")
+        size = 8 * n * m
+        got = len(raw)
+        need(got == size, f"{where}.{_PROBS}", f"expected {size} bytes for {(n, m)}, got {got}")
+        checked[_PROBS] = np.frombuffer(raw, dtype="<f8").astype(np.float64).reshape(n, m)
     _check_values(checked, where, lim, InvalidValue)
     return BeliefSnapshot(ids, **(checked | shared))

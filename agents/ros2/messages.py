@@ -207,9 +207,9 @@ def pose_message(types: Ros2Types, snapshot: BeliefSnapshot, stamp_ns: int, fram
 
 
 def class_marginals(snapshot: BeliefSnapshot, num_classes: int) -> Array:
-    """(n, M): p(class of object j = c) = Σ_h w_h [classes[h, j] = c]."""
-    onehot = snapshot.classes[..., None] == np.arange(num_classes)
-    return np.asarray(np.einsum("h,hjc->jc", snapshot.weights, onehot))
+    """(n, M): p(class of object j = c) = Σ_h w_h [classes[h, j] = c], or the snapshot's
+    per-object ``class_probs`` when it has them (:meth:`BeliefSnapshot.marginals`)."""
+    return snapshot.marginals(num_classes)
 
 
 def ellipse_points(mean: Array, cov_xy: Array) -> Array:

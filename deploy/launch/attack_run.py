@@ -176,10 +176,13 @@ def clean_snapshots(plan: LaunchPlan, steps: int) -> dict[tuple[str, str, int], 
 def _same(a: BeliefSnapshot, b: BeliefSnapshot) -> bool:
     if a.object_ids != b.object_ids or not np.array_equal(a.classes, b.classes):
         return False
+    if (a.class_probs is None) != (b.class_probs is None):
+        return False  # per-object class marginals in one only
+    fields = FIELDS if a.class_probs is None else (*FIELDS, "class_probs")
     return all(
         np.shape(getattr(a, f)) == np.shape(getattr(b, f))
         and np.allclose(getattr(a, f), getattr(b, f), rtol=RTOL, atol=ATOL)
-        for f in FIELDS
+        for f in fields
     )
 
 

@@ -32,7 +32,6 @@ from deploy.fleet_view import mixture_moments
 from deploy.launch.conductor import Collected, Conductor, links_at
 from deploy.launch.rerun_layout import fleet_blueprint
 from deploy.launch.run import LaunchOutcome, LaunchPlan, launch
-from estimator.pruning import class_marginals
 from estimator.snapshot import BeliefSnapshot
 from protocol.estimate import EstimateMessage
 from sim.scenario import Scenario
@@ -189,7 +188,7 @@ class RerunLog:
         rr, log = self.rr, self.stream.log
         path = f"world/robots/{robot}/{belief}/objects"
         pose, cov = mixture_moments(snap.weights, snap.object_pose, snap.object_cov)
-        prob = class_marginals(snap.weights, snap.classes, self.scenario.num_classes)
+        prob = snap.marginals(self.scenario.num_classes)
         best = np.argmax(prob, axis=1) if len(prob) else np.zeros(0, dtype=int)
         labels = [
             f"o{o} class {c + 1} ({prob[i, c]:.2f})"

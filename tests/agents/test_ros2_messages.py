@@ -56,6 +56,27 @@ def _snapshot() -> BeliefSnapshot:
     )
 
 
+def test_ros2_markers_show_per_object_class_marginals() -> None:
+    """A belief with per-object class marginals is labelled from them, not from its one
+    hypothesis' classes (here (table, chair), said otherwise on purpose)."""
+    snap = _snapshot()
+    one = BeliefSnapshot(
+        snap.object_ids,
+        np.array([1.0]),
+        snap.classes[:1],
+        snap.robot_pose[:1],
+        snap.robot_cov[:1],
+        snap.object_pose[:1],
+        snap.object_cov[:1],
+        class_probs=np.array([[0.6, 0.4], [0.2, 0.8]]),
+    )
+    types = types_for("humble")
+    data = markers_message(types, one, 1, "map", "semfleet/r1", ("chair", "table"))
+    markers = types.store.deserialize_cdr(data, MARKERS).markers
+    assert [markers[1].text, markers[3].text] == ["chair 0.60", "table 0.80"]
+    assert_close(class_marginals(one, 2), [[0.6, 0.4], [0.2, 0.8]])
+
+
 @pytest.mark.parametrize("distro", DISTROS)
 def test_ros2_belief_messages_round_trip_byte_for_byte(distro: str) -> None:
     types, snap = types_for(distro), _snapshot()

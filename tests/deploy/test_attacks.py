@@ -6,15 +6,18 @@ processes, real Zenoh over mutual TLS on loopback, real attacker sessions.
 
 from __future__ import annotations
 
+import dataclasses
 import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
-from deploy.launch.attack_run import AttackReport, run_attacks
+from deploy.launch.attack_run import AttackReport, _same, run_attacks
 from deploy.launch.attacks import ATTACKS, parse_attacks, roles
 from deploy.launch.run import LaunchPlan
+from estimator.snapshot import BeliefSnapshot
 from sim.loader import load_scenario
 
 PAPER = load_scenario("paper")
@@ -36,6 +39,26 @@ def test_attack_names_and_roles() -> None:
     links = [{"a": ("b",), "b": ("c",), "c": ("b",)}, {"a": ("c", "b")}]
     assert roles(links, ["a", "b", "c"]) == ("b", "c")
     assert roles([], ["a", "b", "c"]) == ("a", "b")
+
+
+def test_a_published_belief_equals_the_clean_one_in_its_class_marginals_too() -> None:
+    """An attack that changes only a belief's per-object class marginals is seen."""
+    cov = np.eye(3)[None]
+    snap = BeliefSnapshot(
+        (1,),
+        np.array([1.0]),
+        np.array([[0]], dtype=np.int64),
+        np.zeros((1, 3)),
+        cov,
+        np.zeros((1, 1, 3)),
+        cov[None],
+        class_probs=np.array([[0.6, 0.4]]),
+    )
+    assert _same(snap, dataclasses.replace(snap, class_probs=np.array([[0.6, 0.4 + 1e-12]])))
+    assert not _same(snap, dataclasses.replace(snap, class_probs=np.array([[0.7, 0.3]])))
+    assert not _same(snap, dataclasses.replace(snap, class_probs=None))
+    assert not _same(dataclasses.replace(snap, class_probs=None), snap)
+    assert not _same(snap, dataclasses.replace(snap, class_probs=np.array([[0.6, 0.4, 0.0]])))
 
 
 @pytest.mark.slow

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import json
 import math
 import signal
@@ -509,6 +510,52 @@ def test_estimates_doc_marginals_map_class_and_object_means() -> None:
     assert_close(objects[0]["pose"], [3.0, 0.6 * 0.4, 0.0])
     assert_close(objects[1]["pose"], [0.0, 5.0, 0.5])
     json.dumps(doc, allow_nan=False)
+
+
+def _per_object(probs: Sequence[Sequence[float]], classes: Sequence[int]) -> BeliefSnapshot:
+    """One hypothesis over objects 5 and 8 with per-object class marginals ``probs``."""
+    one = snapshot(
+        [1.0], [classes], [[1.0, 2.0, 0.0]], [[[3.0, 0.0, 0.0], [0.0, 5.0, 0.5]]], [5, 8]
+    )
+    return dataclasses.replace(one, class_probs=np.array(probs, float))
+
+
+def test_estimates_doc_reads_per_object_class_marginals() -> None:
+    """A belief with per-object class marginals: its marginals and its MAP classes (the argmax
+    of each object's) come from ``class_probs``, not from its one hypothesis' classes (here said
+    otherwise on purpose), and its M counts in ``classes_seen``; a realisation table beside it
+    gets marginals of that many classes."""
+    view = FleetView(Keys("f"))
+    probs = [[0.2, 0.1, 0.7], [0.5, 0.3, 0.2]]
+    per_object = _per_object(probs, [0, 1])
+    for robot, beliefs in (("r1", {"distributed": per_object}), ("r2", {"distributed": HYP})):
+        est = EstimateMessage(robot, 4, beliefs)
+        view.on_message(Message(f"semfleet/f/estimate/{robot}", encode_estimate(est)), now=1.0)
+    doc = estimates_doc(view, watched_s=2.0)
+    assert doc["classes_seen"] == 3  # the classes held say 2
+    objects = doc["robots"]["r1"]["beliefs"]["distributed"]["objects"]
+    assert [o["marginals"] for o in objects] == probs
+    assert [o["map_class"] for o in objects] == [2, 0]
+    table = doc["robots"]["r2"]["beliefs"]["distributed"]["objects"]
+    assert_close(table[0]["marginals"], [0.6, 0.4, 0.0])
+    json.dumps(doc, allow_nan=False)
+
+
+def test_estimates_doc_pads_per_object_marginals_of_fewer_classes() -> None:
+    """Per-object marginals over M = 2 beside a belief that holds class 2: every class past the
+    belief's own M has probability 0 in it."""
+    view = FleetView(Keys("f"))
+    three = snapshot(
+        [1.0], [[2, 0]], [[1.0, 2.0, 0.0]], [[[3.0, 0.0, 0.0], [0.0, 5.0, 0.5]]], [5, 8]
+    )
+    for robot, snap in (("r1", _per_object([[0.9, 0.1], [0.4, 0.6]], [0, 1])), ("r2", three)):
+        est = EstimateMessage(robot, 1, {"distributed": snap})
+        view.on_message(Message(f"semfleet/f/estimate/{robot}", encode_estimate(est)), now=1.0)
+    doc = estimates_doc(view, watched_s=1.0)
+    assert doc["classes_seen"] == 3
+    objects = doc["robots"]["r1"]["beliefs"]["distributed"]["objects"]
+    assert [o["marginals"] for o in objects] == [[0.9, 0.1, 0.0], [0.4, 0.6, 0.0]]
+    assert [o["map_class"] for o in objects] == [0, 1]
 
 
 def test_fleet_view_tokens_latest_estimate_trail_and_bad_input() -> None:

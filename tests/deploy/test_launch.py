@@ -109,6 +109,9 @@ def assert_same_snapshot(a: BeliefSnapshot, b: BeliefSnapshot, what: str) -> Non
     np.testing.assert_array_equal(a.classes, b.classes, err_msg=what)
     for name in ("weights", "robot_pose", "robot_cov", "object_pose", "object_cov"):
         assert_close(getattr(a, name), getattr(b, name), what=f"{what}: {name}")
+    assert (a.class_probs is None) == (b.class_probs is None), f"{what}: class_probs"
+    if a.class_probs is not None and b.class_probs is not None:
+        assert_close(a.class_probs, b.class_probs, what=f"{what}: class_probs")
 
 
 def assert_estimates_match(

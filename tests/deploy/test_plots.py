@@ -9,9 +9,18 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
-from deploy.plots import plot_error_curves, plot_paths, plot_per_run, plot_reliability
+from deploy.plots import (
+    plot_error_curves,
+    plot_hypotheses,
+    plot_paths,
+    plot_per_run,
+    plot_reliability,
+)
 from deploy.ufastslam_study import MethodRun
 from estimator.metrics import ECE_BINS, calibration_stats
+from estimator.snapshot import BeliefSnapshot
+from sim.loader import load_scenario
+from sim.world import World
 from tests.tolerance import assert_close
 
 
@@ -77,5 +86,29 @@ def test_plot_error_curves_time_axis_and_plot_per_run_bars() -> None:
         heights = [bar.get_height() for bar in ax_bars.patches]
         assert_close(heights, [0.4, 0.6, 0.1, 0.2])
         assert [t.get_text() for t in ax_bars.get_xticklabels()] == ["7", "8"]
+    finally:
+        plt.close(fig)
+
+
+def test_plot_hypotheses_draws_per_object_class_marginals() -> None:
+    """A belief with per-object class marginals: the class bars are P(c = 1) from them, not from
+    its one hypothesis' classes (here (1, 2), whose bars would be 1 and 0)."""
+    world = World(load_scenario("paper"))
+    cov = np.diag([0.04, 0.01, 0.001])
+    snap = BeliefSnapshot(
+        (1, 2),
+        np.array([1.0]),
+        np.array([[0, 1]], dtype=np.int64),
+        np.array([[0.0, 0.0, 0.0]]),
+        cov[None],
+        np.array([[o.pose for o in world.scenario.objects[:2]]], dtype=float),
+        np.tile(cov, (1, 2, 1, 1)),
+        class_probs=np.array([[0.3, 0.7], [0.8, 0.2]]),
+    )
+    fig, (ax_map, ax_class) = plt.subplots(1, 2)
+    try:
+        plot_hypotheses(ax_map, ax_class, snap, world, "r1", 5)
+        heights = [bar.get_height() for bar in ax_class.patches]
+        assert_close(heights, [0.3, 0.8])
     finally:
         plt.close(fig)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import gtsam
@@ -18,7 +19,6 @@ from estimator.metrics import (
     chi2_bounds,
     class_ece,
     class_log_loss,
-    class_marginals,
     ece_from_stats,
     evaluate,
     evaluate_calibration,
@@ -26,9 +26,11 @@ from estimator.metrics import (
     msde,
     nees,
     pose_nees,
+    with_truth,
     world_pose_nees,
     world_position_cov,
 )
+from estimator.pruning import class_marginals
 from tests.tolerance import assert_close
 
 NO_CLASSES = np.zeros(0, dtype=np.int64)
@@ -484,3 +486,77 @@ def test_an_object_the_world_does_not_have_is_left_out_of_the_object_metrics() -
         assert_close(got[name], want[name], what=name)
     assert got["object_error"] != evaluate(snap, 2, TRUE_POSE, TRUE_OBJECTS)["object_error"]
     assert_close(evaluate_calibration(snap, 2, truth), evaluate_calibration(alone, 2, truth))
+
+
+def _per_object_snapshot() -> BeliefSnapshot:
+    """The heavier hypothesis of :func:`_snapshot` alone, as a belief with per-object class
+    marginals (0.6, 0.4) for object 4 and (0.3, 0.7) for object 9. Its classes (0, 1), weight 1,
+    would say both are certain and right: a metric from them, not from ``class_probs``, differs."""
+    snap = _snapshot()
+    return BeliefSnapshot(
+        object_ids=snap.object_ids,
+        weights=np.array([1.0]),
+        classes=snap.classes[:1],
+        robot_pose=snap.robot_pose[:1],
+        robot_cov=snap.robot_cov[:1],
+        object_pose=snap.object_pose[:1],
+        object_cov=snap.object_cov[:1],
+        class_probs=np.array([[0.6, 0.4], [0.3, 0.7]]),
+    )
+
+
+def test_evaluate_scores_the_per_object_class_marginals() -> None:
+    snap = _per_object_snapshot()
+    got = evaluate(snap, 2, TRUE_POSE, TRUE_OBJECTS)
+    # object 4 (true 0): ((1 − 0.6)² + 0.4²)/2 = 0.16; object 9 (true 1): (0.3² + 0.3²)/2 = 0.09
+    assert_close(got["msde"], (0.16 + 0.09) / 2)
+    assert_close(got["class_log_loss"], -(math.log(0.6) + math.log(0.7)) / 2)
+    # 0.6 (hit), 0.4 (miss), 0.3 (miss), 0.7 (hit): |0.6 − 1| + 0.4 + 0.3 + |0.7 − 1| over 4
+    assert_close(got["class_ece"], (0.4 + 0.4 + 0.3 + 0.3) / 4)
+    # the rest is the one hypothesis' own, as without class marginals
+    table = dataclasses.replace(snap, class_probs=None)
+    plain = evaluate(table, 2, TRUE_POSE, TRUE_OBJECTS)
+    assert (plain["msde"], plain["class_log_loss"], plain["class_ece"]) == (0.0, 0.0, 0.0)
+    for key in set(METRICS) - {"msde", "class_log_loss", "class_ece"}:
+        assert got[key] == plain[key], key
+    stats = evaluate_calibration(snap, 2, TRUE_OBJECTS)
+    expected = np.zeros((3, ECE_BINS))
+    expected[:, 6] = (1, 0.6, 1)
+    expected[:, 4] = (1, 0.4, 0)
+    expected[:, 3] = (1, 0.3, 0)
+    expected[:, 7] = (1, 0.7, 1)
+    assert_close(stats, expected)
+    assert_close(ece_from_stats(stats), got["class_ece"])
+
+
+def test_a_phantom_is_left_out_of_the_per_object_class_marginals_too() -> None:
+    snap = _per_object_snapshot()
+    truth = {4: TRUE_OBJECTS[4]}  # object 9 is a phantom here
+    kept = with_truth(snap, truth)
+    assert kept.object_ids == (4,) and kept.class_probs is not None
+    assert_close(kept.class_probs, [[0.6, 0.4]])
+    assert with_truth(dataclasses.replace(snap, class_probs=None), truth).class_probs is None
+    got = evaluate(snap, 2, TRUE_POSE, truth)
+    assert_close(got["msde"], 0.16)
+    assert_close(got["class_log_loss"], -math.log(0.6))
+    assert_close(got["class_ece"], (0.4 + 0.4) / 2)
+    stats = evaluate_calibration(snap, 2, truth)
+    assert_close(stats[0].sum(), 2.0)
+    assert_close(ece_from_stats(stats), got["class_ece"])
+
+
+def test_per_object_class_marginals_of_no_object_give_nan_and_zero_stats() -> None:
+    snap = _per_object_snapshot()
+    empty = BeliefSnapshot(
+        (),
+        snap.weights,
+        np.zeros((1, 0), dtype=np.int64),
+        snap.robot_pose,
+        snap.robot_cov,
+        np.zeros((1, 0, 3)),
+        np.zeros((1, 0, 3, 3)),
+        class_probs=np.zeros((0, 2)),
+    )
+    got = evaluate(empty, 2, TRUE_POSE, TRUE_OBJECTS)
+    assert math.isnan(got["msde"]) and math.isnan(got["class_ece"])
+    assert_close(evaluate_calibration(empty, 2, TRUE_OBJECTS), np.zeros((3, ECE_BINS)))

@@ -75,6 +75,25 @@ def make_snapshot(
     )
 
 
+def _probs(rng: np.random.Generator, n: int, m: int) -> np.ndarray:
+    """(n, m) rows that each sum to 1, some entries exactly 0.0 or −0.0."""
+    p = rng.random((n, m)) * (rng.random((n, m)) < 0.7)
+    p[np.arange(n), rng.integers(0, m, n)] += 1.0
+    p /= p.sum(axis=1, keepdims=True)
+    return np.where(p == 0.0, rng.choice([0.0, -0.0], size=(n, m)), p)
+
+
+def make_per_object_snapshot(
+    rng: np.random.Generator, n: int | None = None, num_classes: int = 3
+) -> BeliefSnapshot:
+    """A valid snapshot of a belief with per-object class marginals: one hypothesis, its classes
+    the most probable of each object, ``class_probs`` (n, num_classes)."""
+    snap = make_snapshot(rng, h=1, n=n, num_classes=num_classes)
+    probs = _probs(rng, len(snap.object_ids), num_classes)
+    best = np.argmax(probs, axis=1).astype(np.int64)[None]
+    return dataclasses.replace(snap, classes=best, class_probs=probs)
+
+
 def assert_same_snapshot(got: BeliefSnapshot, want: BeliefSnapshot) -> None:
     """Equal to the bit, −0.0 and subnormals included, with the snapshot's dtypes."""
     assert got.object_ids == tuple(want.object_ids)
@@ -83,6 +102,12 @@ def assert_same_snapshot(got: BeliefSnapshot, want: BeliefSnapshot) -> None:
         assert g.dtype == (np.int64 if name == "classes" else np.float64), name
         assert g.shape == w.shape and np.array_equal(g, w), name
         assert g.tobytes() == np.asarray(w, dtype=g.dtype).tobytes(), name
+    if want.class_probs is None:
+        assert got.class_probs is None
+    else:
+        g, w = got.class_probs, np.asarray(want.class_probs)
+        assert g is not None and g.dtype == np.float64
+        assert g.shape == w.shape and g.tobytes() == w.astype(np.float64).tobytes()
 
 
 def assert_same_estimate(got: EstimateMessage, want: EstimateMessage) -> None:
@@ -115,6 +140,14 @@ BASE_MESSAGES = (
         },
         {"x" * 48: 2**63 - 1},
     ),
+    EstimateMessage(  # per-object class marginals beside a realisation table
+        "r3",
+        7,
+        {
+            "distributed": make_per_object_snapshot(np.random.default_rng(6), n=4),
+            "local": make_snapshot(np.random.default_rng(7), h=2, n=2),
+        },
+    ),
 )
 BASE_BLOBS = tuple(encode_estimate(m) for m in BASE_MESSAGES)
 BASE_DOCS = tuple(msgpack.unpackb(b, raw=False) for b in BASE_BLOBS)
@@ -137,6 +170,11 @@ def _check_valid(msg: EstimateMessage, lim: EstimateLimits) -> None:
         assert snap.object_cov.shape == (h, n, 3, 3) and snap.robot_cov.shape == (h, 3, 3)
         for name in FLOAT_ARRAYS:
             assert np.isfinite(getattr(snap, name)).all()
+        p = snap.class_probs
+        if p is not None:
+            assert p.ndim == 2 and p.shape[0] == n and 1 <= p.shape[1] <= lim.num_classes
+            assert np.isfinite(p).all() and ((p >= 0) & (p <= 1)).all()
+            assert (np.abs(p.sum(axis=1) - 1.0) <= lim.weight_tol).all()
     assert_same_estimate(decode_estimate(encode_estimate(msg, lim), lim), msg)
 
 
@@ -642,7 +680,10 @@ EDGE_CLASSES = st.sampled_from(
     + [bytes([v] * 8) for v in (0, 1, 2, 63, 64, 255)]
 )
 MUTATOR = fuzz.Mutator(
-    known_keys=("v", "type", "robot", "k", "beliefs", "counters", "local", "objects", *ARRAYS),
+    known_keys=(
+        *("v", "type", "robot", "k", "beliefs", "counters", "local", "objects", *ARRAYS),
+        *("num_classes", "class_probs"),
+    ),
     strings=("estimate", "r1", "local", ""),
     edge_ints=(-1, 0, 1, 63, 64, 2**32 - 1, 2**32, 2**63 - 1, 2**63),
     numbers=fuzz.FLOAT64S | EDGE_CLASSES,
@@ -842,3 +883,261 @@ def test_the_head_of_a_corrupted_estimate_agrees_with_the_whole(
     index: int, edits: list[tuple[int, int]]
 ) -> None:
     _head_agrees(fuzz.corrupt(BASE_BLOBS[index], edits))
+
+
+# --------------------------------------------------------------------------- per-object classes
+
+# Robot r4's ``local`` belief keeps per-object class marginals: 3 objects, M = 3.
+PROBS_REF = EstimateMessage(
+    "r4",
+    5,
+    {
+        "local": make_per_object_snapshot(np.random.default_rng(21), n=3, num_classes=3),
+        "distributed": REF.beliefs["distributed"],
+    },
+)
+PROBS_BLOB = encode_estimate(PROBS_REF)
+PROBS_DOC: dict[str, Any] = msgpack.unpackb(PROBS_BLOB, raw=False)
+PROBS_WIRE = fuzz.Wire(decode_estimate, PROBS_DOC, EstimateLimits(), _check_valid)
+PROBS_FIELD = "beliefs.local.class_probs"
+M_FIELD = "beliefs.local.num_classes"
+
+
+def test_estimate_class_probs_round_trip_bit_exact_with_their_m() -> None:
+    """A belief's per-object class marginals travel as ``num_classes`` and ``class_probs``
+    (float64, C order) after its arrays, and only for that belief; the version is unchanged."""
+    local = PROBS_REF.beliefs["local"]
+    assert local.class_probs is not None
+    assert PROBS_DOC["v"] == 3
+    raw = PROBS_DOC["beliefs"]["local"]
+    assert list(raw) == ["objects", *ARRAYS, "num_classes", "class_probs"]
+    assert raw["num_classes"] == 3
+    assert raw["class_probs"] == local.class_probs.astype("<f8").tobytes()
+    assert list(PROBS_DOC["beliefs"]["distributed"]) == ["objects", *ARRAYS]  # None: no keys
+    got = decode_estimate(PROBS_BLOB)
+    assert_same_estimate(got, PROBS_REF)
+    assert got.beliefs["distributed"].class_probs is None
+    assert encode_estimate(got) == PROBS_BLOB
+    assert got.beliefs["local"].marginals(3).tobytes() == local.class_probs.tobytes()
+
+
+def test_estimate_without_class_probs_is_byte_for_byte_as_before() -> None:
+    """A snapshot whose ``class_probs`` is None writes neither key: the same bytes as the
+    snapshot built without the field."""
+    old = REF.beliefs["local"]
+    rebuilt = BeliefSnapshot(
+        old.object_ids,
+        old.weights,
+        old.classes,
+        old.robot_pose,
+        old.robot_cov,
+        old.object_pose,
+        old.object_cov,
+    )
+    assert rebuilt.class_probs is None
+    msg = dataclasses.replace(REF, beliefs={**REF.beliefs, "local": rebuilt})
+    assert encode_estimate(msg) == REF_BLOB
+    assert "class_probs" not in REF_DOC["beliefs"]["local"]
+
+
+@pytest.mark.parametrize("m", [1, 2, 64])
+def test_estimate_class_probs_of_no_object_keep_their_m(m: int) -> None:
+    snap = make_per_object_snapshot(np.random.default_rng(m), n=0, num_classes=m)
+    msg = EstimateMessage("r1", 1, {"local": snap})
+    blob = encode_estimate(msg)
+    raw = msgpack.unpackb(blob)["beliefs"]["local"]
+    assert (raw["num_classes"], raw["class_probs"]) == (m, b"")
+    got = decode_estimate(blob).beliefs["local"]
+    assert got.class_probs is not None and got.class_probs.shape == (0, m)
+    assert_same_snapshot(got, snap)
+
+
+def test_estimate_class_probs_one_integer_snapshot_decodes_as_float64() -> None:
+    snap = make_per_object_snapshot(np.random.default_rng(2), n=2, num_classes=2)
+    onehot = dataclasses.replace(snap, class_probs=np.array([[0, 1], [1, 0]], dtype=np.int64))
+    got = decode_estimate(encode_estimate(EstimateMessage("r1", 1, {"local": onehot})))
+    assert_same_snapshot(got.beliefs["local"], onehot)
+
+
+@pytest.mark.parametrize("missing", ["num_classes", "class_probs"])
+def test_estimate_class_probs_need_both_keys(missing: str) -> None:
+    PROBS_WIRE.assert_rejected(
+        PROBS_WIRE.without((*LOCAL, missing)), MalformedMessage, "beliefs.local"
+    )
+    doc = copy.deepcopy(REF_DOC)  # one key alone on a snapshot without them: as unknown
+    doc["beliefs"]["local"][missing] = PROBS_DOC["beliefs"]["local"][missing]
+    WIRE.assert_rejected(pack(doc), MalformedMessage, "beliefs.local")
+
+
+@pytest.mark.parametrize("value", [math.nan, math.inf, -math.inf])
+@pytest.mark.parametrize("index", [0, 4, 8])
+def test_estimate_non_finite_class_probability_is_invalid(value: float, index: int) -> None:
+    PROBS_WIRE.assert_rejected(
+        PROBS_WIRE.poke((*LOCAL, "class_probs"), index, value), InvalidValue, PROBS_FIELD
+    )
+
+
+@pytest.mark.parametrize(
+    "row",
+    [
+        [1.5, -0.5, 0.0],  # negative
+        [-1e-300, 1.0, 0.0],
+        [1.0 + 2e-7, 0.0, 0.0],  # over 1, although within the sum's tolerance
+        [0.5, 0.5 - 2e-6, 0.0],  # rows must sum to 1
+        [0.5, 0.5 + 2e-6, 0.0],
+        [0.0, 0.0, 0.0],
+        [0.3, 0.3, 0.3],
+    ],
+)
+def test_estimate_class_probs_off_the_simplex_are_invalid(row: list[float]) -> None:
+    probs = np.array([[0.2, 0.3, 0.5], row, [1.0, 0.0, 0.0]])
+    path = (*LOCAL, "class_probs")
+    blob = PROBS_WIRE.with_(path, probs.astype("<f8").tobytes())
+    PROBS_WIRE.assert_rejected(blob, InvalidValue, PROBS_FIELD)
+
+
+@pytest.mark.parametrize("row", [[0.5, 0.5 - 5e-7, 0.0], [0.5, 0.5 + 5e-7, 0.0], [-0.0, 1.0, 0]])
+def test_estimate_class_probs_within_tolerance_are_accepted(row: list[float]) -> None:
+    probs = np.array([[0.2, 0.3, 0.5], row, [1.0, 0.0, 0.0]])
+    blob = PROBS_WIRE.with_((*LOCAL, "class_probs"), probs.astype("<f8").tobytes())
+    got = decode_estimate(blob).beliefs["local"].class_probs
+    assert got is not None and got.tobytes() == probs.tobytes()
+
+
+@pytest.mark.parametrize("change", [-8, 8, -1, 1, None])
+def test_estimate_class_probs_of_the_wrong_length_are_malformed(change: int | None) -> None:
+    path = (*LOCAL, "class_probs")
+    blob = get_at(PROBS_DOC, path)
+    new = b"" if change is None else blob[:change] if change < 0 else blob + bytes(change)
+    PROBS_WIRE.assert_rejected(PROBS_WIRE.with_(path, new), MalformedMessage, PROBS_FIELD)
+
+
+def test_estimate_num_classes_disagreeing_with_class_probs_is_malformed() -> None:
+    for m in (2, 4):  # 3 × 3 float64 sent: 3 × 2 or 3 × 4 expected
+        blob = PROBS_WIRE.with_((*LOCAL, "num_classes"), m)
+        PROBS_WIRE.assert_rejected(blob, MalformedMessage, PROBS_FIELD)
+
+
+@pytest.mark.parametrize("m", [0, -1, 65, 2**63])
+def test_estimate_num_classes_out_of_range_is_invalid(m: int) -> None:
+    PROBS_WIRE.assert_rejected(PROBS_WIRE.with_((*LOCAL, "num_classes"), m), InvalidValue, M_FIELD)
+
+
+def test_estimate_num_classes_limit_follows_the_limits() -> None:
+    PROBS_WIRE.assert_rejected(PROBS_BLOB, InvalidValue, M_FIELD, EstimateLimits(num_classes=2))
+    assert_same_estimate(decode_estimate(PROBS_BLOB, EstimateLimits(num_classes=3)), PROBS_REF)
+    with pytest.raises(LocalProtocolError) as caught:
+        encode_estimate(PROBS_REF, EstimateLimits(num_classes=2))
+    assert caught.value.field == M_FIELD
+
+
+@pytest.mark.parametrize(
+    ("key", "value"),
+    [
+        ("num_classes", 3.0),
+        ("num_classes", True),
+        ("num_classes", "3"),
+        ("num_classes", None),
+        ("class_probs", None),
+        ("class_probs", [0.2, 0.3, 0.5]),
+        ("class_probs", "ab"),
+    ],
+)
+def test_estimate_class_probs_of_the_wrong_type_are_malformed(key: str, value: Any) -> None:
+    PROBS_WIRE.assert_rejected(
+        PROBS_WIRE.with_((*LOCAL, key), value), MalformedMessage, f"beliefs.local.{key}"
+    )
+
+
+P0 = PROBS_REF.beliefs["local"]
+assert P0.class_probs is not None
+P0_PROBS = P0.class_probs
+
+
+def _with_probs(value: Any) -> EstimateMessage:
+    local = dataclasses.replace(P0, class_probs=value)
+    return dataclasses.replace(PROBS_REF, beliefs={**PROBS_REF.beliefs, "local": local})
+
+
+def _probs_poked(row: int, values: list[float]) -> np.ndarray:
+    out = P0_PROBS.copy()
+    out[row] = values
+    return out
+
+
+ENCODE_PROBS_REJECTS = [
+    ("1-d", _with_probs(P0_PROBS[0]), PROBS_FIELD),
+    ("3-d", _with_probs(P0_PROBS[None]), PROBS_FIELD),
+    ("rows-fewer", _with_probs(P0_PROBS[:2]), PROBS_FIELD),
+    ("rows-more", _with_probs(np.vstack([P0_PROBS, P0_PROBS[:1]])), PROBS_FIELD),
+    ("m-0", _with_probs(np.zeros((3, 0))), M_FIELD),
+    ("m-65", _with_probs(np.full((3, 65), 1 / 65)), M_FIELD),
+    ("nan", _with_probs(_probs_poked(1, [math.nan, 0.5, 0.5])), PROBS_FIELD),
+    ("inf", _with_probs(_probs_poked(2, [math.inf, 0.0, 0.0])), PROBS_FIELD),
+    ("negative", _with_probs(_probs_poked(0, [1.5, -0.5, 0.0])), PROBS_FIELD),
+    ("over-1", _with_probs(_probs_poked(0, [1.0 + 2e-7, 0.0, 0.0])), PROBS_FIELD),
+    ("row-sum", _with_probs(_probs_poked(2, [0.5, 0.5 - 2e-6, 0.0])), PROBS_FIELD),
+    ("complex", _with_probs(P0_PROBS + 0j), PROBS_FIELD),
+    ("strings", _with_probs(np.full((3, 3), "a")), PROBS_FIELD),
+    ("bool", _with_probs(P0_PROBS > 0.5), PROBS_FIELD),
+    ("ragged", _with_probs([[1.0], [0.5, 0.5], [1.0]]), PROBS_FIELD),
+]
+
+
+@pytest.mark.parametrize(
+    ("msg", "field"), [pytest.param(m, f, id=name) for name, m, f in ENCODE_PROBS_REJECTS]
+)
+def test_estimate_encode_rejects_class_probs_decode_would_reject(
+    msg: EstimateMessage, field: str
+) -> None:
+    with pytest.raises(LocalProtocolError) as caught:
+        encode_estimate(msg)
+    assert caught.value.field == field
+
+
+@settings(FUZZ, max_examples=500)
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    m=st.integers(1, 66),
+    index=st.integers(0, 2**20),
+    value=st.sampled_from(BAD_FLOATS) | st.floats(),
+    poke=st.booleans(),
+)
+def test_estimate_encode_class_probs_emits_only_what_decode_accepts(
+    seed: int, m: int, index: int, value: float, poke: bool
+) -> None:
+    """Per-object marginals of any M, maybe with one entry replaced by a doubtful value:
+    refused with a LocalProtocolError naming the field, or round-tripped bit for bit."""
+    rng = np.random.default_rng(seed)
+    snap = make_per_object_snapshot(rng, n=int(seed % 4), num_classes=m)
+    probs = np.array(snap.class_probs)
+    if poke and probs.size:
+        probs.flat[index % probs.size] = value
+    classes = np.minimum(snap.classes, 63)  # under the class limit: M and the values are tested
+    msg = EstimateMessage(
+        "r1", 1, {"local": dataclasses.replace(snap, classes=classes, class_probs=probs)}
+    )
+    try:
+        blob = encode_estimate(msg)
+    except LocalProtocolError as exc:
+        assert exc.field in (PROBS_FIELD, M_FIELD), exc
+        return
+    assert m <= 64
+    assert_same_estimate(decode_estimate(blob), msg)
+
+
+@settings(FUZZ, max_examples=500)
+@given(edits=fuzz.BYTE_EDITS)
+def test_estimate_corrupted_class_probs_raise_only_remote_errors(
+    edits: list[tuple[int, int]],
+) -> None:
+    PROBS_WIRE.decode_or_reject(fuzz.corrupt(PROBS_BLOB, edits))
+    _head_agrees(fuzz.corrupt(PROBS_BLOB, edits))
+
+
+def test_the_head_of_an_estimate_with_class_probs_reads_as_an_old_decoder_would() -> None:
+    """``decode_estimate_head`` (what the conductor reads arriving estimates with) reads no
+    snapshot key, so it reads an estimate with class marginals whatever it knows of them: this is
+    why they came without a new version, which an older head decoder would refuse."""
+    head = decode_estimate_head(PROBS_BLOB)
+    assert (head.robot, head.k, head.beliefs) == ("r4", 5, {})
