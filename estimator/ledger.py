@@ -27,22 +27,36 @@ from estimator.models.classifier import all_log_likelihoods
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
+KeyArray = NDArray[np.uint64]
 
 
 @dataclass(slots=True)
 class SemanticLedger:
     """Every detection a continuous belief's weights hold: the robot pose key, the object id
-    and the scores z (dim,) of each, and ``applied`` (D, M): log P(z_d | c, ψ̂_d) at the
-    estimate the weights were last brought to (NaN until its first :meth:`refresh`)."""
+    and the scores z (dim,) of each, ``applied`` (D, M): log P(z_d | c, ψ̂_d) at the estimate the
+    weights were last brought to, and ``psi`` (D,) the ψ̂_d of that estimate.
+
+    A step's cost must not grow with the mission (issue 40): the poses of every detection are
+    read from the estimate in one call, and only the detections whose ψ̂ moved are evaluated
+    again — a variable iSAM2 leaves alone keeps its estimate to the bit, so an old detection of
+    objects no longer in view costs a comparison, not a likelihood."""
 
     robot_keys: list[int] = field(default_factory=list)
     object_ids: list[int] = field(default_factory=list)
     scores: list[Array] = field(default_factory=list)
     applied: Array = field(default_factory=lambda: np.zeros((0, 0)))
+    psi: Array = field(default_factory=lambda: np.zeros(0))
+    # The first len(...) detections as arrays, extended as detections are added.
+    _columns: tuple[KeyArray, KeyArray, Array] | None = None
 
     def copy(self) -> SemanticLedger:
         return SemanticLedger(
-            list(self.robot_keys), list(self.object_ids), list(self.scores), self.applied.copy()
+            list(self.robot_keys),
+            list(self.object_ids),
+            list(self.scores),
+            self.applied.copy(),
+            self.psi.copy(),
+            self._columns,  # never written in place: shared safely
         )
 
     def add(self, robot_key: int, object_id: int, z: Array) -> None:
@@ -63,18 +77,58 @@ class SemanticLedger:
         out = np.zeros((len(object_index), m))
         if not self.robot_keys:
             return out
-        poses = {k: _pose(estimate, k) for k in dict.fromkeys(self.robot_keys)}  # once a pose
-        robots = np.array([poses[k] for k in self.robot_keys])
-        objects = {j: _pose(estimate, object_key(j)) for j in set(self.object_ids)}
-        psi = viewpoint(robots, np.array([objects[j] for j in self.object_ids]))
-        now = all_log_likelihoods(model, np.stack(self.scores), psi[None, :])[0]  # (D, M)
+        robot_keys, object_keys, scores = self._arrays()
+        poses = _poses(estimate, np.concatenate([robot_keys, object_keys]))
+        d = len(robot_keys)
+        psi = viewpoint(poses[:d], poses[d:])
         known = len(self.applied)
+        now = np.empty((d, m))
+        # Old detections whose viewpoint did not move keep their values; the others, and the
+        # new ones, are evaluated.
+        moved = np.ones(d, dtype=bool)
+        moved[:known] = psi[:known] != self.psi
+        if known:
+            now[:known] = self.applied
+        if moved.any():
+            now[moved] = all_log_likelihoods(model, scores[moved], psi[moved][None, :])[0]
         if known:
             change = now[:known] - self.applied
             rows = np.array([object_index[j] for j in self.object_ids[:known]], dtype=np.int64)
             np.add.at(out, rows, change)
         self.applied = now
+        self.psi = psi
         return out
+
+    def _arrays(self) -> tuple[KeyArray, KeyArray, Array]:
+        """Robot pose keys (D,), object keys (D,) and scores (D, dim) of every detection."""
+        d = len(self.robot_keys)
+        have = 0 if self._columns is None else len(self._columns[0])
+        if have < d:
+            tail = slice(have, d)
+            robots = np.array(self.robot_keys[tail], dtype=np.uint64)
+            objects = np.array([object_key(j) for j in self.object_ids[tail]], dtype=np.uint64)
+            scores = np.stack(self.scores[tail])
+            if self._columns is not None:
+                old_r, old_o, old_s = self._columns
+                robots = np.concatenate([old_r[:have], robots])
+                objects = np.concatenate([old_o[:have], objects])
+                scores = np.concatenate([old_s[:have], scores])
+            self._columns = (robots, objects, scores)
+        assert self._columns is not None
+        r, o, z = self._columns
+        return r[:d], o[:d], z[:d]
+
+
+def _poses(estimate: gtsam.Values, keys: KeyArray) -> Array:
+    """The (x, y, θ) of ``keys`` (K,) in ``estimate``, read in one call where every value is a
+    Pose2 (``extractPose2`` gives them in key order), key by key otherwise."""
+    every = np.array(estimate.keys(), dtype=np.uint64)
+    table = np.asarray(gtsam.utilities.extractPose2(estimate))
+    if len(table) == len(every):
+        rows = np.searchsorted(every, keys)
+        if (rows < len(every)).all() and (every[np.minimum(rows, len(every) - 1)] == keys).all():
+            return table[rows]
+    return np.array([_pose(estimate, int(k)) for k in keys])
 
 
 def _pose(estimate: gtsam.Values, key: int) -> tuple[float, float, float]:
