@@ -38,29 +38,38 @@ FIELDS = (
 
 
 def slot_figures(summary: LocalSummary) -> dict[str, float]:
-    """The largest (or, for ``lam_min``, smallest) value of every figure over the realisations;
+    """The largest (or, for ``lam_min``, smallest) value of every figure over the realisations
+    (of a per-object summary: its one ξ, and ``log_phi`` over every object's class log φ);
     ``refused`` and ``eigvalsh`` are 1 when the default ``Limits`` refuse the slot, or need
     eigenvalues to decide (the Cholesky certificate of ``protocol.codec`` cannot)."""
-    rs = summary.realisations
     xis, which = summary.distinct_xi()
-    rows = np.array([which.index(x) for x in range(len(xis))])
     info = np.stack([x.info for x in xis])
     eta = np.stack([x.eta for x in xis])
     lin = np.stack([x.lin for x in xis])
-    phi = np.array([r.log_phi for r in rs])
+    if summary.per_object is not None:  # what the codec checks of a per-object slot
+        phi = np.asarray(summary.per_object.log_phi, dtype=float)
+        xi = xis[0]
+        problem = codec.class_phi_problem("slot", phi, Limits()) or codec.object_xi_problem(
+            "slot", xi.lin, xi.info, xi.eta, Limits()
+        )
+        refused = problem is not None
+    else:
+        rows = np.array([which.index(x) for x in range(len(xis))])
+        phi = summary.log_phis()
+        refused = numbers_problem("slot", phi, lin, info, eta, Limits(), rows) is not None
     lam = np.linalg.eigvalsh(info)
     delta = np.linalg.solve(info, eta[..., None])[..., 0]
     return {
         "lam_min": float(lam[:, 0].min()),
         "lam_max": float(lam[:, -1].max()),
         "cond": float((lam[:, -1] / lam[:, 0]).max()),
-        "log_phi": float(max(abs(r.log_phi) for r in rs)),
+        "log_phi": float(np.abs(phi).max()) if phi.size else 0.0,
         "xy": float(np.abs(lin[..., :2]).max()),
         "theta": float(np.abs(lin[..., 2]).max()),
         "eta": float(np.abs(eta).max()),
         "eta_over_lam": float((np.linalg.norm(eta, axis=1) / lam[:, -1]).max()),
         "delta": float(np.linalg.norm(delta, axis=1).max()),
-        "refused": float(numbers_problem("slot", phi, lin, info, eta, Limits(), rows) is not None),
+        "refused": float(refused),
         "eigvalsh": float(not codec._certified(info, eta, Limits())),
     }
 

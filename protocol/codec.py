@@ -1,9 +1,11 @@
 """The one module that owns ``encode``/``decode`` of the wire format (docs/wire.md).
 
 A message is a msgpack map ``{"v": 1, "type": "stack", "sender": str, "k": int, "pos": [x, y] | nil,
-"slots": [...]}``; every float array travels as little-endian float64 bytes, Λ as its upper
-triangle. ``decode`` turns every malformed input into a :class:`RemoteProtocolError` subclass that
-names the field; nothing else escapes it.
+"slots": [...]}``; every float array travels as little-endian float64 bytes (a per-object slot's
+class log φ as float32), Λ as its upper triangle. Versions 1 and 2 (signed) carry realisation
+tables; 3 and 4 (signed) also per-object slots, whose ``real`` is a map (docs/wire.md,
+"Per-object slots"). ``decode`` turns every malformed input into a :class:`RemoteProtocolError`
+subclass that names the field; nothing else escapes it.
 
 Over 300 lines for a reason: encode and decode must refuse exactly the same documents, so both
 sides of every field, and the limits they share, are kept side by side in this one module.
@@ -25,7 +27,7 @@ from numpy.typing import NDArray
 from scipy.linalg.lapack import dpotrf
 
 from estimator.models.frames import MAX_STEP
-from estimator.summary import LocalSummary, Realisations, WireForm, Xi
+from estimator.summary import LocalSummary, ObjectClasses, Realisations, WireForm, Xi
 from protocol.errors import (
     BadSignature,
     InvalidValue,
@@ -50,18 +52,33 @@ IntArray = NDArray[np.int64]
 
 VERSION = 1  # unsigned slots
 SIGNED_VERSION = 2  # owner-signed slots (docs/wire.md, "Signed slots")
+# Stacks that hold a per-object slot (docs/wire.md, "Per-object slots"): unsigned, signed. A stack
+# of realisation tables only is still written as version 1 or 2, byte for byte.
+OBJECTS_VERSION = 3
+SIGNED_OBJECTS_VERSION = 4
+VERSIONS = (VERSION, SIGNED_VERSION, OBJECTS_VERSION, SIGNED_OBJECTS_VERSION)
+_SIGNED_VERSIONS = (SIGNED_VERSION, SIGNED_OBJECTS_VERSION)
 STACK = "stack"
 _F64 = np.dtype("<f8")
 _MAX_STAMP = MAX_STEP  # a stamp is its owner's step
 _MAX_OBJECT_ID = 2**32 - 1
 _TOP_KEYS = frozenset({"v", "type", "sender", "k", "pos", "slots"})
 _SLOT_KEYS = frozenset({"owner", "stamp", "objects", "real"})
-_EPOCH_SLOT_KEYS = _SLOT_KEYS | {"epoch"}  # version 1: "epoch" only when it is not 0
+_EPOCH_SLOT_KEYS = _SLOT_KEYS | {"epoch"}  # versions 1, 3: "epoch" only when it is not 0
 _SIGNED_SLOT_KEYS = _SLOT_KEYS | {"epoch", "sig"}
 MAX_EPOCH = 2**53 - 1  # an epoch is a count of milliseconds (docs/wire.md, "Versions and epochs")
 _REAL_KEYS = frozenset({"c", "phi", "lin", "info", "eta"})
 # A realisation whose ξ is that of an earlier realisation of the slot (docs/wire.md, "Shared ξ").
 _REF_KEYS = frozenset({"c", "phi", "xi"})
+# A per-object slot's ``real`` (versions 3 and 4): its kind, the tangent dimension of an object,
+# M, the (n, M) class log φ as float32 and the one ξ.
+_OBJECTS_KEYS = frozenset({"kind", "dim", "m", "phi", "lin", "info", "eta"})
+OBJECTS_KIND = "objects"
+OBJECT_DIM = 3  # Pose2 objects: x, y, θ (the only dimension so far)
+_F32 = np.dtype("<f4")
+_ONE_XI = np.zeros(1, dtype=np.int64)  # numbers_problem's rows for a per-object slot's one ξ
+_NO_PHI = np.zeros(0)  # its log φ are checked apart (class_phi_problem)
+_ONE_XI.flags.writeable = _NO_PHI.flags.writeable = False
 
 
 @dataclass(frozen=True, slots=True)
@@ -338,6 +355,36 @@ def _spectral_problem(
     return None
 
 
+def class_phi_problem(where: str, log_phi: Array, lim: Limits) -> Problem | None:
+    """The first broken rule of a per-object slot's (n, M) class log φ as it travels (float32
+    values, as float64), or None; ``where`` is the slot's field (``slots[i]``). Every value
+    finite and |log φ| ≤ ``max_abs_log_phi``, as a table slot's log φ."""
+    field = f"{where}.real.phi"
+    largest = float(np.abs(log_phi).max()) if log_phi.size else 0.0  # NaN if any is NaN
+    if math.isfinite(largest) and largest <= lim.max_abs_log_phi:
+        return None
+    if not math.isfinite(largest):
+        j, c = np.argwhere(~np.isfinite(log_phi))[0]
+        return InvalidValue, field, f"non-finite number (objects[{j}], class {c})"
+    j, c = np.argwhere(np.abs(log_phi) > lim.max_abs_log_phi)[0]
+    value = float(log_phi[j, c])
+    return LimitExceeded, field, f"|{value:.9g}| > max_abs_log_phi (objects[{j}], class {c})"
+
+
+def object_xi_problem(
+    where: str, lin: Array, info: Array, eta: Array, lim: Limits
+) -> Problem | None:
+    """:func:`numbers_problem` for a per-object slot's one ξ (``lin`` (n, 3), ``info`` (3n, 3n)
+    symmetric, ``eta`` (3n,)): the same rules, the fields named ``slots[i].real.lin`` etc."""
+    problem = numbers_problem(where, _NO_PHI, lin[None], info[None], eta[None], lim, _ONE_XI)
+    if problem is None:
+        return None
+    error, field, message = problem
+    table = f"{where}.real[0]."  # numbers_problem names ξ 0 as a table's realisation 0
+    assert field.startswith(table), field
+    return error, f"{where}.real.{field[len(table) :]}", message
+
+
 # --------------------------------------------------------------------------- encode
 
 
@@ -367,7 +414,7 @@ def encode(message: StackMessage, limits: Limits | None = None) -> bytes:
     signed = {s.signature is not None for s in slots}
     _local(len(signed) <= 1, "slots", "signed and unsigned slots in one stack")
     head: dict[str, Any] = {
-        "v": SIGNED_VERSION if signed == {True} else VERSION,
+        "v": _version(signed == {True}, any(_per_object(s) for s in slots)),
         "type": STACK,
         "sender": message.sender,
         "k": step,
@@ -422,6 +469,18 @@ def _is_int(value: Any) -> bool:
     return isinstance(value, int | np.integer) and not isinstance(value, bool | np.bool_)
 
 
+def _per_object(slot: Slot) -> bool:
+    return slot.summary.per_object is not None
+
+
+def _version(signed: bool, objects: bool) -> int:
+    """The wire version of a stack: 1 or 2 (signed) for realisation tables only, 3 or 4 once
+    any slot is per object."""
+    if objects:
+        return SIGNED_OBJECTS_VERSION if signed else OBJECTS_VERSION
+    return SIGNED_VERSION if signed else VERSION
+
+
 def _slot_bytes(slot: Slot, where: str, lim: Limits, packer: msgpack.Packer) -> bytes:
     if slot.wire is not None and slot.wire.fits(slot):
         return slot.wire.data
@@ -447,10 +506,31 @@ def _encode_slot(slot: Slot, where: str, lim: Limits) -> dict[str, Any]:
     _local(ids_ok, f"{where}.objects", "ids must be integers in 0..2³²−1")
     ids = [int(j) for j in raw_ids]
     _local(len(set(ids)) == n, f"{where}.objects", "duplicate object ids")
-    rs = slot.summary.realisations
+    real: dict[str, Any] | list[dict[str, Any]]
+    if slot.summary.per_object is not None:
+        real = _encode_objects(slot.summary, where, n, lim)
+    else:
+        real = _encode_table(slot.summary, where, n, lim)
+    out: dict[str, Any] = {"owner": slot.owner, "stamp": int(slot.stamp), "objects": ids}
+    out["real"] = real
+    epoch = slot.epoch
+    epoch_ok = isinstance(epoch, int) and not isinstance(epoch, bool) and 0 <= epoch <= MAX_EPOCH
+    _local(epoch_ok, f"{where}.epoch", f"must be an integer in 0..{MAX_EPOCH}, got {epoch!r}")
+    if epoch or slot.signature is not None:
+        out["epoch"] = int(epoch)
+    if slot.signature is not None:
+        sig_ok = isinstance(slot.signature, bytes) and len(slot.signature) == SIGNATURE_BYTES
+        _local(sig_ok, f"{where}.sig", f"expected {SIGNATURE_BYTES} bytes")
+        out["sig"] = slot.signature
+    return out
+
+
+def _encode_table(summary: LocalSummary, where: str, n: int, lim: Limits) -> list[dict[str, Any]]:
+    """A realisation table's ``real``: one map per realisation (docs/wire.md, "Message")."""
+    rs = summary.realisations
     _local(len(rs) >= 1, f"{where}.real", "no realisation")
     _local(len(rs) <= lim.max_realisations, f"{where}.real", f"{len(rs)} > {lim.max_realisations}")
-    xis, which = slot.summary.distinct_xi()
+    xis, which = summary.distinct_xi()
     carrier: dict[int, int] = {}  # ξ → the realisation that carries it on the wire (its first)
     for i, x in enumerate(which):
         carrier.setdefault(x, i)
@@ -511,23 +591,69 @@ def _encode_slot(slot: Slot, where: str, lim: Limits) -> dict[str, Any]:
         else:
             head["xi"] = int(rows[g])
         reals.append(head)
-    out: dict[str, Any] = {"owner": slot.owner, "stamp": int(slot.stamp), "objects": ids}
-    out["real"] = reals
-    epoch = slot.epoch
-    epoch_ok = isinstance(epoch, int) and not isinstance(epoch, bool) and 0 <= epoch <= MAX_EPOCH
-    _local(epoch_ok, f"{where}.epoch", f"must be an integer in 0..{MAX_EPOCH}, got {epoch!r}")
-    if epoch or slot.signature is not None:
-        out["epoch"] = int(epoch)
-    if slot.signature is not None:
-        sig_ok = isinstance(slot.signature, bytes) and len(slot.signature) == SIGNATURE_BYTES
-        _local(sig_ok, f"{where}.sig", f"expected {SIGNATURE_BYTES} bytes")
-        out["sig"] = slot.signature
-    return out
+    return reals
+
+
+def _encode_objects(summary: LocalSummary, where: str, n: int, lim: Limits) -> dict[str, Any]:
+    """A per-object slot's ``real`` (docs/wire.md, "Per-object slots"): refuses, naming the
+    field as decode would, what a receiver refuses — checked on the values as they travel
+    (log φ rounded to float32, Λ's upper triangle mirrored)."""
+    field = f"{where}.real"
+    po = summary.per_object
+    assert po is not None
+    _local(len(summary.realisations) == 0, field, "a per-object summary has no realisations")
+    raw_phi = np.asarray(po.log_phi)
+    _local(
+        raw_phi.ndim == 2 and raw_phi.shape[0] == n,
+        f"{field}.phi",
+        f"expected (n, M) = ({n}, M) class log φ, got shape {raw_phi.shape}",
+    )
+    _local(raw_phi.dtype.kind in "fiu", f"{field}.phi", f"expected numbers, got {raw_phi.dtype}")
+    m = raw_phi.shape[1]
+    _local(1 <= m <= lim.num_classes, f"{field}.m", f"{m} outside 1..{lim.num_classes}")
+    xi = po.xi
+    d = OBJECT_DIM
+    shapes = (
+        np.shape(xi.lin) == (n, d)
+        and np.shape(xi.info) == (d * n, d * n)
+        and np.shape(xi.eta) == (d * n,)
+    )
+    _local(shapes, field, "ξ's shapes do not match the object count")
+    phi = raw_phi.astype(np.float64)
+    _raise_local(class_phi_problem(where, phi, lim))  # as given: the value the sender meant
+    with np.errstate(over="ignore"):  # beyond float32 is inf, refused as over the bound below
+        phi32 = phi.astype(_F32)
+    _raise_local(class_phi_problem(where, phi32.astype(np.float64), lim))  # as it travels
+    lin = np.ascontiguousarray(xi.lin, dtype=_F64)
+    info = np.ascontiguousarray(xi.info, dtype=_F64)
+    eta = np.ascontiguousarray(xi.eta, dtype=_F64)
+    iu = _tri(n)
+    upper = info[iu]
+    sent = _mirror(upper[None], n)[0]  # what decode rebuilds: validate exactly that
+    if n:
+        with np.errstate(over="ignore", invalid="ignore"):  # inf or nan fail the test below
+            symmetric = bool(np.abs(info - info.T).max() <= 1e-12 * np.abs(info).max())
+        # A non-finite number that is sent is reported as such, in wire order, below.
+        _local(
+            symmetric or not np.isfinite(sent).all(),
+            f"{field}.info",
+            "Λ not symmetric (or not finite below its diagonal)",
+        )
+    _raise_local(object_xi_problem(where, lin, sent, eta, lim))
+    return {
+        "kind": OBJECTS_KIND,
+        "dim": d,
+        "m": int(m),
+        "phi": phi32.tobytes(),
+        "lin": lin.tobytes(),
+        "info": upper.tobytes(),
+        "eta": eta.tobytes(),
+    }
 
 
 def sign_slot(slot: Slot, key: Ed25519PrivateKey, limits: Limits | None = None) -> Slot:
-    """``slot`` signed by its owner's ``key`` (wire version 2). Raises LocalProtocolError, as
-    ``encode`` would, for a slot the limits refuse."""
+    """``slot`` signed by its owner's ``key`` (wire version 2, or 4 for a per-object slot).
+    Raises LocalProtocolError, as ``encode`` would, for a slot the limits refuse."""
     unsigned = Slot(slot.owner, slot.stamp, slot.summary, slot.epoch)
     wire = _encode_slot(unsigned, "slot", limits or Limits())
     # The bodies are packed once: hashed as they are (the canonical bytes' digest, as a receiver
@@ -609,8 +735,8 @@ def _decode_doc(
 ) -> StackMessage:
     need(isinstance(doc, dict), "message", f"expected a map, got {type(doc).__name__}")
     version = doc.get("v")
-    if "v" in doc and (type(version) is not int or version not in (VERSION, SIGNED_VERSION)):
-        speaks = f"{VERSION} and {SIGNED_VERSION}"
+    if "v" in doc and (type(version) is not int or version not in VERSIONS):
+        speaks = ", ".join(map(str, VERSIONS[:-1])) + f" and {VERSIONS[-1]}"
         raise UnsupportedVersion(f"schema version {doc['v']!r} (this side speaks {speaks})", "v")
     top = as_map(doc, "message", _TOP_KEYS | ({"have", "ask"} & doc.keys()))
     if top["type"] != STACK:
@@ -636,9 +762,12 @@ def _decode_doc(
         f"{len(raw_slots)} > {lim.max_slots}",
         LimitExceeded,
     )
-    signed = version == SIGNED_VERSION
+    signed = version in _SIGNED_VERSIONS
     if keys is not None and not signed and raw_slots:
-        raise BadSignature("unsigned slots (wire version 1): this fleet signs its slots", "v")
+        raise BadSignature(
+            f"unsigned slots (wire version {version}): this fleet signs its slots", "v"
+        )
+    maps = version in (OBJECTS_VERSION, SIGNED_OBJECTS_VERSION)  # per-object slots allowed
     headers = [_slot_header(raw, f"slots[{i}]", signed) for i, raw in enumerate(raw_slots)]
     if signed and keys is not None:
         # Every signature before any body: a message that carries one forged slot is refused
@@ -649,7 +778,7 @@ def _decode_doc(
             _verify(header, f"slots[{i}]", keys, buf)
     slots, owners, reused = [], [], []
     for i, header in enumerate(headers):
-        owner, slot, again = _decode_slot(header, f"slots[{i}]", lim, hooks, buf)
+        owner, slot, again = _decode_slot(header, f"slots[{i}]", lim, hooks, buf, maps)
         owners.append(owner)
         if slot is not None:
             slots.append(slot)
@@ -769,9 +898,11 @@ def _decode_slot(
     lim: Limits,
     hooks: tuple[Wanted | None, Parsed | None],
     buf: bytes,
+    maps: bool,
 ) -> tuple[str, Slot | None, bool]:
     """The slot's owner, the slot — None when ``wanted`` refuses its version — and whether it is
-    one ``parsed`` gave back."""
+    one ``parsed`` gave back. ``maps``: the message's version may carry per-object slots (a
+    ``real`` map)."""
     wanted, parsed = hooks
     frame, owner, epoch, stamp = header.frame, header.owner, header.epoch, header.stamp
     signature = header.signature
@@ -797,9 +928,30 @@ def _decode_slot(
             as_int(j, f"{where}.objects[{i}]", 0, _MAX_OBJECT_ID) for i, j in enumerate(objects)
         )
     need(len(set(ids)) == n, f"{where}.objects", "duplicate object ids", InvalidValue)
-    columns = _shared_xi_run(bodies["real"], n, lim)
+    real = bodies["real"]
+    if len(real) and _is_map(real[0]):
+        need(
+            maps,
+            f"{where}.real",
+            "expected an array of realisations (a per-object map needs wire version 3 or 4)",
+        )
+        summary = LocalSummary(ids, (), _decode_objects(real, where, n, lim))
+    else:
+        summary = LocalSummary(ids, _decode_table(real, where, n, lim))
+    wire = WireForm(owner, epoch, stamp, signature, summary, bytes(buf[frame.start : frame.end]))
+    return owner, Slot(owner, stamp, summary, epoch, signature, wire), False
+
+
+def _is_map(first: int) -> bool:
+    """Whether a msgpack value that starts with the byte ``first`` is a map."""
+    return 0x80 <= first <= 0x8F or first in (0xDE, 0xDF)
+
+
+def _decode_table(body: memoryview, where: str, n: int, lim: Limits) -> Realisations:
+    """A realisation table's ``real`` (docs/wire.md, "Message")."""
+    columns = _shared_xi_run(body, n, lim)
     if columns is None:  # the general path: every realisation a map of its own
-        columns = _realisation_maps(bodies["real"], where, n, lim)
+        columns = _realisation_maps(body, where, n, lim)
     classes, phi, carriers, xi_index = columns
     rows = np.array(list(carriers), dtype=np.int64)
     iu = _tri(n)
@@ -814,9 +966,64 @@ def _decode_slot(
     xis = [Xi(lin[x], info[x], arrays["eta"][x]) for x in range(len(rows))]
     for a in (classes, phi, xi_index):
         a.flags.writeable = False
-    summary = LocalSummary(ids, Realisations(classes, phi, xis, xi_index))
-    wire = WireForm(owner, epoch, stamp, signature, summary, bytes(buf[frame.start : frame.end]))
-    return owner, Slot(owner, stamp, summary, epoch, signature, wire), False
+    return Realisations(classes, phi, xis, xi_index)
+
+
+def _decode_objects(body: memoryview, where: str, n: int, lim: Limits) -> ObjectClasses:
+    """A per-object slot's ``real`` map (docs/wire.md, "Per-object slots"): its kind and object
+    dimension first (a later version may change the rest), then exactly its keys, M, the byte
+    counts, and the numbers as a table slot's (log φ per object and class)."""
+    field = f"{where}.real"
+    raw = _unpack(body, field)
+    need(isinstance(raw, dict), field, f"expected a map, got {type(raw).__name__}")
+    if "kind" in raw:
+        kind = raw["kind"]
+        need(isinstance(kind, str), f"{field}.kind", "expected a string")
+        need(
+            kind == OBJECTS_KIND,
+            f"{field}.kind",
+            f"{kind!r} is not a known kind (expected {OBJECTS_KIND!r})",
+            InvalidValue,
+        )
+    if "dim" in raw:
+        dim = raw["dim"]
+        need(type(dim) is int, f"{field}.dim", "expected an integer")
+        need(
+            dim == OBJECT_DIM,
+            f"{field}.dim",
+            f"objects of dimension {dim} are not supported (only {OBJECT_DIM}: Pose2)",
+            InvalidValue,
+        )
+    r = as_map(raw, field, _OBJECTS_KEYS)
+    m = as_int(r["m"], f"{field}.m", 1, lim.num_classes)
+    d = OBJECT_DIM
+    counts: dict[str, tuple[np.dtype[Any], int]] = {
+        "phi": (_F32, n * m),
+        "lin": (_F64, d * n),
+        "info": (_F64, len(_tri(n)[0])),
+        "eta": (_F64, d * n),
+    }
+    arrays: dict[str, Array] = {}
+    for name, (dtype, count) in counts.items():
+        value = r[name]
+        kind_of = "float32" if dtype == _F32 else "float64"
+        need(isinstance(value, bytes), f"{field}.{name}", f"expected binary {kind_of} data")
+        size = dtype.itemsize * count
+        need(
+            len(value) == size,
+            f"{field}.{name}",
+            f"expected {size} bytes, got {len(value)}",
+        )
+        arrays[name] = np.frombuffer(value, dtype=dtype).astype(np.float64)
+    phi = arrays["phi"].reshape(n, m)
+    _raise_remote(class_phi_problem(where, phi, lim))
+    lin = arrays["lin"].reshape(n, d)
+    info = _mirror(arrays["info"][None], n)[0]
+    eta = arrays["eta"]
+    _raise_remote(object_xi_problem(where, lin, info, eta, lim))
+    for a in (phi, lin, info, eta):
+        a.flags.writeable = False
+    return ObjectClasses(phi, Xi(lin, info, eta))
 
 
 # (R, n) uint8 classes, (R,) log φ, the realisations that carry their ξ (index → their map), and

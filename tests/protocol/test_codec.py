@@ -705,7 +705,7 @@ WRONG_TYPES = [
     ((*REAL, "info"), 1.0, MalformedMessage),
     ((*REAL, "eta"), [[0.0] * 9], MalformedMessage),
     ((*REAL, "eta"), 0, MalformedMessage),
-    # The version and type are compared by value: anything but 1 / "stack" is unknown.
+    # The version and type are compared by value: anything but 1–4 / "stack" is unknown.
     (("v",), "1", UnsupportedVersion),
     (("v",), None, UnsupportedVersion),
     (("v",), [1], UnsupportedVersion),
@@ -731,13 +731,15 @@ def test_codec_version_of_wrong_type_is_rejected(value: Any) -> None:
         decode(WIRE.with_(("v",), value))
 
 
-@pytest.mark.parametrize("version", [0, 3, -1, 255])
+@pytest.mark.parametrize("version", [0, 5, -1, 255])
 def test_codec_unknown_version_is_unsupported(version: int) -> None:
     WIRE.assert_rejected(WIRE.with_(("v",), version), UnsupportedVersion, "v")
+    with pytest.raises(UnsupportedVersion, match=r"this side speaks 1, 2, 3 and 4"):
+        decode(WIRE.with_(("v",), version))
 
 
 def test_codec_unknown_version_is_unsupported_whatever_its_layout() -> None:
-    WIRE.assert_rejected(pack({"v": 3, "frames": []}), UnsupportedVersion, "v")
+    WIRE.assert_rejected(pack({"v": 5, "frames": []}), UnsupportedVersion, "v")
 
 
 @pytest.mark.parametrize("kind", ["alive", "Stack", "", "stack "])
