@@ -29,11 +29,18 @@ __all__ = [
     "make_nodes",
 ]
 
-# Named hypothesis managements (docs/estimator.md): the default, the paper's, none.
+
+def _per_object(**changes: object) -> BeliefConfig:
+    return BeliefConfig(**{"classes": "per_object", **changes})  # type: ignore[arg-type]
+
+
+# Named hypothesis managements (docs/estimator.md): the default, the paper's, none, and per-object
+# class beliefs (no joint realisations at all).
 HYPOTHESIS_MANAGEMENT: dict[str, Callable[..., BeliefConfig]] = {
     "marginal": BeliefConfig,
     "paper": BeliefConfig.paper,
     "exact": BeliefConfig.exact,
+    "per_object": _per_object,
 }
 
 

@@ -68,6 +68,11 @@ def run(args: argparse.Namespace, console: Console, own: dict[str, tuple[str, An
         changes["robot_budget"] = args.robot_budget or None
     if args.semantic_poses:
         changes["semantic_poses"] = True
+    if args.semantic_poses and args.hypotheses == "per_object":
+        raise UsageError(
+            "--semantic-poses needs a continuous belief per class realisation; "
+            "--hypotheses per_object keeps one"
+        )
     config = HYPOTHESIS_MANAGEMENT[args.hypotheses](**changes)
     if args.seed + args.runs - 1 > MAX_SEED:
         raise UsageError(f"--seed {args.seed} with --runs {args.runs} runs past the largest seed")
@@ -106,6 +111,7 @@ def run(args: argparse.Namespace, console: Console, own: dict[str, tuple[str, An
         "max_hypotheses": config.max_hypotheses,
         "robot_budget": config.robot_budget,
         "semantic_poses": config.semantic_poses,
+        "classes": config.classes,
         "communication": comm,
     }
     if args.shard is not None:
@@ -204,8 +210,9 @@ def add_parser(sub: Any) -> None:
         choices=tuple(HYPOTHESIS_MANAGEMENT),
         default="marginal",
         help="hypothesis management: marginal (default), paper (joint ratio 1/150 and a "
-        "continuous belief per realisation, to replicate the paper) or exact (no pruning, small "
-        "worlds only)",
+        "continuous belief per realisation, to replicate the paper), exact (no pruning, small "
+        "worlds only) or per_object (a class belief per object, no joint realisations: for "
+        "maps of any size, docs/estimator.md)",
     )
     p.add_argument(
         "--semantic-poses",
