@@ -18,6 +18,7 @@ from agents.ros2.bridge import Ros2Settings
 from agents.ros2.messages import Ros2Unavailable, types_for
 from agents.ros2.wire import DISTROS, valid_ros_name
 from agents.transport.zenoh_transport import ZenohConfigError, ZenohSettings
+from estimator.hybrid import CLASS_KINDS, BeliefConfig
 from protocol.codec import Limits
 from protocol.signing import admitted
 from protocol.validate import valid_id
@@ -26,6 +27,8 @@ from sim.robot_model import RobotModel, load_robot_model
 from sim.scenario import ScenarioError
 
 MODES = ("lockstep", "realtime")
+# The class representation of an agent's beliefs when its config does not say (``classes``).
+DEFAULT_CLASSES = BeliefConfig().classes
 
 
 class AgentConfigError(ValueError):
@@ -51,12 +54,13 @@ class AgentConfig:
     limits: Limits
     signing: Signing | None = None
     ros2: Ros2Settings | None = None
+    classes: str = DEFAULT_CLASSES
 
 
 _AGENT_KEYS = {
     "fleet", "model", "start", "roster", "seed", "mode", "gossip_period", "journal",
     "publish_local", "simulation", "window", "world_extent", "stack_gossip", "catch_up",
-    "listen_in_range",
+    "listen_in_range", "classes",
 }  # fmt: skip
 _ZENOH_KEYS = {
     "listen", "connect", "gossip", "shared_memory", "lease_ms", "config_file", "insecure",
@@ -222,6 +226,9 @@ def _read_agent_config(path: Path, robot: str) -> AgentConfig:
     stack_gossip = a.string("stack_gossip") if a.has("stack_gossip") else "ask"
     if stack_gossip not in STACK_GOSSIP:
         raise a.fail("stack_gossip", f"{stack_gossip!r} (known: {', '.join(STACK_GOSSIP)})")
+    classes = a.string("classes") if a.has("classes") else DEFAULT_CLASSES
+    if classes not in CLASS_KINDS:
+        raise a.fail("classes", f"{classes!r} (known: {', '.join(CLASS_KINDS)})")
     runtime = CoreSettings(
         mode=mode,
         stack_gossip=stack_gossip,
@@ -269,4 +276,5 @@ def _read_agent_config(path: Path, robot: str) -> AgentConfig:
         journal=base / a.string("journal") if a.has("journal") else None,
         zenoh=zenoh_settings,
         limits=limits,
+        classes=classes,
     )

@@ -43,7 +43,7 @@ def node_factory(config: AgentConfig, epoch: int = 0) -> Callable[[], RobotNode]
         config.start,
         model,
         config.seed,
-        BeliefConfig(),
+        BeliefConfig(classes=config.classes),
         roster=config.roster,
         limits=config.limits,
         signing=config.signing,

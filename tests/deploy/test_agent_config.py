@@ -104,6 +104,21 @@ def test_agent_config_stack_gossip_is_one_of_the_known_ways_ask_by_default(tmp_p
     assert load_agent_config(_write(tmp_path, MINIMAL), "r2").runtime.stack_gossip == "ask"
 
 
+def test_agent_config_classes_reach_the_beliefs_of_the_agents_node(tmp_path: Path) -> None:
+    from deploy.agent_config import DEFAULT_CLASSES
+    from deploy.agent_service import node_factory
+
+    assert load_agent_config(_write(tmp_path, MINIMAL), "r2").classes == DEFAULT_CLASSES
+    for kind in ("per_object", "joint"):
+        c = load_agent_config(_write(tmp_path, _set("agent.classes", f'"{kind}"')), "r1")
+        assert c.classes == kind
+        node = node_factory(c)()
+        assert node.local.config.classes == kind
+        assert node.distributed.config.classes == kind
+    with pytest.raises(AgentConfigError, match=r"agent\.classes: 'both' \(known: joint"):
+        load_agent_config(_write(tmp_path, _set("agent.classes", '"both"')), "r1")
+
+
 def test_agent_config_defaults(tmp_path: Path) -> None:
     c = load_agent_config(_write(tmp_path, MINIMAL), "r2")
     assert (c.fleet, c.seed, c.runtime.mode, c.journal) == ("default", 0, "realtime", None)
