@@ -29,18 +29,13 @@ __all__ = [
     "make_nodes",
 ]
 
-
-def _per_object(**changes: object) -> BeliefConfig:
-    return BeliefConfig(**{"classes": "per_object", **changes})  # type: ignore[arg-type]
-
-
-# Named hypothesis managements (docs/estimator.md): the default, the paper's, none, and per-object
-# class beliefs (no joint realisations at all).
+# Named class representations and hypothesis managements (docs/estimator.md): per-object class
+# beliefs (the default), the joint realisations with marginal pruning, the paper's, none.
 HYPOTHESIS_MANAGEMENT: dict[str, Callable[..., BeliefConfig]] = {
-    "marginal": BeliefConfig,
+    "per_object": BeliefConfig,
+    "marginal": BeliefConfig.joint,
     "paper": BeliefConfig.paper,
     "exact": BeliefConfig.exact,
-    "per_object": _per_object,
 }
 
 

@@ -32,6 +32,7 @@ from estimator.hybrid import (
     UsedXi,
     distinct_continuous,
 )
+from estimator.sparse_xi import SparseXi
 from estimator.summary import Realisations, Slot, Xi
 
 Array = NDArray[np.float64]
@@ -242,20 +243,136 @@ def xi_factor(keys: Sequence[int], r: Xi, sign: float = 1.0) -> gtsam.LinearCont
     return gtsam.LinearContainerFactor(gtsam.HessianFactor(pieces), lin)
 
 
+def sparse_xi_factors(
+    keys: Sequence[int], sx: SparseXi, sign: float = 1.0
+) -> list[gtsam.LinearContainerFactor]:
+    """A sparse ξ as GTSAM factors on the object ``keys`` whose sum is
+    ``xi_factor(keys, sx.dense(), sign)``: one factor per group of :func:`clique_groups`, each
+    a HessianFactor over a few objects that the pattern of Λ_s already links pairwise, in a
+    LinearContainerFactor at ``sx.lin``. Eliminated, they fill in nothing the pattern does not
+    hold, where one n-key factor is one clique of all n objects. ``sign = −1``: the
+    anti-factors."""
+    n = len(keys)
+    if len(sx.lin) != n:
+        raise ValueError(f"{n} keys for a ξ of {len(sx.lin)} objects")
+    diag, edge_info, eta = sign * sx.diag_info, sign * sx.edge_info, sign * sx.eta.reshape(n, 3)
+    edges = np.asarray(sx.edges).tolist()
+    poses = [gtsam.Pose2(*pose) for pose in np.asarray(sx.lin).tolist()]
+    out = []
+    for members, edge_ids in clique_groups(n, sx.edges):
+        objs = sorted({*members, *(v for e in edge_ids for v in edges[e])})
+        at = {v: a for a, v in enumerate(objs)}
+        k = len(objs)
+        blocks = np.zeros((k, k, 3, 3))
+        g = np.zeros((k, 3))
+        for v in members:
+            blocks[at[v], at[v]] = diag[v]
+            g[at[v]] = eta[v]
+        for e in edge_ids:
+            i, j = edges[e]
+            blocks[at[i], at[j]] = edge_info[e]
+        lin = gtsam.Values()
+        for v in objs:
+            lin.insert(keys[v], poses[v])
+        factor = _hessian([keys[v] for v in objs], blocks, g)
+        out.append(gtsam.LinearContainerFactor(factor, lin))
+    return out
+
+
+def _hessian(keys: Sequence[int], blocks: Array, g: Array) -> gtsam.HessianFactor:
+    """The HessianFactor ½ δᵀGδ − gᵀδ on up to four ``keys`` from its upper blocks (k, k, 3, 3)
+    (``blocks[a, b]`` for a ≤ b; the lower ones are their transposes) and g (k, 3). GTSAM's
+    Python constructors stop at three keys: a fourth is added as two more factors."""
+    k = len(keys)
+    b, z, none = blocks, np.zeros((3, 3)), np.zeros(3)
+    if k == 1:
+        return gtsam.HessianFactor(keys[0], b[0, 0], g[0], 0.0)
+    if k == 2:
+        return gtsam.HessianFactor(keys[0], keys[1], b[0, 0], b[0, 1], g[0], b[1, 1], g[1], 0.0)
+    k0, k1, k2 = keys[:3]
+    head = gtsam.HessianFactor(
+        k0, k1, k2, b[0, 0], b[0, 1], b[0, 2], g[0], b[1, 1], b[1, 2], g[1], b[2, 2], g[2], 0.0
+    )
+    if k == 3:
+        return head
+    if k != 4:
+        raise ValueError(f"a factor of {k} keys (at most 4)")
+    pieces = gtsam.GaussianFactorGraph()
+    pieces.add(head)
+    # the fourth key's blocks: with the first two keys, then with the third
+    pieces.add(
+        gtsam.HessianFactor(
+            keys[3], keys[0], keys[1], b[3, 3], b[0, 3].T, b[1, 3].T, g[3], z, z, none, z, none, 0.0
+        )
+    )
+    pieces.add(gtsam.HessianFactor(keys[2], keys[3], z, b[2, 3], none, z, none, 0.0))
+    return gtsam.HessianFactor(pieces)
+
+
+def clique_groups(n: int, edges: IntArray, size: int = 4) -> list[tuple[list[int], list[int]]]:
+    """The blocks of a sparse ξ over n objects grouped into factors: (objects whose diagonal
+    block it takes, edges (rows of ``edges``) it takes). Every group's objects are pairwise
+    linked by ``edges`` (a clique of the pattern, at most ``size`` objects), so a group's factor
+    adds no link the pattern lacks; each diagonal block and edge is in exactly one group.
+    Greedy, edges in their order: an edge joins the first group holding one of its objects
+    that stays a clique with the other, else starts a group; an object's diagonal block goes
+    with its first group (its own if it has no edge). Deterministic: sender and receiver, or
+    two fusions, group one pattern alike."""
+    linked = {(int(i), int(j)) for i, j in edges.tolist()}
+    groups: list[tuple[list[int], list[int]]] = []
+    member_sets: list[set[int]] = []
+    of: list[list[int]] = [[] for _ in range(n)]  # object → its groups
+    for e, (i, j) in enumerate(edges.tolist()):
+        home = -1
+        for g in of[i] + of[j]:
+            objs = member_sets[g]
+            other = j if i in objs else i
+            if other in objs:
+                home = g
+                break
+            if len(objs) < size and all((min(other, o), max(other, o)) in linked for o in objs):
+                home = g
+                break
+        if home < 0:
+            home = len(groups)
+            groups.append(([], []))
+            member_sets.append(set())
+        groups[home][1].append(e)
+        for v in (i, j):
+            if v not in member_sets[home]:
+                member_sets[home].add(v)
+                of[v].append(home)
+    for v in range(n):
+        if not of[v]:
+            of[v].append(len(groups))
+            groups.append(([], []))
+            member_sets.append({v})
+        groups[of[v][0]][0].append(v)
+    return groups
+
+
 class _XiFactors:
     """The ξ factors of one fusion, built once per (ξ, sign) however many continuous beliefs
     take that ξ: a factor is never changed once built, and iSAM2 only holds a pointer to it (it
-    relinearises into new factors), so continuous beliefs can share it."""
+    relinearises into new factors), so continuous beliefs can share it. A dense ξ is one factor,
+    a sparse one a few per object (:func:`sparse_xi_factors`)."""
 
     def __init__(self) -> None:
-        self._built: dict[tuple[int, float], tuple[Xi, gtsam.LinearContainerFactor]] = {}
+        self._built: dict[
+            tuple[int, float], tuple[Xi | SparseXi, list[gtsam.LinearContainerFactor]]
+        ] = {}
 
     def get(
-        self, object_ids: Sequence[int], r: Xi, sign: float = 1.0
-    ) -> gtsam.LinearContainerFactor:
+        self, object_ids: Sequence[int], r: Xi | SparseXi, sign: float = 1.0
+    ) -> list[gtsam.LinearContainerFactor]:
         key = (id(r), sign)
         if key not in self._built:  # the ξ is kept too, so its id is never reused
-            self._built[key] = (r, xi_factor([object_key(j) for j in object_ids], r, sign))
+            keys = [object_key(j) for j in object_ids]
+            if isinstance(r, SparseXi):
+                factors = sparse_xi_factors(keys, r, sign)
+            else:
+                factors = [xi_factor(keys, r, sign)]
+            self._built[key] = (r, factors)
         return self._built[key][1]
 
 
@@ -514,7 +631,9 @@ class DistributedBelief(HybridBelief):
             if phi.shape != (n, m) or not np.isfinite(phi).all():
                 raise SlotError(f"slot of {s.owner}: class log φ is not finite ({n}, {m})")
             x = s.summary.per_object.xi
-            if x.lin.shape != (n, 3) or x.info.shape != (3 * n, 3 * n) or x.eta.shape != (3 * n,):
+            if isinstance(x, SparseXi):
+                _check_sparse(s.owner, x, n)
+            elif x.lin.shape != (n, 3) or x.info.shape != (3 * n, 3 * n) or x.eta.shape != (3 * n,):
                 raise SlotError(f"slot of {s.owner}: ξ shapes do not fit {n} objects")
             return
         rs = s.summary.realisations
@@ -618,7 +737,8 @@ class DistributedBelief(HybridBelief):
         values = gtsam.Values()
         remove: list[int] = []
         new_objects = set(order)
-        positions = []  # (slot, ξ, carried factor indices, graph position of its ξ factor)
+        # (slot, ξ, carried factor indices, graph positions of its anti-factors and ξ factors)
+        positions = []
         for b, r in picks:
             s = batch[b]
             per_object = s.summary.per_object
@@ -632,6 +752,7 @@ class DistributedBelief(HybridBelief):
                     h.object_priors[j] = real.lin[i].copy()
             old = h.used.get(s.owner)
             carried: tuple[int, ...] = ()
+            anti = range(0)
             if old is not None:
                 if self.fusion == "double_count":
                     carried = old.factor_indices
@@ -639,20 +760,44 @@ class DistributedBelief(HybridBelief):
                     remove.extend(old.factor_indices)
                 else:
                     carried = old.factor_indices
-                    graph.add(xi.get(old.object_ids, old.xi, -1.0))
+                    start = graph.size()
+                    for f in xi.get(old.object_ids, old.xi, -1.0):
+                        graph.add(f)
+                    anti = range(start, graph.size())
             start = graph.size()
-            graph.add(xi.get(ids, real))
-            positions.append((s, real, carried, start))
+            for f in xi.get(ids, real):
+                graph.add(f)
+            positions.append((s, real, carried, anti, range(start, graph.size())))
         result = h.isam.update(graph, values, remove)
         new_indices = list(result.getNewFactorsIndices())
-        for s, real, carried, start in positions:
-            anti = (
-                (new_indices[start - 1],)
-                if start > 0 and carried and self.fusion == "consistent"
-                else ()
-            )
-            own = (*carried, *anti, new_indices[start])
-            h.used[s.owner] = UsedXi(s.stamp, s.summary.object_ids, real, own)
+        for s, real, carried, anti, own in positions:
+            indices = (*carried, *(new_indices[i] for i in (*anti, *own)))
+            h.used[s.owner] = UsedXi(s.stamp, s.summary.object_ids, real, indices)
         for _ in range(self.config.extra_updates if settle else 0):
             h.isam.update()
         h.estimate = h.isam.calculateEstimate()
+
+
+def _check_sparse(owner: str, x: SparseXi, n: int) -> None:
+    """A sparse ξ's shapes and pattern fit n objects: ``lin`` (n, 3), ``diag_info`` (n, 3, 3),
+    ``edges`` (E, 2) integer pairs i < j < n, each once, ``edge_info`` (E, 3, 3), ``eta`` (3n,)
+    (its factors index objects by ``edges``: a pair out of range or twice would put the
+    information on the wrong objects or count it twice)."""
+    edges = np.asarray(x.edges)
+    e = len(edges) if edges.ndim == 2 else -1
+    if (
+        np.shape(x.lin) != (n, 3)
+        or np.shape(x.diag_info) != (n, 3, 3)
+        or edges.shape != (e, 2)
+        or np.shape(x.edge_info) != (e, 3, 3)
+        or np.shape(x.eta) != (3 * n,)
+    ):
+        raise SlotError(f"slot of {owner}: sparse ξ shapes do not fit {n} objects")
+    if e == 0:
+        return
+    if edges.dtype.kind not in "iu" or not (
+        (edges[:, 0] >= 0).all() and (edges[:, 0] < edges[:, 1]).all() and (edges[:, 1] < n).all()
+    ):
+        raise SlotError(f"slot of {owner}: sparse ξ edges must be object pairs i < j < {n}")
+    if len(np.unique(edges, axis=0)) != e:
+        raise SlotError(f"slot of {owner}: a sparse ξ edge is listed twice")

@@ -34,6 +34,7 @@ from estimator.logsumexp import logsumexp
 from estimator.models import ClassifierModel, Detection, GaussianNoise, SensorFrame, viewpoint
 from estimator.pruning import PRUNINGS, PruningRule, class_marginals, match_marginals, select
 from estimator.snapshot import BeliefSnapshot  # re-exported: it used to live here
+from estimator.sparse_xi import SparseXi, Structure
 from estimator.summary import Xi
 from estimator.weights import (
     WEIGHT_ESTIMATORS,
@@ -50,6 +51,8 @@ log = logging.getLogger(__name__)
 
 # How a belief represents its classes (``BeliefConfig.classes``).
 CLASS_KINDS = ("joint", "per_object")
+# What a per-object slot's ξ is (``BeliefConfig.xi``).
+XI_KINDS = ("dense", "sparse")
 
 
 @dataclass(frozen=True, slots=True)
@@ -80,11 +83,18 @@ class BeliefConfig:
     from the root only through cliques with a variable over the threshold; False: check every
     variable) and the number of ``extra_updates`` after each measurement update.
 
-    ``classes``: ``"joint"`` keeps weighted joint class realisations (Eq. 4, pruned as above);
-    ``"per_object"`` keeps per object its class log-evidence (M numbers): with one continuous
+    ``classes``: ``"per_object"`` (default) keeps per object its class log-evidence (M numbers;
+    ``"joint"``, ``BeliefConfig.joint()``, keeps weighted joint class realisations, Eq. 4,
+    pruned as above, as do ``paper()`` and ``exact()``): with one continuous
     belief the classes of different objects couple only through the Monte Carlo draws the
     detections of one step share, so the posterior is taken as a product over objects
     (docs/estimator.md, "Per-object classes"); no realisation, no branching, no pruning.
+
+    ``xi``: (``"per_object"`` only) the ξ of a slot: ``"dense"`` (default, the reference) the
+    owner's exact prior-divided Λ over its n objects, (3n)² numbers; ``"sparse"`` the
+    conservative sparse form of it (``estimator.sparse_xi``: Λ_s ⪯ Λ on a Bayes net's moral
+    graph, mean kept, float32), linear in n on the wire and a few small factors in D's iSAM2
+    instead of one n-object clique (docs/estimator.md, "Sparse ξ").
 
     ``semantic_poses``: whether the semantic factors also enter the Gaussians, so that every
     class realisation has a continuous belief of its own (Eq. 5 taken literally, the paper's
@@ -111,11 +121,16 @@ class BeliefConfig:
     partial_relinearization: bool = True
     extra_updates: int = 1
     semantic_poses: bool = False
-    classes: str = "joint"
+    classes: str = "per_object"
+    xi: str = "dense"
 
     def __post_init__(self) -> None:
         if self.classes not in CLASS_KINDS:
             raise ValueError(f"classes {self.classes!r} (known: {', '.join(CLASS_KINDS)})")
+        if self.xi not in XI_KINDS:
+            raise ValueError(f"xi {self.xi!r} (known: {', '.join(XI_KINDS)})")
+        if self.xi == "sparse" and self.classes != "per_object":
+            raise ValueError('xi = "sparse" needs classes = "per_object"')
         if self.classes == "per_object" and self.semantic_poses:
             raise ValueError(
                 'classes = "per_object" needs one continuous belief (semantic_poses = False)'
@@ -148,15 +163,29 @@ class BeliefConfig:
             "prune_ratio": 150.0,
             "robot_budget": None,
             "semantic_poses": True,
+            "classes": "joint",
             **changes,
         }
         return cls(**fields)  # type: ignore[arg-type]
 
     @classmethod
     def exact(cls, **changes: object) -> BeliefConfig:
-        """No pruning (enumeration, up to 4096 hypotheses): the reference of small worlds."""
-        fields = {"prune_ratio": math.inf, "max_hypotheses": 4096, "robot_budget": None, **changes}
+        """No pruning (enumeration of the joint realisations, up to 4096 hypotheses): the
+        reference of small worlds."""
+        fields = {
+            "prune_ratio": math.inf,
+            "max_hypotheses": 4096,
+            "robot_budget": None,
+            "classes": "joint",
+            **changes,
+        }
         return cls(**fields)  # type: ignore[arg-type]
+
+    @classmethod
+    def joint(cls, **changes: object) -> BeliefConfig:
+        """Joint class realisations with the default management (``"marginal"`` pruning, cap
+        300): the representation before per-object classes, kept as their baseline."""
+        return cls(**{"classes": "joint", **changes})  # type: ignore[arg-type]
 
     def cap(self, robots: int = 1) -> int:
         """The most hypotheses a belief over ``robots`` trajectories keeps."""
@@ -195,7 +224,7 @@ class UsedXi:
 
     stamp: int
     object_ids: tuple[int, ...]
-    xi: Xi
+    xi: Xi | SparseXi
     factor_indices: tuple[int, ...]
 
 
@@ -370,6 +399,9 @@ class HybridBelief:
         # Per-object classes: every known object's class log-evidence L (n, M), the prior left
         # out (P(c_j) ∝ P(c) · exp(L_j)); empty and unused for joint realisations.
         self.log_evidence = np.zeros((0, model.num_classes))
+        # Sparse ξ (BeliefConfig.xi): the object ids and Bayes net of the last one summarised
+        # from this belief, reused by estimator.slots while the ids are the same.
+        self.xi_structure: tuple[tuple[int, ...], Structure] | None = None
 
     @property
     def per_object(self) -> bool:

@@ -4,7 +4,9 @@ For every hypothesis of the LOCAL belief: ξ, the joint Gaussian over all the ow
 with the object priors divided out exactly (information form Λ, η about the linearisation poses
 ``lin``), and log φ = log w − Σ_j log P(c_j). The joint marginal comes from the iSAM2 Bayes tree of
 the hypothesis' continuous belief; its mean is iSAM2's current Δ at the linearisation point.
-Hypotheses that share a continuous belief share one ξ (computed once).
+Hypotheses that share a continuous belief share one ξ (computed once). A per-object belief with
+``BeliefConfig.xi = "sparse"`` sends the conservative sparse form of its ξ instead
+(``estimator.sparse_xi``), rounded to float32 as it travels.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ from numpy.typing import NDArray
 
 from estimator.factors import object_key
 from estimator.hybrid import Continuous, HybridBelief, distinct_continuous
+from estimator.sparse_xi import SparseXi, sparsify
 from estimator.summary import LocalSummary, ObjectClasses, Realisation, Xi
 
 Array = NDArray[np.float64]
@@ -40,7 +43,8 @@ def summarise(belief: HybridBelief) -> LocalSummary | None:
     prior_noise = gtsam.noiseModel.Diagonal.Sigmas(np.array(belief.config.object_prior_sigmas))
     if belief.per_object:
         xi = _prior_divided_marginal(belief.hypotheses[0].continuous, ids, prior_noise)
-        return LocalSummary(ids, (), ObjectClasses(object_log_phi(belief.log_evidence), xi))
+        shared: Xi | SparseXi = xi if belief.config.xi == "dense" else _sparse(belief, ids, xi)
+        return LocalSummary(ids, (), ObjectClasses(object_log_phi(belief.log_evidence), shared))
     log_prior = np.log(np.asarray(belief.model.class_prior, dtype=float))
     conts, which = distinct_continuous(belief.hypotheses)
     xis = [_prior_divided_marginal(c, ids, prior_noise) for c in conts]
@@ -62,6 +66,19 @@ def object_log_phi(log_evidence: Array) -> Array:
     phi = np.maximum(phi, PHI_FLOOR)
     phi.flags.writeable = False
     return phi
+
+
+def _sparse(belief: HybridBelief, ids: tuple[int, ...], xi: Xi) -> SparseXi:
+    """The conservative sparse form of ``xi`` in float32 (``SparseXi.float32``: the values that
+    travel, still ⪯ Λ). The Bayes net of the previous one is reused while the belief's objects
+    are the same, in the same order (only the values are recomputed: safe whatever the net;
+    fitting it is about a third of the cost); a new object fits a new one."""
+    held = belief.xi_structure
+    structure = held[1] if held is not None and held[0] == ids else None
+    sx = sparsify(xi, structure=structure)
+    assert sx.structure is not None  # sparsify always says which net it used
+    belief.xi_structure = (ids, sx.structure)
+    return sx.float32()
 
 
 def _prior_divided_marginal(

@@ -5,10 +5,13 @@ from __future__ import annotations
 
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
-from typing import overload
+from typing import TYPE_CHECKING, overload
 
 import numpy as np
 from numpy.typing import NDArray
+
+if TYPE_CHECKING:  # estimator.sparse_xi builds on Xi
+    from estimator.sparse_xi import SparseXi
 
 Array = NDArray[np.float64]
 
@@ -111,10 +114,12 @@ class ObjectClasses:
     "per_object"``; docs/estimator.md, "Per-object classes"): ``log_phi`` (n, M), every object's
     class log-evidence with the class prior divided out (P(c_j) ∝ P(c) · exp(log_phi[j]) on the
     owner's data alone; defined up to a constant per row), and the one ξ of its continuous
-    belief. Kept read-only."""
+    belief: dense (:class:`Xi`, the owner's exact Λ) or, with ``BeliefConfig.xi = "sparse"``,
+    its conservative sparse form (``estimator.sparse_xi.SparseXi``: Λ_s ⪯ Λ on a Bayes net's
+    moral graph, float32 values). Kept read-only."""
 
     log_phi: Array
-    xi: Xi
+    xi: Xi | SparseXi
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -138,9 +143,11 @@ class LocalSummary:
 
     def distinct_xi(self) -> tuple[list[Xi], list[int]]:
         """The distinct ξ of the realisations (by identity, in order of first use) and the index
-        of each realisation's ξ in that list (per object: the one ξ, and no realisation)."""
+        of each realisation's ξ in that list (per object: the one ξ, and no realisation; a
+        sparse ξ in its dense form, made anew at each call)."""
         if self.per_object is not None:
-            return [self.per_object.xi], []
+            xi = self.per_object.xi
+            return [xi if isinstance(xi, Xi) else xi.dense()], []
         rs = self.realisations
         if isinstance(rs, Realisations):
             return rs.distinct_xi()

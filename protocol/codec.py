@@ -18,7 +18,7 @@ import functools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import msgpack
 import numpy as np
@@ -46,6 +46,9 @@ from protocol.signing import (
 )
 from protocol.stack import Slot, Stack
 from protocol.validate import as_int, as_map, decode_document, need, robot_id, valid_id
+
+if TYPE_CHECKING:  # estimator.sparse_xi loads GTSAM, which a decoding peer need not have
+    from estimator.sparse_xi import SparseXi
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -76,6 +79,18 @@ _OBJECTS_KEYS = frozenset({"kind", "dim", "m", "phi", "lin", "info", "eta"})
 OBJECTS_KIND = "objects"
 OBJECT_DIM = 3  # Pose2 objects: x, y, θ (the only dimension so far)
 _F32 = np.dtype("<f4")
+# A per-object slot whose ξ is sparse (``"xi": "sparse"``, docs/wire.md, "Sparse ξ"): Λ_s as the
+# upper entries of its diagonal blocks, its edges (object pairs) and their blocks, all float32.
+SPARSE_XI = "sparse"
+_SPARSE_KEYS = frozenset(
+    {"kind", "dim", "m", "phi", "lin", "xi", "diag", "edges", "edge_info", "eta"}
+)
+# Edges per object a sparse ξ may have: a Bayes net with p parents per object has at most
+# p(p + 1)/2 moral edges per object: 6 for the default 3 (tree parent + 2 extra), 10 for 4.
+MAX_EDGES_PER_OBJECT = 10
+_EDGE_INDEX = np.dtype("<u2")  # an edge's object indices: so a sparse ξ has < 65 536 objects
+MAX_SPARSE_OBJECTS = 2**16 - 1
+_UPPER3 = np.triu_indices(3)  # a 3 × 3 block's 6 upper entries, row by row
 _ONE_XI = np.zeros(1, dtype=np.int64)  # numbers_problem's rows for a per-object slot's one ξ
 _NO_PHI = np.zeros(0)  # its log φ are checked apart (class_phi_problem)
 _ONE_XI.flags.writeable = _NO_PHI.flags.writeable = False
@@ -613,17 +628,23 @@ def _encode_objects(summary: LocalSummary, where: str, n: int, lim: Limits) -> d
     _local(1 <= m <= lim.num_classes, f"{field}.m", f"{m} outside 1..{lim.num_classes}")
     xi = po.xi
     d = OBJECT_DIM
-    shapes = (
-        np.shape(xi.lin) == (n, d)
-        and np.shape(xi.info) == (d * n, d * n)
-        and np.shape(xi.eta) == (d * n,)
-    )
+    if not isinstance(xi, Xi):  # the other form: a SparseXi
+        shapes = _sparse_shapes(xi, n)
+    else:
+        shapes = (
+            np.shape(xi.lin) == (n, d)
+            and np.shape(xi.info) == (d * n, d * n)
+            and np.shape(xi.eta) == (d * n,)
+        )
     _local(shapes, field, "ξ's shapes do not match the object count")
     phi = raw_phi.astype(np.float64)
     _raise_local(class_phi_problem(where, phi, lim))  # as given: the value the sender meant
     with np.errstate(over="ignore"):  # beyond float32 is inf, refused as over the bound below
         phi32 = phi.astype(_F32)
     _raise_local(class_phi_problem(where, phi32.astype(np.float64), lim))  # as it travels
+    if not isinstance(xi, Xi):
+        head = {"kind": OBJECTS_KIND, "dim": d, "m": int(m), "phi": phi32.tobytes()}
+        return head | _encode_sparse(xi, where, n, lim)
     lin = np.ascontiguousarray(xi.lin, dtype=_F64)
     info = np.ascontiguousarray(xi.info, dtype=_F64)
     eta = np.ascontiguousarray(xi.eta, dtype=_F64)
@@ -649,6 +670,170 @@ def _encode_objects(summary: LocalSummary, where: str, n: int, lim: Limits) -> d
         "info": upper.tobytes(),
         "eta": eta.tobytes(),
     }
+
+
+def _sparse_shapes(xi: SparseXi, n: int) -> bool:
+    """Whether a sparse ξ's arrays are numbers of the shapes n objects need: ``lin`` (n, 3),
+    ``diag_info`` (n, 3, 3), ``edges`` (E, 2) integers, ``edge_info`` (E, 3, 3), ``eta`` (3n,)."""
+    arrays = [np.asarray(a) for a in (xi.lin, xi.diag_info, xi.edges, xi.edge_info, xi.eta)]
+    lin, diag, edges, edge_info, eta = arrays
+    e = len(edges) if edges.ndim == 2 else -1
+    return (
+        all(a.dtype.kind in "fiu" for a in arrays)
+        and (edges.dtype.kind in "iu" or edges.size == 0)
+        and lin.shape == (n, OBJECT_DIM)
+        and diag.shape == (n, 3, 3)
+        and edges.shape == (e, 2)
+        and edge_info.shape == (e, 3, 3)
+        and eta.shape == (OBJECT_DIM * n,)
+    )
+
+
+def _encode_sparse(xi: SparseXi, where: str, n: int, lim: Limits) -> dict[str, Any]:
+    """A sparse ξ's part of a per-object ``real`` (docs/wire.md, "Sparse ξ"), checked as it
+    travels. Only the sender can break two rules: the values must already be float32
+    (``SparseXi.float32`` rounds them so that Λ_s stays under the owner's Λ; rounding them here
+    to nearest would not), and the diagonal blocks symmetric (their upper entries travel)."""
+    field = f"{where}.real"
+    lin = np.ascontiguousarray(xi.lin, dtype=_F64)
+    diag = np.asarray(xi.diag_info, dtype=np.float64)
+    edges = np.asarray(xi.edges).astype(np.int64).reshape(-1, 2)
+    edge_info = np.asarray(xi.edge_info, dtype=np.float64)
+    eta = np.ascontiguousarray(xi.eta, dtype=_F64)
+    for name, a in (("diag", diag), ("edge_info", edge_info), ("eta", eta)):
+        with np.errstate(over="ignore", invalid="ignore"):
+            exact = np.array_equal(a.astype(_F32).astype(np.float64), a, equal_nan=True)
+        _local(exact, f"{field}.{name}", "not float32 values (round them with SparseXi.float32)")
+    sent = _mirror3(diag[:, _UPPER3[0], _UPPER3[1]])  # what decode rebuilds: validate that
+    if n:
+        with np.errstate(over="ignore", invalid="ignore"):
+            asymmetry = np.abs(diag - diag.transpose(0, 2, 1)).max()
+            symmetric = bool(asymmetry <= 1e-12 * np.abs(diag).max())
+        _local(
+            symmetric or not np.isfinite(sent).all(),
+            f"{field}.diag",
+            "a diagonal block of Λ_s is not symmetric (or not finite below its diagonal)",
+        )
+    _raise_local(sparse_edges_problem(where, edges, n))
+    _raise_local(sparse_xi_problem(where, lin, sent, edges, edge_info, eta, lim))
+    return {
+        "lin": lin.tobytes(),
+        "xi": SPARSE_XI,
+        "diag": diag[:, _UPPER3[0], _UPPER3[1]].astype(_F32).tobytes(),
+        "edges": edges.astype(_EDGE_INDEX).tobytes(),
+        "edge_info": edge_info.astype(_F32).tobytes(),
+        "eta": eta.astype(_F32).tobytes(),
+    }
+
+
+def _mirror3(upper: Array) -> Array:
+    """(n, 3, 3) symmetric blocks from their 6 upper entries (n, 6), row by row."""
+    blocks = np.empty((len(upper), 3, 3))
+    blocks[:, _UPPER3[0], _UPPER3[1]] = upper
+    blocks[:, _UPPER3[1], _UPPER3[0]] = upper
+    return blocks
+
+
+def sparse_edges_problem(where: str, edges: IntArray, n: int) -> Problem | None:
+    """The first broken rule of a sparse ξ's (E, 2) ``edges`` over n objects, or None: n within
+    the uint16 indices and at most ``MAX_EDGES_PER_OBJECT``·n edges (``LimitExceeded``), each a
+    pair i < j < n, sorted and each once (``InvalidValue``): the receiver adds each edge's block
+    once, to those objects."""
+    field = f"{where}.real.edges"
+    e = len(edges)
+    if n > MAX_SPARSE_OBJECTS:
+        return LimitExceeded, field, f"uint16 object indices: {n} > {MAX_SPARSE_OBJECTS} objects"
+    if e > MAX_EDGES_PER_OBJECT * n:
+        return LimitExceeded, field, f"{e} edges > {MAX_EDGES_PER_OBJECT} per object ({n})"
+    if e == 0:
+        return None
+    i, j = edges[:, 0], edges[:, 1]
+    bad = (i < 0) | (i >= j) | (j >= n)
+    if bad.any():
+        k = int(np.argmax(bad))
+        return InvalidValue, field, f"edges[{k}] = ({i[k]}, {j[k]}) is not a pair i < j < {n}"
+    key = i * n + j
+    bad = key[1:] <= key[:-1]
+    if bad.any():
+        k = int(np.argmax(bad)) + 1
+        return (
+            InvalidValue,
+            field,
+            f"edges[{k}] = ({i[k]}, {j[k]}) does not follow edges[{k - 1}] = "
+            f"({i[k - 1]}, {j[k - 1]}): edges are sorted, each once",
+        )
+    return None
+
+
+def _sparse_info(diag: Array, edges: IntArray, edge_info: Array) -> Array:
+    """Λ_s (3n, 3n) from its diagonal blocks (n, 3, 3), edges (E, 2) and their blocks (E, 3, 3),
+    as ``SparseXi.dense`` builds it (here without importing it: it would load GTSAM)."""
+    n = len(diag)
+    info = np.zeros((n, n, 3, 3))
+    idx = np.arange(n)
+    info[idx, idx] = diag
+    i, j = edges[:, 0], edges[:, 1]
+    info[i, j] = edge_info
+    info[j, i] = edge_info.swapaxes(1, 2)
+    return info.transpose(0, 2, 1, 3).reshape(3 * n, 3 * n)
+
+
+def _blocks_problem(field: str, diag: Array, lim: Limits) -> Problem | None:
+    """The rules of Λ that Λ_s's block diagonal alone breaks (its eigenvalues are its blocks'):
+    λmax, semidefinite, κ, as :func:`_spectral_problem` words them, and positive definite."""
+    lam = np.linalg.eigvalsh(diag)
+    lo, hi = float(lam[:, 0].min()), float(lam[:, -1].max())
+    if not hi <= lim.max_information:
+        return LimitExceeded, field, f"λmax = {hi:.3g} > max_information"
+    if not lo >= -lim.psd_tol * max(hi, -lo):
+        return InvalidValue, field, f"Λ is indefinite (λmin = {lo:.3g})"
+    floor = lim.world_extent**-2
+    kappa = (hi + floor) / (lo + floor) if lo + floor > 0.0 else math.inf
+    if not kappa <= lim.max_condition:
+        return LimitExceeded, field, f"condition number {kappa:.3g} > max_condition"
+    if not lo > 0.0:
+        return InvalidValue, field, "a diagonal block of Λ_s is not positive definite"
+    return None
+
+
+def sparse_xi_problem(
+    where: str,
+    lin: Array,
+    diag: Array,
+    edges: IntArray,
+    edge_info: Array,
+    eta: Array,
+    lim: Limits,
+) -> Problem | None:
+    """:func:`object_xi_problem` for a sparse ξ (``lin`` (n, 3), ``diag`` (n, 3, 3) symmetric,
+    valid ``edges`` (E, 2), ``edge_info`` (E, 3, 3), ``eta`` (3n,)), whose Λ_s is also positive
+    definite: every number finite, in wire order; then the rules of a dense ξ on Λ_s. A rule of
+    Λ that the diagonal blocks alone break (a compression of Λ_s: their λmax, λmin and κ are
+    within Λ_s's) names ``diag``; one that only the whole Λ_s breaks names ``edge_info``."""
+    field = f"{where}.real"
+    for name, a in (("lin", lin), ("diag", diag), ("edge_info", edge_info), ("eta", eta)):
+        if not np.isfinite(a).all():
+            return InvalidValue, f"{field}.{name}", "non-finite number"
+    n = len(lin)
+    if n == 0:
+        return None
+    magnitude = np.abs(lin)  # the rules of numbers_problem, in its words
+    if float(magnitude[:, :2].max()) > lim.world_extent:
+        return LimitExceeded, f"{field}.lin", f"a position outside ±{lim.world_extent:g} m"
+    if float(magnitude[:, 2].max()) > MAX_ABS_THETA:
+        return InvalidValue, f"{field}.lin", "an angle outside ±2π"
+    problem = _blocks_problem(f"{field}.diag", diag, lim)
+    if problem is not None:
+        return problem
+    info = _sparse_info(diag, edges, edge_info)
+    problem = object_xi_problem(where, lin, info, eta, lim)
+    if problem is not None:
+        error, name, message = problem
+        return error, name.replace(f"{field}.info", f"{field}.edge_info"), message
+    _, failed = dpotrf(info, lower=1, clean=0, overwrite_a=1)
+    if failed:
+        return InvalidValue, f"{field}.edge_info", "Λ_s is not positive definite"
+    return None
 
 
 def sign_slot(slot: Slot, key: Ed25519PrivateKey, limits: Limits | None = None) -> Slot:
@@ -994,6 +1179,16 @@ def _decode_objects(body: memoryview, where: str, n: int, lim: Limits) -> Object
             f"objects of dimension {dim} are not supported (only {OBJECT_DIM}: Pose2)",
             InvalidValue,
         )
+    if "xi" in raw:
+        form = raw["xi"]
+        need(isinstance(form, str), f"{field}.xi", "expected a string")
+        need(
+            form == SPARSE_XI,
+            f"{field}.xi",
+            f"{form!r} is not a known ξ form (expected {SPARSE_XI!r}; a dense ξ has no xi)",
+            InvalidValue,
+        )
+        return _decode_sparse(raw, where, n, lim)
     r = as_map(raw, field, _OBJECTS_KEYS)
     m = as_int(r["m"], f"{field}.m", 1, lim.num_classes)
     d = OBJECT_DIM
@@ -1003,18 +1198,7 @@ def _decode_objects(body: memoryview, where: str, n: int, lim: Limits) -> Object
         "info": (_F64, len(_tri(n)[0])),
         "eta": (_F64, d * n),
     }
-    arrays: dict[str, Array] = {}
-    for name, (dtype, count) in counts.items():
-        value = r[name]
-        kind_of = "float32" if dtype == _F32 else "float64"
-        need(isinstance(value, bytes), f"{field}.{name}", f"expected binary {kind_of} data")
-        size = dtype.itemsize * count
-        need(
-            len(value) == size,
-            f"{field}.{name}",
-            f"expected {size} bytes, got {len(value)}",
-        )
-        arrays[name] = np.frombuffer(value, dtype=dtype).astype(np.float64)
+    arrays = {name: _blob(r, field, name, dtype, count) for name, (dtype, count) in counts.items()}
     phi = arrays["phi"].reshape(n, m)
     _raise_remote(class_phi_problem(where, phi, lim))
     lin = arrays["lin"].reshape(n, d)
@@ -1024,6 +1208,49 @@ def _decode_objects(body: memoryview, where: str, n: int, lim: Limits) -> Object
     for a in (phi, lin, info, eta):
         a.flags.writeable = False
     return ObjectClasses(phi, Xi(lin, info, eta))
+
+
+def _blob(r: dict[str, Any], field: str, name: str, dtype: np.dtype[Any], count: int) -> Array:
+    """The binary ``r[name]`` of ``count`` numbers of ``dtype``, as float64 (length checked)."""
+    value = r[name]
+    kind_of = "float32" if dtype == _F32 else "float64"
+    need(isinstance(value, bytes), f"{field}.{name}", f"expected binary {kind_of} data")
+    size = dtype.itemsize * count
+    need(len(value) == size, f"{field}.{name}", f"expected {size} bytes, got {len(value)}")
+    with np.errstate(invalid="ignore"):  # a signalling NaN: refused as non-finite, later
+        return np.frombuffer(value, dtype=dtype).astype(np.float64)
+
+
+def _decode_sparse(raw: dict[str, Any], where: str, n: int, lim: Limits) -> ObjectClasses:
+    """A per-object ``real`` map whose ξ is sparse (docs/wire.md, "Sparse ξ"), after its kind,
+    dimension and ``xi``: exactly its keys, M, the byte counts (E from ``edges``), log φ, the
+    edges, then the numbers of ξ (:func:`sparse_xi_problem`)."""
+    field = f"{where}.real"
+    r = as_map(raw, field, _SPARSE_KEYS)
+    m = as_int(r["m"], f"{field}.m", 1, lim.num_classes)
+    phi = _blob(r, field, "phi", _F32, n * m).reshape(n, m)
+    lin = _blob(r, field, "lin", _F64, OBJECT_DIM * n).reshape(n, OBJECT_DIM)
+    diag = _mirror3(_blob(r, field, "diag", _F32, 6 * n).reshape(n, 6))
+    raw_edges = r["edges"]
+    need(isinstance(raw_edges, bytes), f"{field}.edges", "expected binary uint16 pairs")
+    need(
+        len(raw_edges) % 4 == 0,
+        f"{field}.edges",
+        f"expected uint16 pairs (4 bytes each), got {len(raw_edges)} bytes",
+    )
+    edges = np.frombuffer(raw_edges, dtype=_EDGE_INDEX).astype(np.intp).reshape(-1, 2)
+    edge_info = _blob(r, field, "edge_info", _F32, 9 * len(edges)).reshape(-1, 3, 3)
+    eta = _blob(r, field, "eta", _F32, OBJECT_DIM * n)
+    _raise_remote(class_phi_problem(where, phi, lim))
+    _raise_remote(sparse_edges_problem(where, edges, n))
+    _raise_remote(sparse_xi_problem(where, lin, diag, edges, edge_info, eta, lim))
+    for a in (phi, lin, diag, edges, edge_info, eta):
+        a.flags.writeable = False
+    # Imported here: estimator.sparse_xi loads GTSAM, and a peer that decodes only dense and
+    # table slots must not need it (tests/test_import_guard.py).
+    from estimator.sparse_xi import SparseXi
+
+    return ObjectClasses(phi, SparseXi(lin, diag, edges, edge_info, eta))
 
 
 # (R, n) uint8 classes, (R,) log φ, the realisations that carry their ξ (index → their map), and

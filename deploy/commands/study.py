@@ -22,7 +22,7 @@ from deploy.scenario_args import scenario_from_args
 from deploy.shards import Shard, merge_shards, shard_entry, study_key, write_merged_plots
 from deploy.study import METHODS, run_study
 from deploy.study_report import render_summary, write_plots
-from estimator.hybrid import BeliefConfig
+from estimator.hybrid import XI_KINDS, BeliefConfig
 from estimator.weights import WEIGHT_ESTIMATORS
 
 
@@ -70,9 +70,13 @@ def run(args: argparse.Namespace, console: Console, own: dict[str, tuple[str, An
         changes["semantic_poses"] = True
     if args.semantic_poses and args.hypotheses == "per_object":
         raise UsageError(
-            "--semantic-poses needs a continuous belief per class realisation; "
-            "--hypotheses per_object keeps one"
+            "--semantic-poses needs a continuous belief per class realisation, and "
+            "--hypotheses per_object (the default) keeps one: add --hypotheses marginal"
         )
+    if args.xi != "dense":
+        if args.hypotheses != "per_object":
+            raise UsageError(f"--xi {args.xi} needs --hypotheses per_object (one ξ per slot)")
+        changes["xi"] = args.xi
     config = HYPOTHESIS_MANAGEMENT[args.hypotheses](**changes)
     if args.seed + args.runs - 1 > MAX_SEED:
         raise UsageError(f"--seed {args.seed} with --runs {args.runs} runs past the largest seed")
@@ -112,6 +116,7 @@ def run(args: argparse.Namespace, console: Console, own: dict[str, tuple[str, An
         "robot_budget": config.robot_budget,
         "semantic_poses": config.semantic_poses,
         "classes": config.classes,
+        "xi": config.xi,
         "communication": comm,
     }
     if args.shard is not None:
@@ -208,11 +213,19 @@ def add_parser(sub: Any) -> None:
     p.add_argument(
         "--hypotheses",
         choices=tuple(HYPOTHESIS_MANAGEMENT),
-        default="marginal",
-        help="hypothesis management: marginal (default), paper (joint ratio 1/150 and a "
-        "continuous belief per realisation, to replicate the paper), exact (no pruning, small "
-        "worlds only) or per_object (a class belief per object, no joint realisations: for "
-        "maps of any size, docs/estimator.md)",
+        default="per_object",
+        help="class beliefs: per_object (default: a class belief per object, for maps of any "
+        "size), or joint class realisations: marginal (pruned to a cap of 300), paper (joint "
+        "ratio 1/150 and a continuous belief per realisation, to replicate the paper) or exact "
+        "(no pruning, small worlds only); docs/estimator.md",
+    )
+    p.add_argument(
+        "--xi",
+        choices=XI_KINDS,
+        default="dense",
+        help="with --hypotheses per_object, the ξ of a slot: dense (default, the owner's exact "
+        "Λ, (3n)² numbers) or sparse (a conservative Λ_s ⪯ Λ on a Bayes net's moral graph, "
+        "linear in n; docs/estimator.md)",
     )
     p.add_argument(
         "--semantic-poses",

@@ -45,9 +45,9 @@ from agents.control import Stop, encode_control
 from agents.core import CLOCK_SKEW_S, MAX_STEP_RATE, STAMP_SLACK
 from agents.transport.base import Inbox, Keys
 from agents.transport.zenoh_transport import ZenohSettings, ZenohTransport
-from deploy.launch.chaos import garbage_stack
+from deploy.launch.chaos import forged_summary, garbage_stack
+from estimator.hybrid import BeliefConfig
 from estimator.models import MAX_STEP, Detection, SensorFrame
-from estimator.summary import LocalSummary, Realisation, Xi
 from protocol.codec import StackMessage, decode, encode, sign_slot
 from protocol.errors import RemoteProtocolError
 from protocol.frames import encode_frame
@@ -97,6 +97,8 @@ class Attacker:
     num_classes: int
     steps: int
     seed: int = 0
+    # The fleet's class representation: a forged slot is of the kind the victims fuse.
+    classes: str = BeliefConfig().classes
     sent: Counter[str] = field(default_factory=Counter)
     error: str = ""  # why the session could not open, if it could not
     transport: ZenohTransport | None = None
@@ -197,10 +199,8 @@ class Attacker:
 
     def _forged(self, attack: str, epoch: int, stamp: int) -> Slot:
         """A victim slot the victim never made: one object of class 0 that is not there."""
-        real = Realisation(
-            (0,), 0.0, Xi(np.array([[5.0, 5.0, 0.0]]), 100.0 * np.eye(3), np.zeros(3))
-        )
-        slot = Slot(self.victim, stamp, LocalSummary((FORGED_OBJECTS[attack],), (real,)), epoch)
+        summary = forged_summary(FORGED_OBJECTS[attack], self.num_classes, self.classes)
+        slot = Slot(self.victim, stamp, summary, epoch)
         if self.identity.signing_key is not None:  # signed — by the wrong key
             slot = sign_slot(slot, self.identity.signing_key)
         return slot

@@ -20,6 +20,7 @@ import numpy as np
 from agents.links import Partition
 from agents.transport.base import Keys, Transport
 from deploy.launch.errors import PlanError
+from estimator.summary import LocalSummary, ObjectClasses, Realisation, Xi
 
 GARBAGE_BURST = 200
 KILL, RESTART = "kill", "restart"
@@ -119,6 +120,17 @@ class Garbage:
                 self.sent += 1
             due_before = due
             await asyncio.sleep(1.0 / self.rate)
+
+
+def forged_summary(object_id: int, num_classes: int, classes: str) -> LocalSummary:
+    """A slot's content that no robot made: one object of class 0 at (5, 5), of the fleet's class
+    representation (``BeliefConfig.classes``), so that the victims would fuse it."""
+    xi = Xi(np.array([[5.0, 5.0, 0.0]]), 100.0 * np.eye(3), np.zeros(3))
+    if classes == "per_object":
+        phi = np.full((1, num_classes), -50.0)
+        phi[0, 0] = 0.0
+        return LocalSummary((object_id,), (), ObjectClasses(phi, xi))
+    return LocalSummary((object_id,), (Realisation((0,), 0.0, xi),))
 
 
 def garbage_stack(rng: random.Random) -> bytes:

@@ -8,6 +8,7 @@ another robot's objects came over the wire.
 from __future__ import annotations
 
 import dataclasses
+from typing import Any
 
 import msgpack
 import numpy as np
@@ -20,6 +21,7 @@ from deploy.study import belief_model, belief_rng
 from estimator.factors import object_key
 from estimator.hybrid import BeliefConfig, HybridBelief
 from estimator.models import SensorFrame
+from estimator.slots import object_log_phi
 from protocol.codec import StackMessage, decode, encode
 from protocol.stack import Slot, Stack
 from sim.loader import parse_scenario
@@ -132,7 +134,7 @@ def test_node_outgoing_is_none_until_the_robot_sees_an_object(
     assert [s.owner for s in message.stack] == ["r2"]
     slot = message.stack.by_owner()["r2"]
     assert slot.stamp == R2_FIRST_SIGHTING == node.k
-    assert len(slot.summary.realisations) == len(node.local.hypotheses)
+    _is_slot_of_local(slot, node)
 
 
 def test_node_delta_bytes_are_those_of_the_node_now_even_when_kept(
@@ -180,35 +182,57 @@ def test_node_own_slot_is_built_from_local_not_distributed(
     assert sorted(message.stack.stamps()) == ["r1", "r2"]
     slot = message.stack.by_owner()["r2"]
     assert slot.stamp == node.k == R2_FIRST_SIGHTING + 2
-    assert slot.summary.object_ids == tuple(node.local.object_ids)
-    assert len(slot.summary.realisations) == len(node.local.hypotheses)
-    assert [r.classes for r in slot.summary.realisations] == [
-        h.classes for h in node.local.hypotheses
-    ]
+    _is_slot_of_local(slot, node)
     assert node.outgoing() is node.outgoing()  # encoded once until something changes
 
 
 # -- invalid input -------------------------------------------------------------------------------
 
 
+def _body(doc: dict[str, Any]) -> dict[str, Any]:
+    """The first slot's per-object map, or its first realisation (a table slot)."""
+    real = doc["slots"][0]["real"]
+    return real if isinstance(real, dict) else real[0]
+
+
 def _mutated(data: bytes, field: str, value: object) -> bytes:
-    """``data`` with its first slot's first realisation's ``field`` replaced."""
+    """``data`` with ``field`` of its first slot's body (:func:`_body`) replaced."""
     doc = msgpack.unpackb(data, raw=False)
-    doc["slots"][0]["real"][0][field] = value
+    _body(doc)[field] = value
     return bytes(msgpack.packb(doc, use_bin_type=True))
 
 
 def _with_nan(data: bytes) -> bytes:
-    lin = np.frombuffer(msgpack.unpackb(data, raw=False)["slots"][0]["real"][0]["lin"], "<f8")
-    lin = lin.copy()
+    lin = np.frombuffer(_body(msgpack.unpackb(data, raw=False))["lin"], "<f8").copy()
     lin[1] = np.nan
     return _mutated(data, "lin", lin.tobytes())
 
 
 def _with_unknown_class(data: bytes) -> bytes:
-    # A two-class world: class index 5 is well-formed msgpack but meaningless.
-    classes = msgpack.unpackb(data, raw=False)["slots"][0]["real"][0]["c"]
-    return _mutated(data, "c", bytes([5]) + classes[1:])
+    # A two-class world: a slot of 5 classes (or class index 5) is well-formed but meaningless.
+    body = _body(msgpack.unpackb(data, raw=False))
+    if "c" in body:
+        return _mutated(data, "c", bytes([5]) + body["c"][1:])
+    n = len(body["phi"]) // (4 * body["m"])
+    doc = msgpack.unpackb(data, raw=False)
+    _body(doc)["m"] = 5
+    _body(doc)["phi"] = np.zeros(n * 5, "<f4").tobytes()
+    return bytes(msgpack.packb(doc, use_bin_type=True))
+
+
+def _is_slot_of_local(slot: Slot, node: RobotNode) -> None:
+    """``slot`` summarises the node's L: its objects, and every object's class log φ (float32
+    on the wire) or every realisation."""
+    local = node.local
+    assert slot.summary.object_ids == tuple(local.object_ids)
+    per_object = slot.summary.per_object
+    if per_object is None:
+        assert [r.classes for r in slot.summary.realisations] == [
+            h.classes for h in local.hypotheses
+        ]
+        return
+    expected = object_log_phi(local.log_evidence).astype(np.float32).astype(float)
+    assert np.array_equal(per_object.log_phi, expected)
 
 
 @pytest.mark.parametrize(
@@ -382,7 +406,7 @@ def test_node_never_takes_its_own_slot_from_a_relayed_stack(
     assert (node.counters.slots_decoded, node.counters.slots_skipped) == (decoded, skipped + 1)
     own = _own_slot(node)
     assert own.stamp == node.k == 6
-    assert len(own.summary.realisations) == len(node.local.hypotheses)
+    assert own.summary.object_ids == tuple(node.local.object_ids)
     # Its own information did not come back into D either: D still repeats L exactly.
     node.on_frame(frames["r1"][6])
     assert "r1" not in node.distributed.stamps

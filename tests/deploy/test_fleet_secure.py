@@ -26,7 +26,7 @@ from agents.transport.zenoh_transport import ZenohSettings, ZenohTransport
 from deploy.commands.scenario import model_text
 from deploy.fleet_init import FleetSpec, init_fleet, loopback_spec
 from deploy.launch import free_ports
-from estimator.summary import LocalSummary, Realisation, Xi
+from estimator.summary import LocalSummary, ObjectClasses, Xi
 from protocol.codec import Limits, StackMessage, decode, encode, sign_slot
 from protocol.stack import Slot, Stack
 from sim.loader import load_scenario
@@ -135,8 +135,8 @@ def test_only_the_owners_identity_puts_on_its_keys_and_only_the_operator_control
 
 def _slot_of(owner: str, stamp: int) -> Slot:
     info = np.eye(3) * 4.0
-    real = Realisation((0,), -0.2, Xi(np.array([[1.0, 2.0, 0.3]]), info, np.zeros(3)))
-    return Slot(owner, stamp, LocalSummary((900,), (real,)))
+    xi = Xi(np.array([[1.0, 2.0, 0.3]]), info, np.zeros(3))
+    return Slot(owner, stamp, LocalSummary((900,), (), ObjectClasses(np.array([[0.0, -0.2]]), xi)))
 
 
 def _signing_key(folder: Path) -> Ed25519PrivateKey:

@@ -144,10 +144,12 @@ def test_study_results_json_schema(two_runs: tuple[subprocess.CompletedProcess[s
     assert doc["steps"] == STEPS
     assert doc["robots"] == ["r1", "r2"]
     assert doc["weight_estimator"] == "geo_conditioned"
-    assert (doc["hypotheses"], doc["communication"]) == ("marginal", "range")
+    assert (doc["hypotheses"], doc["communication"]) == ("per_object", "range")
+    assert doc["classes"] == "per_object"
     assert doc["max_hypotheses"] == BeliefConfig().max_hypotheses
     assert doc["robot_budget"] == BeliefConfig().robot_budget
     assert doc["semantic_poses"] is False
+    assert doc["xi"] == "dense"
     assert set(doc["methods"]) == set(METHODS)
     for method, entry in doc["methods"].items():
         assert set(entry["mean"]) == set(METRICS), method
@@ -452,6 +454,12 @@ def test_run_single_rejects_unknown_method() -> None:
         (["--snapshot-step", "-1"], f"--snapshot-step: -1 is outside 1..{STEPS}"),
         (["--snapshot-step", "0"], f"--snapshot-step: 0 is outside 1..{STEPS}"),
         (["--snapshot-robot", "nobody"], "--snapshot-robot: no robot 'nobody' in tiny"),
+        *(
+            (["--xi", "sparse", "--hypotheses", joint], "--xi sparse needs --hypotheses per_object")
+            for joint in ("marginal", "paper", "exact")
+        ),
+        (["--hypotheses", "per_object", "--xi", "banded"], "invalid choice: 'banded'"),
+        (["--semantic-poses"], "--semantic-poses needs a continuous belief per class"),
     ],
 )
 def test_study_user_errors_are_one_clear_line(
@@ -483,7 +491,11 @@ def test_study_user_error_is_one_line_on_a_narrow_terminal(tmp_path: Path) -> No
 
 @pytest.mark.parametrize(
     ("options", "semantic_poses"),
-    [(("--semantic-poses",), True), (("--hypotheses", "paper"), True), ((), False)],
+    [
+        (("--semantic-poses", "--hypotheses", "marginal"), True),
+        (("--hypotheses", "paper"), True),
+        ((), False),
+    ],
 )
 def test_study_semantic_poses_reach_the_beliefs_and_the_results(
     world: Path, tmp_path: Path, options: tuple[str, ...], semantic_poses: bool
@@ -492,3 +504,20 @@ def test_study_semantic_poses_reach_the_beliefs_and_the_results(
     r = study(world, out, "--methods", "local", "--runs", "1", "--jobs", "1", *options)
     assert r.returncode == 0, r.stderr
     assert read_json(out)["semantic_poses"] is semantic_poses
+
+
+@pytest.mark.parametrize("xi", ["dense", "sparse"])
+def test_study_xi_reaches_the_slots_and_the_results(world: Path, tmp_path: Path, xi: str) -> None:
+    """--xi picks the ξ of a per-object slot; the distributed belief fuses either."""
+    out = tmp_path / "out"
+    r = study(
+        world,
+        out,
+        *("--methods", "local,distributed", "--runs", "1", "--jobs", "1"),
+        *("--hypotheses", "per_object", "--xi", xi),
+    )
+    assert r.returncode == 0, r.stderr
+    doc = read_json(out)
+    assert (doc["classes"], doc["xi"]) == ("per_object", xi)
+    error = doc["methods"]["distributed"]["mean"]["object_error"]
+    assert all(v is None or np.isfinite(v) for v in error) and error[-1] is not None

@@ -49,6 +49,7 @@ def no_pruning(**overrides: object) -> BeliefConfig:
         "robot_budget": None,
         "relinearize_skip": 1,
         "partial_relinearization": False,
+        "classes": "joint",
     }
     fields.update(overrides)
     return BeliefConfig(**fields)  # type: ignore[arg-type]

@@ -24,7 +24,7 @@ def _from_tuples(belief: HybridBelief) -> np.ndarray:
 def test_class_matrix_is_the_hypotheses_classes_after_every_step_and_fusion(seed: int) -> None:
     s = generate_scenario(4, 12, 3, seed=20 + seed, steps=14)
     frames = Simulator(s, seed).all_frames()
-    config = BeliefConfig()
+    config = BeliefConfig.joint()
     nodes = make_nodes(s, belief_model(s), config, lambda r: belief_rng(seed, [r]), "consistent")
     checked = {"L": 0, "D": 0, "fused": 0}
 

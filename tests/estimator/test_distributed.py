@@ -27,8 +27,8 @@ from sim.sensors import Simulator
 # (relinearize_skip = 10, and the partial relinearisation check that skips subtrees) leaves
 # iterates up to ~2 mm from that point whatever the fusion does, so the exactness tests check
 # every variable at every update to test the fusion, not the iterate.
-EXACT = BeliefConfig(relinearize_skip=1, partial_relinearization=False)
-NO_PRUNING = BeliefConfig(
+EXACT = BeliefConfig.joint(relinearize_skip=1, partial_relinearization=False)
+NO_PRUNING = BeliefConfig.joint(
     prune_ratio=1e9,
     max_hypotheses=5000,
     robot_budget=None,
@@ -123,7 +123,7 @@ def test_downdate_by_anti_factor_equals_removal() -> None:
     s = _near_linear_paper(24)
     seed = 2
     frames = Simulator(s, seed).all_frames()
-    config = BeliefConfig()
+    config = BeliefConfig.joint()
     early = _truncate(s, 16)
     early_frames = {r: fs[:16] for r, fs in frames.items()}
     v1 = Slot("r2", 16, summarise(_local(early, "r2", seed, early_frames, config)))
@@ -175,8 +175,8 @@ def test_integrating_the_same_version_twice_changes_nothing() -> None:
     s = _truncate(load_scenario("paper"), 20)
     seed = 4
     frames = Simulator(s, seed).all_frames()
-    slot = Slot("r3", 20, summarise(_local(s, "r3", seed, frames, BeliefConfig())))
-    d = _distributed(s, "r2", seed, frames, BeliefConfig())
+    slot = Slot("r3", 20, summarise(_local(s, "r3", seed, frames, BeliefConfig.joint())))
+    d = _distributed(s, "r2", seed, frames, BeliefConfig.joint())
     first = d.integrate([slot])
     weights, ids = d.weights().copy(), list(d.object_ids)
     second = d.integrate([slot])
@@ -217,10 +217,10 @@ def test_relayed_information_is_never_counted_twice(topology: str) -> None:
     )
     links = Schedule(tuple((1, s.steps, a, b) for a, b in pairs))
     model = belief_model(s)
-    central = _centralized(s, seed, frames, BeliefConfig())
+    central = _centralized(s, seed, frames, BeliefConfig.joint())
     ratios = {}
     for fusion in ("consistent", "double_count"):
-        nodes = make_nodes(s, model, BeliefConfig(), lambda r: belief_rng(seed, [r]), fusion)
+        nodes = make_nodes(s, model, BeliefConfig.joint(), lambda r: belief_rng(seed, [r]), fusion)
         run_fleet(nodes, frames, links, s.steps)
         ratios[fusion] = {r: _min_cov_ratio(n.distributed, central) for r, n in nodes.items()}
     for r, per_object in ratios["consistent"].items():
@@ -235,7 +235,7 @@ def test_relayed_information_is_never_counted_twice(topology: str) -> None:
 def test_a_budgeted_distributed_belief_grows_its_budget_with_the_robots_it_holds() -> None:
     # BeliefConfig.robot_budget: D keeps at most budget × (1 + robots whose slots it holds).
     s = _truncate(load_scenario("paper"), 20)
-    config = BeliefConfig(robot_budget=3)
+    config = BeliefConfig.joint(robot_budget=3)
     nodes = make_nodes(s, belief_model(s), config, lambda r: belief_rng(4, [r]))
     frames = Simulator(s, 4).all_frames()
     most: dict[str, int] = {}
@@ -257,7 +257,7 @@ def test_a_fusion_builds_at_most_max_join_pairs_from_the_heaviest_hypotheses() -
     probable hypothesis is that of the unbounded fusion."""
     s = _truncate(load_scenario("paper"), 12)
     frames = Simulator(s, 2).all_frames()
-    config = BeliefConfig()
+    config = BeliefConfig.joint()
     slots = [Slot(r, s.steps, summarise(_local(s, r, 2, frames, config))) for r in ("r2", "r3")]
     fused = {}
     for most in (250_000, 20):

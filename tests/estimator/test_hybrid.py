@@ -55,7 +55,9 @@ def _assert_matches_reference(s: Scenario, seed: int, config: BeliefConfig) -> N
 @pytest.mark.parametrize("objects", [ONE_OBJECT, TWO_OBJECTS], ids=["one", "two"])
 @pytest.mark.parametrize("seed", range(4))
 def test_geo_conditioned_class_posterior_matches_laplace_reference(objects, seed: int) -> None:
-    _assert_matches_reference(tiny_scenario(objects), seed, BeliefConfig(prune_ratio=NO_PRUNING))
+    _assert_matches_reference(
+        tiny_scenario(objects), seed, BeliefConfig.joint(prune_ratio=NO_PRUNING)
+    )
 
 
 @pytest.mark.parametrize("objects", [ONE_OBJECT, TWO_OBJECTS], ids=["one", "two"])
@@ -64,7 +66,7 @@ def test_paper_mc_class_posterior_matches_laplace_reference(objects, seed: int) 
     # The literal estimator samples newly seen objects from their prior; with the default 100 m
     # prior almost no sample lands near the measurement, so this check uses a 0.5 m prior (the
     # reference uses the same) and many samples: what is tested is the estimator, not its variance.
-    config = BeliefConfig(
+    config = BeliefConfig.joint(
         weight_estimator="paper_mc",
         num_samples=400_000,
         prune_ratio=NO_PRUNING,
@@ -75,7 +77,7 @@ def test_paper_mc_class_posterior_matches_laplace_reference(objects, seed: int) 
 
 def test_reference_check_detects_a_wrong_classifier() -> None:
     s = tiny_scenario(TWO_OBJECTS)
-    config = BeliefConfig(prune_ratio=NO_PRUNING)
+    config = BeliefConfig.joint(prune_ratio=NO_PRUNING)
     belief, frames = _run(s, 1, config)
     # A reference that swaps the classes must disagree: the comparison is not vacuous.
     _, ref = _reference_marginals(s, frames, config)
@@ -86,7 +88,7 @@ def test_reference_check_detects_a_wrong_classifier() -> None:
 def test_class_posterior_stays_at_prior_when_seen_from_minus_90_degrees(seed: int) -> None:
     # The robot drives straight at the object along its −y axis: ψ = −90° at every step.
     s = tiny_scenario([(3.0, 0.0, -90.0, 1)], steps=8, speed=0.15)
-    belief, frames = _run(s, seed, BeliefConfig())
+    belief, frames = _run(s, seed, BeliefConfig.joint())
     assert all(len(f.detections) == 1 for f in frames)
     p = belief.class_marginals()[0]
     assert abs(p[0] - 0.5) < 0.05, p
@@ -97,7 +99,7 @@ def test_class_posterior_converges_when_seen_from_plus_90_degrees(
     true_class: int, index: int
 ) -> None:
     s = tiny_scenario([(3.0, 0.0, 90.0, true_class)], steps=8, speed=0.15)
-    belief, _ = _run(s, 0, BeliefConfig())
+    belief, _ = _run(s, 0, BeliefConfig.joint())
     assert belief.class_marginals()[0, index] > 0.99
 
 
@@ -125,7 +127,7 @@ def test_paper_robot_belief_stays_under_cap_with_top_hypothesis() -> None:
     s = load_scenario("paper")
     frames = Simulator(s, 3).frames("r1")
     belief = HybridBelief(
-        belief_model(s), {"r1": s.robot("r1").start}, BeliefConfig(max_hypotheses=6)
+        belief_model(s), {"r1": s.robot("r1").start}, BeliefConfig.joint(max_hypotheses=6)
     )
     rng = np.random.default_rng(0)
     for f in frames[:35]:
@@ -137,10 +139,12 @@ def test_paper_robot_belief_stays_under_cap_with_top_hypothesis() -> None:
 
 
 def test_robot_budget_caps_a_belief_per_robot_whose_data_it_holds() -> None:
-    assert BeliefConfig().cap(3) == BeliefConfig().max_hypotheses  # no budget by default
-    budget = BeliefConfig(robot_budget=5)
+    assert (
+        BeliefConfig.joint().cap(3) == BeliefConfig.joint().max_hypotheses
+    )  # no budget by default
+    budget = BeliefConfig.joint(robot_budget=5)
     assert (budget.cap(1), budget.cap(3)) == (5, 15)
-    assert BeliefConfig(robot_budget=200).cap(3) == 300  # never beyond max_hypotheses
+    assert BeliefConfig.joint(robot_budget=200).cap(3) == 300  # never beyond max_hypotheses
     assert BeliefConfig.paper().robot_budget is None and BeliefConfig.exact().robot_budget is None
     s = load_scenario("paper")
     frames = Simulator(s, 3).frames("r1")
@@ -155,7 +159,7 @@ def test_robot_budget_caps_a_belief_per_robot_whose_data_it_holds() -> None:
 
 def test_without_detections_the_estimate_is_odometry_only_smoothing() -> None:
     s = tiny_scenario(ONE_OBJECT, steps=20, sensing=0.01)
-    belief, frames = _run(s, 4, BeliefConfig())
+    belief, frames = _run(s, 4, BeliefConfig.joint())
     assert all(not f.detections for f in frames)
     assert len(belief.hypotheses) == 1 and belief.object_ids == []
     h = belief.hypotheses[0]
@@ -206,7 +210,7 @@ def test_every_parent_of_a_step_is_weighed_with_the_same_draws(
 
     def run(chunk: int) -> HybridBelief:
         monkeypatch.setattr(hybrid, "_EVIDENCE_CHUNK", chunk)
-        config = BeliefConfig(semantic_poses=True)
+        config = BeliefConfig.joint(semantic_poses=True)
         belief = HybridBelief(belief_model(s), {"r1": s.robot("r1").start}, config)
         rng = np.random.default_rng(4)
         frames_done.clear()
@@ -233,7 +237,7 @@ def test_every_smoother_gets_the_configured_relinearisation(partial: bool) -> No
     # The iSAM2 settings of the config reach every hypothesis' smoother, the children copied
     # from their parents included (the exactness tests rely on the full check).
     s = load_scenario("paper")
-    config = BeliefConfig(relinearize_skip=3, partial_relinearization=partial)
+    config = BeliefConfig.joint(relinearize_skip=3, partial_relinearization=partial)
     belief = HybridBelief(belief_model(s), {"r1": s.robot("r1").start}, config)
     rng = np.random.default_rng(0)
     for f in Simulator(s, 3).frames("r1")[:8]:
@@ -243,4 +247,4 @@ def test_every_smoother_gets_the_configured_relinearisation(partial: bool) -> No
         params = h.isam.params()
         assert params.enablePartialRelinearizationCheck is partial
         assert params.relinearizeSkip == 3
-    assert BeliefConfig().partial_relinearization  # the default
+    assert BeliefConfig.joint().partial_relinearization  # the default

@@ -70,11 +70,11 @@ def _local(config: BeliefConfig, steps: int = 20, seed: int = 2) -> HybridBelief
 
 
 def test_every_hypothesis_shares_one_continuous_belief_by_default() -> None:
-    shared = _local(BeliefConfig())
+    shared = _local(BeliefConfig.joint())
     conts, which = distinct_continuous(shared.hypotheses)
     assert len(shared.hypotheses) > 4 and len(conts) == 1 and set(which) == {0}
     # With the semantic factors in the Gaussians, every realisation has its own.
-    literal = _local(BeliefConfig(semantic_poses=True))
+    literal = _local(BeliefConfig.joint(semantic_poses=True))
     conts, _ = distinct_continuous(literal.hypotheses)
     assert len(conts) == len(literal.hypotheses) > 4
 
@@ -85,8 +85,8 @@ def test_shared_and_per_realisation_beliefs_agree_on_classes_and_poses(seed: int
     the two models differ by 0.002–0.035 and the object means (the per-realisation MAP
     hypothesis' against the shared one) by 12–47 mm — the semantic factors' pull on the poses,
     which the shared belief leaves out (docs/estimator.md, "One continuous belief")."""
-    shared = _local(BeliefConfig(), seed=seed)
-    literal = _local(BeliefConfig(semantic_poses=True), seed=seed)
+    shared = _local(BeliefConfig.joint(), seed=seed)
+    literal = _local(BeliefConfig.joint(semantic_poses=True), seed=seed)
     assert shared.object_ids == literal.object_ids
     gap = np.abs(shared.class_marginals() - literal.class_marginals()).max()
     assert gap < 0.05, gap
@@ -102,7 +102,7 @@ def test_the_ledger_brings_the_shared_belief_to_the_laplace_reference() -> None:
     from tests.estimator.test_hybrid import ONE_OBJECT, _reference_marginals, _run
 
     s = tiny_scenario(ONE_OBJECT)
-    config = BeliefConfig(prune_ratio=1e9)
+    config = BeliefConfig.joint(prune_ratio=1e9)
     belief, frames = _run(s, 5, config)
     _, ref = _reference_marginals(s, frames, config)
     assert np.abs(belief.class_marginals() - ref).max() < 0.01

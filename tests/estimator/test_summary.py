@@ -66,7 +66,9 @@ def test_the_fusion_takes_a_slot_as_columns_to_the_very_belief_it_takes_as_tuple
     s = load_scenario("paper")
     frames = Simulator(s, 4).all_frames()
     model = belief_model(s)
-    twins = [make_nodes(s, model, BeliefConfig(), lambda r: belief_rng(4, [r])) for _ in range(2)]
+    twins = [
+        make_nodes(s, model, BeliefConfig.joint(), lambda r: belief_rng(4, [r])) for _ in range(2)
+    ]
     for k in range(25):
         for nodes, as_columns in zip(twins, (False, True), strict=True):
             nodes["r2"].on_frame(frames["r2"][k])

@@ -22,7 +22,8 @@ from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from estimator.summary import LocalSummary, ObjectClasses, Realisation
+from estimator.sparse_xi import SparseXi, Structure, sparsify
+from estimator.summary import LocalSummary, ObjectClasses, Realisation, Xi
 from protocol.codec import Limits, StackMessage, decode, encode, sign_slot, with_wire
 from protocol.errors import (
     BadSignature,
@@ -134,6 +135,12 @@ def assert_same_objects(got: StackMessage, want: StackMessage) -> None:
         assert phi.dtype == np.float64 and phi.shape == np.shape(wo.log_phi), g.owner
         assert not phi.flags.writeable
         assert _bits(phi) == _bits(rounded(wo.log_phi)), g.owner
+        if isinstance(wo.xi, SparseXi):
+            assert isinstance(go.xi, SparseXi), g.owner
+            assert_same_sparse(go.xi, wo.xi, g.owner)
+            (dense,), which = g.summary.distinct_xi()
+            assert which == [] and _bits(dense.info) == _bits(go.xi.dense().info)
+            continue
         assert g.summary.distinct_xi() == ([go.xi], [])
         for name in ("lin", "info", "eta"):
             ga, wa = getattr(go.xi, name), getattr(wo.xi, name)
@@ -142,13 +149,28 @@ def assert_same_objects(got: StackMessage, want: StackMessage) -> None:
             assert not ga.flags.writeable
 
 
+def assert_same_sparse(got: SparseXi, want: SparseXi, owner: str) -> None:
+    """A decoded sparse ξ is the sent one to the bit (its values float32 already), as read-only
+    float64 arrays, the diagonal blocks mirrored from their upper entries, no structure."""
+    for name in ("lin", "diag_info", "edge_info", "eta"):
+        ga, wa = getattr(got, name), getattr(want, name)
+        assert ga.dtype == np.float64 and ga.shape == np.shape(wa), f"{owner}.{name}"
+        assert _bits(ga) == _bits(wa), f"{owner}.{name}"
+        assert not ga.flags.writeable
+    assert got.edges.shape == np.shape(want.edges) and got.edges.dtype.kind == "i"
+    assert np.array_equal(got.edges, want.edges) and not got.edges.flags.writeable
+    assert got.structure is None
+
+
 def _as_table(slot: Slot) -> Slot:
-    """A per-object slot's ξ as the one realisation of a table slot (for the table checks)."""
+    """A per-object slot's ξ (a sparse one in its dense form) as the one realisation of a table
+    slot (for the table checks)."""
     po = slot.summary.per_object
     if po is None:
         return slot
     n = len(slot.summary.object_ids)
-    table = LocalSummary(slot.summary.object_ids, (Realisation((0,) * n, 0.0, po.xi),))
+    xi = po.xi.dense() if isinstance(po.xi, SparseXi) else po.xi
+    table = LocalSummary(slot.summary.object_ids, (Realisation((0,) * n, 0.0, xi),))
     return Slot(slot.owner, slot.stamp, table, slot.epoch)
 
 
@@ -169,6 +191,9 @@ def _check_valid(msg: StackMessage, lim: Limits) -> None:
         assert phi.ndim == 2 and phi.shape[0] == n and 1 <= phi.shape[1] <= lim.num_classes
         assert np.isfinite(phi).all() and np.all(np.abs(phi) <= lim.max_abs_log_phi)
         assert _bits(rounded(phi)) == _bits(phi)  # float32 values
+        if isinstance(po.xi, SparseXi):
+            _check_valid_sparse(po.xi, n)
+            continue
         assert po.xi.lin.shape == (n, 3) and po.xi.info.shape == (3 * n, 3 * n)
         assert np.array_equal(po.xi.info, po.xi.info.T)
         for a in (po.xi.lin, po.xi.info, po.xi.eta):
@@ -181,6 +206,25 @@ def _check_valid(msg: StackMessage, lim: Limits) -> None:
     bare = Stack(tuple(dataclasses.replace(s, wire=None) for s in msg.stack))
     again = decode(encode(dataclasses.replace(msg, stack=bare), roomy), roomy)
     assert_same_objects(again, msg)
+
+
+def _check_valid_sparse(sx: SparseXi, n: int) -> None:
+    """What a decoded sparse ξ promises: its shapes, edges i < j < n sorted and each once, at
+    most 10 per object, float32 values, symmetric diagonal blocks, Λ_s positive definite."""
+    e = len(sx.edges)
+    assert sx.lin.shape == (n, 3) and sx.diag_info.shape == (n, 3, 3) and sx.eta.shape == (3 * n,)
+    assert sx.edges.shape == (e, 2) and sx.edge_info.shape == (e, 3, 3) and e <= 10 * n
+    if e:
+        i, j = sx.edges.T
+        assert (i >= 0).all() and (i < j).all() and (j < n).all()
+        assert (np.diff(i * n + j) > 0).all()
+    for a in (sx.diag_info, sx.edge_info, sx.eta):
+        assert _bits(rounded(a)) == _bits(a)
+    assert np.array_equal(sx.diag_info, sx.diag_info.transpose(0, 2, 1))
+    for a in (sx.lin, sx.diag_info, sx.edge_info, sx.eta):
+        assert np.all(np.isfinite(a))
+    if n:
+        np.linalg.cholesky(sx.dense().info)  # positive definite
 
 
 WIRE = fuzz.Wire(decode, REF_PO_DOC, LIM, _check_valid)
@@ -204,15 +248,14 @@ def raw_pack_objects(msg: StackMessage, version: int | None = None) -> bytes:
         ]
 
     def objects(po: ObjectClasses, n: int) -> dict[str, Any]:
-        iu = np.triu_indices(3 * n)
         phi = np.asarray(po.log_phi)
         with np.errstate(over="ignore"):
             phi32 = phi.astype("<f4")
-        return {
-            "kind": "objects",
-            "dim": 3,
-            "m": int(phi.shape[1]),
-            "phi": phi32.tobytes(),
+        head = {"kind": "objects", "dim": 3, "m": int(phi.shape[1]), "phi": phi32.tobytes()}
+        if isinstance(po.xi, SparseXi):
+            return head | sparse_fields(po.xi)
+        iu = np.triu_indices(3 * n)
+        return head | {
             "lin": np.asarray(po.xi.lin, "<f8").tobytes(),
             "info": np.asarray(po.xi.info, "<f8")[iu].tobytes(),
             "eta": np.asarray(po.xi.eta, "<f8").tobytes(),
@@ -230,6 +273,20 @@ def raw_pack_objects(msg: StackMessage, version: int | None = None) -> bytes:
     pos = None if msg.position is None else [float(v) for v in msg.position]
     doc = {"v": version, "type": "stack", "sender": msg.sender, "k": msg.step, "pos": pos}
     return pack({**doc, "slots": slots})
+
+
+def sparse_fields(sx: SparseXi) -> dict[str, Any]:
+    """A sparse ξ's keys of a per-object map, as docs/wire.md lays them out, unchecked."""
+    iu = np.triu_indices(3)
+    with np.errstate(over="ignore", invalid="ignore"):
+        return {
+            "lin": np.asarray(sx.lin, "<f8").tobytes(),
+            "xi": "sparse",
+            "diag": np.asarray(sx.diag_info)[:, iu[0], iu[1]].astype("<f4").tobytes(),
+            "edges": np.asarray(sx.edges).astype("<u2").tobytes(),
+            "edge_info": np.asarray(sx.edge_info).astype("<f4").tobytes(),
+            "eta": np.asarray(sx.eta).astype("<f4").tobytes(),
+        }
 
 
 def _replace_objects(
@@ -251,6 +308,8 @@ def _r1() -> ObjectClasses:
 
 
 R1 = _r1()
+assert isinstance(R1.xi, Xi)
+R1_XI: Xi = R1.xi  # r1's dense ξ
 
 
 def _with(a: np.ndarray, at: tuple[int, ...], value: float) -> np.ndarray:
@@ -291,9 +350,9 @@ def test_per_object_wire_layout_matches_docs() -> None:
     assert list(real) == ["kind", "dim", "m", "phi", "lin", "info", "eta"]
     assert (real["kind"], real["dim"], real["m"]) == ("objects", 3, 4)
     assert real["phi"] == np.asarray(R1.log_phi, "<f8").astype("<f4").tobytes()
-    assert real["lin"] == R1.xi.lin.astype("<f8").tobytes()
-    assert real["info"] == _upper(R1.xi.info)
-    assert real["eta"] == R1.xi.eta.astype("<f8").tobytes()
+    assert real["lin"] == R1_XI.lin.astype("<f8").tobytes()
+    assert real["info"] == _upper(R1_XI.info)
+    assert real["eta"] == R1_XI.eta.astype("<f8").tobytes()
     empty = doc["slots"][1]["real"]
     assert empty == {
         "kind": "objects",
@@ -592,9 +651,19 @@ def test_a_missing_per_object_key_is_malformed(key: str) -> None:
         decode(WIRE.without((*PO, key)), LIM)
 
 
-@pytest.mark.parametrize("key", ["x", "c", "xi", "Kind", ""])
+@pytest.mark.parametrize("key", ["x", "c", "diag", "Kind", ""])
 def test_an_extra_per_object_key_is_malformed(key: str) -> None:
     WIRE.assert_rejected(WIRE.with_((*PO, key), 0), MalformedMessage, PO_FIELD)
+
+
+def test_xi_names_the_form_of_a_per_object_xi() -> None:
+    """``xi`` is the one key a dense map lacks and a sparse one has: on a dense map it is read
+    first (a form this side does not know is named as such), then the sparse map's keys."""
+    WIRE.assert_rejected(WIRE.with_((*PO, "xi"), 0), MalformedMessage, f"{PO_FIELD}.xi")
+    WIRE.assert_rejected(WIRE.with_((*PO, "xi"), "dense"), InvalidValue, f"{PO_FIELD}.xi")
+    WIRE.assert_rejected(WIRE.with_((*PO, "xi"), "sparse"), MalformedMessage, PO_FIELD)
+    with pytest.raises(MalformedMessage, match=r"missing keys \['diag', 'edge_info', 'edges'\]"):
+        decode(WIRE.with_((*PO, "xi"), "sparse"), LIM)
 
 
 def test_a_per_object_map_of_the_wrong_object_count_is_malformed() -> None:
@@ -616,7 +685,7 @@ def test_phi_within_the_bound_is_accepted_and_decoded_read_only() -> None:
 # --------------------------------------------------------------------------- encode
 
 
-ASYMMETRIC = R1.xi.info.copy()
+ASYMMETRIC = R1_XI.info.copy()
 ASYMMETRIC[0, 1] += 1e-3
 
 # (changes to r1, the field suffix after "slots[0].real", limits, whether decode sees it too)
@@ -635,8 +704,8 @@ ENCODE_CASES: list[tuple[str, StackMessage, str, Limits, bool]] = [
     ),
     ("m-0", _replace_objects(phi=np.zeros((3, 0))), ".m", LIM, True),
     ("m-over", _replace_objects(phi=np.zeros((3, 5))), ".m", LIM, True),
-    ("lin-nan", _replace_objects(lin=_with(R1.xi.lin, (1, 1), math.nan)), ".lin", LIM, True),
-    ("lin-theta", _replace_objects(lin=R1.xi.lin + np.array([0.0, 0.0, 20.0])), ".lin", LIM, True),
+    ("lin-nan", _replace_objects(lin=_with(R1_XI.lin, (1, 1), math.nan)), ".lin", LIM, True),
+    ("lin-theta", _replace_objects(lin=R1_XI.lin + np.array([0.0, 0.0, 20.0])), ".lin", LIM, True),
     ("info-indefinite", _replace_objects(info=_symmetric(3, -1.0)), ".info", LIM, True),
     ("eta-huge", _replace_objects(eta=np.full(9, 1e300)), ".eta", LIM, True),
     # what only the sender can get wrong: shapes, types, an asymmetric Λ, realisations
@@ -645,12 +714,12 @@ ENCODE_CASES: list[tuple[str, StackMessage, str, Limits, bool]] = [
     ("phi-1d", _replace_objects(phi=np.zeros(3)), ".phi", LIM, False),
     ("phi-bool", _replace_objects(phi=np.zeros((3, 4), dtype=bool)), ".phi", LIM, False),
     ("phi-complex", _replace_objects(phi=np.zeros((3, 4), dtype=complex)), ".phi", LIM, False),
-    ("lin-n-by-2", _replace_objects(lin=R1.xi.lin[:, :2]), "", LIM, False),
-    ("info-too-small", _replace_objects(info=R1.xi.info[:6, :6]), "", LIM, False),
-    ("eta-too-long", _replace_objects(eta=np.append(R1.xi.eta, 0.0)), "", LIM, False),
+    ("lin-n-by-2", _replace_objects(lin=R1_XI.lin[:, :2]), "", LIM, False),
+    ("info-too-small", _replace_objects(info=R1_XI.info[:6, :6]), "", LIM, False),
+    ("eta-too-long", _replace_objects(eta=np.append(R1_XI.eta, 0.0)), "", LIM, False),
     (
         "with-realisations",
-        _replace_objects(reals=(Realisation((0, 1, 2), 0.0, R1.xi),)),
+        _replace_objects(reals=(Realisation((0, 1, 2), 0.0, R1_XI),)),
         "",
         LIM,
         False,
@@ -736,9 +805,558 @@ def test_encode_accepts_exactly_what_decode_accepts(seed: int) -> None:
     assert seen["accepted"] >= 5 and sum(seen.values()) - seen["accepted"] >= 5, seen
 
 
+# --------------------------------------------------------------------------- sparse ξ
+
+
+def make_sparse(rng: np.random.Generator, n: int, structure: Structure | None = None) -> SparseXi:
+    """A sparse ξ valid under the default ``Limits``: ``sparsify`` of ``make_realisation``'s ξ
+    (on ``structure``, else a fitted net), rounded to float32 as a sender rounds it."""
+    sx = sparsify(make_realisation(rng, n, 2).xi, structure=structure)
+    # (SparseXi.float32 fails on no object — LAPACK refuses an empty solve; nothing to round)
+    return sx.float32() if n else sx
+
+
+def sparse_summary(
+    rng: np.random.Generator, n: int, m: int, structure: Structure | None = None
+) -> LocalSummary:
+    phi = bounded(rng, (n, m), DEFAULT.max_abs_log_phi)
+    return LocalSummary(
+        tuple(range(70, 70 + n)), (), ObjectClasses(phi, make_sparse(rng, n, structure))
+    )
+
+
+# edges (0, 1) (0, 2) (0, 3) (1, 2) (2, 3) (3, 4): object 3's parents 0 and 2 are married
+CHAIN5 = Structure((0, 1, 2, 3, 4), ((), (0,), (1,), (0, 2), (3,)))
+# slots[0] r1: a sparse ξ of 5 objects (M = 4); slots[1] r2: a sparse ξ of no object (M = 2);
+# slots[2] r3: a dense per-object slot (3 objects).
+REF_SP = StackMessage(
+    "r0",
+    (0.5, -0.25),
+    Stack(
+        (
+            Slot("r1", 9, sparse_summary(np.random.default_rng(11), 5, 4, CHAIN5)),
+            Slot("r2", 3, sparse_summary(np.random.default_rng(12), 0, 2)),
+            Slot("r3", 7, objects_summary(np.random.default_rng(13), 3, 4)),
+        )
+    ),
+    10,
+)
+REF_SP_BLOB = encode(REF_SP, LIM)
+REF_SP_DOC: dict[str, Any] = msgpack.unpackb(REF_SP_BLOB, raw=False)
+SIGNED_SP = StackMessage(
+    "r3", None, Stack(tuple(sign_slot(s, KEYS[s.owner], LIM) for s in REF_SP.stack)), 10
+)
+SIGNED_SP_BLOB = encode(SIGNED_SP, LIM)
+SWIRE = fuzz.Wire(decode, REF_SP_DOC, LIM, _check_valid)
+
+
+def _sp() -> SparseXi:
+    po = REF_SP.stack.slots[0].summary.per_object
+    assert po is not None and isinstance(po.xi, SparseXi)
+    return po.xi
+
+
+SP = _sp()
+SPARSE_KEYS = ["kind", "dim", "m", "phi", "lin", "xi", "diag", "edges", "edge_info", "eta"]
+
+
+def test_sparse_round_trip_is_bit_exact() -> None:
+    got = decode(REF_SP_BLOB, LIM)
+    assert_same_objects(got, REF_SP)
+    assert [s.summary.kind for s in got.stack] == ["per_object"] * 3
+    sx = got.stack.slots[0].summary.per_object
+    assert sx is not None and isinstance(sx.xi, SparseXi)
+    assert _bits(sx.xi.dense().info) == _bits(SP.dense().info)  # the very Λ_s the sender meant
+    assert encode(got, LIM) == REF_SP_BLOB
+    bare = Stack(tuple(dataclasses.replace(s, wire=None) for s in got.stack))
+    assert encode(dataclasses.replace(got, stack=bare), LIM) == REF_SP_BLOB
+
+
+def test_sparse_wire_layout_matches_docs() -> None:
+    doc = REF_SP_DOC
+    assert doc["v"] == 3
+    real = doc["slots"][0]["real"]
+    assert list(real) == SPARSE_KEYS
+    assert (real["kind"], real["dim"], real["m"], real["xi"]) == ("objects", 3, 4, "sparse")
+    assert real["lin"] == SP.lin.astype("<f8").tobytes()
+    iu = np.triu_indices(3)
+    assert real["diag"] == SP.diag_info[:, iu[0], iu[1]].astype("<f4").tobytes()
+    assert SP.edges.tolist() == [[0, 1], [0, 2], [0, 3], [1, 2], [2, 3], [3, 4]]
+    assert real["edges"] == bytes(
+        [0, 0, 1, 0, 0, 0, 2, 0, 0, 0, 3, 0, 1, 0, 2, 0, 2, 0, 3, 0, 3, 0, 4, 0]
+    )
+    assert real["edge_info"] == SP.edge_info.astype("<f4").tobytes()  # row-major 3 × 3 blocks
+    assert real["eta"] == SP.eta.astype("<f4").tobytes()
+    empty = doc["slots"][1]["real"]
+    assert empty == {
+        "kind": "objects",
+        "dim": 3,
+        "m": 2,
+        "phi": b"",
+        "lin": b"",
+        "xi": "sparse",
+        "diag": b"",
+        "edges": b"",
+        "edge_info": b"",
+        "eta": b"",
+    }
+    assert "xi" not in doc["slots"][2]["real"]  # a dense map as before
+    assert raw_pack_objects(REF_SP) == REF_SP_BLOB
+
+
+@pytest.mark.parametrize(
+    ("n", "m", "extra"), [(0, 1, 2), (1, 2, 2), (4, 3, 0), (12, 4, 2), (80, 4, 2), (90, 200, 3)]
+)
+def test_sparse_size_matches_docs(n: int, m: int, extra: int) -> None:
+    """docs/wire.md: a sparse ``real`` is 4nM + 60n + 40E bytes of numbers, plus
+    64 + s(M) + h(4nM) + 2·h(24n) + h(12n) + h(4E) + h(36E) of map, keys and headers."""
+    rng = np.random.default_rng(n + m)
+    phi = bounded(rng, (n, m), DEFAULT.max_abs_log_phi)
+    xi = sparsify(make_realisation(rng, n, 2).xi, extra_parents=extra)
+    xi = xi.float32() if n else xi
+    summary = LocalSummary(tuple(range(n)), (), ObjectClasses(phi, xi))
+    lim = Limits(num_classes=256)
+    blob = encode(StackMessage("r0", None, Stack((Slot("r1", 1, summary),))), lim)
+    a, b = scan(blob)["slots"][0].spans["real"]
+
+    def h(length: int) -> int:
+        return 2 if length < 2**8 else 3 if length < 2**16 else 5
+
+    e = len(xi.edges)
+    s = 1 if m < 128 else 2 if m < 256 else 3
+    payload = 4 * n * m + 60 * n + 40 * e
+    headers = h(4 * n * m) + 2 * h(24 * n) + h(12 * n) + h(4 * e) + h(36 * e)
+    assert b - a == payload + 64 + s + headers
+    # p parents per object: at most p(p + 1)/2 moral edges per object
+    assert e <= (extra + 1) * (extra + 2) // 2 * n
+
+
+def test_a_sparse_slot_is_linear_in_its_objects() -> None:
+    """80 objects of a single-robot tour, M = 4: a sparse ξ under 220 bytes per object where
+    the dense ξ of the same objects takes 36·3·80 + … ≈ 2.9 kB per object."""
+    from tests.estimator.test_sparse_xi import _tour_xi
+
+    xi = _tour_xi(80, 0)
+    sizes = []
+    for shared in (xi, sparsify(xi).float32()):
+        summary = LocalSummary(tuple(range(80)), (), ObjectClasses(np.zeros((80, 4)), shared))
+        sizes.append(len(encode(StackMessage("r0", None, Stack((Slot("r1", 1, summary),))), LIM)))
+    assert sizes[0] / 80 > 2_800 and sizes[1] / 80 < 220, sizes
+
+
+def _sp_with(**changes: Any) -> StackMessage:
+    """REF_SP with r1's sparse ξ changed (anything allowed)."""
+    slot = REF_SP.stack.slots[0]
+    po = slot.summary.per_object
+    assert po is not None
+    new = ObjectClasses(po.log_phi, dataclasses.replace(SP, **changes))
+    summary = LocalSummary(slot.summary.object_ids, (), new)
+    return dataclasses.replace(REF_SP, stack=REF_SP.stack.with_slot(Slot("r1", 9, summary)))
+
+
+def _f32(values: Any) -> bytes:
+    return np.asarray(values, dtype=float).astype("<f4").tobytes()
+
+
+def _diag_bytes(blocks: np.ndarray) -> bytes:
+    iu = np.triu_indices(3)
+    return _f32(blocks[:, iu[0], iu[1]])
+
+
+def _spoke32(name: str, index: int, value: float) -> bytes:
+    """REF_SP_DOC with float32 number ``index`` of r1's binary ``name`` replaced."""
+    blob = get_at(REF_SP_DOC, (*PO, name))
+    return SWIRE.with_(
+        (*PO, name), blob[: 4 * index] + struct.pack("<f", value) + blob[4 * index + 4 :]
+    )
+
+
+def _sresized(name: str, change: int | None) -> bytes:
+    blob = get_at(REF_SP_DOC, (*PO, name))
+    new = b"" if change is None else blob[:change] if change < 0 else blob + bytes(change)
+    return SWIRE.with_((*PO, name), new)
+
+
+def _edges_doc(edges: list[tuple[int, int]], blocks: np.ndarray | None = None) -> bytes:
+    """REF_SP_DOC with r1's edges (and edge blocks, by default those of the first edges)."""
+    if blocks is None:
+        blocks = np.resize(SP.edge_info, (len(edges), 3, 3))
+    doc = copy.deepcopy(REF_SP_DOC)
+    real = doc["slots"][0]["real"]
+    real["edges"] = np.array(edges, dtype="<u2").reshape(-1, 2).tobytes()
+    real["edge_info"] = _f32(blocks)
+    return pack(doc)
+
+
+def _diag_doc(blocks: np.ndarray) -> bytes:
+    return SWIRE.with_((*PO, "diag"), _diag_bytes(blocks))
+
+
+LAM_MAX = float(np.linalg.eigvalsh(SP.dense().info)[-1])
+SWAPPED = [(0, 2), (0, 1), (0, 3), (1, 2), (2, 3), (3, 4)]
+# Λ_s positive semidefinite but singular: identity diagonal blocks, objects 0 and 1 linked by
+# −I (Λ on them [[I, −I], [−I, I]], λmin = 0): within psd_tol and κ = (2 + f)/f < max_condition,
+# refused only because a sparse ξ must be positive definite.
+SINGULAR_DIAG = np.tile(np.eye(3), (5, 1, 1))
+SINGULAR_EDGES = np.zeros((6, 3, 3))
+SINGULAR_EDGES[0] = -np.eye(3)
+EDGE_INDEFINITE = np.array(SP.edge_info)
+EDGE_INDEFINITE[0] = 4.0 * LAM_MAX * np.eye(3)
+
+# (name, blob, error, field suffix after "slots[0].real", limits): every malformed sparse field
+MALFORMED_SPARSE: list[tuple[str, bytes, type[RemoteProtocolError], str, Limits]] = [
+    ("xi-int", SWIRE.with_((*PO, "xi"), 1), MalformedMessage, ".xi", LIM),
+    ("xi-bin", SWIRE.with_((*PO, "xi"), b"sparse"), MalformedMessage, ".xi", LIM),
+    ("xi-dense", SWIRE.with_((*PO, "xi"), "dense"), InvalidValue, ".xi", LIM),
+    ("xi-lowrank", SWIRE.with_((*PO, "xi"), "lowrank"), InvalidValue, ".xi", LIM),
+    ("kind-first", SWIRE.with_((*PO, "kind"), "points"), InvalidValue, ".kind", LIM),
+    ("info-extra", SWIRE.with_((*PO, "info"), b""), MalformedMessage, "", LIM),
+    ("m-over", SWIRE.with_((*PO, "m"), 5), InvalidValue, ".m", LIM),
+    *(
+        (f"{name}-{change}", _sresized(name, change), MalformedMessage, f".{name}", LIM)
+        for name in ("phi", "lin", "diag", "edge_info", "eta")
+        for change in (-8, -4, -1, 1, 4, 8, None)
+    ),
+    *(
+        (f"edges-{change}", _sresized("edges", change), MalformedMessage, ".edges", LIM)
+        for change in (-3, -2, -1, 1, 2, 3)
+    ),
+    # a whole edge more or less: edge_info no longer has 9 numbers per edge
+    *(
+        (f"edges-pair-{change}", _sresized("edges", change), MalformedMessage, ".edge_info", LIM)
+        for change in (-4, 4, None)
+    ),
+    ("edges-list", SWIRE.with_((*PO, "edges"), [0, 1]), MalformedMessage, ".edges", LIM),
+    ("edge-info-float", SWIRE.with_((*PO, "edge_info"), 1.0), MalformedMessage, ".edge_info", LIM),
+    ("edges-over-10n", _edges_doc([(0, 1)] * 51), LimitExceeded, ".edges", LIM),
+    ("edges-j-out", _edges_doc([(0, 1), (0, 5)]), InvalidValue, ".edges", LIM),
+    ("edges-i-is-j", _edges_doc([(0, 1), (2, 2)]), InvalidValue, ".edges", LIM),
+    ("edges-reversed", _edges_doc([(1, 0)]), InvalidValue, ".edges", LIM),
+    ("edges-unsorted", _edges_doc(SWAPPED), InvalidValue, ".edges", LIM),
+    ("edges-twice", _edges_doc([(0, 1), (0, 1)]), InvalidValue, ".edges", LIM),
+    ("phi-nan", _spoke32("phi", 3, math.nan), InvalidValue, ".phi", LIM),
+    ("lin-nan", SWIRE.poke((*PO, "lin"), 4, math.nan), InvalidValue, ".lin", LIM),
+    ("lin-x", SWIRE.poke((*PO, "lin"), 3, 2e4), LimitExceeded, ".lin", LIM),
+    ("lin-theta", SWIRE.poke((*PO, "lin"), 5, 7.0), InvalidValue, ".lin", LIM),
+    ("diag-nan", _spoke32("diag", 7, math.nan), InvalidValue, ".diag", LIM),
+    ("edge-info-inf", _spoke32("edge_info", 10, math.inf), InvalidValue, ".edge_info", LIM),
+    ("eta-nan", _spoke32("eta", 14, math.nan), InvalidValue, ".eta", LIM),
+    ("diag-huge", _diag_doc(np.tile(2e9 * np.eye(3), (5, 1, 1))), LimitExceeded, ".diag", LIM),
+    ("diag-indefinite", _spoke32("diag", 0, -1.0), InvalidValue, ".diag", LIM),
+    (
+        "diag-singular",
+        _diag_doc(np.tile(np.diag([1.0, 1.0, 0.0]), (5, 1, 1))),
+        InvalidValue,
+        ".diag",
+        LIM,
+    ),
+    (
+        "edge-indefinite",
+        _edges_doc(SP.edges.tolist(), EDGE_INDEFINITE),
+        InvalidValue,
+        ".edge_info",
+        LIM,
+    ),
+    (
+        "edge-huge",
+        _edges_doc(SP.edges.tolist(), np.tile(2e9 * np.eye(3), (6, 1, 1))),
+        LimitExceeded,
+        ".edge_info",
+        LIM,
+    ),
+    (
+        "singular",
+        pack(
+            {
+                **REF_SP_DOC,
+                "slots": [
+                    {
+                        **REF_SP_DOC["slots"][0],
+                        "real": {
+                            **REF_SP_DOC["slots"][0]["real"],
+                            "diag": _diag_bytes(SINGULAR_DIAG),
+                            "edge_info": _f32(SINGULAR_EDGES),
+                            "eta": bytes(60),
+                        },
+                    },
+                    *REF_SP_DOC["slots"][1:],
+                ],
+            }
+        ),
+        InvalidValue,
+        ".edge_info",
+        LIM,
+    ),
+    ("eta-huge", SWIRE.with_((*PO, "eta"), _f32(np.full(15, 1e30))), LimitExceeded, ".eta", LIM),
+    (
+        "diag-tight",
+        REF_SP_BLOB,
+        LimitExceeded,
+        ".diag",
+        Limits(num_classes=4, max_information=0.5 * float(np.abs(SP.diag_info).max())),
+    ),
+]
+
+
+@pytest.mark.parametrize(
+    ("blob", "error", "suffix", "limits"),
+    [pytest.param(b, e, s, lim, id=name) for name, b, e, s, lim in MALFORMED_SPARSE],
+)
+def test_a_malformed_sparse_field_is_refused_naming_it(
+    blob: bytes, error: type[RemoteProtocolError], suffix: str, limits: Limits
+) -> None:
+    SWIRE.assert_rejected(blob, error, f"{PO_FIELD}{suffix}", limits)
+
+
+@pytest.mark.parametrize("key", SPARSE_KEYS)
+def test_a_missing_sparse_key_is_malformed(key: str) -> None:
+    SWIRE.assert_rejected(SWIRE.without((*PO, key)), MalformedMessage, PO_FIELD)
+
+
+def test_the_singular_case_passes_every_rule_of_a_dense_xi() -> None:
+    """The "singular" Λ_s above is accepted as a dense ξ: positive definiteness is the one rule
+    a sparse ξ adds (its factors are summed into D one by one)."""
+    info = SparseXi(SP.lin, SINGULAR_DIAG, SP.edges, SINGULAR_EDGES, np.zeros(15)).dense().info
+    dense = dataclasses.replace(
+        REF_PO,
+        stack=Stack(
+            (
+                Slot(
+                    "r1",
+                    1,
+                    LocalSummary(
+                        tuple(range(5)),
+                        (),
+                        ObjectClasses(np.zeros((5, 4)), Xi(SP.lin, info, np.zeros(15))),
+                    ),
+                ),
+            )
+        ),
+    )
+    assert decode(encode(dense, LIM), LIM).stack.slots[0].summary.per_object is not None
+    assert float(np.linalg.eigvalsh(info)[0]) == pytest.approx(0.0, abs=1e-12)
+
+
+NOT_F32 = np.array(SP.diag_info)
+NOT_F32[2, 1, 1] += 1e-6 * NOT_F32[2, 1, 1]  # between two float32 values
+ASYMMETRIC_DIAG = np.array(SP.diag_info)
+ASYMMETRIC_DIAG[1, 0, 2] *= 2.0  # still a float32 value, now unlike [1, 2, 0]
+assert ASYMMETRIC_DIAG[1, 0, 2] != 0.0
+
+# (changes to r1's sparse ξ, the field suffix after "slots[0].real", limits, whether decode
+# refuses the same values packed without checks)
+SPARSE_ENCODE_CASES: list[tuple[str, StackMessage, str, Limits, bool]] = [
+    ("edges-unsorted", _sp_with(edges=np.array(SWAPPED)), ".edges", LIM, True),
+    ("edges-twice", _sp_with(edges=np.array([[0, 1]] * 6)), ".edges", LIM, True),
+    (
+        "edges-j-out",
+        _sp_with(edges=np.array([[0, 1], [0, 2], [0, 3], [1, 2], [2, 3], [3, 5]])),
+        ".edges",
+        LIM,
+        True,
+    ),
+    (
+        "edges-over-10n",
+        _sp_with(edges=np.array([[0, 1]] * 51), edge_info=np.zeros((51, 3, 3))),
+        ".edges",
+        LIM,
+        True,
+    ),
+    ("lin-nan", _sp_with(lin=_with(SP.lin, (1, 1), math.nan)), ".lin", LIM, True),
+    ("lin-x", _sp_with(lin=_with(SP.lin, (2, 0), 2e4)), ".lin", LIM, True),
+    ("diag-nan", _sp_with(diag_info=_with(SP.diag_info, (1, 1, 1), math.nan)), ".diag", LIM, True),
+    ("diag-indefinite", _sp_with(diag_info=-SP.diag_info), ".diag", LIM, True),
+    (
+        "edge-inf",
+        _sp_with(edge_info=_with(SP.edge_info, (2, 0, 1), math.inf)),
+        ".edge_info",
+        LIM,
+        True,
+    ),
+    ("edge-indefinite", _sp_with(edge_info=EDGE_INDEFINITE), ".edge_info", LIM, True),
+    (
+        "singular",
+        _sp_with(diag_info=SINGULAR_DIAG, edge_info=SINGULAR_EDGES, eta=np.zeros(15)),
+        ".edge_info",
+        LIM,
+        True,
+    ),
+    ("eta-nan", _sp_with(eta=_with(SP.eta, (4,), math.nan)), ".eta", LIM, True),
+    (
+        "eta-huge",
+        _sp_with(eta=np.full(15, 1e30).astype(np.float32).astype(float)),
+        ".eta",
+        LIM,
+        True,
+    ),
+    # what only the sender can get wrong: shapes, types, values that are not float32, an
+    # asymmetric diagonal block
+    ("lin-n-by-2", _sp_with(lin=SP.lin[:, :2]), "", LIM, False),
+    ("diag-short", _sp_with(diag_info=SP.diag_info[:4]), "", LIM, False),
+    ("edges-float", _sp_with(edges=SP.edges.astype(float)), "", LIM, False),
+    ("edges-by-3", _sp_with(edges=np.zeros((6, 3), dtype=int)), "", LIM, False),
+    ("edge-info-short", _sp_with(edge_info=SP.edge_info[:5]), "", LIM, False),
+    ("eta-long", _sp_with(eta=np.append(SP.eta, 0.0)), "", LIM, False),
+    ("diag-not-float32", _sp_with(diag_info=NOT_F32), ".diag", LIM, False),
+    ("edge-not-float32", _sp_with(edge_info=SP.edge_info * (1.0 + 1e-9)), ".edge_info", LIM, False),
+    ("eta-not-float32", _sp_with(eta=SP.eta + 1e-3 * np.abs(SP.eta).max()), ".eta", LIM, False),
+    (
+        "diag-beyond-float32",
+        _sp_with(diag_info=_with(SP.diag_info, (0, 0, 0), 1e300)),
+        ".diag",
+        LIM,
+        False,
+    ),
+    ("diag-asymmetric", _sp_with(diag_info=ASYMMETRIC_DIAG), ".diag", LIM, False),
+]
+
+
+@pytest.mark.filterwarnings("error")  # decided without floating-point warnings
+@pytest.mark.parametrize(
+    ("msg", "suffix", "limits", "remote"),
+    [pytest.param(m, s, lim, r, id=name) for name, m, s, lim, r in SPARSE_ENCODE_CASES],
+)
+def test_encode_refuses_a_sparse_xi_as_decode_does(
+    msg: StackMessage, suffix: str, limits: Limits, remote: bool
+) -> None:
+    field = f"{PO_FIELD}{suffix}"
+    with pytest.raises(LocalProtocolError) as caught:
+        encode(msg, limits)
+    assert caught.value.field == field
+    assert str(caught.value).startswith(f"{field}: ")
+    if remote:
+        with pytest.raises(RemoteProtocolError) as refused:
+            decode(raw_pack_objects(msg), limits)
+        assert refused.value.field == field
+
+
+def test_a_sparse_slot_of_more_than_65535_objects_is_refused_on_both_sides() -> None:
+    """Edges index objects as uint16."""
+    n = 2**16
+    lim = Limits(num_classes=4, max_objects=n, max_message_bytes=2**26)
+    sx = SparseXi(
+        np.zeros((n, 3)),
+        np.tile(np.eye(3), (n, 1, 1)),
+        np.zeros((0, 2), dtype=int),
+        np.zeros((0, 3, 3)),
+        np.zeros(3 * n),
+    )
+    summary = LocalSummary(tuple(range(n)), (), ObjectClasses(np.zeros((n, 1)), sx))
+    msg = StackMessage("r0", None, Stack((Slot("r1", 1, summary),)), 1)
+    with pytest.raises(LocalProtocolError, match="uint16") as caught:
+        encode(msg, lim)
+    assert caught.value.field == "slots[0].real.edges"
+    with pytest.raises(LimitExceeded, match="uint16") as refused:
+        decode(raw_pack_objects(msg), lim)
+    assert refused.value.field == "slots[0].real.edges"
+
+
+def test_signed_sparse_slots_are_version_4_and_relayed_untouched() -> None:
+    doc = msgpack.unpackb(SIGNED_SP_BLOB)
+    assert doc["v"] == 4
+    received = decode(SIGNED_SP_BLOB, LIM, PUBLIC)
+    assert_same_objects(received, SIGNED_SP)
+    relayed = encode(StackMessage("r1", None, received.stack, 11), LIM)
+    assert_same_objects(
+        decode(relayed, LIM, PUBLIC), dataclasses.replace(SIGNED_SP, sender="r1", step=11)
+    )
+
+
+@pytest.mark.parametrize(
+    ("key", "value"),
+    [
+        ("xi", "dense"),
+        ("edges", bytes([0, 0, 2, 0] + [0] * 20)),
+        ("diag", None),
+        ("edge_info", None),
+        ("eta", None),
+    ],
+)
+def test_every_sparse_field_is_signed(key: str, value: Any) -> None:
+    doc = msgpack.unpackb(SIGNED_SP_BLOB, raw=False)
+    real = doc["slots"][0]["real"]
+    if value is None:  # the lowest mantissa bit of the first number: still a valid value
+        value = bytes([real[key][0] ^ 0x01]) + real[key][1:]
+    real[key] = value
+    with pytest.raises(BadSignature) as caught:
+        decode(pack(doc), LIM, PUBLIC)
+    assert caught.value.field == "slots[0].sig"
+    if key in ("diag", "edge_info", "eta"):  # unsigned, the changed value itself is valid
+        unsigned = decode(
+            pack(
+                {
+                    **doc,
+                    "v": 3,
+                    "slots": [{k: v for k, v in s.items() if k != "sig"} for s in doc["slots"]],
+                }
+            ),
+            LIM,
+        )
+        assert unsigned.stack.slots[0].summary.per_object is not None
+
+
+def _sparse_near_limits(rng: np.random.Generator, lim: Limits) -> LocalSummary:
+    """A sparse per-object summary of 1–4 objects, its numbers scaled near ``lim``'s bounds, and
+    with probability ≈ 0.3 one thing broken (a number, an edge, the pattern's order)."""
+    n = int(rng.integers(1, min(lim.max_objects, 4) + 1))
+    m = int(rng.integers(1, lim.num_classes + 1))
+    sx = make_sparse(rng, n)
+    scale = 2.0 ** float(np.floor(np.log2(lim.max_information * rng.uniform(0.05, 2.0))))
+    top = float(np.linalg.eigvalsh(sx.dense().info)[-1])
+    scale /= 2.0 ** float(np.ceil(np.log2(top)))  # a power of two: float32 values stay exact
+    diag, edges, edge_info = sx.diag_info * scale, np.array(sx.edges), sx.edge_info * scale
+    eta = (sx.eta * scale).astype(np.float32).astype(float)
+    lin = rng.uniform(-1, 1, (n, 3)) * [lim.world_extent, lim.world_extent, 2 * math.pi]
+    broken = rng.integers(0, 10)
+    if broken == 0:
+        lin[rng.integers(0, n), rng.integers(0, 3)] *= 1.5
+    elif broken == 1:
+        diag[rng.integers(0, n)] *= -1.0
+    elif broken == 2 and len(edges):
+        edge_info[rng.integers(0, len(edges))] *= 64.0 * rng.choice([-1.0, 1.0])
+    elif broken == 3 and len(edges) > 1:
+        edges = edges[::-1].copy()
+        edge_info = edge_info[::-1].copy()
+    elif broken == 4:
+        eta[rng.integers(0, 3 * n)] = float(np.float32(3e38))
+    elif broken == 5 and len(edges):
+        edges[rng.integers(0, len(edges)), 1] = n
+    xi = SparseXi(lin, diag, edges, edge_info, eta)
+    phi = lim.max_abs_log_phi * rng.uniform(-1, 1, (n, m))
+    return LocalSummary(tuple(range(n)), (), ObjectClasses(phi, xi))
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_encode_accepts_exactly_what_decode_accepts_of_sparse_slots(seed: int) -> None:
+    rng = np.random.default_rng(100 + seed)
+    seen: dict[str, int] = {"accepted": 0}
+    for _ in range(40):
+        lim = PROPERTY_LIMITS[int(rng.integers(0, len(PROPERTY_LIMITS)))]
+        slots = [
+            Slot(f"r{i}", i, _sparse_near_limits(rng, lim))
+            for i in range(int(rng.integers(1, min(lim.max_slots, 3) + 1)))
+        ]
+        msg = StackMessage("s", None, Stack(tuple(slots)), 1)
+        raw = raw_pack_objects(msg)
+        try:
+            blob = encode(msg, lim)
+        except LocalProtocolError as exc:
+            with pytest.raises((InvalidValue, LimitExceeded)) as caught:
+                decode(raw, lim)
+            if len(raw) <= lim.max_message_bytes:
+                assert caught.value.field == exc.field, (caught.value, exc)
+            kind = f"{type(caught.value).__name__} {caught.value.field.split('.')[-1]}"
+            seen[kind] = seen.get(kind, 0) + 1
+        else:
+            assert blob == raw
+            assert_same_objects(decode(blob, lim), msg)
+            seen["accepted"] += 1
+    assert seen["accepted"] >= 5 and sum(seen.values()) - seen["accepted"] >= 5, seen
+
+
 # --------------------------------------------------------------------------- fuzz
 
-BLOBS = (REF_PO_BLOB, SIGNED_PO_BLOB)
+BLOBS = (REF_PO_BLOB, SIGNED_PO_BLOB, REF_SP_BLOB, SIGNED_SP_BLOB)
 DOCS = tuple(msgpack.unpackb(b, raw=False) for b in BLOBS)
 
 
@@ -759,8 +1377,9 @@ MUTATOR = fuzz.Mutator(
     known_keys=(
         *("v", "type", "sender", "k", "pos", "slots", "owner", "stamp", "objects", "real"),
         *("epoch", "sig", "kind", "dim", "m", "c", "phi", "lin", "info", "eta", "xi"),
+        *("diag", "edges", "edge_info"),
     ),
-    strings=("stack", "objects", "table", "r1", ""),
+    strings=("stack", "objects", "table", "sparse", "dense", "r1", ""),
     edge_ints=(-1, 0, 1, 2, 3, 4, 5, 255, 256, 2**32 - 1, 2**63 - 1, 2**64 - 1, -(2**63)),
     float_blob_size=24,
     numbers=fuzz.FLOAT64S | st.floats(width=32).map(lambda x: struct.pack("<ff", x, x)),

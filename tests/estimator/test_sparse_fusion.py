@@ -1,0 +1,370 @@
+"""A sparse ξ end to end (``BeliefConfig.xi = "sparse"``, docs/estimator.md "Sparse ξ"): the slot
+that ``summarise`` makes (conservative against the dense ξ of the same belief, float32, its
+Bayes net reused while the objects stay), its factors in D (the dense factor's sum, small
+groups, removal and anti-factors of every piece), version replacement, and a fusion on
+generated worlds against the same fusion with the dense ξ.
+
+The dense ξ is the reference throughout: the same local beliefs (the ξ option does not change
+how a belief steps) summarised both ways.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+
+import gtsam
+import numpy as np
+import pytest
+
+from deploy.study import belief_model, belief_rng
+from estimator.distributed import (
+    DistributedBelief,
+    SlotError,
+    clique_groups,
+    sparse_xi_factors,
+    xi_factor,
+)
+from estimator.factors import object_key
+from estimator.hybrid import BeliefConfig, HybridBelief
+from estimator.metrics import world_position_cov
+from estimator.models import GaussianNoise
+from estimator.slots import summarise
+from estimator.sparse_xi import SparseXi, sparsify
+from estimator.summary import LocalSummary, ObjectClasses, Slot, Xi
+from sim.generate import generate_scenario
+from sim.scenario import Scenario
+from sim.sensors import Simulator
+from tests.estimator.exact_worlds import distributed_belief, local_slot, no_pruning
+from tests.estimator.test_sparse_xi import _random_xi, _tour_xi
+from tests.tolerance import assert_close
+
+DENSE = BeliefConfig(classes="per_object")
+SPARSE = BeliefConfig(classes="per_object", xi="sparse")
+SEEDS = range(3)
+
+
+@functools.cache
+def _world(seed: int, noise: float = 1.0) -> Scenario:
+    """3 robots, 20 objects of 3 classes in a 12 m square, 60 steps; the odometry and geometric
+    variances × ``noise``."""
+    s = generate_scenario(3, 20, 3, seed, steps=60, area=12.0)
+    if noise == 1.0:
+        return s
+    scaled = [
+        GaussianNoise(tuple(v * noise for v in n.variances))  # type: ignore[arg-type]
+        for n in (s.odometry_noise, s.geometric_noise)
+    ]
+    return dataclasses.replace(s, odometry_noise=scaled[0], geometric_noise=scaled[1])
+
+
+def _eigmin(a: np.ndarray) -> float:
+    return float(np.linalg.eigvalsh(a)[0])
+
+
+# -- the option ---------------------------------------------------------------------------------
+
+
+def test_a_sparse_xi_needs_per_object_classes() -> None:
+    assert SPARSE.xi == "sparse" and BeliefConfig().xi == "dense" and DENSE.xi == "dense"
+    for joint in (BeliefConfig.paper, BeliefConfig.exact):
+        with pytest.raises(ValueError, match="per_object"):
+            joint(xi="sparse")
+    with pytest.raises(ValueError, match="per_object"):
+        BeliefConfig(classes="joint", xi="sparse")
+    with pytest.raises(ValueError, match="xi 'banded'"):
+        BeliefConfig(classes="per_object", xi="banded")
+
+
+# -- the slot -----------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+def test_the_slot_is_a_conservative_float32_sparse_form_of_the_dense_xi(seed: int) -> None:
+    """Every 10 steps, r1's sparse slot against the dense slot of the same belief: Λ_s ⪯ Λ
+    (eigmin(Λ − Λ_s) ≥ −1e-9·λmax; measured ≥ +6.7e-9·λmax), Λ_s positive definite, float32
+    values, the same linearisation poses and the mean kept (to η's float32 rounding)."""
+    s = _world(seed)
+    frames = Simulator(s, seed).all_frames()["r1"]
+    beliefs = [
+        HybridBelief(belief_model(s), {"r1": s.robot("r1").start}, c) for c in (DENSE, SPARSE)
+    ]
+    rngs = [belief_rng(seed, ["r1"]) for _ in beliefs]
+    checked = 0
+    for f in frames:
+        for b, rng in zip(beliefs, rngs, strict=True):
+            b.step([f], rng)
+        if f.k % 10 or not beliefs[0].object_ids:
+            continue
+        dense, sparse = (summarise(b) for b in beliefs)
+        assert dense is not None and sparse is not None
+        assert sparse.object_ids == dense.object_ids
+        d, sp = dense.per_object, sparse.per_object
+        assert d is not None and sp is not None
+        assert isinstance(d.xi, Xi) and isinstance(sp.xi, SparseXi)
+        assert_close(sp.log_phi, d.log_phi, atol=0.0, what="class log φ")
+        np.testing.assert_array_equal(sp.xi.lin, d.xi.lin)
+        info = sp.xi.dense().info
+        top = float(np.linalg.eigvalsh(d.xi.info)[-1])
+        assert _eigmin(d.xi.info - info) >= -1e-9 * top, f"k = {f.k}: Λ_s ⋠ Λ"
+        assert _eigmin(info) > 0.0, f"k = {f.k}: Λ_s not positive definite"
+        for a in (sp.xi.diag_info, sp.xi.edge_info, sp.xi.eta):
+            np.testing.assert_array_equal(a.astype(np.float32).astype(float), a)
+        mean, mean_s = np.linalg.solve(d.xi.info, d.xi.eta), np.linalg.solve(info, sp.xi.eta)
+        # η_s rounded to float32: the mean moves by ≤ ‖Λ_s⁻¹‖·‖Δη‖ (measured ≤ 5.6e-8 m)
+        assert_close(mean_s, mean, atol=1e-5, what=f"k = {f.k}: the mean")
+        checked += 1
+    assert checked >= 4
+
+
+def test_the_bayes_net_is_reused_while_the_objects_stay_the_same() -> None:
+    """A summary whose objects are those of the previous one reuses its net (the very
+    Structure) with values recomputed; a new object fits a new net."""
+    s = _world(0)
+    frames = Simulator(s, 0).all_frames()["r1"]
+    belief = HybridBelief(belief_model(s), {"r1": s.robot("r1").start}, SPARSE)
+    rng = belief_rng(0, ["r1"])
+    assert belief.xi_structure is None
+    reused = refitted = 0
+    held = None
+    for f in frames:
+        belief.step([f], rng)
+        summary = summarise(belief)
+        if summary is None:
+            continue
+        po = summary.per_object
+        assert po is not None and isinstance(po.xi, SparseXi) and po.xi.structure is not None
+        assert belief.xi_structure == (summary.object_ids, po.xi.structure)
+        if held is not None and held[0] == summary.object_ids:
+            assert po.xi.structure is held[1]
+            reused += 1
+        else:
+            assert held is None or po.xi.structure is not held[1]
+            refitted += 1
+        held = belief.xi_structure
+        # the values are those of the net on this step's dense ξ
+        dense = dataclasses.replace(belief.config, xi="dense")
+        exact = summarise(_with_config(belief, dense))
+        assert exact is not None and exact.per_object is not None
+        assert isinstance(exact.per_object.xi, Xi)
+        again = sparsify(exact.per_object.xi, structure=po.xi.structure).float32()
+        for name in ("diag_info", "edges", "edge_info", "eta"):
+            np.testing.assert_array_equal(getattr(again, name), getattr(po.xi, name))
+    assert reused >= 10 and refitted >= 3, (reused, refitted)
+
+
+def _with_config(belief: HybridBelief, config: BeliefConfig) -> HybridBelief:
+    """The same belief object seen with another configuration (summarise reads it only)."""
+    other = object.__new__(HybridBelief)
+    other.__dict__.update(belief.__dict__)
+    other.config = config
+    other.xi_structure = None
+    return other
+
+
+# -- factors ------------------------------------------------------------------------------------
+
+
+def _hessian(
+    factors: list[gtsam.LinearContainerFactor], keys: list[int], values: gtsam.Values
+) -> tuple:
+    graph = gtsam.GaussianFactorGraph()
+    for f in factors:
+        graph.push_back(f.linearize(values))
+    ordering = gtsam.Ordering()
+    for k in keys:
+        ordering.push_back(k)
+    return graph.hessian(ordering)
+
+
+@pytest.mark.parametrize(("n", "seed"), [(1, 0), (2, 1), (3, 2), (4, 3), (12, 4), (30, 5)])
+@pytest.mark.parametrize("sign", [1.0, -1.0])
+def test_the_sparse_factors_sum_to_the_dense_factor(n: int, seed: int, sign: float) -> None:
+    xi = _tour_xi(n, seed) if n >= 10 else _random_xi(n, seed)
+    sx = sparsify(xi).float32()
+    keys = [object_key(j) for j in range(n)]
+    sparse, dense = sparse_xi_factors(keys, sx, sign), [xi_factor(keys, sx.dense(), sign)]
+    assert all(len(f.keys()) <= 4 for f in sparse)
+    rng = np.random.default_rng(seed)
+    for offset in (0.0, 0.05):  # at the linearisation point and away from it
+        values = gtsam.Values()
+        for key, pose in zip(keys, sx.lin, strict=True):
+            values.insert(key, gtsam.Pose2(*(pose + offset * rng.standard_normal(3))))
+        (h_s, e_s), (h_d, e_d) = _hessian(sparse, keys, values), _hessian(dense, keys, values)
+        scale = float(np.abs(h_d).max())
+        assert_close(h_s, h_d, atol=1e-12 * scale, what="information")
+        assert_close(e_s, e_d, atol=1e-12 * scale, what="information vector")
+        total = sum(f.error(values) for f in sparse)
+        assert_close(total, dense[0].error(values), rtol=1e-9, atol=1e-9, what="error")
+
+
+@pytest.mark.parametrize(("n", "seed"), [(5, 0), (30, 1), (80, 2)])
+def test_clique_groups_take_every_block_once_in_cliques_of_the_pattern(n: int, seed: int) -> None:
+    sx = sparsify(_tour_xi(n, seed))
+    linked = {tuple(e) for e in sx.edges.tolist()}
+    groups = clique_groups(n, sx.edges)
+    diag = [v for members, _ in groups for v in members]
+    edges = [e for _, ids in groups for e in ids]
+    assert sorted(diag) == list(range(n)) and sorted(edges) == list(range(len(sx.edges)))
+    for members, ids in groups:
+        objects = sorted({*members, *(int(v) for e in ids for v in sx.edges[e])})
+        assert 1 <= len(objects) <= 4
+        pairs = {(a, b) for i, a in enumerate(objects) for b in objects[i + 1 :]}
+        assert pairs <= linked, "a group links objects the pattern does not"
+    assert len(groups) < n + len(sx.edges)  # grouped: fewer factors than pieces
+    assert clique_groups(n, sx.edges) == groups  # deterministic
+
+
+# -- fusion: version replacement -----------------------------------------------------------------
+
+# Version replacement is exact algebra at a common linearisation point; iSAM2's relinearisation
+# threshold leaves iterates up to ~1e-4 m from it along different paths (dense ξ alike), so this
+# checks at noise × 0.1 with a threshold of 1e-6. Measured over seeds 0–2, both downdates:
+# ≤ 2.3e-6 m and ≤ 1.2e-7 of the largest covariance entry (dense: 2.2e-6 m, 1.2e-7).
+VERSION_CONFIG = no_pruning(
+    classes="per_object", xi="sparse", relinearize_threshold=1e-6, extra_updates=2
+)
+VERSION_POSE_ATOL = 2e-5
+VERSION_COV_RTOL = 2e-6
+VERSION_STEPS = (20, 40, 60)
+
+
+def _version_slots(seed: int) -> list[Slot]:
+    s = _world(seed, 0.1)
+    frames = Simulator(s, seed).all_frames()
+    return [local_slot(s, "r2", seed, frames, VERSION_CONFIG, k) for k in VERSION_STEPS]
+
+
+def _d_after(seed: int, slots: list[Slot], **kw: str) -> DistributedBelief:
+    """D of r1 after 30 steps, the ``slots`` integrated one after another."""
+    s = _world(seed, 0.1)
+    frames = Simulator(s, seed).all_frames()
+    d = distributed_belief(s, "r1", seed, frames, VERSION_CONFIG, 30, **kw)
+    for v in slots:
+        assert d.integrate([v]).integrated == ("r2",)
+    return d
+
+
+def _poses_and_cov(d: HybridBelief) -> tuple[np.ndarray, np.ndarray]:
+    keys = [object_key(j) for j in sorted(d.object_ids)] + [d.pose_key("r1")]
+    h = d.hypotheses[0]
+    poses = np.array([h.pose(k) for k in keys])
+    return poses, h.isam.jointMarginalCovariance(gtsam.KeyVector(keys)).fullMatrix()
+
+
+@pytest.mark.parametrize("downdate", ["remove", "anti"])
+@pytest.mark.parametrize("seed", SEEDS)
+def test_sparse_versions_replace_each_other(seed: int, downdate: str) -> None:
+    """v1, v2, v3 of r2's sparse slot integrated in turn: D equals D with v3 alone; double
+    counting (nothing divided out) does not (measured: covariances 23–28 % of the largest entry
+    apart, poses 2–3 cm)."""
+    versions = _version_slots(seed)
+    assert all(isinstance(v.summary.per_object.xi, SparseXi) for v in versions)  # type: ignore[union-attr]
+    path = _d_after(seed, versions, downdate=downdate)
+    latest = _d_after(seed, versions[-1:], downdate=downdate)
+    assert sorted(path.object_ids) == sorted(latest.object_ids)
+    (pa, ca), (pb, cb) = _poses_and_cov(path), _poses_and_cov(latest)
+    assert_close(pa, pb, atol=VERSION_POSE_ATOL, what="poses")
+    scale = float(np.abs(cb).max())
+    assert_close(ca, cb, atol=VERSION_COV_RTOL * scale, what="covariance")
+    used = path.hypotheses[0].continuous.used["r2"]
+    factors = path.hypotheses[0].isam.getFactorsUnsafe()
+    assert all(factors.exists(i) for i in used.factor_indices)
+    if downdate == "remove":  # exactly the newest version's factors are left
+        assert len(used.factor_indices) == len(
+            latest.hypotheses[0].continuous.used["r2"].factor_indices
+        )
+    doubled = _d_after(seed, versions, fusion="double_count")
+    _, cd = _poses_and_cov(doubled)
+    assert float(np.abs(cd - cb).max()) > 1e3 * VERSION_COV_RTOL * scale
+
+
+def test_removal_takes_out_every_factor_of_the_old_version() -> None:
+    versions = _version_slots(0)
+    d = _d_after(0, versions[:1])
+    old = d.hypotheses[0].continuous.used["r2"].factor_indices
+    assert len(old) > 3  # a sparse ξ is several factors
+    d.integrate([versions[1]])
+    factors = d.hypotheses[0].isam.getFactorsUnsafe()
+    assert not any(factors.exists(i) for i in old)
+    new = d.hypotheses[0].continuous.used["r2"].factor_indices
+    assert set(new).isdisjoint(old) and all(len(factors.at(i).keys()) <= 4 for i in new)
+
+
+# -- fusion: against the dense ξ -----------------------------------------------------------------
+
+# D of r1 with r2's and r3's final slots, sparse against dense, on generated worlds. Measured
+# over seeds 0–3: mean object error ratio 0.96–1.04; eigmin(Σ_sparse − Σ_dense) of every
+# object's world-frame position covariance ≥ +1.3e-4 m² (never overconfident).
+ERROR_RATIO = 1.3
+COV_TOL = 1e-6
+
+
+def _fused(seed: int, config: BeliefConfig) -> tuple[list[int], np.ndarray, np.ndarray]:
+    """Object ids, position errors (n,) and world-frame position covariances (n, 2, 2) of D."""
+    s = _world(seed)
+    frames = Simulator(s, seed).all_frames()
+    slots = [local_slot(s, r, seed, frames, config) for r in ("r2", "r3")]
+    d = distributed_belief(s, "r1", seed, frames, config)
+    assert d.integrate(slots).integrated == ("r2", "r3")
+    snap = d.snapshot("r1")
+    truth = {o.id: o.pose for o in s.objects}
+    ids = list(snap.object_ids)
+    pose = snap.object_pose[0]
+    err = np.hypot(*(pose[:, :2] - np.array([truth[j][:2] for j in ids])).T)
+    return ids, err, world_position_cov(snap.object_pose, snap.object_cov)[0]
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_sparse_fusion_is_as_accurate_as_dense_and_never_more_confident(seed: int) -> None:
+    ids_d, err_d, cov_d = _fused(seed, DENSE)
+    ids_s, err_s, cov_s = _fused(seed, SPARSE)
+    assert ids_s == ids_d and len(ids_d) >= 10
+    assert err_s.mean() <= ERROR_RATIO * err_d.mean(), (err_s.mean(), err_d.mean())
+    gap = np.linalg.eigvalsh(cov_s - cov_d)[:, 0]
+    assert gap.min() >= -COV_TOL, f"object {ids_d[int(np.argmin(gap))]}: {gap.min():.3g} m²"
+
+
+def test_a_dense_fleet_member_takes_a_sparse_slot_and_the_other_way_round() -> None:
+    """The ξ form is the sender's choice: D reads either whatever its own config says."""
+    s = _world(1)
+    frames = Simulator(s, 1).all_frames()
+    for own, sent in ((DENSE, SPARSE), (SPARSE, DENSE)):
+        d = distributed_belief(s, "r1", 1, frames, own)
+        slot = local_slot(s, "r2", 1, frames, sent)
+        assert d.integrate([slot]).integrated == ("r2",)
+        assert set(slot.summary.object_ids) <= set(d.object_ids)
+
+
+# -- check --------------------------------------------------------------------------------------
+
+
+def _slot(**changes: object) -> Slot:
+    sx = sparsify(_random_xi(5, 2)).float32()
+    po = ObjectClasses(np.zeros((5, 3)), dataclasses.replace(sx, **changes))  # type: ignore[arg-type]
+    return Slot("r2", 3, LocalSummary(tuple(range(5)), (), po))
+
+
+@pytest.mark.parametrize(
+    ("changes", "message"),
+    [
+        ({"lin": np.zeros((4, 3))}, "shapes"),
+        ({"diag_info": np.zeros((5, 3))}, "shapes"),
+        ({"edges": np.zeros((3, 3), dtype=int)}, "shapes"),
+        ({"edge_info": np.zeros((1, 3, 3))}, "shapes"),
+        ({"eta": np.zeros(14)}, "shapes"),
+        ({"edges": np.array([[0, 5]]), "edge_info": np.zeros((1, 3, 3))}, "pairs"),
+        ({"edges": np.array([[2, 1]]), "edge_info": np.zeros((1, 3, 3))}, "pairs"),
+        ({"edges": np.array([[0.0, 1.0]]), "edge_info": np.zeros((1, 3, 3))}, "pairs"),
+        ({"edges": np.array([[0, 1], [0, 1]]), "edge_info": np.zeros((2, 3, 3))}, "twice"),
+    ],
+)
+def test_a_sparse_slot_that_does_not_fit_is_refused(
+    changes: dict[str, object], message: str
+) -> None:
+    s = _world(0)
+    frames = Simulator(s, 0).all_frames()
+    d = distributed_belief(s, "r1", 0, frames, DENSE, 5)
+    d.check(_slot())  # the unchanged slot fits
+    with pytest.raises(SlotError, match=message):
+        d.check(_slot(**changes))
