@@ -17,6 +17,7 @@ from bench import (
     bench_crowd,
     bench_draws,
     bench_gossip,
+    bench_mapscale,
     bench_models,
     bench_relinearization,
     bench_secure,
@@ -36,6 +37,7 @@ MODULES = (
     bench_gossip,
     bench_capacity,
     bench_secure,
+    bench_mapscale,
     bench_study,
 )
 
