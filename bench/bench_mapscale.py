@@ -19,7 +19,7 @@ the mean step of every method in each tenth of the mission, the last tenth again
 
 ``SEMFLEET_BENCH_MAPSCALE_SIZES`` (default ``30,60,120,300``), ``SEMFLEET_BENCH_MAPSCALE_STEPS``
 (the long mission, default 2000) and ``SEMFLEET_BENCH_MAPSCALE_BUDGET`` (seconds per point,
-default 1800) shrink it for a quick look.
+default 900) shrink it for a quick look.
 """
 
 from __future__ import annotations
@@ -52,7 +52,7 @@ SIZES = tuple(
     int(n) for n in os.environ.get("SEMFLEET_BENCH_MAPSCALE_SIZES", "30,60,120,300").split(",")
 )
 LONG_STEPS = int(os.environ.get("SEMFLEET_BENCH_MAPSCALE_STEPS", "2000"))
-BUDGET_S = float(os.environ.get("SEMFLEET_BENCH_MAPSCALE_BUDGET", "1800"))
+BUDGET_S = float(os.environ.get("SEMFLEET_BENCH_MAPSCALE_BUDGET", "900"))
 # Per-object classes with the sparse and with the dense ξ, and the joint table (with the dense
 # ξ) as the baseline each is measured against in the same run.
 CLASSES = {
