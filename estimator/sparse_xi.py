@@ -20,8 +20,8 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
-import gtsam
 import numpy as np
 from numpy.typing import NDArray
 from scipy.linalg import lapack
@@ -29,6 +29,9 @@ from scipy.sparse import bsr_array, coo_array, csr_array
 from scipy.sparse.csgraph import breadth_first_order, minimum_spanning_tree
 
 from estimator.summary import Xi
+
+if TYPE_CHECKING:  # GTSAM is imported where a factor is made: a decoder needs only the arrays
+    import gtsam
 
 Array = NDArray[np.float64]
 Index = NDArray[np.intp]
@@ -114,6 +117,8 @@ class SparseXi:
         nearest and the diagonal lowered by the absolute rounding errors of its row, rounded
         down: Λ_s − Λ_s32 is then diagonally dominant with a non-negative diagonal, hence ⪰ 0
         (Gershgorin), whatever κ. η32 = Λ_s32 μ rounded keeps the mean (up to η's rounding)."""
+        if len(self.lin) == 0:  # nothing to round (and no system to solve)
+            return self
         diag32, edge32 = _round_under32(self.diag_info, self.edges, self.edge_info)
         rounded = SparseXi(self.lin, diag32, self.edges, edge32, self.eta, self.structure)
         mean = _solve(self.dense().info, self.eta)
@@ -162,6 +167,8 @@ def sparse_xi_factor(
     """``sx`` as a GTSAM factor on the object ``keys``, equal to ``xi_factor(keys, sx.dense())``
     but summed from one unary piece per object and one pairwise piece per edge only (not n²
     pieces). ``sign = −1`` gives the anti-factor."""
+    import gtsam  # here, not at the top: see the import above
+
     if len(keys) != len(sx.lin):
         raise ValueError(f"{len(keys)} keys for a ξ of {len(sx.lin)} objects")
     pieces = gtsam.GaussianFactorGraph()

@@ -18,7 +18,7 @@ import functools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import msgpack
 import numpy as np
@@ -27,6 +27,7 @@ from numpy.typing import NDArray
 from scipy.linalg.lapack import dpotrf
 
 from estimator.models.frames import MAX_STEP
+from estimator.sparse_xi import SparseXi
 from estimator.summary import LocalSummary, ObjectClasses, Realisations, WireForm, Xi
 from protocol.errors import (
     BadSignature,
@@ -46,9 +47,6 @@ from protocol.signing import (
 )
 from protocol.stack import Slot, Stack
 from protocol.validate import as_int, as_map, decode_document, need, robot_id, valid_id
-
-if TYPE_CHECKING:  # estimator.sparse_xi loads GTSAM, which a decoding peer need not have
-    from estimator.sparse_xi import SparseXi
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -1246,10 +1244,6 @@ def _decode_sparse(raw: dict[str, Any], where: str, n: int, lim: Limits) -> Obje
     _raise_remote(sparse_xi_problem(where, lin, diag, edges, edge_info, eta, lim))
     for a in (phi, lin, diag, edges, edge_info, eta):
         a.flags.writeable = False
-    # Imported here: estimator.sparse_xi loads GTSAM, and a peer that decodes only dense and
-    # table slots must not need it (tests/test_import_guard.py).
-    from estimator.sparse_xi import SparseXi
-
     return ObjectClasses(phi, SparseXi(lin, diag, edges, edge_info, eta))
 
 

@@ -287,3 +287,19 @@ def test_sparse_xi_factor_equals_the_dense_factor(sign: float) -> None:
         assert_close(h_s, h_d, atol=1e-12 * scale, what="information")
         assert_close(e_s, e_d, atol=1e-12 * scale, what="information vector")
         assert_close(sparse.error(values), dense.error(values), what="error")
+
+
+def test_an_owner_with_no_object_has_an_empty_sparse_xi_in_float32_too() -> None:
+    empty = sparsify(Xi(np.zeros((0, 3)), np.zeros((0, 0)), np.zeros(0))).float32()
+    assert empty.lin.shape == (0, 3) and empty.eta.shape == (0,) and len(empty.edges) == 0
+    assert empty.dense().info.shape == (0, 0)
+
+
+def test_the_sparse_xi_module_loads_no_gtsam_until_a_factor_is_made() -> None:
+    """A peer that only decodes slots (protocol.codec imports this module) needs no GTSAM."""
+    import subprocess
+    import sys
+
+    code = "import sys, estimator.sparse_xi, protocol.codec; print('gtsam' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"
