@@ -775,7 +775,7 @@ class DistributedBelief(HybridBelief):
             h.used[s.owner] = UsedXi(s.stamp, s.summary.object_ids, real, indices)
         for _ in range(self.config.extra_updates if settle else 0):
             h.isam.update()
-        h.estimate = h.isam.calculateEstimate()
+        h.updated()
 
 
 def _check_sparse(owner: str, x: SparseXi, n: int) -> None:

@@ -15,6 +15,7 @@ continuous belief").
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import gtsam
@@ -66,13 +67,31 @@ class SemanticLedger:
         self.object_ids.append(object_id)
         self.scores.append(np.asarray(z, dtype=float))
 
+    def settle(self, pose: Callable[[int], Array], model: ClassifierModel) -> None:
+        """Take the detections added since the last evaluation as they are: their evidence was
+        just evaluated around the estimate ``pose`` (key → (x, y, θ)) reads, which becomes
+        their reference; nothing else is read (a step between two refreshes costs what it
+        added)."""
+        known, d = len(self.psi), len(self.robot_keys)
+        if known == d:
+            return
+        robot_keys, object_keys, scores = self._arrays()
+        keys = np.concatenate([robot_keys[known:], object_keys[known:]])
+        poses = np.array([pose(int(k)) for k in keys])
+        psi = viewpoint(poses[: d - known], poses[d - known :])
+        now = all_log_likelihoods(model, scores[known:], psi[None, :])[0]
+        applied = self.applied if known else np.zeros((0, model.num_classes))
+        self.applied = np.concatenate([applied, now])
+        self.psi = np.concatenate([self.psi, psi])
+
     def refresh(
         self, estimate: gtsam.Values, model: ClassifierModel, object_index: dict[int, int]
     ) -> Array:
         """The change (n, M) of every object's Σ_d log P(z_d | c, ψ̂_d) since the last refresh,
         ψ̂ taken at ``estimate``, with objects in ``object_index`` order; the new values become
-        the reference. Detections added since the last refresh contribute nothing (their
-        evidence was just evaluated around this estimate)."""
+        the reference. Detections added since the last refresh or :meth:`settle` contribute
+        nothing (their evidence was just evaluated around this estimate). It reads every
+        detection's poses: a belief refreshes every few steps and settles in between."""
         m = model.num_classes
         out = np.zeros((len(object_index), m))
         if not self.robot_keys:
@@ -81,7 +100,7 @@ class SemanticLedger:
         poses = _poses(estimate, np.concatenate([robot_keys, object_keys]))
         d = len(robot_keys)
         psi = viewpoint(poses[:d], poses[d:])
-        known = len(self.applied)
+        known = len(self.psi)
         now = np.empty((d, m))
         # Old detections whose viewpoint did not move keep their values; the others, and the
         # new ones, are evaluated.
