@@ -33,6 +33,7 @@ from estimator.ledger import SemanticLedger
 from estimator.logsumexp import logsumexp
 from estimator.models import ClassifierModel, Detection, GaussianNoise, SensorFrame, viewpoint
 from estimator.pruning import PRUNINGS, PruningRule, class_marginals, match_marginals, select
+from estimator.smoother import WindowedISAM2, pose_steps
 from estimator.snapshot import BeliefSnapshot  # re-exported: it used to live here
 from estimator.sparse_xi import SparseXi, Structure
 from estimator.summary import Xi
@@ -129,6 +130,7 @@ class BeliefConfig:
     relinearize_threshold: float | None = None
     relinearize_skip: int = 10
     ledger_every: int = 1
+    window: int | None = None
     partial_relinearization: bool = True
     extra_updates: int = 1
     semantic_poses: bool = False
@@ -158,6 +160,10 @@ class BeliefConfig:
             raise ValueError(f"relinearize_threshold must be > 0 or None, got {threshold}")
         if self.ledger_every < 1:
             raise ValueError(f"ledger_every must be ≥ 1, got {self.ledger_every}")
+        if self.window is not None and self.window < 1:
+            raise ValueError(f"window must be ≥ 1 step or None, got {self.window}")
+        if self.window is not None and self.classes != "per_object":
+            raise ValueError('window needs classes = "per_object" (one continuous belief)')
         if self.num_samples < 1 or self.max_hypotheses < 1 or self.extra_updates < 0:
             raise ValueError("num_samples and max_hypotheses must be ≥ 1, extra_updates ≥ 0")
         if self.robot_budget is not None and self.robot_budget < 1:
@@ -257,7 +263,7 @@ class Continuous:
     when the semantic factors are in the Gaussians).
     """
 
-    isam: gtsam.ISAM2
+    isam: gtsam.ISAM2 | WindowedISAM2
     cached: gtsam.Values | None = field(default=None, repr=False)
     object_priors: dict[int, Array] = field(default_factory=dict, repr=False)
     used: dict[str, UsedXi] = field(default_factory=dict, repr=False)
@@ -265,6 +271,8 @@ class Continuous:
 
     def copy(self) -> Continuous:
         """An independent copy (``gtsam.ISAM2``'s copy constructor)."""
+        if isinstance(self.isam, WindowedISAM2):
+            raise TypeError("a windowed smoother is not copied (window needs per-object classes)")
         ledger = None if self.ledger is None else self.ledger.copy()
         return Continuous(
             gtsam.ISAM2(self.isam),
@@ -317,7 +325,7 @@ class Hypothesis:
     used_phi: dict[str, float] = field(default_factory=dict, repr=False)
 
     @property
-    def isam(self) -> gtsam.ISAM2:
+    def isam(self) -> gtsam.ISAM2 | WindowedISAM2:
         return self.continuous.isam
 
     @property
@@ -436,7 +444,11 @@ class HybridBelief:
             pose = gtsam.Pose2(*np.asarray(start, dtype=float))
             graph.add(gtsam.PriorFactorPose2(self.pose_key(r), pose, start_noise))
             values.insert(self.pose_key(r), pose)
-        isam = gtsam.ISAM2(self._isam_params())
+        isam: gtsam.ISAM2 | WindowedISAM2
+        if self.config.window is None:
+            isam = gtsam.ISAM2(self._isam_params())
+        else:
+            isam = WindowedISAM2(self._isam_params(), self.config.window)
         isam.update(graph, values)
         ledger = None if self.config.semantic_poses else SemanticLedger()
         first = Continuous(isam, ledger=ledger)
@@ -687,6 +699,9 @@ class HybridBelief:
             if ledger is not None and self.object_ids:
                 cont = self.hypotheses[0].continuous
                 model = self.model.classifier
+                if isinstance(cont.isam, WindowedISAM2):
+                    oldest = cont.isam.oldest_kept()
+                    ledger.retire(pose_steps(ledger.robot_key_array()) >= oldest)
                 self._since_refresh += 1
                 if self._since_refresh < self.config.ledger_every:
                     ledger.settle(cont.pose, model)

@@ -84,6 +84,30 @@ class SemanticLedger:
         self.applied = np.concatenate([applied, now])
         self.psi = np.concatenate([self.psi, psi])
 
+    def retire(self, keep: NDArray[np.bool_]) -> None:
+        """Drop the detections where ``keep`` (D,) is False: their evidence stays in the weights
+        as last refreshed, final from now on (the smoother marginalised their robot poses,
+        ``estimator.smoother``). Only detections that have a reference can be dropped."""
+        keep = np.asarray(keep, dtype=bool)
+        known = len(self.psi)
+        if keep.all():
+            return
+        if not keep[known:].all():
+            raise ValueError("a detection without a reference cannot be retired")
+        robot_keys, object_keys, scores = self._arrays()
+        self.robot_keys = [k for k, y in zip(self.robot_keys, keep, strict=True) if y]
+        self.object_ids = [j for j, y in zip(self.object_ids, keep, strict=True) if y]
+        self.scores = [z for z, y in zip(self.scores, keep, strict=True) if y]
+        self.applied = self.applied[keep[:known]]
+        self.psi = self.psi[keep[:known]]
+        self._columns = (robot_keys[keep], object_keys[keep], scores[keep])
+
+    def robot_key_array(self) -> KeyArray:
+        """The robot pose key (D,) of every detection."""
+        if not self.robot_keys:
+            return np.zeros(0, dtype=np.uint64)
+        return self._arrays()[0]
+
     def refresh(
         self, estimate: gtsam.Values, model: ClassifierModel, object_index: dict[int, int]
     ) -> Array:

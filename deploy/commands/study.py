@@ -77,6 +77,12 @@ def run(args: argparse.Namespace, console: Console, own: dict[str, tuple[str, An
         if args.hypotheses != "per_object":
             raise UsageError(f"--xi {args.xi} needs --hypotheses per_object (one ξ per slot)")
         changes["xi"] = args.xi
+    if args.window is not None:
+        if args.hypotheses != "per_object":
+            raise UsageError(f"--window {args.window} needs --hypotheses per_object")
+        if args.window < 1:
+            raise UsageError(f"--window must be ≥ 1 step, got {args.window}")
+        changes["window"] = args.window
     config = HYPOTHESIS_MANAGEMENT[args.hypotheses](**changes)
     if args.seed + args.runs - 1 > MAX_SEED:
         raise UsageError(f"--seed {args.seed} with --runs {args.runs} runs past the largest seed")
@@ -117,6 +123,7 @@ def run(args: argparse.Namespace, console: Console, own: dict[str, tuple[str, An
         "semantic_poses": config.semantic_poses,
         "classes": config.classes,
         "xi": config.xi,
+        "window": config.window,
         "communication": comm,
     }
     if args.shard is not None:
@@ -226,6 +233,14 @@ def add_parser(sub: Any) -> None:
         help="with --hypotheses per_object, the ξ of a slot: dense (default, the owner's exact "
         "Λ, (3n)² numbers) or sparse (a conservative Λ_s ⪯ Λ on a Bayes net's moral graph, "
         "linear in n; docs/estimator.md)",
+    )
+    p.add_argument(
+        "--window",
+        type=int,
+        metavar="STEPS",
+        help="with --hypotheses per_object, every belief keeps the robot poses of the last "
+        "STEPS to 2·STEPS steps and marginalises older ones (objects stay): a step and the "
+        "memory stop growing with the mission (default: every pose; docs/estimator.md)",
     )
     p.add_argument(
         "--semantic-poses",

@@ -460,6 +460,9 @@ def test_run_single_rejects_unknown_method() -> None:
         ),
         (["--hypotheses", "per_object", "--xi", "banded"], "invalid choice: 'banded'"),
         (["--semantic-poses"], "--semantic-poses needs a continuous belief per class"),
+        (["--window", "5", "--hypotheses", "marginal"], "--window 5 needs --hypotheses per_object"),
+        (["--window", "0"], "--window must be ≥ 1 step, got 0"),
+        (["--window", "x"], "invalid int value: 'x'"),
     ],
 )
 def test_study_user_errors_are_one_clear_line(
@@ -521,3 +524,21 @@ def test_study_xi_reaches_the_slots_and_the_results(world: Path, tmp_path: Path,
     assert (doc["classes"], doc["xi"]) == ("per_object", xi)
     error = doc["methods"]["distributed"]["mean"]["object_error"]
     assert all(v is None or np.isfinite(v) for v in error) and error[-1] is not None
+
+
+def test_study_window_reaches_the_beliefs_and_the_results(world: Path, tmp_path: Path) -> None:
+    """--window marginalises every belief's old poses (the window of 3 steps of a 12-step
+    study marginalises three times)."""
+    out = tmp_path / "out"
+    r = study(
+        world,
+        out,
+        *("--methods", "local,distributed,centralized", "--runs", "1", "--jobs", "1"),
+        *("--window", "3"),
+    )
+    assert r.returncode == 0, r.stderr
+    doc = read_json(out)
+    assert doc["window"] == 3
+    for method in ("local", "distributed", "centralized"):
+        error = doc["methods"][method]["mean"]["object_error"]
+        assert error[-1] is not None and np.isfinite(error[-1])
