@@ -55,12 +55,14 @@ class AgentConfig:
     signing: Signing | None = None
     ros2: Ros2Settings | None = None
     classes: str = DEFAULT_CLASSES
+    # BeliefConfig.window: robot poses older than this many steps are marginalised (None: all kept).
+    pose_window: int | None = None
 
 
 _AGENT_KEYS = {
     "fleet", "model", "start", "roster", "seed", "mode", "gossip_period", "journal",
     "publish_local", "simulation", "window", "world_extent", "stack_gossip", "catch_up",
-    "listen_in_range", "classes",
+    "listen_in_range", "classes", "pose_window",
 }  # fmt: skip
 _ZENOH_KEYS = {
     "listen", "connect", "gossip", "shared_memory", "lease_ms", "config_file", "insecure",
@@ -229,6 +231,9 @@ def _read_agent_config(path: Path, robot: str) -> AgentConfig:
     classes = a.string("classes") if a.has("classes") else DEFAULT_CLASSES
     if classes not in CLASS_KINDS:
         raise a.fail("classes", f"{classes!r} (known: {', '.join(CLASS_KINDS)})")
+    pose_window = a.integer("pose_window", 1, 1_000_000) if a.has("pose_window") else None
+    if pose_window is not None and classes != "per_object":
+        raise a.fail("pose_window", 'needs classes = "per_object" (one continuous belief)')
     runtime = CoreSettings(
         mode=mode,
         stack_gossip=stack_gossip,
@@ -277,4 +282,5 @@ def _read_agent_config(path: Path, robot: str) -> AgentConfig:
         zenoh=zenoh_settings,
         limits=limits,
         classes=classes,
+        pose_window=pose_window,
     )

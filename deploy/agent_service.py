@@ -43,7 +43,7 @@ def node_factory(config: AgentConfig, epoch: int = 0) -> Callable[[], RobotNode]
         config.start,
         model,
         config.seed,
-        BeliefConfig(classes=config.classes),
+        BeliefConfig(classes=config.classes, window=config.pose_window),
         roster=config.roster,
         limits=config.limits,
         signing=config.signing,

@@ -119,6 +119,22 @@ def test_agent_config_classes_reach_the_beliefs_of_the_agents_node(tmp_path: Pat
         load_agent_config(_write(tmp_path, _set("agent.classes", '"both"')), "r1")
 
 
+def test_agent_config_pose_window_reaches_the_beliefs_of_the_agents_node(tmp_path: Path) -> None:
+    from deploy.agent_service import node_factory
+
+    assert load_agent_config(_write(tmp_path, MINIMAL), "r2").pose_window is None
+    c = load_agent_config(_write(tmp_path, _set("agent.pose_window", "200")), "r1")
+    assert c.pose_window == 200
+    node = node_factory(c)()
+    assert node.local.config.window == 200
+    assert node.distributed.config.window == 200
+    with pytest.raises(AgentConfigError, match=r"agent\.pose_window"):
+        load_agent_config(_write(tmp_path, _set("agent.pose_window", "0")), "r1")
+    joint = _set("agent.classes", '"joint"', _set("agent.pose_window", "50"))
+    with pytest.raises(AgentConfigError, match=r'agent\.pose_window: needs classes = "per_object"'):
+        load_agent_config(_write(tmp_path, joint), "r1")
+
+
 def test_agent_config_defaults(tmp_path: Path) -> None:
     c = load_agent_config(_write(tmp_path, MINIMAL), "r2")
     assert (c.fleet, c.seed, c.runtime.mode, c.journal) == ("default", 0, "realtime", None)
