@@ -240,7 +240,8 @@ def add_parser(sub: Any) -> None:
         metavar="STEPS",
         help="with --hypotheses per_object, every belief keeps the robot poses of the last "
         "STEPS to 2·STEPS steps and marginalises older ones (objects stay): a step and the "
-        "memory stop growing with the mission (default: every pose; docs/estimator.md)",
+        "memory stop growing with the mission, at an accuracy cost on loop-heavy missions "
+        '(default: every pose; docs/estimator.md, "A window of poses")',
     )
     p.add_argument(
         "--semantic-poses",
