@@ -119,3 +119,21 @@ def quiet_after(frames: Frames, last: int) -> dict[str, list[SensorFrame]]:
         r: [f if f.k <= last else dataclasses.replace(f, detections=()) for f in fs]
         for r, fs in frames.items()
     }
+
+
+def class_log_posteriors(
+    s: Scenario, seed: int, config: BeliefConfig, robots: Sequence[str] | None = None
+) -> tuple[HybridBelief, list[Array]]:
+    """One belief over ``robots`` (default: all of ``s``'s) stepped through seed ``seed``'s
+    frames, and its class log-posterior (n, M) after every step."""
+    from sim.sensors import Simulator
+
+    robots = list(s.robot_ids if robots is None else robots)
+    belief = HybridBelief(belief_model(s), {r: s.robot(r).start for r in robots}, config)
+    rng = belief_rng(seed, robots)
+    frames = Simulator(s, seed).all_frames()
+    out = []
+    for k in range(s.steps):
+        belief.step([frames[r][k] for r in robots], rng)
+        out.append(belief.class_log_posterior().copy())
+    return belief, out

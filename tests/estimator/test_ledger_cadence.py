@@ -20,6 +20,7 @@ from estimator.hybrid import BeliefConfig, HybridBelief
 from sim.generate import generate_scenario
 from sim.scenario import Scenario
 from sim.sensors import Simulator
+from tests.estimator.stepwise import class_log_posteriors
 
 
 def _world(seed: int) -> Scenario:
@@ -29,16 +30,7 @@ def _world(seed: int) -> Scenario:
 
 
 def _evidence(s: Scenario, seed: int, every: int) -> list[np.ndarray]:
-    robots = s.robot_ids
-    config = BeliefConfig(ledger_every=every)
-    belief = HybridBelief(belief_model(s), {r: s.robot(r).start for r in robots}, config)
-    rng = belief_rng(seed, robots)
-    frames = Simulator(s, seed).all_frames()
-    out = []
-    for k in range(s.steps):
-        belief.step([frames[r][k] for r in robots], rng)
-        out.append(belief.class_log_posterior().copy())
-    return out
+    return class_log_posteriors(s, seed, BeliefConfig(ledger_every=every))[1]
 
 
 @pytest.mark.parametrize("seed", range(3))
