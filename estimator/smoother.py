@@ -94,6 +94,9 @@ class WindowedISAM2:
             step = pose_step(int(key))
             if step is not None:
                 self.latest = max(self.latest, step)
+        gone = [i for i in remove if i not in self._index]
+        if gone:
+            raise ValueError(f"factors {gone} are not held (removed, or marginalised)")
         actual = [self._index.pop(i) for i in remove]
         result = self.isam.update(graph, values, actual)
         stable = []
@@ -147,7 +150,7 @@ class WindowedISAM2:
         result = self.isam.update(kept, values)
         self._index = {
             stable: int(actual)
-            for stable, actual in zip(kept_stable, result.getNewFactorsIndices(), strict=False)
+            for stable, actual in zip(kept_stable, result.getNewFactorsIndices(), strict=True)
             if stable is not None
         }
         self.oldest = oldest

@@ -193,6 +193,15 @@ def test_window_is_checked() -> None:
         BeliefConfig.joint(window=10)
     with pytest.raises(ValueError, match="window"):
         WindowedISAM2(gtsam.ISAM2Params(), 0)
+    smoother = WindowedISAM2(gtsam.ISAM2Params(), 5)
+    graph = gtsam.NonlinearFactorGraph()
+    unit = gtsam.noiseModel.Unit.Create(3)
+    graph.add(gtsam.PriorFactorPose2(pose_key(0, 0), gtsam.Pose2(), unit))
+    values = gtsam.Values()
+    values.insert(pose_key(0, 0), gtsam.Pose2())
+    assert smoother.update(graph, values).getNewFactorsIndices() == [0]
+    with pytest.raises(ValueError, match=r"factors \[7\] are not held"):
+        smoother.update(remove=[7])
 
 
 def test_the_ledger_retires_what_it_is_told_and_keeps_the_rest() -> None:
