@@ -54,6 +54,9 @@ log = logging.getLogger(__name__)
 CLASS_KINDS = ("joint", "per_object")
 # What a per-object slot's ξ is (``BeliefConfig.xi``).
 XI_KINDS = ("dense", "sparse")
+# How the window stores what its old poses knew: "relative" (estimator.smoother.relative_marginal),
+# or "linear" (a LinearContainerFactor, the first form, kept as the reference).
+WINDOW_MARGINALS = ("relative", "linear")
 
 
 @dataclass(frozen=True, slots=True)
@@ -131,6 +134,7 @@ class BeliefConfig:
     relinearize_skip: int = 10
     ledger_every: int = 1
     window: int | None = None
+    window_marginal: str = "relative"
     partial_relinearization: bool = True
     extra_updates: int = 1
     semantic_poses: bool = False
@@ -162,6 +166,9 @@ class BeliefConfig:
             raise ValueError(f"ledger_every must be ≥ 1, got {self.ledger_every}")
         if self.window is not None and self.window < 1:
             raise ValueError(f"window must be ≥ 1 step or None, got {self.window}")
+        if self.window_marginal not in WINDOW_MARGINALS:
+            known = ", ".join(WINDOW_MARGINALS)
+            raise ValueError(f"window_marginal {self.window_marginal!r} (known: {known})")
         if self.window is not None and self.classes != "per_object":
             raise ValueError('window needs classes = "per_object" (one continuous belief)')
         if self.num_samples < 1 or self.max_hypotheses < 1 or self.extra_updates < 0:
@@ -448,7 +455,11 @@ class HybridBelief:
         if self.config.window is None:
             isam = gtsam.ISAM2(self._isam_params())
         else:
-            isam = WindowedISAM2(self._isam_params(), self.config.window)
+            isam = WindowedISAM2(
+                self._isam_params(),
+                self.config.window,
+                relative=self.config.window_marginal == "relative",
+            )
         isam.update(graph, values)
         ledger = None if self.config.semantic_poses else SemanticLedger()
         first = Continuous(isam, ledger=ledger)
