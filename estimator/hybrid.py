@@ -33,7 +33,7 @@ from estimator.ledger import SemanticLedger
 from estimator.logsumexp import logsumexp
 from estimator.models import ClassifierModel, Detection, GaussianNoise, SensorFrame, viewpoint
 from estimator.pruning import PRUNINGS, PruningRule, class_marginals, match_marginals, select
-from estimator.smoother import WindowedISAM2, pose_steps
+from estimator.smoother import WindowedISAM2, marginal_covariances, pose_steps
 from estimator.snapshot import BeliefSnapshot  # re-exported: it used to live here
 from estimator.sparse_xi import SparseXi, Structure
 from estimator.summary import Xi
@@ -574,7 +574,7 @@ class HybridBelief:
             np.array([[c.pose(key) for key in keys] for c in conts]).reshape(len(conts), n, 3)
         )
         object_cov = per_hypothesis(
-            np.array([[c.isam.marginalCovariance(key) for key in keys] for c in conts]).reshape(
+            np.array([marginal_covariances(c.isam, keys) for c in conts]).reshape(
                 len(conts), n, 3, 3
             )
         )

@@ -194,6 +194,15 @@ def _logmap_derivative(v: np.ndarray) -> np.ndarray:
     return out
 
 
+def marginal_covariances(isam: gtsam.ISAM2 | WindowedISAM2, keys: Sequence[int]) -> np.ndarray:
+    """The marginal covariance of each of ``keys`` (Pose2), (K, 3, 3): key by key from a full
+    iSAM2, whose cliques keep them apart; from one joint marginal from a windowed one
+    (:meth:`WindowedISAM2.marginal_covariances`)."""
+    if isinstance(isam, WindowedISAM2):
+        return isam.marginal_covariances(keys)
+    return np.array([isam.marginalCovariance(k) for k in keys]).reshape(len(keys), 3, 3)
+
+
 class _Result:
     """What a belief reads of an update's ``gtsam.ISAM2Result``: the indices of the new factors
     (stable across rebuilds)."""
@@ -323,6 +332,16 @@ class WindowedISAM2:
 
     def marginalCovariance(self, key: int) -> np.ndarray:
         return self.isam.marginalCovariance(key)
+
+    def marginal_covariances(self, keys: Sequence[int]) -> np.ndarray:
+        """Each key's marginal covariance, (K, 3, 3), from one joint marginal: the window's
+        marginal puts every object its old poses saw into one clique, and recovering each key's
+        covariance from it one by one repeats that clique's inversion per key (598 ms against
+        14 ms for 81 objects of the dense world, equal to 3e-12)."""
+        if not keys:
+            return np.zeros((0, 3, 3))
+        joint = self.isam.jointMarginalCovariance(gtsam.KeyVector(list(keys)))
+        return np.array([joint.at(k, k) for k in keys])
 
     def getDelta(self) -> gtsam.VectorValues:
         return self.isam.getDelta()

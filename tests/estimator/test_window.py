@@ -16,7 +16,7 @@ from estimator.hybrid import BeliefConfig, HybridBelief
 from estimator.ledger import SemanticLedger
 from estimator.models.classifier import all_log_likelihoods
 from estimator.slots import summarise
-from estimator.smoother import WindowedISAM2, pose_step, pose_steps
+from estimator.smoother import WindowedISAM2, marginal_covariances, pose_step, pose_steps
 from estimator.summary import Slot
 from sim.generate import generate_scenario
 from sim.scenario import Scenario
@@ -232,3 +232,15 @@ def test_the_ledger_retires_what_it_is_told_and_keeps_the_rest() -> None:
     ledger.add(pose_key(0, 6), 0, rng.random(model.dim))
     with pytest.raises(ValueError, match="reference"):
         ledger.retire(np.array([True, True, True, True, False]))
+
+
+def test_a_windowed_snapshot_reads_each_objects_covariance_from_one_joint_marginal() -> None:
+    s = _world(1)
+    windowed, _ = _run(s, 1, BeliefConfig(window=WINDOW))
+    cont = windowed.hypotheses[0].continuous
+    assert isinstance(cont.isam, WindowedISAM2) and cont.isam.rebuilds > 0
+    keys = [object_key(j) for j in windowed.object_ids]
+    one_by_one = np.array([cont.isam.marginalCovariance(k) for k in keys])
+    np.testing.assert_allclose(marginal_covariances(cont.isam, keys), one_by_one, atol=1e-12)
+    np.testing.assert_allclose(windowed.snapshot("r1").object_cov[0], one_by_one, atol=1e-12)
+    assert marginal_covariances(cont.isam, []).shape == (0, 3, 3)
