@@ -18,7 +18,7 @@ from agents.ros2.bridge import Ros2Settings
 from agents.ros2.messages import Ros2Unavailable, types_for
 from agents.ros2.wire import DISTROS, valid_ros_name
 from agents.transport.zenoh_transport import ZenohConfigError, ZenohSettings
-from estimator.hybrid import CLASS_KINDS, BeliefConfig
+from estimator.hybrid import CLASS_KINDS, POSE_WINDOW, BeliefConfig
 from protocol.codec import Limits
 from protocol.signing import admitted
 from protocol.validate import valid_id
@@ -56,7 +56,7 @@ class AgentConfig:
     ros2: Ros2Settings | None = None
     classes: str = DEFAULT_CLASSES
     # BeliefConfig.window: robot poses older than this many steps are marginalised (None: all kept).
-    pose_window: int | None = None
+    pose_window: int | None = POSE_WINDOW
 
 
 _AGENT_KEYS = {
@@ -188,6 +188,22 @@ def _read_ros2(r: FieldReader, robot: str, num_classes: int) -> Ros2Settings | N
     )
 
 
+def _pose_window(a: FieldReader, classes: str) -> int | None:
+    """``[agent] pose_window``: a number of steps, or "all" to keep every pose; by default
+    ``POSE_WINDOW`` with per-object classes, every pose with joint ones (which need it)."""
+    if not a.has("pose_window"):
+        return POSE_WINDOW if classes == "per_object" else None
+    value = a.raw["pose_window"]
+    if isinstance(value, str):
+        if value != "all":
+            raise a.fail("pose_window", f'{value!r}: a number of steps ≥ 1, or "all"')
+        return None
+    window = a.integer("pose_window", 1, 1_000_000)
+    if classes != "per_object":
+        raise a.fail("pose_window", 'needs classes = "per_object" (one continuous belief)')
+    return window
+
+
 def _read_agent_config(path: Path, robot: str) -> AgentConfig:
     label = str(path)
     top = FieldReader(label, parse_toml(read_file(path, "agent config"), label), "")
@@ -231,9 +247,7 @@ def _read_agent_config(path: Path, robot: str) -> AgentConfig:
     classes = a.string("classes") if a.has("classes") else DEFAULT_CLASSES
     if classes not in CLASS_KINDS:
         raise a.fail("classes", f"{classes!r} (known: {', '.join(CLASS_KINDS)})")
-    pose_window = a.integer("pose_window", 1, 1_000_000) if a.has("pose_window") else None
-    if pose_window is not None and classes != "per_object":
-        raise a.fail("pose_window", 'needs classes = "per_object" (one continuous belief)')
+    pose_window = _pose_window(a, classes)
     runtime = CoreSettings(
         mode=mode,
         stack_gossip=stack_gossip,

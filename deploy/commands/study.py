@@ -22,7 +22,7 @@ from deploy.scenario_args import scenario_from_args
 from deploy.shards import Shard, merge_shards, shard_entry, study_key, write_merged_plots
 from deploy.study import METHODS, run_study
 from deploy.study_report import render_summary, write_plots
-from estimator.hybrid import XI_KINDS, BeliefConfig
+from estimator.hybrid import POSE_WINDOW, XI_KINDS, BeliefConfig
 from estimator.weights import WEIGHT_ESTIMATORS
 
 
@@ -78,11 +78,13 @@ def run(args: argparse.Namespace, console: Console, own: dict[str, tuple[str, An
             raise UsageError(f"--xi {args.xi} needs --hypotheses per_object (one ξ per slot)")
         changes["xi"] = args.xi
     if args.window is not None:
-        if args.hypotheses != "per_object":
-            raise UsageError(f"--window {args.window} needs --hypotheses per_object")
-        if args.window < 1:
-            raise UsageError(f"--window must be ≥ 1 step, got {args.window}")
-        changes["window"] = args.window
+        window = _window(args.window)
+        if window is not None and args.hypotheses != "per_object":
+            raise UsageError(
+                f"--window {args.window} needs --hypotheses per_object "
+                "(joint classes keep every pose)"
+            )
+        changes["window"] = window
     config = HYPOTHESIS_MANAGEMENT[args.hypotheses](**changes)
     if args.seed + args.runs - 1 > MAX_SEED:
         raise UsageError(f"--seed {args.seed} with --runs {args.runs} runs past the largest seed")
@@ -236,12 +238,11 @@ def add_parser(sub: Any) -> None:
     )
     p.add_argument(
         "--window",
-        type=int,
-        metavar="STEPS",
+        metavar="STEPS|all",
         help="with --hypotheses per_object, every belief keeps the robot poses of the last "
-        "STEPS to 2·STEPS steps and marginalises older ones (objects stay): a step and the "
-        "memory stop growing with the mission, at an accuracy cost on loop-heavy missions "
-        '(default: every pose; docs/estimator.md, "A window of poses")',
+        "STEPS to 2·STEPS steps and marginalises older ones (objects stay), so that a step and "
+        f"the memory follow the map, not the mission (default {POSE_WINDOW}; all keeps every "
+        'pose; docs/estimator.md, "A window of poses")',
     )
     p.add_argument(
         "--semantic-poses",
@@ -281,3 +282,16 @@ def add_parser(sub: Any) -> None:
         if a.option_strings and a.dest not in ("help", "out")
     }
     p.set_defaults(run=lambda args, console: run(args, console, own))
+
+
+def _window(text: str) -> int | None:
+    """``--window``: a number of steps ≥ 1, or ``all`` (every pose kept)."""
+    if text == "all":
+        return None
+    try:
+        window = int(text)
+    except ValueError:
+        raise UsageError(f"--window {text!r}: a number of steps ≥ 1, or all") from None
+    if window < 1:
+        raise UsageError(f"--window must be ≥ 1 step (or all), got {window}")
+    return window

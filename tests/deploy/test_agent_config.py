@@ -14,6 +14,7 @@ import pytest
 
 from agents.journal import Journal
 from deploy.agent_config import AgentConfigError, load_agent_config
+from estimator.hybrid import POSE_WINDOW
 from sim.loader import load_scenario
 from sim.robot_model import dump_robot_model
 
@@ -122,7 +123,12 @@ def test_agent_config_classes_reach_the_beliefs_of_the_agents_node(tmp_path: Pat
 def test_agent_config_pose_window_reaches_the_beliefs_of_the_agents_node(tmp_path: Path) -> None:
     from deploy.agent_service import node_factory
 
-    assert load_agent_config(_write(tmp_path, MINIMAL), "r2").pose_window is None
+    assert load_agent_config(_write(tmp_path, MINIMAL), "r2").pose_window == POSE_WINDOW
+    every = load_agent_config(_write(tmp_path, _set("agent.pose_window", '"all"')), "r1")
+    assert every.pose_window is None
+    assert node_factory(every)().distributed.config.window is None
+    joint_default = load_agent_config(_write(tmp_path, _set("agent.classes", '"joint"')), "r1")
+    assert joint_default.pose_window is None
     c = load_agent_config(_write(tmp_path, _set("agent.pose_window", "200")), "r1")
     assert c.pose_window == 200
     node = node_factory(c)()
@@ -130,6 +136,10 @@ def test_agent_config_pose_window_reaches_the_beliefs_of_the_agents_node(tmp_pat
     assert node.distributed.config.window == 200
     with pytest.raises(AgentConfigError, match=r"agent\.pose_window"):
         load_agent_config(_write(tmp_path, _set("agent.pose_window", "0")), "r1")
+    with pytest.raises(AgentConfigError, match=r"agent\.pose_window: 'every'"):
+        load_agent_config(_write(tmp_path, _set("agent.pose_window", '"every"')), "r1")
+    with pytest.raises(AgentConfigError, match=r"agent\.pose_window: expected an integer"):
+        load_agent_config(_write(tmp_path, _set("agent.pose_window", "2.5")), "r1")
     joint = _set("agent.classes", '"joint"', _set("agent.pose_window", "50"))
     with pytest.raises(AgentConfigError, match=r'agent\.pose_window: needs classes = "per_object"'):
         load_agent_config(_write(tmp_path, joint), "r1")

@@ -20,7 +20,7 @@ from deploy.results import study_archive
 from deploy.study import run_single
 from deploy.study_report import render_summary, table_steps
 from estimator.distributed import FusionStats
-from estimator.hybrid import BeliefConfig
+from estimator.hybrid import POSE_WINDOW, BeliefConfig
 from estimator.metrics import ECE_BINS, METRICS, ece_from_stats
 from sim.loader import parse_scenario
 from tests.estimator.scenarios import fleet_text
@@ -461,8 +461,8 @@ def test_run_single_rejects_unknown_method() -> None:
         (["--hypotheses", "per_object", "--xi", "banded"], "invalid choice: 'banded'"),
         (["--semantic-poses"], "--semantic-poses needs a continuous belief per class"),
         (["--window", "5", "--hypotheses", "marginal"], "--window 5 needs --hypotheses per_object"),
-        (["--window", "0"], "--window must be ≥ 1 step, got 0"),
-        (["--window", "x"], "invalid int value: 'x'"),
+        (["--window", "0"], "--window must be ≥ 1 step (or all), got 0"),
+        (["--window", "x"], "--window 'x': a number of steps ≥ 1, or all"),
     ],
 )
 def test_study_user_errors_are_one_clear_line(
@@ -542,3 +542,26 @@ def test_study_window_reaches_the_beliefs_and_the_results(world: Path, tmp_path:
     for method in ("local", "distributed", "centralized"):
         error = doc["methods"][method]["mean"]["object_error"]
         assert error[-1] is not None and np.isfinite(error[-1])
+
+
+def test_study_window_is_the_default_and_all_keeps_every_pose(world: Path, tmp_path: Path) -> None:
+    every = tmp_path / "every"
+    r = study(
+        world, every, *("--methods", "local", "--runs", "1", "--jobs", "1"), "--window", "all"
+    )
+    assert r.returncode == 0, r.stderr
+    assert read_json(every)["window"] is None
+    default = tmp_path / "default"
+    r = study(world, default, *("--methods", "local", "--runs", "1", "--jobs", "1"))
+    assert r.returncode == 0, r.stderr
+    assert read_json(default)["window"] == POSE_WINDOW
+    joint = tmp_path / "joint"
+    r = study(
+        world,
+        joint,
+        *("--methods", "local", "--runs", "1", "--jobs", "1"),
+        "--hypotheses",
+        "marginal",
+    )
+    assert r.returncode == 0, r.stderr
+    assert read_json(joint)["window"] is None

@@ -8,9 +8,9 @@ import gtsam
 import numpy as np
 import pytest
 
-from estimator import smoother
+from estimator import relative_marginal as smoother
 from estimator.factors import object_key, pose_key
-from estimator.smoother import relative_marginal
+from estimator.relative_marginal import relative_marginal
 
 
 def _keys() -> list[int]:

@@ -12,7 +12,7 @@ import pytest
 from deploy.study import belief_model, belief_rng
 from estimator.distributed import DistributedBelief
 from estimator.factors import object_key, pose_key
-from estimator.hybrid import BeliefConfig, HybridBelief
+from estimator.hybrid import POSE_WINDOW, BeliefConfig, HybridBelief
 from estimator.ledger import SemanticLedger
 from estimator.models.classifier import all_log_likelihoods
 from estimator.slots import summarise
@@ -50,7 +50,7 @@ def test_pose_keys_say_their_step() -> None:
 @pytest.mark.parametrize("seed", range(2))
 def test_a_window_longer_than_the_mission_is_the_full_smoother(seed: int) -> None:
     s = _world(seed, steps=30)
-    full, full_classes = _run(s, seed, BeliefConfig())
+    full, full_classes = _run(s, seed, BeliefConfig(window=None))
     windowed, windowed_classes = _run(s, seed, BeliefConfig(window=40))
     for a, b in zip(full_classes, windowed_classes, strict=True):
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-9)
@@ -62,7 +62,7 @@ def test_the_window_keeps_its_poses_and_every_object_and_stays_near_the_full_smo
     seed: int,
 ) -> None:
     s = _world(seed)
-    full, full_classes = _run(s, seed, BeliefConfig())
+    full, full_classes = _run(s, seed, BeliefConfig(window=None))
     windowed, windowed_classes = _run(s, seed, BeliefConfig(window=WINDOW))
     cont = windowed.hypotheses[0].continuous
     assert isinstance(cont.isam, WindowedISAM2)
@@ -144,7 +144,7 @@ def test_a_window_over_several_robots_keeps_each_ones_last_poses(seed: int) -> N
     """A centralized belief: both robots' old poses go at each rebuild (GTSAM's
     marginalizeLeaves refused this when two robots' old poses shared a clique)."""
     s = _world(seed)
-    full, _ = class_log_posteriors(s, seed, BeliefConfig())
+    full, _ = class_log_posteriors(s, seed, BeliefConfig(window=None))
     windowed, _ = class_log_posteriors(s, seed, BeliefConfig(window=WINDOW))
     cont = windowed.hypotheses[0].continuous
     assert isinstance(cont.isam, WindowedISAM2)
@@ -166,7 +166,7 @@ def test_a_windowed_distributed_belief_fuses_and_summarises() -> None:
     frames = Simulator(s, 0).all_frames()
     local = {r: HybridBelief(model, {r: s.robot(r).start}, config) for r in robots}
     d = DistributedBelief(model, "r1", s.robot("r1").start, config)
-    full_d = DistributedBelief(model, "r1", s.robot("r1").start, BeliefConfig())
+    full_d = DistributedBelief(model, "r1", s.robot("r1").start, BeliefConfig(window=None))
     rngs = {r: belief_rng(0, [r]) for r in robots}
     rng_d, rng_full = belief_rng(1, ["r1"]), belief_rng(1, ["r1"])
     for k in range(s.steps):
@@ -244,3 +244,37 @@ def test_a_windowed_snapshot_reads_each_objects_covariance_from_one_joint_margin
     np.testing.assert_allclose(marginal_covariances(cont.isam, keys), one_by_one, atol=1e-12)
     np.testing.assert_allclose(windowed.snapshot("r1").object_cov[0], one_by_one, atol=1e-12)
     assert marginal_covariances(cont.isam, []).shape == (0, 3, 3)
+
+
+def test_per_object_beliefs_keep_a_window_by_default_and_joint_ones_every_pose() -> None:
+    assert BeliefConfig().window == POSE_WINDOW
+    for joint in (BeliefConfig.joint(), BeliefConfig.paper(), BeliefConfig.exact()):
+        assert joint.window is None
+    assert BeliefConfig(classes="joint").window is None
+    assert BeliefConfig(classes="joint", semantic_poses=True).window is None
+    with pytest.raises(ValueError, match="joint classes keep every pose"):
+        BeliefConfig(classes="joint", window=50)
+    with pytest.raises(ValueError, match="window_marginal 'exact'"):
+        BeliefConfig(window_marginal="exact")
+
+
+def test_a_copied_windowed_belief_steps_on_its_own() -> None:
+    s = _world(2)
+    belief, _ = _run(s, 2, BeliefConfig(window=WINDOW))
+    cont = belief.hypotheses[0].continuous
+    twin = cont.copy()
+    assert isinstance(twin.isam, WindowedISAM2) and twin.isam is not cont.isam
+    assert (twin.isam.oldest_kept(), twin.isam.rebuilds) == (
+        cont.isam.oldest_kept(),
+        cont.isam.rebuilds,
+    )
+    key = object_key(belief.object_ids[0])
+    before = cont.isam.calculateEstimatePose2(key)
+    graph = gtsam.NonlinearFactorGraph()
+    graph.add(
+        gtsam.PriorFactorPose2(key, gtsam.Pose2(50.0, 50.0, 0.0), gtsam.noiseModel.Unit.Create(3))
+    )
+    twin.isam.update(graph)
+    moved = twin.isam.calculateEstimatePose2(key)
+    assert np.hypot(moved.x() - before.x(), moved.y() - before.y()) > 1.0
+    assert cont.isam.calculateEstimatePose2(key).equals(before, 1e-12)
