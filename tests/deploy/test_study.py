@@ -544,24 +544,16 @@ def test_study_window_reaches_the_beliefs_and_the_results(world: Path, tmp_path:
         assert error[-1] is not None and np.isfinite(error[-1])
 
 
-def test_study_window_is_the_default_and_all_keeps_every_pose(world: Path, tmp_path: Path) -> None:
-    every = tmp_path / "every"
-    r = study(
-        world, every, *("--methods", "local", "--runs", "1", "--jobs", "1"), "--window", "all"
-    )
+@pytest.mark.parametrize(
+    ("options", "window"),
+    [((), POSE_WINDOW), (("--window", "all"), None), (("--hypotheses", "marginal"), None)],
+)
+def test_study_window_is_the_default_and_all_keeps_every_pose(
+    world: Path, tmp_path: Path, options: tuple[str, ...], window: int | None
+) -> None:
+    """Per-object beliefs keep a window of poses by default; --window all and joint class
+    tables keep every pose."""
+    out = tmp_path / "out"
+    r = study(world, out, "--methods", "local", "--runs", "1", "--jobs", "1", *options)
     assert r.returncode == 0, r.stderr
-    assert read_json(every)["window"] is None
-    default = tmp_path / "default"
-    r = study(world, default, *("--methods", "local", "--runs", "1", "--jobs", "1"))
-    assert r.returncode == 0, r.stderr
-    assert read_json(default)["window"] == POSE_WINDOW
-    joint = tmp_path / "joint"
-    r = study(
-        world,
-        joint,
-        *("--methods", "local", "--runs", "1", "--jobs", "1"),
-        "--hypotheses",
-        "marginal",
-    )
-    assert r.returncode == 0, r.stderr
-    assert read_json(joint)["window"] is None
+    assert read_json(out)["window"] == window
