@@ -61,9 +61,10 @@ XI_KINDS = ("dense", "sparse")
 # At 60 steps (the paper's world) it never acts.
 POSE_WINDOW = 100
 # BeliefConfig.window's default: POSE_WINDOW for per-object classes, None (every pose) for joint
-# class tables, which need a smoother they can copy; resolved when the config is made.
+# class tables, which need a smoother they can copy; resolved when the config is made (so an
+# explicit -1 means the default too).
 _WINDOW_BY_CLASSES = -1
-# How the window stores what its old poses knew: "relative" (estimator.smoother.relative_marginal),
+# How the window stores what its old poses knew: "relative" (estimator.relative_marginal),
 # or "linear" (a LinearContainerFactor, the first form, kept as the reference).
 WINDOW_MARGINALS = ("relative", "linear")
 
