@@ -61,8 +61,9 @@ XI_KINDS = ("dense", "sparse")
 # At 60 steps (the paper's world) it never acts.
 POSE_WINDOW = 100
 # BeliefConfig.window's default: POSE_WINDOW for per-object classes, None (every pose) for joint
-# class tables, which need a smoother they can copy; resolved when the config is made (so an
-# explicit -1 means the default too).
+# class tables, which the window is not built for (a continuous belief per realisation, the
+# ledger's retirement and D's joins are not measured with it); resolved when the config is made
+# (so an explicit -1 means the default too).
 _WINDOW_BY_CLASSES = -1
 # How the window stores what its old poses knew: "relative" (estimator.relative_marginal),
 # or "linear" (a LinearContainerFactor, the first form, kept as the reference).
