@@ -509,39 +509,29 @@ def test_study_semantic_poses_reach_the_beliefs_and_the_results(
     assert read_json(out)["semantic_poses"] is semantic_poses
 
 
-@pytest.mark.parametrize("xi", ["dense", "sparse"])
-def test_study_xi_reaches_the_slots_and_the_results(world: Path, tmp_path: Path, xi: str) -> None:
-    """--xi picks the ξ of a per-object slot; the distributed belief fuses either."""
+@pytest.mark.parametrize(
+    ("options", "settings"),
+    [
+        (("--xi", "dense"), {"classes": "per_object", "xi": "dense"}),
+        (("--xi", "sparse"), {"classes": "per_object", "xi": "sparse"}),
+        # a window of 3 steps of a 12-step study marginalises three times
+        (("--window", "3"), {"classes": "per_object", "window": 3}),
+    ],
+)
+def test_study_xi_and_window_reach_the_beliefs_and_the_results(
+    world: Path, tmp_path: Path, options: tuple[str, ...], settings: dict[str, object]
+) -> None:
+    """--xi picks the ξ of a per-object slot, --window the beliefs' window of poses; every
+    method fuses and scores with either."""
     out = tmp_path / "out"
-    r = study(
-        world,
-        out,
-        *("--methods", "local,distributed", "--runs", "1", "--jobs", "1"),
-        *("--hypotheses", "per_object", "--xi", xi),
-    )
+    methods = ("local", "distributed", "centralized")
+    r = study(world, out, "--methods", ",".join(methods), "--runs", "1", "--jobs", "1", *options)
     assert r.returncode == 0, r.stderr
     doc = read_json(out)
-    assert (doc["classes"], doc["xi"]) == ("per_object", xi)
-    error = doc["methods"]["distributed"]["mean"]["object_error"]
-    assert all(v is None or np.isfinite(v) for v in error) and error[-1] is not None
-
-
-def test_study_window_reaches_the_beliefs_and_the_results(world: Path, tmp_path: Path) -> None:
-    """--window marginalises every belief's old poses (the window of 3 steps of a 12-step
-    study marginalises three times)."""
-    out = tmp_path / "out"
-    r = study(
-        world,
-        out,
-        *("--methods", "local,distributed,centralized", "--runs", "1", "--jobs", "1"),
-        *("--window", "3"),
-    )
-    assert r.returncode == 0, r.stderr
-    doc = read_json(out)
-    assert doc["window"] == 3
-    for method in ("local", "distributed", "centralized"):
+    assert {key: doc[key] for key in settings} == settings
+    for method in methods:
         error = doc["methods"][method]["mean"]["object_error"]
-        assert error[-1] is not None and np.isfinite(error[-1])
+        assert all(v is None or np.isfinite(v) for v in error) and error[-1] is not None
 
 
 @pytest.mark.parametrize(
