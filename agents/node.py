@@ -15,6 +15,7 @@ import logging
 from collections import OrderedDict
 from collections.abc import Collection, Iterable, Mapping
 from dataclasses import dataclass, field, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
@@ -23,7 +24,7 @@ from numpy.typing import ArrayLike
 from estimator.distributed import DistributedBelief, FusionStats, SlotError
 from estimator.hybrid import BeliefConfig, BeliefModel, HybridBelief
 from estimator.models import SensorFrame
-from estimator.slots import summarise
+from estimator.slots import linearisation_point, summarise
 from estimator.summary import LocalSummary
 from protocol.codec import (
     MAX_EPOCH,
@@ -37,6 +38,9 @@ from protocol.codec import (
 from protocol.errors import LocalProtocolError, RemoteProtocolError
 from protocol.signing import SigningKeys
 from protocol.stack import Slot, Stack
+
+if TYPE_CHECKING:
+    import gtsam
 
 log = logging.getLogger(__name__)
 
@@ -125,8 +129,12 @@ class LocalTrack:
             return
         self.belief.step([frame], self._rng)
 
-    def summary(self) -> LocalSummary | None:
-        """The own slot's content at the current step (None before any object is seen)."""
+    def summary(self, at: gtsam.Values | None = None) -> LocalSummary | None:
+        """The own slot's content at the current step (None before any object is seen),
+        linearised at ``at`` (a node's fused estimate; not shared with other sharers, so never
+        kept) or at L's own point (kept for the step)."""
+        if at is not None:
+            return summarise(self.belief, at)
         if self._summary_k != self.k:
             self._summary = summarise(self.belief)
             self._summary_k = self.k
@@ -402,7 +410,7 @@ class RobotNode:
     def current_stack(self) -> Stack:
         """The stack with the own slot rebuilt from L (never from D) at the latest step."""
         if self._own_slot_stale:
-            summary = self.track.summary()
+            summary = self.track.summary(linearisation_point(self.distributed))
             if summary is not None:
                 own = Slot(self.robot, self.k, summary, self.epoch)
                 self.stack = self.stack.with_slot(self._encoded_once(own))

@@ -5,8 +5,10 @@ objects in a 30 m square, `semfleet scenario generate --robots 4 --objects 120 -
 9002 --steps 400 --area 30`), the mission long enough for each robot to see most of the map
 (400 steps at 120 objects, in proportion to n). At a sparse density a robot's map grows only as
 n^0.4 and hides the cost. Every point runs local, distributed and centralized once per class
-representation (per-object classes with the sparse and the dense ξ, and the joint table as the
-baseline), each in a process of its own with a wall-time budget: a point that does not finish
+representation (per-object classes with the sparse and the dense ξ, the dense ξ once more with
+every slot linearised at its owner's local point instead of its fused estimate, the reference
+before ``BeliefConfig.slot_linearisation``, and the joint table as the baseline), each in a
+process of its own with a wall-time budget: a point that does not finish
 within it is reported as such.
 
 Per point: r1's own slot at the last step on the wire, per object (its ξ with the ids, and its
@@ -66,6 +68,9 @@ BUDGET_S = float(os.environ.get("SEMFLEET_BENCH_MAPSCALE_BUDGET", "900"))
 CLASSES = {
     "per_object sparse ξ": BeliefConfig(classes="per_object", xi="sparse"),
     "per_object dense ξ": BeliefConfig(classes="per_object", xi="dense"),
+    "per_object dense ξ, slot at L's point": BeliefConfig(
+        classes="per_object", xi="dense", slot_linearisation="local"
+    ),
     "joint": BeliefConfig.joint(),
 }
 # The long mission also runs the per-object belief with every pose kept (the default before the

@@ -54,6 +54,9 @@ log = logging.getLogger(__name__)
 CLASS_KINDS = ("joint", "per_object")
 # What a per-object slot's ξ is (``BeliefConfig.xi``).
 XI_KINDS = ("dense", "sparse")
+# Where a per-object slot's ξ is linearised (``BeliefConfig.slot_linearisation``): at the
+# owner's fused estimate (D's), or at L's own linearisation point (the reference).
+SLOT_LINEARISATIONS = ("fused", "local")
 # The default window of robot poses (per-object classes): poses older than 100–200 steps are
 # marginalised. Measured against every pose on five seeds of a 2,000-step mission, a mission
 # whose map is known early, and the 120- and 300-object worlds: errors within the seeds' spread,
@@ -128,6 +131,14 @@ class BeliefConfig:
     graph, mean kept, float32), linear in n on the wire and a few small factors in D's iSAM2
     instead of one n-object clique (docs/estimator.md, "Sparse ξ").
 
+    ``slot_linearisation`` (``"per_object"`` only): where the owner linearises its own factors
+    for its slot's ξ. ``"fused"`` (default): at its distributed belief's estimate, the best it
+    has and the one its receivers are near, so that they read ξ close to where it was taken;
+    ``"local"`` (the reference): at L's own linearisation point, which drifts with L (metres
+    on a large map) and leaves every receiver's ξ a linearisation of the owner's drift
+    (docs/distributed.md, "Where a slot is linearised"). Only the linearisation point comes
+    from D: Λ and η are the owner's own factors', so nothing is counted twice.
+
     ``semantic_poses``: whether the semantic factors also enter the Gaussians, so that every
     class realisation has a continuous belief of its own (Eq. 5 taken literally, the paper's
     model; ``BeliefConfig.paper()``). By default they do not: the semantic measurements weigh the
@@ -158,6 +169,7 @@ class BeliefConfig:
     semantic_poses: bool = False
     classes: str = "per_object"
     xi: str = "dense"
+    slot_linearisation: str = "fused"
 
     def __post_init__(self) -> None:
         if self.classes not in CLASS_KINDS:
@@ -166,6 +178,9 @@ class BeliefConfig:
             raise ValueError(f"xi {self.xi!r} (known: {', '.join(XI_KINDS)})")
         if self.xi == "sparse" and self.classes != "per_object":
             raise ValueError('xi = "sparse" needs classes = "per_object"')
+        if self.slot_linearisation not in SLOT_LINEARISATIONS:
+            known = ", ".join(SLOT_LINEARISATIONS)
+            raise ValueError(f"slot_linearisation {self.slot_linearisation!r} (known: {known})")
         if self.classes == "per_object" and self.semantic_poses:
             raise ValueError(
                 'classes = "per_object" needs one continuous belief (semantic_poses = False)'
@@ -487,6 +502,10 @@ class HybridBelief:
         # Sparse ξ (BeliefConfig.xi): the object ids and Bayes net of the last one summarised
         # from this belief, reused by estimator.slots while the ids are the same.
         self.xi_structure: tuple[tuple[int, ...], Structure] | None = None
+        # Slots summarised at other poses (estimator.slots, ``at``): the last excess χ² of the
+        # belief's factors there, per dimension, and how many were refused as implausible.
+        self.slot_fit = 0.0
+        self.slot_fit_refused = 0
         # Per-object classes: steps since the ledger last re-read every detection's poses.
         self._since_refresh = 0
 

@@ -7,6 +7,14 @@ the hypothesis' continuous belief; its mean is iSAM2's current Δ at the lineari
 Hypotheses that share a continuous belief share one ξ (computed once). A per-object belief with
 ``BeliefConfig.xi = "sparse"`` sends the conservative sparse form of its ξ instead
 (``estimator.sparse_xi``), rounded to float32 as it travels.
+
+A per-object belief may be summarised at other poses than its own (``at``: the owner's fused
+estimate, ``BeliefConfig.slot_linearisation``): its factors are linearised there and every
+other variable eliminated, so that ξ is the same information about the objects, taken where
+the receivers' estimates are. Its own estimate must not be implausible under its own data:
+if the fused estimate costs L's factors more than ``FIT_SIGMAS`` standard deviations of a χ²
+over L's dimensions above L's own optimum, ξ is taken at L's point and the refusal counted
+(``HybridBelief.slot_fit_refused``): a poisoned D never bends what the owner shares.
 """
 
 from __future__ import annotations
@@ -33,16 +41,28 @@ EIGEN_FLOOR = 1e-9
 # holds however long the mission).
 PHI_FLOOR = -1000.0
 
+# How far above L's own optimum the fused estimate may put L's factors' χ² before a slot is taken
+# at L's point instead: this many standard deviations of a χ² with L's dimensions (plus a floor
+# of ``FIT_FLOOR`` for the smallest maps). An honest fused estimate moves L by what L cannot
+# see (its drift), which its factors hardly pay for; a poisoned one pays orders of magnitude.
+FIT_SIGMAS = 10.0
+FIT_FLOOR = 100.0
 
-def summarise(belief: HybridBelief) -> LocalSummary | None:
+
+def summarise(belief: HybridBelief, at: gtsam.Values | None = None) -> LocalSummary | None:
     """ξ and log φ for every hypothesis of ``belief`` (per-object classes: the one ξ and every
-    object's class log φ); None while it knows no object."""
+    object's class log φ); None while it knows no object. ``at`` (per-object classes; ignored
+    for joint ones): the poses at which ξ is linearised (keys it lacks are taken at the belief's
+    estimate); None: at the belief's own linearisation point."""
     if not belief.object_ids:
         return None
     ids = tuple(belief.object_ids)
     prior_noise = gtsam.noiseModel.Diagonal.Sigmas(np.array(belief.config.object_prior_sigmas))
     if belief.per_object:
-        xi = _prior_divided_marginal(belief.hypotheses[0].continuous, ids, prior_noise)
+        cont = belief.hypotheses[0].continuous
+        xi = None if at is None else _marginal_at(belief, cont, ids, prior_noise, at)
+        if xi is None:
+            xi = _prior_divided_marginal(cont, ids, prior_noise)
         shared: Xi | SparseXi = xi if belief.config.xi == "dense" else _sparse(belief, ids, xi)
         return LocalSummary(ids, (), ObjectClasses(object_log_phi(belief.log_evidence), shared))
     log_prior = np.log(np.asarray(belief.model.class_prior, dtype=float))
@@ -55,6 +75,14 @@ def summarise(belief: HybridBelief) -> LocalSummary | None:
     for h, g, p in zip(belief.hypotheses, which, prior_sum, strict=True):
         out.append(Realisation(h.classes, h.log_weight - p, xis[g]))
     return LocalSummary(ids, tuple(out))
+
+
+def linearisation_point(fused: HybridBelief) -> gtsam.Values | None:
+    """Where its owner's slot is linearised (``BeliefConfig.slot_linearisation``): the fused
+    belief's estimate for a per-object belief set to ``"fused"``, else None (L's own point)."""
+    if not fused.per_object or fused.config.slot_linearisation != "fused":
+        return None
+    return fused.hypotheses[0].continuous.isam.calculateEstimate()
 
 
 def object_log_phi(log_evidence: Array) -> Array:
@@ -97,6 +125,54 @@ def _prior_divided_marginal(
         lin[i] = (p.x(), p.y(), p.theta())
         prior = gtsam.PriorFactorPose2(key, gtsam.Pose2(*h.object_priors[j]), prior_noise)
         a, b = prior.linearize(lin_values).jacobian()
+        block = slice(3 * i, 3 * i + 3)
+        info[block, block] -= a.T @ a
+        eta[block] -= a.T @ b
+    return Xi(lin, _floor_eigenvalues(info), eta)
+
+
+def _marginal_at(
+    belief: HybridBelief,
+    h: Continuous,
+    ids: Sequence[int],
+    prior_noise: gtsam.noiseModel.Base,
+    at: gtsam.Values,
+) -> Xi | None:
+    """The prior-divided marginal on the objects ``ids`` of ``h``'s factors linearised at
+    ``at`` (the belief's estimate where ``at`` lacks a key): every other variable eliminated
+    from the linearised graph, what is left read as [Λ η]. None (and the refusal counted) when
+    ``at`` does not fit the belief's own data (``FIT_SIGMAS``)."""
+    graph = h.isam.getFactorsUnsafe()
+    estimate = h.isam.calculateEstimate()
+    values = gtsam.Values()
+    for key in estimate.keys():  # noqa: SIM118 - gtsam.Values is not iterable
+        values.insert(key, at.atPose2(key) if at.exists(key) else estimate.atPose2(key))
+    excess = 2.0 * (graph.error(values) - graph.error(estimate))
+    dims = 3 * values.size()
+    belief.slot_fit = excess / dims
+    if not excess <= dims + max(FIT_SIGMAS * np.sqrt(2.0 * dims), FIT_FLOOR):
+        belief.slot_fit_refused += 1
+        return None
+    keys = [object_key(j) for j in ids]
+    objects = set(keys)
+    others = gtsam.Ordering()
+    for key in sorted(k for k in values.keys() if k not in objects):  # noqa: SIM118
+        others.push_back(key)  # the robot poses, in step order: a chain
+    linear = graph.linearize(values)
+    if others.size():
+        linear = linear.eliminatePartialMultifrontal(others)[1]
+    order = gtsam.Ordering()
+    for key in keys:
+        order.push_back(key)
+    augmented = np.asarray(linear.augmentedHessian(order))
+    n = 3 * len(keys)
+    info, eta = augmented[:n, :n].copy(), augmented[:n, n].copy()
+    lin = np.empty((len(keys), 3))
+    for i, (j, key) in enumerate(zip(ids, keys, strict=True)):
+        p = values.atPose2(key)
+        lin[i] = (p.x(), p.y(), p.theta())
+        prior = gtsam.PriorFactorPose2(key, gtsam.Pose2(*h.object_priors[j]), prior_noise)
+        a, b = prior.linearize(values).jacobian()
         block = slice(3 * i, 3 * i + 3)
         info[block, block] -= a.T @ a
         eta[block] -= a.T @ b

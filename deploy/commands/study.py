@@ -22,7 +22,7 @@ from deploy.scenario_args import scenario_from_args
 from deploy.shards import Shard, merge_shards, shard_entry, study_key, write_merged_plots
 from deploy.study import METHODS, run_study
 from deploy.study_report import render_summary, write_plots
-from estimator.hybrid import POSE_WINDOW, XI_KINDS, BeliefConfig
+from estimator.hybrid import POSE_WINDOW, SLOT_LINEARISATIONS, XI_KINDS, BeliefConfig
 from estimator.weights import WEIGHT_ESTIMATORS
 
 
@@ -77,6 +77,13 @@ def run(args: argparse.Namespace, console: Console, own: dict[str, tuple[str, An
         if args.hypotheses != "per_object":
             raise UsageError(f"--xi {args.xi} needs --hypotheses per_object (one ξ per slot)")
         changes["xi"] = args.xi
+    if args.slot_lin != "fused":
+        if args.hypotheses != "per_object":
+            raise UsageError(
+                f"--slot-lin {args.slot_lin} needs --hypotheses per_object "
+                "(joint classes take every slot at L's point)"
+            )
+        changes["slot_linearisation"] = args.slot_lin
     if args.window is not None:
         window = _window(args.window)
         if window is not None and args.hypotheses != "per_object":
@@ -125,6 +132,7 @@ def run(args: argparse.Namespace, console: Console, own: dict[str, tuple[str, An
         "semantic_poses": config.semantic_poses,
         "classes": config.classes,
         "xi": config.xi,
+        "slot_linearisation": config.slot_linearisation,
         "window": config.window,
         "communication": comm,
     }
@@ -235,6 +243,15 @@ def add_parser(sub: Any) -> None:
         help="with --hypotheses per_object, the ξ of a slot: dense (default, the owner's exact "
         "Λ, (3n)² numbers) or sparse (a conservative Λ_s ⪯ Λ on a Bayes net's moral graph, "
         "linear in n; docs/estimator.md)",
+    )
+    p.add_argument(
+        "--slot-lin",
+        choices=SLOT_LINEARISATIONS,
+        default="fused",
+        help="with --hypotheses per_object, where a robot linearises its own factors for its "
+        "slot: fused (default, at its distributed belief's estimate, where its receivers are) "
+        "or local (at its local belief's own point, which drifts; the reference; "
+        'docs/distributed.md, "Where a slot is linearised")',
     )
     p.add_argument(
         "--window",

@@ -117,6 +117,39 @@ def test_node_rejects_a_frame_of_another_robot(frames: dict[str, list[SensorFram
 # -- outgoing ------------------------------------------------------------------------------------
 
 
+@pytest.mark.parametrize("where", ["fused", "local"])
+def test_the_own_slot_is_linearised_where_the_config_says(
+    where: str, frames: dict[str, list[SensorFrame]]
+) -> None:
+    """``BeliefConfig.slot_linearisation``: r2's slot ξ is taken at D's estimate of its objects
+    (``"fused"``) or at L's own linearisation point (``"local"``)."""
+    config = BeliefConfig(slot_linearisation=where)
+    nodes = make_nodes(SCENARIO, belief_model(SCENARIO), config, lambda r: belief_rng(SEED, [r]))
+    r1, r2 = nodes["r1"], nodes["r2"]
+    for k in range(STEPS):
+        for n in (r1, r2):
+            n.on_frame(frames[n.robot][k])
+        for a, b in ((r1, r2), (r2, r1)):
+            data = a.outgoing()
+            if data is not None:
+                b.on_stack(data)
+    slot = r2.current_stack().by_owner()["r2"]
+    assert slot.summary.per_object is not None
+    lin = np.asarray(slot.summary.per_object.xi.lin)
+    keys = [object_key(j) for j in slot.summary.object_ids]
+    fused = r2.distributed.hypotheses[0].continuous.isam.calculateEstimate()
+    local = r2.local.hypotheses[0].continuous.isam.getLinearizationPoint()
+    at_d = np.array(
+        [[fused.atPose2(k).x(), fused.atPose2(k).y(), fused.atPose2(k).theta()] for k in keys]
+    )
+    at_l = np.array(
+        [[local.atPose2(k).x(), local.atPose2(k).y(), local.atPose2(k).theta()] for k in keys]
+    )
+    assert np.abs(at_d - at_l).max() > 1e-6  # the two points differ: the test can tell them apart
+    np.testing.assert_array_equal(lin, at_d if where == "fused" else at_l)
+    assert r2.local.slot_fit_refused == 0
+
+
 def test_node_outgoing_is_none_until_the_robot_sees_an_object(
     frames: dict[str, list[SensorFrame]],
 ) -> None:
