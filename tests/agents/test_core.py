@@ -48,13 +48,15 @@ def frames() -> dict[str, list[SensorFrame]]:
     return Simulator(SCENARIO, SEED).all_frames()
 
 
-def _factory(robot: str, roster: Sequence[str] | None = None):  # type: ignore[no-untyped-def]
+def _factory(  # type: ignore[no-untyped-def]
+    robot: str, roster: Sequence[str] | None = None, config: BeliefConfig | None = None
+):
     model = belief_model(SCENARIO)
 
     def make() -> RobotNode:
         members = None if roster is None else frozenset(roster)
         start = SCENARIO.robot(robot).start
-        return make_node(robot, start, model, SEED, BeliefConfig(), roster=members)
+        return make_node(robot, start, model, SEED, config or BeliefConfig(), roster=members)
 
     return make
 
@@ -65,8 +67,9 @@ class Driver:
     def __init__(self, robot: str = "r1", mode: str = "realtime", **settings: object) -> None:
         self.log = MemoryLog()
         roster = settings.pop("roster", None)
+        self.config = settings.pop("config", None)
         self.core = AgentCore(
-            _factory(robot, roster),  # type: ignore[arg-type]
+            _factory(robot, roster, self.config),  # type: ignore[arg-type]
             KEYS,
             CoreSettings(mode=mode, **settings),  # type: ignore[arg-type]
             self.log.records,
@@ -87,7 +90,9 @@ class Driver:
 
 
 def _replayed(driver: Driver, robot: str = "r1") -> AgentCore:
-    fresh = AgentCore(_factory(robot), KEYS, driver.core.settings, driver.log.records)
+    fresh = AgentCore(
+        _factory(robot, config=driver.config), KEYS, driver.core.settings, driver.log.records
+    )
     assert fresh.replay(driver.log.records()) == []
     return fresh
 
@@ -129,6 +134,26 @@ def test_a_step_that_raises_is_rolled_back_quarantined_and_taken_on_odometry(fra
     # The same failing bytes again (a re-sent frame) are not tried a second time.
     d.frame(bad)
     assert d.core.counter_values()["steps_failed"] == 1
+
+
+def test_a_step_that_fails_after_window_rebuilds_rolls_back_across_them(frames) -> None:  # type: ignore[no-untyped-def]
+    """A window of 4 steps (``BeliefConfig.window``): by step 20 both smoothers have
+    marginalised their old poses several times. A failing step is rolled back from the journal,
+    whose replay must rebuild at the same steps; the belief then equals a fresh replay's."""
+    d = Driver(config=BeliefConfig(window=4))
+    for f in frames["r1"][:20]:
+        d.frame(f)
+    local = d.core.node.local.hypotheses[0].continuous.isam
+    rebuilt = local.rebuilds
+    assert rebuilt >= 3  # the roll-back below crosses rebuilds
+    d.frame(_poisoned(frames["r1"][20]))
+    c = d.core.counter_values()
+    assert (c["steps_failed"], c["frames_degraded"], d.core.node.k) == (1, 1, 21)
+    for f in frames["r1"][21:30]:
+        d.frame(f)
+    node = d.core.node
+    assert node.k == 30 and node.local.hypotheses[0].continuous.isam.rebuilds > rebuilt
+    _same_belief(_replayed(d).node, node)
 
 
 def _seen_something(robot: str, frames: dict[str, list[SensorFrame]]) -> RobotNode:
