@@ -463,6 +463,11 @@ def test_run_single_rejects_unknown_method() -> None:
         (["--window", "5", "--hypotheses", "marginal"], "--window 5 needs --hypotheses per_object"),
         (["--window", "0"], "--window must be ≥ 1 step (or all), got 0"),
         (["--window", "x"], "--window 'x': a number of steps ≥ 1, or all"),
+        (
+            ["--slot-lin", "local", "--hypotheses", "marginal"],
+            "--slot-lin local needs --hypotheses per_object",
+        ),
+        (["--slot-lin", "D"], "invalid choice: 'D'"),
     ],
 )
 def test_study_user_errors_are_one_clear_line(
@@ -516,6 +521,8 @@ def test_study_semantic_poses_reach_the_beliefs_and_the_results(
         (("--xi", "sparse"), {"classes": "per_object", "xi": "sparse"}),
         # a window of 3 steps of a 12-step study marginalises three times
         (("--window", "3"), {"classes": "per_object", "window": 3}),
+        ((), {"classes": "per_object", "slot_linearisation": "fused"}),
+        (("--slot-lin", "local"), {"classes": "per_object", "slot_linearisation": "local"}),
     ],
 )
 def test_study_xi_and_window_reach_the_beliefs_and_the_results(
