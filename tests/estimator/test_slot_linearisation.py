@@ -19,7 +19,11 @@ from sim.scenario import Scenario
 from tests.estimator.stepwise import class_log_posteriors
 
 # A window that acts within the run: L's graph then holds a root-shifted marginal factor too.
-CONFIGS = {"every pose": BeliefConfig(window=None), "window 15": BeliefConfig(window=15)}
+# The dense ξ: the one these tests read (a sparse one is made from it, estimator.sparse_xi).
+CONFIGS = {
+    "every pose": BeliefConfig(window=None, xi="dense"),
+    "window 15": BeliefConfig(window=15, xi="dense"),
+}
 
 
 def _world(seed: int) -> Scenario:
@@ -117,7 +121,7 @@ def test_taken_elsewhere_the_slot_holds_the_same_information_about_where_l_is(
 
 
 def test_an_estimate_that_l_cannot_fit_leaves_the_slot_at_ls_point_and_is_counted() -> None:
-    belief = _local(0, BeliefConfig(window=None))
+    belief = _local(0, CONFIGS["every pose"])
     h = belief.hypotheses[0].continuous
     reference = summarise(belief)
     assert reference is not None and reference.per_object is not None
