@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 from typing import Any
 
+import gtsam
 import msgpack
 import numpy as np
 import pytest
@@ -115,6 +116,30 @@ def test_node_rejects_a_frame_of_another_robot(frames: dict[str, list[SensorFram
 
 
 # -- outgoing ------------------------------------------------------------------------------------
+
+
+def test_a_fused_estimate_that_l_cannot_fit_leaves_the_own_slot_at_ls_point(
+    frames: dict[str, list[SensorFrame]],
+) -> None:
+    """A poisoned D (every object pulled 40 m away by a strong prior, as a forged slot would)
+    does not bend the own slot: it is taken at L's point and the refusal counted."""
+    node = _node("r2")
+    _advance(node, frames, STEPS)
+    cont = node.distributed.hypotheses[0].continuous
+    graph = gtsam.NonlinearFactorGraph()
+    strong = gtsam.noiseModel.Isotropic.Sigma(3, 1e-3)
+    for j in node.distributed.object_ids:
+        p = cont.isam.calculateEstimate().atPose2(object_key(j))
+        graph.add(gtsam.PriorFactorPose2(object_key(j), gtsam.Pose2(p.x() + 40, p.y(), 0), strong))
+    cont.isam.update(graph, gtsam.Values())
+    node._own_slot_stale = True
+    slot = node.current_stack().by_owner()["r2"]
+    assert slot.summary.per_object is not None
+    local = node.local.hypotheses[0].continuous.isam.getLinearizationPoint()
+    keys = [object_key(j) for j in slot.summary.object_ids]
+    at_l = [[local.atPose2(k).x(), local.atPose2(k).y(), local.atPose2(k).theta()] for k in keys]
+    np.testing.assert_allclose(slot.summary.per_object.xi.lin, at_l, rtol=0, atol=1e-5)
+    assert node.local.slot_fit_refused == 1
 
 
 @pytest.mark.parametrize("where", ["fused", "local"])
