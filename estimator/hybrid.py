@@ -68,13 +68,6 @@ POSE_WINDOW = 100
 # ledger's retirement and D's joins are not measured with it); resolved when the config is made
 # (so an explicit -1 means the default too).
 _WINDOW_BY_CLASSES = -1
-# BeliefConfig.xi's default: "sparse" for per-object classes, "dense" for joint class tables
-# (the only kind they can send); resolved when the config is made. Measured with the slot
-# linearised at the fused estimate (docs/estimator.md, "Sparse ξ"): the same errors as the
-# dense ξ on the 120- and 300-object worlds and the 2,000-step mission, stacks 7x smaller at
-# 300 objects, D's step p99 a third lower; its position σ 1.26x the centralized one's against
-# 1.10x (it is conservative by construction).
-_XI_BY_CLASSES = ""
 # How the window stores what its old poses knew: "relative" (estimator.relative_marginal),
 # or "linear" (a LinearContainerFactor, the first form, kept as the reference).
 WINDOW_MARGINALS = ("relative", "linear")
@@ -132,12 +125,11 @@ class BeliefConfig:
     detections of one step share, so the posterior is taken as a product over objects
     (docs/estimator.md, "Per-object classes"); no realisation, no branching, no pruning.
 
-    ``xi``: the ξ of a slot. ``"sparse"`` (the default for per-object classes, which alone may
-    use it) the conservative sparse form of the owner's ξ (``estimator.sparse_xi``: Λ_s ⪯ Λ on
-    a Bayes net's moral graph, mean kept, float32), linear in n on the wire and a few small
-    factors in D's iSAM2 instead of one n-object clique; ``"dense"`` (the reference, and
-    joint class tables' only kind) the owner's exact prior-divided Λ over its n objects, (3n)²
-    numbers (docs/estimator.md, "Sparse ξ").
+    ``xi``: (``"per_object"`` only) the ξ of a slot: ``"dense"`` (default, the reference) the
+    owner's exact prior-divided Λ over its n objects, (3n)² numbers; ``"sparse"`` the
+    conservative sparse form of it (``estimator.sparse_xi``: Λ_s ⪯ Λ on a Bayes net's moral
+    graph, mean kept, float32), linear in n on the wire and a few small factors in D's iSAM2
+    instead of one n-object clique (docs/estimator.md, "Sparse ξ").
 
     ``slot_linearisation`` (``"per_object"`` only): where the owner linearises its own factors
     for its slot's ξ. ``"fused"`` (default): at its distributed belief's estimate, the best it
@@ -176,14 +168,12 @@ class BeliefConfig:
     extra_updates: int = 1
     semantic_poses: bool = False
     classes: str = "per_object"
-    xi: str = _XI_BY_CLASSES
+    xi: str = "dense"
     slot_linearisation: str = "fused"
 
     def __post_init__(self) -> None:
         if self.classes not in CLASS_KINDS:
             raise ValueError(f"classes {self.classes!r} (known: {', '.join(CLASS_KINDS)})")
-        if self.xi == _XI_BY_CLASSES:
-            object.__setattr__(self, "xi", "sparse" if self.classes == "per_object" else "dense")
         if self.xi not in XI_KINDS:
             raise ValueError(f"xi {self.xi!r} (known: {', '.join(XI_KINDS)})")
         if self.xi == "sparse" and self.classes != "per_object":

@@ -77,8 +77,8 @@ def run(args: argparse.Namespace, console: Console, own: dict[str, tuple[str, An
             "--semantic-poses needs a continuous belief per class realisation, and "
             "--hypotheses per_object (the default) keeps one: add --hypotheses marginal"
         )
-    if args.xi is not None:
-        if args.xi == "sparse" and args.hypotheses != "per_object":
+    if args.xi != "dense":
+        if args.hypotheses != "per_object":
             raise UsageError(f"--xi {args.xi} needs --hypotheses per_object (one ξ per slot)")
         changes["xi"] = args.xi
     if args.slot_lin != "fused":
@@ -243,11 +243,10 @@ def add_parser(sub: Any) -> None:
     p.add_argument(
         "--xi",
         choices=XI_KINDS,
-        default=None,
-        help="the ξ of a slot: sparse (the default with --hypotheses per_object, which alone "
-        "may use it: a conservative Λ_s ⪯ Λ on a Bayes net's moral graph, linear in n) or "
-        "dense (the owner's exact Λ, (3n)² numbers: the reference, and joint tables' only "
-        "kind; docs/estimator.md)",
+        default="dense",
+        help="with --hypotheses per_object, the ξ of a slot: dense (default, the owner's exact "
+        "Λ, (3n)² numbers) or sparse (a conservative Λ_s ⪯ Λ on a Bayes net's moral graph, "
+        "linear in n; docs/estimator.md)",
     )
     p.add_argument(
         "--slot-lin",

@@ -40,8 +40,8 @@ from tests.estimator.stepwise import (
 POSITION_ERROR = 1e-3  # m, between D's and the centralized belief's mean object positions
 MARGINAL_ERROR = 0.02  # |ΔP(c_j = i)|
 NEAR_LINEAR = 0.1
-# The default sparse ξ: on these worlds (≤ 7 objects per slot) its Bayes net holds every
-# object's neighbours, and the means are the dense ξ's to 1 µm (measured).
+# The default (dense) ξ. With xi = "sparse" the means measured the same to 1 µm: on these worlds
+# (≤ 7 objects per slot) its Bayes net holds every object's neighbours.
 CONFIG = BeliefConfig(relinearize_skip=1, partial_relinearization=False)
 QUIET_AFTER = 12
 SEEDS = (0, 1, 2, 3)

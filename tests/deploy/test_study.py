@@ -149,7 +149,7 @@ def test_study_results_json_schema(two_runs: tuple[subprocess.CompletedProcess[s
     assert doc["max_hypotheses"] == BeliefConfig().max_hypotheses
     assert doc["robot_budget"] == BeliefConfig().robot_budget
     assert doc["semantic_poses"] is False
-    assert doc["xi"] == "sparse"  # the default of per-object classes
+    assert doc["xi"] == "dense"
     assert set(doc["methods"]) == set(METHODS)
     for method, entry in doc["methods"].items():
         assert set(entry["mean"]) == set(METRICS), method

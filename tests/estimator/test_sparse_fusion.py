@@ -39,7 +39,7 @@ from tests.estimator.exact_worlds import distributed_belief, local_slot, no_prun
 from tests.estimator.test_sparse_xi import _random_xi, _tour_xi
 from tests.tolerance import assert_close
 
-DENSE = BeliefConfig(classes="per_object", xi="dense")
+DENSE = BeliefConfig(classes="per_object")
 SPARSE = BeliefConfig(classes="per_object", xi="sparse")
 SEEDS = range(3)
 
@@ -66,9 +66,7 @@ def _eigmin(a: np.ndarray) -> float:
 
 
 def test_a_sparse_xi_needs_per_object_classes() -> None:
-    # the default for per-object classes, which alone may use it; joint tables send dense ones
-    assert SPARSE.xi == "sparse" and BeliefConfig().xi == "sparse" and DENSE.xi == "dense"
-    assert BeliefConfig.joint().xi == "dense"
+    assert SPARSE.xi == "sparse" and BeliefConfig().xi == "dense" and DENSE.xi == "dense"
     for joint in (BeliefConfig.paper, BeliefConfig.exact):
         with pytest.raises(ValueError, match="per_object"):
             joint(xi="sparse")
