@@ -118,17 +118,7 @@ def _prior_divided_marginal(
     delta = h.isam.getDelta()
     mean = np.concatenate([delta.at(k) for k in keys])
     eta = info @ mean
-    lin_values = h.isam.getLinearizationPoint()
-    lin = np.empty((len(keys), 3))
-    for i, (j, key) in enumerate(zip(ids, keys, strict=True)):
-        p = lin_values.atPose2(key)
-        lin[i] = (p.x(), p.y(), p.theta())
-        prior = gtsam.PriorFactorPose2(key, gtsam.Pose2(*h.object_priors[j]), prior_noise)
-        a, b = prior.linearize(lin_values).jacobian()
-        block = slice(3 * i, 3 * i + 3)
-        info[block, block] -= a.T @ a
-        eta[block] -= a.T @ b
-    return Xi(lin, _floor_eigenvalues(info), eta)
+    return _without_priors(h, ids, prior_noise, h.isam.getLinearizationPoint(), info, eta)
 
 
 def _marginal_at(
@@ -167,8 +157,22 @@ def _marginal_at(
     augmented = np.asarray(linear.augmentedHessian(order))
     n = 3 * len(keys)
     info, eta = augmented[:n, :n].copy(), augmented[:n, n].copy()
-    lin = np.empty((len(keys), 3))
-    for i, (j, key) in enumerate(zip(ids, keys, strict=True)):
+    return _without_priors(h, ids, prior_noise, values, info, eta)
+
+
+def _without_priors(
+    h: Continuous,
+    ids: Sequence[int],
+    prior_noise: gtsam.noiseModel.Base,
+    values: gtsam.Values,
+    info: Array,
+    eta: Array,
+) -> Xi:
+    """ξ at ``values`` from the marginal [Λ η] on the objects ``ids`` (in place): each object's
+    weak prior, linearised there, divided out, tiny eigenvalues floored."""
+    lin = np.empty((len(ids), 3))
+    for i, j in enumerate(ids):
+        key = object_key(j)
         p = values.atPose2(key)
         lin[i] = (p.x(), p.y(), p.theta())
         prior = gtsam.PriorFactorPose2(key, gtsam.Pose2(*h.object_priors[j]), prior_noise)
