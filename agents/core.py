@@ -1268,7 +1268,6 @@ class AgentCore:
             "slots_rejected": c.rejected_slots,
             "slots_foreign": c.foreign_slots,
             "own_slot_invalid": c.own_slot_invalid,
-            "own_slot_unfit": self.node.local.slot_fit_refused,
             "slots_refused": a.slots_refused,
             "slots_implausible": a.slots_implausible,
             "own_superseded": c.own_superseded,

@@ -410,7 +410,17 @@ class RobotNode:
     def current_stack(self) -> Stack:
         """The stack with the own slot rebuilt from L (never from D) at the latest step."""
         if self._own_slot_stale:
+            refused = self.local.slot_fit_refused
             summary = self.track.summary(linearisation_point(self.distributed))
+            if self.local.slot_fit_refused > refused:
+                log.warning(
+                    "%s: own slot at step %d taken at L's point: D's estimate does not fit L's "
+                    "own data (excess χ² %.3g per dimension; %d so far)",
+                    self.robot,
+                    self.k,
+                    self.local.slot_fit,
+                    self.local.slot_fit_refused,
+                )
             if summary is not None:
                 own = Slot(self.robot, self.k, summary, self.epoch)
                 self.stack = self.stack.with_slot(self._encoded_once(own))

@@ -149,7 +149,7 @@ def test_a_step_that_fails_after_window_rebuilds_rolls_back_across_them(frames) 
     d.frame(_poisoned(frames["r1"][20]))
     c = d.core.counter_values()
     assert (c["steps_failed"], c["frames_degraded"], d.core.node.k) == (1, 1, 21)
-    assert c["own_slot_unfit"] == 0  # an honest fused estimate always fits L's own data
+    assert d.core.node.local.slot_fit_refused == 0  # an honest fused estimate fits L's data
     for f in frames["r1"][21:30]:
         d.frame(f)
     node = d.core.node

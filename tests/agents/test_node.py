@@ -119,7 +119,7 @@ def test_node_rejects_a_frame_of_another_robot(frames: dict[str, list[SensorFram
 
 
 def test_a_fused_estimate_that_l_cannot_fit_leaves_the_own_slot_at_ls_point(
-    frames: dict[str, list[SensorFrame]],
+    frames: dict[str, list[SensorFrame]], caplog: pytest.LogCaptureFixture
 ) -> None:
     """A poisoned D (every object pulled 40 m away by a strong prior, as a forged slot would)
     does not bend the own slot: it is taken at L's point and the refusal counted."""
@@ -140,6 +140,7 @@ def test_a_fused_estimate_that_l_cannot_fit_leaves_the_own_slot_at_ls_point(
     at_l = [[local.atPose2(k).x(), local.atPose2(k).y(), local.atPose2(k).theta()] for k in keys]
     np.testing.assert_allclose(slot.summary.per_object.xi.lin, at_l, rtol=0, atol=1e-5)
     assert node.local.slot_fit_refused == 1
+    assert "r2: own slot at step 12 taken at L's point" in caplog.text
 
 
 @pytest.mark.parametrize("where", ["fused", "local"])
