@@ -153,3 +153,20 @@ def test_only_a_per_object_fused_config_asks_for_a_point() -> None:
     assert linearisation_point(_local(0, BeliefConfig.joint())) is None
     with pytest.raises(ValueError, match="slot_linearisation 'D'"):
         BeliefConfig(slot_linearisation="D")
+
+
+@pytest.mark.parametrize("bad", [float("nan"), float("inf"), 1e300])
+def test_a_non_finite_or_absurd_fused_estimate_is_refused_and_the_slot_stays_finite(
+    bad: float,
+) -> None:
+    belief = _local(0, CONFIGS["every pose"])
+    estimate = belief.hypotheses[0].continuous.isam.calculateEstimate()
+    at = gtsam.Values()
+    for key in estimate.keys():  # noqa: SIM118 - gtsam.Values is not iterable
+        p = estimate.atPose2(key)
+        at.insert(key, gtsam.Pose2(bad, p.y(), p.theta()))
+    summary = summarise(belief, at)
+    assert summary is not None and summary.per_object is not None
+    xi = summary.per_object.xi
+    assert belief.slot_fit_refused == 1
+    assert np.isfinite(xi.info).all() and np.isfinite(xi.eta).all() and np.isfinite(xi.lin).all()
