@@ -799,5 +799,6 @@ def _check_sparse(owner: str, x: SparseXi, n: int) -> None:
         (edges[:, 0] >= 0).all() and (edges[:, 0] < edges[:, 1]).all() and (edges[:, 1] < n).all()
     ):
         raise SlotError(f"slot of {owner}: sparse ξ edges must be object pairs i < j < {n}")
-    if len(np.unique(edges, axis=0)) != e:
+    pairs = edges.astype(np.int64)  # one integer per pair i < j < n (uint16 would wrap)
+    if len(np.unique(pairs[:, 0] * n + pairs[:, 1])) != e:
         raise SlotError(f"slot of {owner}: a sparse ξ edge is listed twice")

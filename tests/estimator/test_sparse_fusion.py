@@ -368,3 +368,29 @@ def test_a_sparse_slot_that_does_not_fit_is_refused(
     d.check(_slot())  # the unchanged slot fits
     with pytest.raises(SlotError, match=message):
         d.check(_slot(**changes))
+
+
+@pytest.mark.parametrize(
+    ("pairs", "refused"),
+    [([[0, 83], [218, 219]], False), ([[0, 83], [0, 83]], True)],
+    ids=["distinct", "twice"],
+)
+def test_uint16_edges_of_300_objects_are_told_apart(pairs: list[list[int]], refused: bool) -> None:
+    """Edges arrive as uint16 (docs/wire.md). (0, 83) and (218, 219) of 300 objects are distinct
+    pairs whose keys i·n + j would be equal if computed in uint16 (83, and 65 619 ≡ 83)."""
+    n = 300
+    sx = SparseXi(
+        np.zeros((n, 3)),
+        np.broadcast_to(np.eye(3), (n, 3, 3)).copy(),
+        np.array(pairs, dtype=np.uint16),
+        np.zeros((2, 3, 3)),
+        np.zeros(3 * n),
+    )
+    slot = Slot("r2", 3, LocalSummary(tuple(range(n)), (), ObjectClasses(np.zeros((n, 3)), sx)))
+    s = _world(0)
+    d = distributed_belief(s, "r1", 0, Simulator(s, 0).all_frames(), DENSE, 5)
+    if refused:
+        with pytest.raises(SlotError, match="twice"):
+            d.check(slot)
+    else:
+        d.check(slot)

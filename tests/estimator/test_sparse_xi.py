@@ -12,6 +12,7 @@ import gtsam
 import numpy as np
 import pytest
 
+from estimator import sparse_xi
 from estimator.distributed import xi_factor
 from estimator.factors import object_key, pose_key
 from estimator.sparse_xi import MARGIN, SparseXi, Structure, sparse_xi_factor, sparsify
@@ -204,8 +205,14 @@ def _reference_info(xi: Xi, structure: Structure) -> np.ndarray:
     return (1.0 - MARGIN) * g.T @ u_inv @ g
 
 
-@pytest.mark.parametrize(("n", "seed"), [(12, 0), (20, 1), (30, 2)])
-def test_sparsify_fills_only_the_moral_graph(n: int, seed: int) -> None:
+@pytest.mark.parametrize(("n", "seed"), [(12, 0), (20, 1), (30, 2), (50, 3)])
+@pytest.mark.parametrize("dense_up_to", [0, 10**6], ids=["sparse-net", "dense-net"])
+def test_sparsify_fills_only_the_moral_graph(
+    n: int, seed: int, dense_up_to: int, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Against the plain dense re-derivation, with Ḡ held as scipy.sparse and as a dense array
+    (``DENSE_UP_TO`` picks one by size: both must give the same Λ_s)."""
+    monkeypatch.setattr(sparse_xi, "DENSE_UP_TO", dense_up_to)
     xi = _tour_xi(n, seed)
     sx = sparsify(xi)
     assert sx.structure is not None
