@@ -52,8 +52,17 @@ log = logging.getLogger(__name__)
 
 # How a belief represents its classes (``BeliefConfig.classes``).
 CLASS_KINDS = ("joint", "per_object")
-# What a per-object slot's ξ is (``BeliefConfig.xi``).
-XI_KINDS = ("dense", "sparse")
+# What a per-object slot's ξ is (``BeliefConfig.xi``): chosen per slot by its size, always
+# dense, always sparse.
+XI_KINDS = ("auto", "dense", "sparse")
+# ``xi = "auto"``: a slot of more than this many objects sends the sparse ξ, a smaller one the
+# dense ξ. Measured (python -m bench mapscale, sizes 15–60, D's step p50 / p99 in ms; the
+# study's wall): at 12 objects in r1's slot dense 4.4 / 8.4, sparse 5.1 / 10.9 (wall 5.5 against
+# 6.8 s); at 21, 6.7 / 14.3 against 7.3 / 13.9 (7.7 against 9.4 s); at 45, 9.2 / 55.5 against
+# 8.2 / 27.1 (26.0 against 23.6 s). Below the crossing the dense ξ is cheaper to make, send and
+# fuse, and exact (the sparse one is conservative: D's position σ 1.26× C's at 300 objects);
+# above it the sparse one is cheaper on every count and linear in n on the wire.
+SPARSE_XI_ABOVE = 32
 # Where a per-object slot's ξ is linearised (``BeliefConfig.slot_linearisation``): at the
 # owner's fused estimate (D's), or at L's own linearisation point (the reference).
 SLOT_LINEARISATIONS = ("fused", "local")
@@ -125,11 +134,13 @@ class BeliefConfig:
     detections of one step share, so the posterior is taken as a product over objects
     (docs/estimator.md, "Per-object classes"); no realisation, no branching, no pruning.
 
-    ``xi``: (``"per_object"`` only) the ξ of a slot: ``"dense"`` (default, the reference) the
-    owner's exact prior-divided Λ over its n objects, (3n)² numbers; ``"sparse"`` the
-    conservative sparse form of it (``estimator.sparse_xi``: Λ_s ⪯ Λ on a Bayes net's moral
-    graph, mean kept, float32), linear in n on the wire and a few small factors in D's iSAM2
-    instead of one n-object clique (docs/estimator.md, "Sparse ξ").
+    ``xi``: the ξ of a per-object slot: ``"dense"`` (the reference) the owner's exact
+    prior-divided Λ over its n objects, (3n)² numbers; ``"sparse"`` the conservative sparse form
+    of it (``estimator.sparse_xi``: Λ_s ⪯ Λ on a Bayes net's moral graph, mean kept, float32),
+    linear in n on the wire and a few small factors in D's iSAM2 instead of one n-object clique
+    (docs/estimator.md, "Sparse ξ"); ``"auto"`` (default) the dense ξ up to
+    ``SPARSE_XI_ABOVE`` objects and the sparse one above, where it is the cheaper (measured
+    there). Joint class tables always send dense ξ (``"auto"`` or ``"dense"``).
 
     ``slot_linearisation`` (``"per_object"`` only): where the owner linearises its own factors
     for its slot's ξ. ``"fused"`` (default): at its distributed belief's estimate, the best it
@@ -168,7 +179,7 @@ class BeliefConfig:
     extra_updates: int = 1
     semantic_poses: bool = False
     classes: str = "per_object"
-    xi: str = "dense"
+    xi: str = "auto"
     slot_linearisation: str = "fused"
 
     def __post_init__(self) -> None:

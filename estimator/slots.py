@@ -6,7 +6,8 @@ with the object priors divided out exactly (information form Λ, η about the li
 the hypothesis' continuous belief; its mean is iSAM2's current Δ at the linearisation point.
 Hypotheses that share a continuous belief share one ξ (computed once). A per-object belief with
 ``BeliefConfig.xi = "sparse"`` sends the conservative sparse form of its ξ instead
-(``estimator.sparse_xi``), rounded to float32 as it travels.
+(``estimator.sparse_xi``), rounded to float32 as it travels; ``"auto"`` (the default) does so
+for a slot of more than ``SPARSE_XI_ABOVE`` objects.
 
 A per-object belief may be summarised at other poses than its own (``at``: the owner's fused
 estimate, ``BeliefConfig.slot_linearisation``): its factors are linearised there and every
@@ -26,7 +27,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from estimator.factors import object_key
-from estimator.hybrid import Continuous, HybridBelief, distinct_continuous
+from estimator.hybrid import (
+    SPARSE_XI_ABOVE,
+    BeliefConfig,
+    Continuous,
+    HybridBelief,
+    distinct_continuous,
+)
 from estimator.sparse_xi import SparseXi, sparsify
 from estimator.summary import LocalSummary, ObjectClasses, Realisation, Xi
 
@@ -63,7 +70,9 @@ def summarise(belief: HybridBelief, at: gtsam.Values | None = None) -> LocalSumm
         xi = None if at is None else _marginal_at(belief, cont, ids, prior_noise, at)
         if xi is None:
             xi = _prior_divided_marginal(cont, ids, prior_noise)
-        shared: Xi | SparseXi = xi if belief.config.xi == "dense" else _sparse(belief, ids, xi)
+        shared: Xi | SparseXi = (
+            _sparse(belief, ids, xi) if sends_sparse(belief.config, len(ids)) else xi
+        )
         return LocalSummary(ids, (), ObjectClasses(object_log_phi(belief.log_evidence), shared))
     log_prior = np.log(np.asarray(belief.model.class_prior, dtype=float))
     conts, which = distinct_continuous(belief.hypotheses)
@@ -75,6 +84,11 @@ def summarise(belief: HybridBelief, at: gtsam.Values | None = None) -> LocalSumm
     for h, g, p in zip(belief.hypotheses, which, prior_sum, strict=True):
         out.append(Realisation(h.classes, h.log_weight - p, xis[g]))
     return LocalSummary(ids, tuple(out))
+
+
+def sends_sparse(config: BeliefConfig, n: int) -> bool:
+    """Whether a per-object slot of ``n`` objects carries the sparse ξ (``BeliefConfig.xi``)."""
+    return config.xi == "sparse" or (config.xi == "auto" and n > SPARSE_XI_ABOVE)
 
 
 def linearisation_point(fused: HybridBelief) -> gtsam.Values | None:

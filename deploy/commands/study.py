@@ -26,7 +26,13 @@ from deploy.scenario_args import scenario_from_args
 from deploy.shards import Shard, merge_shards, shard_entry, study_key, write_merged_plots
 from deploy.study import METHODS, run_study
 from deploy.study_report import render_summary, write_plots
-from estimator.hybrid import POSE_WINDOW, SLOT_LINEARISATIONS, XI_KINDS, BeliefConfig
+from estimator.hybrid import (
+    POSE_WINDOW,
+    SLOT_LINEARISATIONS,
+    SPARSE_XI_ABOVE,
+    XI_KINDS,
+    BeliefConfig,
+)
 from estimator.weights import WEIGHT_ESTIMATORS
 
 
@@ -77,10 +83,9 @@ def run(args: argparse.Namespace, console: Console, own: dict[str, tuple[str, An
             "--semantic-poses needs a continuous belief per class realisation, and "
             "--hypotheses per_object (the default) keeps one: add --hypotheses marginal"
         )
-    if args.xi != "dense":
-        if args.hypotheses != "per_object":
-            raise UsageError(f"--xi {args.xi} needs --hypotheses per_object (one ξ per slot)")
-        changes["xi"] = args.xi
+    if args.xi == "sparse" and args.hypotheses != "per_object":
+        raise UsageError(f"--xi {args.xi} needs --hypotheses per_object (one ξ per slot)")
+    changes["xi"] = args.xi
     if args.slot_lin != "fused":
         if args.hypotheses != "per_object":
             raise UsageError(
@@ -243,10 +248,11 @@ def add_parser(sub: Any) -> None:
     p.add_argument(
         "--xi",
         choices=XI_KINDS,
-        default="dense",
-        help="with --hypotheses per_object, the ξ of a slot: dense (default, the owner's exact "
-        "Λ, (3n)² numbers) or sparse (a conservative Λ_s ⪯ Λ on a Bayes net's moral graph, "
-        "linear in n; docs/estimator.md)",
+        default="auto",
+        help="with --hypotheses per_object, the ξ of a slot: auto (default: dense up to "
+        f"{SPARSE_XI_ABOVE} objects, sparse above), dense (the owner's exact Λ, (3n)² numbers) "
+        "or sparse (a conservative Λ_s ⪯ Λ on a Bayes net's moral graph, linear in n; "
+        "docs/estimator.md)",
     )
     p.add_argument(
         "--slot-lin",

@@ -149,7 +149,7 @@ def test_study_results_json_schema(two_runs: tuple[subprocess.CompletedProcess[s
     assert doc["max_hypotheses"] == BeliefConfig().max_hypotheses
     assert doc["robot_budget"] == BeliefConfig().robot_budget
     assert doc["semantic_poses"] is False
-    assert doc["xi"] == "dense"
+    assert doc["xi"] == "auto"
     assert set(doc["methods"]) == set(METHODS)
     for method, entry in doc["methods"].items():
         assert set(entry["mean"]) == set(METRICS), method
@@ -517,6 +517,7 @@ def test_study_semantic_poses_reach_the_beliefs_and_the_results(
 @pytest.mark.parametrize(
     ("options", "settings"),
     [
+        ((), {"classes": "per_object", "xi": "auto"}),
         (("--xi", "dense"), {"classes": "per_object", "xi": "dense"}),
         (("--xi", "sparse"), {"classes": "per_object", "xi": "sparse"}),
         # a window of 3 steps of a 12-step study marginalises three times

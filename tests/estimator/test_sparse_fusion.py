@@ -17,6 +17,7 @@ import gtsam
 import numpy as np
 import pytest
 
+import estimator.slots
 from deploy.study import belief_model, belief_rng
 from estimator.distributed import (
     DistributedBelief,
@@ -39,7 +40,8 @@ from tests.estimator.exact_worlds import distributed_belief, local_slot, no_prun
 from tests.estimator.test_sparse_xi import _random_xi, _tour_xi
 from tests.tolerance import assert_close
 
-DENSE = BeliefConfig(classes="per_object")
+DENSE = BeliefConfig(classes="per_object", xi="dense")
+AUTO = BeliefConfig(classes="per_object")
 SPARSE = BeliefConfig(classes="per_object", xi="sparse")
 SEEDS = range(3)
 
@@ -66,7 +68,8 @@ def _eigmin(a: np.ndarray) -> float:
 
 
 def test_a_sparse_xi_needs_per_object_classes() -> None:
-    assert SPARSE.xi == "sparse" and BeliefConfig().xi == "dense" and DENSE.xi == "dense"
+    assert SPARSE.xi == "sparse" and BeliefConfig().xi == "auto" and DENSE.xi == "dense"
+    assert BeliefConfig.paper().xi == "auto"  # a joint table's slots stay dense
     for joint in (BeliefConfig.paper, BeliefConfig.exact):
         with pytest.raises(ValueError, match="per_object"):
             joint(xi="sparse")
@@ -74,6 +77,41 @@ def test_a_sparse_xi_needs_per_object_classes() -> None:
         BeliefConfig(classes="joint", xi="sparse")
     with pytest.raises(ValueError, match="xi 'banded'"):
         BeliefConfig(classes="per_object", xi="banded")
+
+
+def test_auto_sends_the_sparse_xi_above_its_size(monkeypatch: pytest.MonkeyPatch) -> None:
+    """``xi = "auto"``: r1's slot is dense up to ``SPARSE_XI_ABOVE`` objects and sparse above
+    (the bound lowered to 5 so that one small world crosses it), equal to the ξ the fixed
+    choices send; "dense" and "sparse" ignore the bound."""
+    monkeypatch.setattr(estimator.slots, "SPARSE_XI_ABOVE", 5)
+    s = _world(0)
+    beliefs = [
+        HybridBelief(belief_model(s), {"r1": s.robot("r1").start}, c) for c in (AUTO, DENSE, SPARSE)
+    ]
+    rngs = [belief_rng(0, ["r1"]) for _ in beliefs]
+    seen = set()
+    for f in Simulator(s, 0).all_frames()["r1"]:
+        for b, rng in zip(beliefs, rngs, strict=True):
+            b.step([f], rng)
+        if not beliefs[0].object_ids:
+            continue
+        auto, dense, sparse = (summarise(b) for b in beliefs)
+        assert auto is not None and dense is not None and sparse is not None
+        assert isinstance(dense.per_object.xi, Xi)  # type: ignore[union-attr]
+        assert isinstance(sparse.per_object.xi, SparseXi)  # type: ignore[union-attr]
+        n = len(auto.object_ids)
+        same = sparse if n > 5 else dense
+        got, want = auto.per_object.xi, same.per_object.xi  # type: ignore[union-attr]
+        assert type(got) is type(want), f"k = {f.k}, {n} objects: {type(got).__name__}"
+        assert_close(
+            got.dense().info if isinstance(got, SparseXi) else got.info,
+            want.dense().info if isinstance(want, SparseXi) else want.info,
+            rtol=1e-12,
+            atol=0.0,
+            what=f"k = {f.k}: Λ",
+        )
+        seen.add(n > 5)
+    assert seen == {False, True}
 
 
 # -- the slot -----------------------------------------------------------------------------------
