@@ -62,7 +62,8 @@ SIZES = tuple(
 )
 LONG_STEPS = int(os.environ.get("SEMFLEET_BENCH_MAPSCALE_STEPS", "2000"))
 BUDGET_S = float(os.environ.get("SEMFLEET_BENCH_MAPSCALE_BUDGET", "900"))
-# Per-object classes with the sparse ξ and with the dense ξ (the default; each with the default
+# Per-object classes with the sparse ξ and with the dense ξ (the default, xi = "auto", is the
+# dense one up to 32 objects in a slot and the sparse one above; each with the default
 # window of poses and slots linearised at the fused estimate), the dense ξ at L's own point, and
 # the joint table (with the dense ξ, every pose) as the baseline each is measured against in the
 # same run.
