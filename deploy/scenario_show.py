@@ -10,7 +10,7 @@ from pathlib import Path
 from rich.console import Console
 from rich.table import Table
 
-from sim.scenario import Scenario
+from sim.scenario import ClassifierSpec, Scenario
 from sim.world import World
 
 
@@ -47,6 +47,7 @@ def render_show(scenario: Scenario, console: Console) -> None:
     console.print(
         f"steps 1..{s.steps} · {len(s.robots)} robots · {len(s.objects)} objects · "
         f"M = {s.num_classes} classes, prior [{prior}] · classifier {s.classifier.model}"
+        + _convention(s.classifier)
     )
     console.print(
         f"noise variances: odometry {list(s.odometry_noise.variances)}, "
@@ -124,3 +125,8 @@ def default_cone_steps(steps: int, count: int = 3) -> list[int]:
     """``count`` evenly spaced steps ending at the last one (20 40 60 for 60 steps, as in the
     paper's Fig. 2a), without repeats when the world has fewer steps than that."""
     return sorted({max(1, round(steps * i / count)) for i in range(1, count + 1)})
+
+
+def _convention(c: ClassifierSpec) -> str:
+    """The viewpoint convention of a crafted model (a learned model's file states its own)."""
+    return "" if c.model == "learned" else f", viewpoint {c.viewpoint.replace('_', ' ')}"

@@ -159,6 +159,8 @@ def _classifier_lines(c: ClassifierSpec) -> list[str]:
             f"best_view_deg = {_nums(c.best_view_deg)}",
             f"noise_std = {_num(c.noise_std)}",
         ]
+    if c.model in ("paper", "aliased"):
+        out.append(f"viewpoint = {_q(c.viewpoint)}")
     if c.model == "learned":
         out.append(f"file = {_q(c.file)}")  # absolute: valid wherever the text is written
     return out

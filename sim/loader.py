@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from estimator.models import ROBOT_ID, ROBOT_ID_RULE, GaussianNoise
+from estimator.models.classifier import OBJECT_TO_CAMERA, VIEWPOINTS
 from sim.learned_file import LearnedFileError, load_learned
 from sim.scenario import (
     FORMAT_VERSION,
@@ -397,11 +398,11 @@ def _classifier(
         f.check_keys({"model", "file"})
         return _learned(f, m, owner, folder)
     if model == "paper":
-        f.check_keys({"model"})
+        f.check_keys({"model", "viewpoint"})
         if m != 2:
             raise f.fail("model", f"the paper model has 2 classes, the {owner} has {m}")
-        return ClassifierSpec("paper")
-    f.check_keys({"model", "alias", "best_view_deg", "noise_std"})
+        return ClassifierSpec("paper", viewpoint=_viewpoint(f))
+    f.check_keys({"model", "alias", "best_view_deg", "noise_std", "viewpoint"})
     alias_arr = f.array("alias")
     if len(alias_arr.raw) != m:
         raise f.fail("alias", f"expected {m} class numbers, got {len(alias_arr.raw)}")
@@ -415,7 +416,18 @@ def _classifier(
         alias.append(a - 1)
     best = f.vector("best_view_deg", m)
     noise_std = f.number("noise_std", positive=True)
-    return ClassifierSpec("aliased", tuple(alias), tuple(best), noise_std)
+    return ClassifierSpec("aliased", tuple(alias), tuple(best), noise_std, viewpoint=_viewpoint(f))
+
+
+def _viewpoint(f: FieldReader) -> str:
+    """A crafted model's viewpoint convention; a file that omits it means object → camera."""
+    if not f.has("viewpoint"):
+        return OBJECT_TO_CAMERA
+    convention = f.string("viewpoint")
+    if convention not in VIEWPOINTS:
+        known = ", ".join(VIEWPOINTS)
+        raise f.fail("viewpoint", f"unknown convention {convention!r} (known: {known})")
+    return convention
 
 
 def _estimator_classifier(f: FieldReader, m: int, folder: Path | None) -> ClassifierSpec | None:

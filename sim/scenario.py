@@ -10,6 +10,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from estimator.models import AliasedClassifier, ClassifierModel, GaussianNoise, paper_classifier
+from estimator.models.classifier import OBJECT_TO_CAMERA
 from sim.learned_file import LearnedFileError, load_learned
 
 Array = NDArray[np.float64]
@@ -97,10 +98,11 @@ class ClassifierSpec:
     noise_std: float = 0.0
     file: str = ""
     digest: str = ""
+    viewpoint: str = OBJECT_TO_CAMERA
 
     def build(self) -> ClassifierModel:
         if self.model == "paper":
-            return paper_classifier()
+            return paper_classifier(self.viewpoint)
         if self.model == "learned":
             try:
                 return load_learned(self.file, self.digest)[0]
@@ -108,7 +110,7 @@ class ClassifierSpec:
                 raise ScenarioError(str(exc), "classifier.file") from None
         m = len(self.alias)
         best = tuple(math.radians(b) for b in self.best_view_deg)
-        return AliasedClassifier(self.alias, best, np.eye(m) / self.noise_std)
+        return AliasedClassifier(self.alias, best, np.eye(m) / self.noise_std, self.viewpoint)
 
 
 @dataclass(frozen=True, slots=True)

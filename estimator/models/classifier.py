@@ -1,7 +1,11 @@
 """Viewpoint-dependent classifier models, Eq. 1: ``z_sem ~ N(h_c(ψ), Σ_c(ψ))``.
 
 Classes are indexed 0..M−1 in code (scenario files and reports say 1..M, as the paper does).
-ψ is the azimuth of the camera seen from the object frame (design doc §1).
+ψ, as :func:`viewpoint` computes it everywhere in semfleet, is the azimuth of the camera seen from
+the object frame (object → camera). A model states its own convention (``viewpoint``): a model
+whose ψ is the direction from the camera to the object, in the object frame (camera → object, the
+paper's "relative viewpoint from the camera to the object" and its authors' score generator),
+is evaluated at ψ + π. The two conventions are the same model with every view turned by π.
 """
 
 from __future__ import annotations
@@ -18,6 +22,23 @@ from estimator.models import se2
 Array = NDArray[np.float64]
 
 _LOG_2PI = math.log(2.0 * math.pi)
+
+# A classifier model's viewpoint convention: what its ψ is, in the object's frame.
+OBJECT_TO_CAMERA = "object_to_camera"  # the azimuth of the camera seen from the object
+CAMERA_TO_OBJECT = "camera_to_object"  # the direction from the camera to the object (ψ + π)
+VIEWPOINTS = (OBJECT_TO_CAMERA, CAMERA_TO_OBJECT)
+
+
+def check_viewpoint(convention: str) -> str:
+    """``convention`` if it is one of :data:`VIEWPOINTS`, else ValueError."""
+    if convention not in VIEWPOINTS:
+        raise ValueError(f"viewpoint {convention!r} (known: {', '.join(VIEWPOINTS)})")
+    return convention
+
+
+def view_offset(convention: str) -> float:
+    """What a model of this convention adds to semfleet's ψ (object → camera): 0 or π."""
+    return math.pi if check_viewpoint(convention) == CAMERA_TO_OBJECT else 0.0
 
 
 def viewpoint(robot: ArrayLike, obj: ArrayLike) -> Array:
@@ -77,11 +98,18 @@ class AliasedClassifier:
     constant, ``Σ = (RᵀR)⁻¹`` with ``R = sqrt_info`` (dim × dim, upper triangular).
     The paper's crafted model (design doc §1) is the case M = 2, alias = (1, 0),
     best_view = (π/2, π/2), R = [[1.5, −0.75], [0, 1.5]].
+
+    ``best_view`` is in the model's own ``viewpoint`` convention; every method takes ψ in
+    semfleet's (object → camera) and compares it with the best view in that convention
+    (``best_view`` + π for a camera → object model).
     """
 
     alias: tuple[int, ...]
     best_view: tuple[float, ...]
     sqrt_info: Array = field(repr=False)
+    viewpoint: str = OBJECT_TO_CAMERA
+    _best: Array = field(init=False, repr=False)
+    _best_floats: tuple[float, ...] = field(init=False, repr=False)  # for the scalar path
     _log_norm: float = field(init=False, repr=False)
     _blur: Array = field(init=False, repr=False)
     _sharp: Array = field(init=False, repr=False)
@@ -97,6 +125,11 @@ class AliasedClassifier:
                 raise ValueError(f"alias[{c}] = {a} must be another class in 0..{m - 1}")
         if not all(math.isfinite(b) for b in self.best_view):
             raise ValueError("best_view must be finite")
+        # the best views as semfleet's ψ (object → camera) sees them
+        best = np.asarray(self.best_view, dtype=float) + view_offset(self.viewpoint)
+        best.setflags(write=False)
+        object.__setattr__(self, "_best", best)
+        object.__setattr__(self, "_best_floats", tuple(float(b) for b in best))
         r = np.array(self.sqrt_info, dtype=float)
         if r.shape != (m, m) or not np.all(np.isfinite(r)):
             raise ValueError(f"sqrt_info must be a finite ({m}, {m}) matrix")
@@ -125,28 +158,29 @@ class AliasedClassifier:
             raise ValueError(f"class {c} out of range 0..{self.num_classes - 1}")
 
     def components(self, c: int) -> tuple[Array, Array, float]:
-        """(blur, sharp, best view) of class ``c``: h_c(ψ) = blur + ½(1 + cos(ψ − best))·sharp."""
+        """(blur, sharp, best view) of class ``c``: h_c(ψ) = blur + ½(1 + cos(ψ − best))·sharp,
+        the best view in semfleet's ψ (object → camera) whatever the model's convention."""
         self._check_class(c)
-        return self._blur[c].copy(), self._sharp[c].copy(), float(self.best_view[c])
+        return self._blur[c].copy(), self._sharp[c].copy(), float(self._best[c])
 
     def sharpness(self, c: int, psi: ArrayLike) -> Array:
         """s_c(ψ) ∈ [0, 1]: ψ (...) → (...)."""
         self._check_class(c)
-        return 0.5 * (1.0 + np.cos(np.asarray(psi, dtype=float) - self.best_view[c]))
+        return 0.5 * (1.0 + np.cos(np.asarray(psi, dtype=float) - self._best[c]))
 
     def mean(self, c: int, psi: ArrayLike) -> Array:
         # h_c = ½(e_c + e_alias) + s_c(ψ)·½(e_c − e_alias)
         self._check_class(c)
         if isinstance(psi, float | int):  # the scalar path taken inside GTSAM factor callbacks
-            s = 0.5 * (1.0 + math.cos(psi - self.best_view[c]))
+            s = 0.5 * (1.0 + math.cos(psi - self._best_floats[c]))
             return np.asarray(self._blur[c] + s * self._sharp[c])
         return np.asarray(self._blur[c] + self.sharpness(c, psi)[..., None] * self._sharp[c])
 
     def mean_dpsi(self, c: int, psi: ArrayLike) -> Array:
         self._check_class(c)
         if isinstance(psi, float | int):
-            return np.asarray(-0.5 * math.sin(psi - self.best_view[c]) * self._sharp[c])
-        ds = -0.5 * np.sin(np.asarray(psi, dtype=float) - self.best_view[c])
+            return np.asarray(-0.5 * math.sin(psi - self._best_floats[c]) * self._sharp[c])
+        ds = -0.5 * np.sin(np.asarray(psi, dtype=float) - self._best[c])
         return np.asarray(ds[..., None] * self._sharp[c])
 
     def cov(self, c: int, psi: ArrayLike) -> Array:
@@ -169,7 +203,7 @@ class AliasedClassifier:
         aa = np.einsum("dci,dci->dc", a, a)
         ab = np.einsum("dci,ci->dc", a, b)
         bb = np.einsum("ci,ci->c", b, b)
-        s = 0.5 * (1.0 + np.cos(psi[:, :, None] - np.asarray(self.best_view)[None, None, :]))
+        s = 0.5 * (1.0 + np.cos(psi[:, :, None] - self._best[None, None, :]))
         return np.asarray(-0.5 * (aa - 2.0 * s * ab + s * s * bb) + self._log_norm)
 
     @classmethod
@@ -191,9 +225,9 @@ class AliasedClassifier:
 PAPER_SQRT_INFO = np.array([[1.5, -0.75], [0.0, 1.5]])
 
 
-def paper_classifier() -> AliasedClassifier:
-    """The paper's crafted two-class model (design doc §1)."""
-    return AliasedClassifier((1, 0), (math.pi / 2, math.pi / 2), PAPER_SQRT_INFO)
+def paper_classifier(viewpoint: str = OBJECT_TO_CAMERA) -> AliasedClassifier:
+    """The paper's crafted two-class model (design doc §1), in the ``viewpoint`` convention."""
+    return AliasedClassifier((1, 0), (math.pi / 2, math.pi / 2), PAPER_SQRT_INFO, viewpoint)
 
 
 def all_log_likelihoods(model: ClassifierModel, z: Array, psi: Array) -> Array:

@@ -318,3 +318,66 @@ def test_mean_dpsi_matches_central_difference(c: int) -> None:
     for model in (paper_classifier(), FirstComponents(paper_classifier())):
         numeric = (model.mean(c, psi + h) - model.mean(c, psi - h)) / (2 * h)
         assert_close(model.mean_dpsi(c, psi), numeric, rtol=0.0, atol=1e-8, what="dh/dψ")
+
+
+# -- the viewpoint convention --------------------------------------------------------------------
+
+
+def _turned(model: AliasedClassifier) -> AliasedClassifier:
+    """The same model in the other convention: camera → object with every best view turned by π
+    is object → camera (and the other way round)."""
+    other = "camera_to_object" if model.viewpoint == "object_to_camera" else "object_to_camera"
+    turn = math.pi if other == "camera_to_object" else -math.pi
+    best = tuple(b - turn for b in model.best_view)
+    return AliasedClassifier(model.alias, best, model.sqrt_info, other)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_a_camera_to_object_model_is_the_object_to_camera_model_turned_by_pi(seed: int) -> None:
+    """Every method of a camera → object model (random M = 4, non-uniform noise) equals the
+    object → camera model whose best views are turned by π: mean, its derivative, sharpness,
+    components, and the log-likelihoods, vectorised and scalar."""
+    rng = np.random.default_rng(seed)
+    base = AliasedClassifier.random(4, rng)
+    r = np.triu(rng.normal(0.0, 0.3, (4, 4))) + np.diag(rng.uniform(1.0, 3.0, 4))
+    c2o = AliasedClassifier(base.alias, base.best_view, r, "camera_to_object")
+    o2c = _turned(c2o)
+    assert o2c.viewpoint == "object_to_camera"
+    psi = rng.uniform(-np.pi, np.pi, (6, 5))
+    z = rng.normal(0.4, 0.5, (5, 4))
+    for c in range(4):
+        assert_close(c2o.mean(c, psi), o2c.mean(c, psi), atol=1e-12)
+        assert_close(c2o.mean_dpsi(c, psi), o2c.mean_dpsi(c, psi), atol=1e-12)
+        assert_close(c2o.sharpness(c, psi), o2c.sharpness(c, psi), atol=1e-12)
+        assert_close(c2o.mean(c, 0.7), o2c.mean(c, 0.7), atol=1e-12)  # the scalar path
+        assert_close(c2o.mean_dpsi(c, 0.7), o2c.mean_dpsi(c, 0.7), atol=1e-12)
+        assert_close(c2o.log_likelihood(z[0], c, psi), o2c.log_likelihood(z[0], c, psi), atol=1e-9)
+        assert_angles_close(c2o.components(c)[2], o2c.components(c)[2], atol=1e-12)
+    assert_close(c2o.log_likelihoods(z, psi), o2c.log_likelihoods(z, psi), atol=1e-9)
+    # and it is a different model from the same numbers read object → camera
+    same_numbers = AliasedClassifier(base.alias, base.best_view, r)
+    assert not np.allclose(c2o.mean(0, psi), same_numbers.mean(0, psi))
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_camera_to_object_is_the_paper_authors_viewpoint(seed: int) -> None:
+    """The paper's authors' score generator (VovaTch/MH_and_JLP_inference_and_planning,
+    tests/basic_lambda_test.py) takes ψ = atan2(−rel.y, −rel.x), rel = object.between(camera):
+    the direction from the camera to the object in the object's frame. A camera → object model
+    fed semfleet's ψ (object → camera) gives the paper model's scores at that ψ."""
+    rng = np.random.default_rng(seed)
+    c2o = paper_classifier("camera_to_object")
+    plain = paper_classifier()
+    for _ in range(20):
+        obj = np.array([*rng.uniform(-5, 5, 2), rng.uniform(-np.pi, np.pi)])
+        cam = np.array([*rng.uniform(-5, 5, 2), rng.uniform(-np.pi, np.pi)])
+        rel = gtsam.Pose2(*obj).between(gtsam.Pose2(*cam))
+        authors = math.atan2(-rel.y(), -rel.x())
+        ours = float(viewpoint(cam, obj))
+        for c in range(2):
+            assert_close(c2o.mean(c, ours), plain.mean(c, authors), atol=1e-12)
+
+
+def test_an_unknown_viewpoint_convention_is_refused() -> None:
+    with pytest.raises(ValueError, match="viewpoint 'camera'"):
+        AliasedClassifier((1, 0), (0.0, 0.0), np.eye(2), "camera")

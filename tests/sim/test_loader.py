@@ -9,9 +9,11 @@ import re
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 import sim
+from estimator.models import paper_classifier
 from sim.generate import dump_scenario, generate_scenario
 from sim.loader import load_scenario, parse_scenario
 from sim.scenario import Scenario, ScenarioError, ScheduleEdge
@@ -438,6 +440,18 @@ MALFORMED = [
         "-inf is not a finite number",
     ),
     _case(
+        "classifier-viewpoint-unknown",
+        [('model = "paper"', 'model = "paper"\nviewpoint = "camera"')],
+        "classifier.viewpoint",
+        "unknown convention 'camera' (known: object_to_camera, camera_to_object)",
+    ),
+    _case(
+        "classifier-viewpoint-not-string",
+        [('model = "paper"', ALIASED + "\nviewpoint = 180")],
+        "classifier.viewpoint",
+        "expected a string",
+    ),
+    _case(
         "variants-not-table", [_top("variants = 3")], "variants", "expected a table, got an integer"
     ),
     _case(
@@ -460,6 +474,30 @@ def test_base_scenario_with_aliased_classifier_is_valid() -> None:
     assert s.classifier.alias == (1, 0)
     assert s.classifier.best_view_deg == (90.0, -90.0)
     assert_close(s.classifier.build().cov(0, 0.0), [[0.09, 0.0], [0.0, 0.09]])
+
+
+@pytest.mark.parametrize("model", ["paper", "aliased"])
+@pytest.mark.parametrize("convention", [None, "object_to_camera", "camera_to_object"])
+def test_a_crafted_classifier_states_its_viewpoint_convention(
+    model: str, convention: str | None
+) -> None:
+    """A file that omits ``viewpoint`` keeps object → camera; the model built evaluates a
+    camera → object file at ψ + π (its best views turned by π in semfleet's ψ)."""
+    table = 'model = "paper"' if model == "paper" else ALIASED
+    if convention is not None:
+        table += f'\nviewpoint = "{convention}"'
+    spec = parse_scenario(_edit(('model = "paper"', table)), LABEL).classifier
+    assert spec.viewpoint == (convention or "object_to_camera")
+    built = spec.build()
+    turn = math.pi if convention == "camera_to_object" else 0.0
+    psi = np.linspace(-np.pi, np.pi, 9)
+    reference = (
+        paper_classifier()
+        if model == "paper"
+        else parse_scenario(_edit(('model = "paper"', ALIASED)), LABEL).classifier.build()
+    )
+    for c in range(2):
+        assert_close(built.mean(c, psi), reference.mean(c, psi - turn), atol=1e-12)
 
 
 @pytest.mark.parametrize(("edits", "path", "reason"), MALFORMED)
@@ -730,3 +768,18 @@ def test_load_scenario_override_with_empty_path() -> None:
 def test_load_scenario_override_error_names_the_override() -> None:
     with pytest.raises(ScenarioError, match=r"override.*sensor\.range: expected a number"):
         load_scenario("paper", overrides={"sensor.range": "far"})
+
+
+@pytest.mark.parametrize("convention", ["object_to_camera", "camera_to_object"])
+@pytest.mark.parametrize("source", ["generated", "paper"])
+def test_dump_scenario_writes_the_viewpoint_convention(source: str, convention: str) -> None:
+    """`scenario generate` (dump_scenario) states the convention, and it reads back."""
+    s = (
+        generate_scenario(robots=2, objects=4, classes=3, seed=1)
+        if source == "generated"
+        else load_scenario("paper")
+    )
+    s = replace(s, classifier=replace(s.classifier, viewpoint=convention))
+    text = dump_scenario(s)
+    assert f'viewpoint = "{convention}"' in text.split("[classifier]")[1].split("\n\n")[0]
+    assert parse_scenario(text, "dumped.toml").classifier.viewpoint == convention
