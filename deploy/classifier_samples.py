@@ -2,7 +2,9 @@
 
 The file is what ``semfleet classifier fit`` learns from (docs/models.md): a header
 ``class,psi,z1,…,zM`` and one sample per line, the class numbered 1..M as in scenario files, ψ in
-radians, the M score components. Reading it checks every field and names the line at fault.
+radians, the M score components. Reading it checks every field and names the line at fault. ψ is
+in the convention the writer and the reader state (``--viewpoint``; semfleet's own, object →
+camera, by default): the model file learned from it records that convention.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ from numpy.typing import NDArray
 
 from deploy.errors import UsageError
 from estimator.models import ClassifierModel
+from estimator.models.classifier import OBJECT_TO_CAMERA, view_offset
 
 Array = NDArray[np.float64]
 
@@ -41,18 +44,23 @@ class ScoreSamples:
         return self.psi[mask], self.z[mask]
 
 
-def draw_samples(model: ClassifierModel, n: int, rng: np.random.Generator) -> ScoreSamples:
+def draw_samples(
+    model: ClassifierModel, n: int, rng: np.random.Generator, viewpoint: str = OBJECT_TO_CAMERA
+) -> ScoreSamples:
     """``n`` samples of ``model``: the classes as balanced as ``n`` allows (in random order), ψ
-    uniform on [−π, π), ``z ~ N(h_c(ψ), Σ_c(ψ))`` (Eq. 1, as the simulator draws them)."""
+    uniform on [−π, π) in the ``viewpoint`` convention (semfleet's own, object → camera, by
+    default; camera → object is semfleet's ψ + π), ``z ~ N(h_c(ψ), Σ_c(ψ))`` (Eq. 1, as the
+    simulator draws them)."""
     m = model.num_classes
     classes = rng.permutation(np.arange(n) % m).astype(np.int64)
     psi = rng.uniform(-math.pi, math.pi, n)
+    ours = psi - view_offset(viewpoint)  # the ψ the model takes
     eps = rng.standard_normal((n, model.dim))
     z = np.empty((n, model.dim))
     for c in range(m):
         idx = np.flatnonzero(classes == c)
-        chol = np.linalg.cholesky(model.cov(c, psi[idx]))  # (n_c, dim, dim)
-        z[idx] = model.mean(c, psi[idx]) + np.einsum("nij,nj->ni", chol, eps[idx])
+        chol = np.linalg.cholesky(model.cov(c, ours[idx]))  # (n_c, dim, dim)
+        z[idx] = model.mean(c, ours[idx]) + np.einsum("nij,nj->ni", chol, eps[idx])
     return ScoreSamples(classes, psi, z)
 
 

@@ -4,6 +4,7 @@ learn a viewpoint-dependent model from samples (docs/models.md, "Learned classif
 from __future__ import annotations
 
 import argparse
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -16,6 +17,8 @@ from deploy.classifier_fit import Fit, fit_classifier, truth_gap
 from deploy.classifier_samples import MAX_SAMPLES, draw_samples, read_samples, write_samples
 from deploy.errors import UsageError
 from deploy.scenario_args import add_scenario_arguments, scenario_from_args
+from estimator.models import LearnedClassifier
+from estimator.models.classifier import OBJECT_TO_CAMERA, VIEWPOINTS, view_offset
 from sim.learned_file import save_learned
 from sim.loader import load_scenario
 
@@ -32,11 +35,11 @@ def run_sample(args: argparse.Namespace, console: Console) -> int:
     out = Path(args.output)
     _refuse_existing(out, args.force)
     model = scenario.classifier.build()
-    samples = draw_samples(model, args.n, np.random.default_rng(args.seed))
+    samples = draw_samples(model, args.n, np.random.default_rng(args.seed), args.viewpoint)
     write_samples(samples, out)
     console.print(
         f"wrote {out}: {args.n} samples of the {scenario.classifier.model} model of "
-        f"{scenario.name} (M = {model.num_classes}, seed {args.seed})",
+        f"{scenario.name} (M = {model.num_classes}, seed {args.seed}, ψ {args.viewpoint})",
         markup=False,
         highlight=False,
     )
@@ -56,14 +59,20 @@ def run_fit(args: argparse.Namespace, console: Console) -> int:
                 f"{samples.num_classes}"
             )
     fit = fit_classifier(samples, args.seed)
-    save_learned(fit.model, out)
+    # The file records the samples' convention, so that the estimator, which always passes
+    # semfleet's ψ (object → camera), evaluates the model where it was learned. The --truth
+    # table and the plot compare in semfleet's ψ too: the saved model, the truth scenario's
+    # model, and the samples turned back by the convention's offset.
+    model = replace(fit.model, viewpoint=args.viewpoint)
+    save_learned(model, out)
     for table in _quality_tables(fit):
         console.print(table)
     if truth is not None:
-        console.print(_truth_table(fit, truth))
+        console.print(_truth_table(model, truth))
     from deploy.classifier_plot import save_fit_plot
 
-    plot = save_fit_plot(Path(args.plot or out.with_suffix(".png")), samples, fit.model, truth)
+    ours = replace(samples, psi=_wrap(samples.psi - view_offset(args.viewpoint)))
+    plot = save_fit_plot(Path(args.plot or out.with_suffix(".png")), ours, model, truth)
     console.print(
         f"wrote {out} ({len(samples.psi)} samples, M = {samples.num_classes}, "
         f"{fit.model.means[0].inducing.size} inducing viewpoints) and {plot}",
@@ -104,11 +113,15 @@ def _quality_tables(fit: Fit) -> tuple[Table, Table]:
     return scores, classes
 
 
-def _truth_table(fit: Fit, truth: Any) -> Table:
+def _wrap(psi: np.ndarray) -> np.ndarray:
+    return np.asarray(np.mod(psi + np.pi, 2.0 * np.pi) - np.pi)
+
+
+def _truth_table(model: LearnedClassifier, truth: Any) -> Table:
     t = Table(title="against the model that drew the samples (--truth), over 360 viewpoints")
     for name in ("class", "max |h − h_true|", "mean KL(true ‖ fit)", "max KL"):
         t.add_column(name, justify="right", no_wrap=True)
-    for c, gap in enumerate(truth_gap(fit.model, truth)):
+    for c, gap in enumerate(truth_gap(model, truth)):
         t.add_row(
             str(c + 1), f"{gap.max_mean_error:.3f}", f"{gap.mean_kl:.4f}", f"{gap.max_kl:.4f}"
         )
@@ -124,6 +137,7 @@ def add_parser(sub: Any) -> None:
     sample.add_argument("-o", "--output", required=True, help="CSV file to write")
     sample.add_argument("--seed", type=seed, default=0)
     sample.add_argument("--force", action="store_true", help="overwrite an existing file")
+    sample.add_argument(*_VIEWPOINT[0], **_VIEWPOINT[1], help="the convention of ψ to write")
     sample.set_defaults(run=run_sample)
     fit = csub.add_parser("fit", help="learn h_c(ψ), Σ_c(ψ) from samples by GP regression")
     fit.add_argument("samples", help="CSV file of samples (class,psi,z1,…,zM)")
@@ -137,4 +151,17 @@ def add_parser(sub: Any) -> None:
     )
     fit.add_argument("--seed", type=seed, default=0, help="the optimiser's restarts and subsets")
     fit.add_argument("--force", action="store_true", help="overwrite an existing file")
+    fit.add_argument(
+        *_VIEWPOINT[0],
+        **_VIEWPOINT[1],
+        help="the convention of the samples' ψ, recorded in the model file",
+    )
     fit.set_defaults(run=run_fit)
+
+
+# object_to_camera: the azimuth of the camera seen from the object (semfleet's ψ);
+# camera_to_object: the direction from the camera to the object (ψ + π), the paper's wording
+_VIEWPOINT: tuple[tuple[str, ...], dict[str, Any]] = (
+    ("--viewpoint",),
+    {"choices": VIEWPOINTS, "default": OBJECT_TO_CAMERA},
+)

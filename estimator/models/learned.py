@@ -24,6 +24,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from estimator.models.classifier import OBJECT_TO_CAMERA, VIEWPOINTS, check_viewpoint, view_offset
+
 Array = NDArray[np.float64]
 
 FORMAT_NAME = "semfleet-learned-classifier"
@@ -112,15 +114,19 @@ class LearnedClassifier:
 
     ``means``: M :class:`PeriodicGP` of K = dim; ``log_scales``: M of K = 1; ``noise_cov``
     (M, dim, dim) symmetric positive definite. Build it with :meth:`from_arrays` to validate.
+    ``viewpoint``: the convention of the ψ it was learned at (the samples'); every method takes
+    semfleet's ψ (object → camera) and evaluates a camera → object model at ψ + π.
     """
 
     means: tuple[PeriodicGP, ...]
     log_scales: tuple[PeriodicGP, ...]
     noise_cov: Array
+    viewpoint: str = OBJECT_TO_CAMERA
     _inv_chol: Array = field(init=False, repr=False)
     _log_det: Array = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
+        check_viewpoint(self.viewpoint)
         chol = np.linalg.cholesky(self.noise_cov)  # (M, dim, dim), S_c = L Lᵀ
         object.__setattr__(self, "_inv_chol", np.linalg.inv(chol))
         log_det = 2.0 * np.sum(np.log(np.diagonal(chol, axis1=-2, axis2=-1)), axis=-1)
@@ -139,15 +145,20 @@ class LearnedClassifier:
             raise ValueError(f"class {c} out of range 0..{self.num_classes - 1}")
         return int(c)
 
+    def _own(self, psi: ArrayLike) -> ArrayLike:
+        """semfleet's ψ in the model's own convention."""
+        offset = view_offset(self.viewpoint)
+        return psi if offset == 0.0 else np.asarray(psi, dtype=float) + offset
+
     def mean(self, c: int, psi: ArrayLike) -> Array:
-        return self.means[self._check_class(c)](psi)
+        return self.means[self._check_class(c)](self._own(psi))
 
     def mean_dpsi(self, c: int, psi: ArrayLike) -> Array:
-        return self.means[self._check_class(c)].dpsi(psi)
+        return self.means[self._check_class(c)].dpsi(self._own(psi))
 
     def scale(self, c: int, psi: ArrayLike) -> Array:
         """exp(s_c(ψ)), the factor of ``S_c`` in Σ_c(ψ): ψ (...) → (...)."""
-        return np.asarray(np.exp(self.log_scales[self._check_class(c)](psi)[..., 0]))
+        return np.asarray(np.exp(self.log_scales[self._check_class(c)](self._own(psi))[..., 0]))
 
     def cov(self, c: int, psi: ArrayLike) -> Array:
         return np.asarray(self.scale(c, psi)[..., None, None] * self.noise_cov[c])
@@ -157,7 +168,7 @@ class LearnedClassifier:
         c = self._check_class(c)
         white = (np.asarray(z, dtype=float) - self.mean(c, psi)) @ self._inv_chol[c].T
         quad = np.sum(white * white, axis=-1)
-        s = self.log_scales[c](psi)[..., 0]
+        s = self.log_scales[c](self._own(psi))[..., 0]
         log_det, d = float(self._log_det[c]), self.dim
         return np.asarray(-0.5 * np.exp(-s) * quad - 0.5 * d * s - 0.5 * (log_det + d * _LOG_2PI))
 
@@ -176,6 +187,7 @@ class LearnedClassifier:
             "scale_weights": np.stack([gp.weights[0] for gp in self.log_scales]),
             "scale_length_scale": np.array([gp.length_scale[0] for gp in self.log_scales]),
             "scale_offset": np.array([gp.offset[0] for gp in self.log_scales]),
+            "viewpoint": np.array(self.viewpoint),
         }
 
     @classmethod
@@ -197,15 +209,18 @@ _FIELDS = (
     "scale_length_scale",
     "scale_offset",
 )
+# Optional: a file without it was learned at object → camera ψ (files before the field).
+_OPTIONAL = ("viewpoint",)
 
 
 def _parse(arrays: Mapping[str, Any]) -> LearnedClassifier:
     missing = [f for f in _FIELDS if f not in arrays]
     if missing:
         raise LearnedModelError(missing[0], "missing (not a learned classifier model file?)")
-    unknown = sorted(set(arrays) - set(_FIELDS))
+    unknown = sorted(set(arrays) - set(_FIELDS) - set(_OPTIONAL))
     if unknown:
-        raise LearnedModelError(unknown[0], f"unknown field (allowed: {', '.join(_FIELDS)})")
+        allowed = ", ".join((*_FIELDS, *_OPTIONAL))
+        raise LearnedModelError(unknown[0], f"unknown field (allowed: {allowed})")
     fmt = np.asarray(arrays["format"])
     if fmt.shape != () or fmt.dtype.kind != "U" or str(fmt) != FORMAT_NAME:
         raise LearnedModelError("format", f"expected the string {FORMAT_NAME!r}")
@@ -245,7 +260,16 @@ def _parse(arrays: Mapping[str, Any]) -> LearnedClassifier:
         PeriodicGP(s_inducing[c], s_weights[c][None, :], s_length[c : c + 1], s_offset[c : c + 1])
         for c in range(m)
     )
-    return LearnedClassifier(means, scales, noise)
+    return LearnedClassifier(means, scales, noise, _viewpoint(arrays))
+
+
+def _viewpoint(arrays: Mapping[str, Any]) -> str:
+    if "viewpoint" not in arrays:
+        return OBJECT_TO_CAMERA
+    v = np.asarray(arrays["viewpoint"])
+    if v.shape != () or v.dtype.kind != "U" or str(v) not in VIEWPOINTS:
+        raise LearnedModelError("viewpoint", f"expected one of the strings {', '.join(VIEWPOINTS)}")
+    return str(v)
 
 
 def _inducing(arrays: Mapping[str, Any], name: str, m: int | None) -> Array:

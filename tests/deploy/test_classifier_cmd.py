@@ -136,3 +136,35 @@ def test_fit_without_scikit_learn_names_the_extra(
         "semfleet: error: classifier fit needs scikit-learn: pip install 'semfleet[learn]'"
     )
     assert not (tmp_path / "m").exists()
+
+
+def test_samples_stated_camera_to_object_learn_a_model_of_that_convention() -> None:
+    """Samples written in the camera → object convention (ψ + π of semfleet's), learned and
+    saved with that convention, reproduce the camera → object model at semfleet's ψ; read as
+    object → camera they do not."""
+    from dataclasses import replace
+
+    truth = AliasedClassifier(SHARP.alias, SHARP.best_view, SHARP.sqrt_info, "camera_to_object")
+    samples = draw_samples(truth, 300, np.random.default_rng(4), "camera_to_object")
+    # class 1's best view is 90° in the samples' own ψ
+    best = np.abs(samples.psi - math.pi / 2) < 0.3
+    worst = np.abs(samples.psi + math.pi / 2) < 0.3
+    ones = samples.classes == 0
+    assert samples.z[best & ones, 0].mean() > samples.z[worst & ones, 0].mean() + 0.3
+    fit = fit_classifier(samples, seed=0)
+    right = truth_gap(replace(fit.model, viewpoint="camera_to_object"), truth)
+    wrong = truth_gap(fit.model, truth)
+    assert all(g.max_mean_error < 0.08 for g in right), right
+    assert all(g.max_mean_error > 0.3 for g in wrong), wrong
+
+
+def test_the_fit_command_records_the_samples_convention(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.chdir(tmp_path)
+    view = ["--viewpoint", "camera_to_object"]
+    assert main(["classifier", "sample", "paper", "-n", "60", "-o", "s.csv", *view]) == 0
+    assert main(["classifier", "fit", "s.csv", "-o", "m.npz", "--truth", "paper", *view]) == 0
+    assert "ψ camera_to_object" in " ".join(capsys.readouterr().out.split())
+    model, _ = load_learned(tmp_path / "m.npz")
+    assert model.viewpoint == "camera_to_object"

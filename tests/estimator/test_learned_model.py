@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -206,6 +207,8 @@ BAD = [
     ("length-scale", "mean_length_scale", lambda a: a * 0.0, "length scale must be in"),
     ("log-scale", "scale_weights", lambda a: a + 10.0, "beyond ±30"),
     ("dims", "mean_weights", lambda a: a[None], "expected 3 dimensions"),
+    ("viewpoint", "viewpoint", np.array("camera"), "expected one of the strings"),
+    ("viewpoint-type", "viewpoint", np.array(3.14), "expected one of the strings"),
 ]
 
 
@@ -221,3 +224,28 @@ def test_from_arrays_refuses_bad_arrays_naming_the_field(
     assert message.startswith(where), message
     assert reason in message, message
     assert "\n" not in message
+
+
+@pytest.mark.parametrize("convention", ["object_to_camera", "camera_to_object"])
+def test_a_learned_model_records_its_viewpoint_convention(
+    rng: np.random.Generator, convention: str
+) -> None:
+    """The file keeps the convention; a file without the field (before it existed) reads as
+    object → camera; a camera → object model at semfleet's ψ is the same GPs at ψ + π."""
+    plain = random_model(rng)
+    model = replace(plain, viewpoint=convention)
+    arrays = model.to_arrays()
+    assert str(arrays["viewpoint"]) == convention
+    assert LearnedClassifier.from_arrays(arrays).viewpoint == convention
+    del arrays["viewpoint"]
+    assert LearnedClassifier.from_arrays(arrays).viewpoint == "object_to_camera"
+    turn = math.pi if convention == "camera_to_object" else 0.0
+    psi = rng.uniform(-4, 4, 25)
+    z = rng.normal(size=3)
+    for c in range(3):
+        assert_close(model.mean(c, psi), plain.mean(c, psi + turn), atol=1e-12)
+        assert_close(model.mean_dpsi(c, psi), plain.mean_dpsi(c, psi + turn), atol=1e-12)
+        assert_close(model.cov(c, psi), plain.cov(c, psi + turn), atol=1e-12)
+        assert_close(
+            model.log_likelihood(z, c, psi), plain.log_likelihood(z, c, psi + turn), atol=1e-9
+        )
