@@ -141,6 +141,15 @@ class LocalTrack:
         return self._summary
 
 
+def node_limits(num_classes: int, config: BeliefConfig) -> Limits:
+    """The default wire limits of a node whose beliefs follow ``config``: the defaults, with room
+    for as many class realisations per slot as its own local belief may hold (``config.cap()``;
+    4,096 for ``BeliefConfig.exact()``), so that no node refuses its own slot, nor a peer's of
+    the same configuration, for holding what the belief was configured to hold."""
+    default = Limits(num_classes=num_classes)
+    return replace(default, max_realisations=max(default.max_realisations, config.cap()))
+
+
 class RobotNode:
     """One robot. ``rng_local`` and ``rng_distributed`` must be two generators built from the same
     seed: then, with nothing received, D repeats L exactly. ``local`` may hand in a shared
@@ -175,7 +184,14 @@ class RobotNode:
             raise ValueError(f"node {robot} got the local track of {local.robot}")
         self.track = local
         self.distributed = DistributedBelief(model, robot, start, config, fusion, downdate)
-        self.limits = limits or Limits(num_classes=model.num_classes)
+        self.limits = limits or node_limits(model.num_classes, config or BeliefConfig())
+        held = (config or BeliefConfig()).cap()
+        if self.limits.max_realisations < held:
+            raise ValueError(
+                f"limits: max_realisations {self.limits.max_realisations} cannot hold this "
+                f"belief's own slot (up to {held} class realisations): raise it, or lower "
+                "max_hypotheses"
+            )
         if roster is not None and robot not in roster:
             raise ValueError(f"robot {robot} is not in its own roster {sorted(roster)}")
         self.roster = roster

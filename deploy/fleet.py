@@ -12,7 +12,7 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 
 from agents.links import LinkModel
-from agents.node import RobotNode
+from agents.node import NodeCounters, RobotNode
 from deploy.build import COMM_MODES, link_model_for, make_nodes
 from estimator.models import SensorFrame
 
@@ -33,12 +33,16 @@ StepCallback = Callable[[str, int, RobotNode, float, float], None]
 @dataclass(slots=True)
 class FleetStats:
     """Per-run figures: bytes of every delivered stack, deliveries, and per robot step (in the
-    order ``on_step`` sees them) the empty joins and rebuilds of D's fusion (``FusionStats``)."""
+    order ``on_step`` sees them) the empty joins and rebuilds of D's fusion (``FusionStats``);
+    ``refused`` the stacks and slots the fleet's nodes refused over the run (``NodeCounters``:
+    invalid stacks, slots that contradict the model, own slots outside the wire's limits), none
+    in an honest fleet whose limits fit its beliefs."""
 
     delivered_bytes: list[int] = field(default_factory=list)
     deliveries: int = 0
     empty_joins: list[int] = field(default_factory=list)
     rebuilds: list[int] = field(default_factory=list)
+    refused: int = 0
 
 
 def run_fleet(
@@ -75,7 +79,13 @@ def run_fleets(
             before_step(k)
         for i, nodes in enumerate(fleets):
             _advance(nodes, frames, k, stats[i], None if on_step is None else on_step[i])
+    for st, nodes in zip(stats, fleets, strict=True):
+        st.refused = sum(_refused(node.counters) for node in nodes.values())
     return stats
+
+
+def _refused(c: NodeCounters) -> int:
+    return c.invalid + c.rejected_slots + c.foreign_slots + c.own_slot_invalid
 
 
 def _deliver(

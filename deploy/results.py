@@ -167,6 +167,8 @@ def method_summary(results: Sequence[RunResult], method: str) -> dict[str, Any]:
     if all(method in r.empty_joins for r in results):
         entry["empty_joins"] = int(sum(sum(r.empty_joins[method]) for r in results))
         entry["rebuilds"] = int(sum(sum(r.rebuilds[method]) for r in results))
+    if all(method in r.refused for r in results):
+        entry["refused"] = int(sum(r.refused[method] for r in results))
     return entry
 
 
@@ -200,6 +202,9 @@ def study_arrays(results: Sequence[RunResult], methods: Sequence[str]) -> dict[s
             for key in ("empty_joins", "rebuilds"):
                 counts = [getattr(r, key)[method] for r in results]
                 arrays[f"{method}/{key}"] = np.array(counts, dtype=np.int64)
+        if all(method in r.refused for r in results):
+            refused = [r.refused[method] for r in results]
+            arrays[f"{method}/refused"] = np.array(refused, dtype=np.int64)
     truth = [m for m in methods if all("true_robot_pose" in r.metrics[m] for r in results)]
     if truth:  # the same for every method: stored once
         arrays["true_robot_pose"] = np.stack(
@@ -253,6 +258,9 @@ def study_runs(doc: Mapping[str, Any], arrays: Mapping[str, NDArray[Any]]) -> li
                 stack_bytes=listed["stack_bytes"],
                 empty_joins=listed["empty_joins"],
                 rebuilds=listed["rebuilds"],
+                refused={
+                    m: int(arrays[f"{m}/refused"][i]) for m in methods if f"{m}/refused" in arrays
+                },
                 robots=tuple(doc["robots"]),
             )
         )

@@ -67,6 +67,7 @@ class RunResult:
     calibration: dict[str, Array] = field(default_factory=dict)
     empty_joins: dict[str, list[int]] = field(default_factory=dict)
     rebuilds: dict[str, list[int]] = field(default_factory=dict)
+    refused: dict[str, int] = field(default_factory=dict)
     robots: tuple[str, ...] = ()
 
 
@@ -209,6 +210,7 @@ def run_single(
         calibration={m: recorders[m].calibration for m in methods},
         empty_joins={m: st.empty_joins for m, st in fleet.items()},
         rebuilds={m: st.rebuilds for m, st in fleet.items()},
+        refused={m: st.refused for m, st in fleet.items()},
         robots=tuple(robots),
     )
 

@@ -65,7 +65,7 @@ def render_summary(
             )
     console.print(table)
     columns = ("method", "wall s", "belief step ms", "fusion ms", "stack bytes")
-    counts = ("empty_joins", "rebuilds")
+    counts = ("empty_joins", "rebuilds", "refused")
     rows = []
     for method, entry in doc["methods"].items():
         size = (
@@ -79,7 +79,7 @@ def render_summary(
             [method, wall, *tails, size, *(f"{entry[k]:,}" if k in entry else "—" for k in counts)]
         )
     title = "cost (wall s: all runs; ms: p50 / p95 / p99 / max; stack bytes: mean / max)"
-    timing = figures_table(title, [*columns, "empty joins", "rebuilds"], rows)
+    timing = figures_table(title, [*columns, "empty joins", "rebuilds", "refused"], rows)
     console.print(timing)
     lo, hi = chi2_bounds(3, doc["runs"])
     console.print(

@@ -23,7 +23,7 @@ from estimator.factors import object_key
 from estimator.hybrid import BeliefConfig, HybridBelief
 from estimator.models import SensorFrame
 from estimator.slots import object_log_phi
-from protocol.codec import StackMessage, decode, encode
+from protocol.codec import Limits, StackMessage, decode, encode
 from protocol.stack import Slot, Stack
 from sim.loader import parse_scenario
 from sim.sensors import Simulator
@@ -605,6 +605,25 @@ def test_run_fleet_counts_deliveries_consistently_with_nodes(chain_run) -> None:
     assert sum(c.bytes_sent for c in counters) == sum(stats.delivered_bytes)
     assert all(c.invalid == 0 and c.rejected_slots == 0 for c in counters)
     assert min(stats.delivered_bytes) > 0
+    assert stats.refused == 0
+
+
+def test_run_fleet_counts_the_slots_its_nodes_refuse(frames: dict[str, list[SensorFrame]]) -> None:
+    """r2's wire limits hold one object per slot: every stack of a peer's slot of more is
+    refused and counted (and so would be an own slot of more); FleetStats.refused sums them."""
+    nodes = _nodes()
+    nodes["r2"].limits = Limits(num_classes=2, max_objects=1)
+    stats = run_fleet(nodes, frames, CHAIN, STEPS)
+    c = nodes["r2"].counters
+    assert c.invalid > 0 and c.errors_by_type == {"LimitExceeded": c.invalid}
+    assert stats.refused == sum(
+        n.counters.invalid
+        + n.counters.rejected_slots
+        + n.counters.foreign_slots
+        + n.counters.own_slot_invalid
+        for n in nodes.values()
+    )
+    assert stats.refused >= c.invalid
 
 
 def test_run_fleet_calls_on_step_for_every_robot_and_step(
@@ -619,3 +638,19 @@ def test_run_fleet_calls_on_step_for_every_robot_and_step(
 
     run_fleet(_nodes(), frames, Schedule(()), 4, on_step)
     assert calls == [(r, k) for k in range(1, 5) for r in SCENARIO.robot_ids]
+
+
+def test_a_node_holds_every_realisation_its_belief_may_keep() -> None:
+    """The default wire limits of a node admit its own belief's cap (4,096 realisations for the
+    exact reference, more than the wire's default 1,024), and given limits that cannot hold it
+    are refused at construction, naming the field (issue 41: the exact reference lost its own
+    slot once a belief held more than 1,024 realisations)."""
+    model = belief_model(SCENARIO)
+    start = SCENARIO.robot("r1").start
+    rngs = (belief_rng(SEED, ["r1"]), belief_rng(SEED, ["r1"]))
+    exact = BeliefConfig.exact()
+    node = RobotNode("r1", start, model, *rngs, exact)
+    assert node.limits.max_realisations == exact.cap() == 4096
+    assert RobotNode("r1", start, model, *rngs).limits.max_realisations == 1024
+    with pytest.raises(ValueError, match=r"max_realisations 1024 cannot hold .* \(up to 4096"):
+        RobotNode("r1", start, model, *rngs, exact, limits=Limits(num_classes=2))

@@ -161,7 +161,7 @@ def test_study_results_json_schema(two_runs: tuple[subprocess.CompletedProcess[s
             assert isinstance(value, float) and value > 0, (method, key)
         assert tail == sorted(tail), method
         assert "step_ms_median" not in entry and "fusion_ms_p50" not in entry
-        assert "empty_joins" not in entry and "rebuilds" not in entry
+        assert "empty_joins" not in entry and "rebuilds" not in entry and "refused" not in entry
         pooled = entry["class_ece_pooled"]
         assert len(pooled) == STEPS and pooled[:2] == [None, None], method
         assert all(isinstance(v, float) and 0.0 <= v <= 1.0 for v in pooled[2:]), method
@@ -358,7 +358,9 @@ def test_run_single_sums_every_fusion_report_of_the_fleets(
         assert [sum(joins), sum(rebuilds)] == reported[fusion] != [0, 0], method
         entry = doc["methods"][method]
         assert (entry["empty_joins"], entry["rebuilds"]) == (2 * sum(joins), 2 * sum(rebuilds))
+        assert result.refused[method] == entry["refused"] == 0, method  # an honest fleet
     assert "local" not in result.empty_joins and "empty_joins" not in doc["methods"]["local"]
+    assert "refused" not in doc["methods"]["local"]
 
 
 def test_table_steps_end_at_the_last_step() -> None:
@@ -390,6 +392,7 @@ def _doc(steps: int) -> dict[str, Any]:
         "stacks_delivered": 2,
         "empty_joins": 7,
         "rebuilds": 1234,
+        "refused": 5,
     }
     return {
         "scenario": "w",
@@ -409,10 +412,10 @@ def test_render_summary_on_a_20_step_world() -> None:
     ece_rows = [line for line in lines if "class_ece_pooled" in line]
     assert len(ece_rows) == 2 and all(line.count("0.125") == 4 for line in ece_rows)
     local = next(line for line in lines if "1.00 / 2.00" in line and "local" in line)
-    assert "1.00 / 2.00 / 3.00 / 4.00" in local and local.count("—") == 4
+    assert "1.00 / 2.00 / 3.00 / 4.00" in local and local.count("—") == 5  # no fleet: 5 cells
     fleet = next(line for line in lines if "1,234" in line)
     assert "0.10 / 0.20 / 0.30 / 0.40" in fleet and "10 / 20" in fleet
-    assert fleet.split()[-2:] == ["7", "1,234"]  # empty joins, rebuilds
+    assert fleet.split()[-3:] == ["7", "1,234", "5"]  # empty joins, rebuilds, refused
 
 
 def test_render_summary_fits_80_columns_without_cutting_a_figure() -> None:
