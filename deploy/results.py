@@ -8,6 +8,10 @@ arrays behind the summaries. :func:`study_archive` builds the hybrid-belief stud
 its runs, and :func:`study_runs` gives those runs back from the archive's files (what
 ``semfleet study merge`` combines); ``deploy.ufastslam_study.ufastslam_archive`` makes the
 UFastSLAM study's archive.
+
+Over 300 lines for a reason: the writer (:func:`study_archive`, :func:`study_arrays`) and the
+reader (:func:`study_runs`) of one schema sit together, so that a field added to one is seen
+missing from the other (``semfleet study merge`` re-makes the archive from what it reads).
 """
 
 from __future__ import annotations

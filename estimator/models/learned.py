@@ -12,6 +12,10 @@ grid of inducing viewpoints ``g_1..g_G``: ``f(ψ) = offset + Σ_j w_j κ_ℓ(ψ 
 The fit (scikit-learn, ``deploy.classifier_fit``) only chooses the numbers; evaluating them is
 numpy. :meth:`LearnedClassifier.from_arrays` validates the arrays of a model file and names the
 field at fault; nothing else may escape it.
+
+Over 300 lines for a reason: the model and the validation of its file are one contract (every
+field :meth:`LearnedClassifier.to_arrays` writes is checked by ``_parse``, in the same words),
+and a model file is untrusted input; split, a field could be written that nothing checks.
 """
 
 from __future__ import annotations

@@ -52,9 +52,7 @@ def _paper_with_estimator(folder: Path, file: str) -> Path:
     """The bundled paper world with a learned ``[classifier.estimator]``, in ``folder/world``."""
     paper = (resources.files("sim") / "scenarios" / "paper.toml").read_text(encoding="utf-8")
     estimator = f'[classifier.estimator]\nmodel = "learned"\nfile = "{file}"\n'
-    text = paper.replace(
-        '[classifier]\nmodel = "paper"\n', f'[classifier]\nmodel = "paper"\n{estimator}'
-    )
+    text = paper.replace("\n[noise]\n", f"\n{estimator}\n[noise]\n")  # after [classifier]
     assert text != paper
     path = folder / "world" / "paper-learned.toml"
     path.parent.mkdir(parents=True, exist_ok=True)

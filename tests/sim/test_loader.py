@@ -596,7 +596,7 @@ def _check_paper(s: Scenario) -> None:
         ScheduleEdge(13, 60, "r1", "r2"),
         ScheduleEdge(13, 60, "r1", "r3"),
     )
-    assert [v.name for v in s.variants] == ["sense10", "comm10", "experiment"]
+    assert [v.name for v in s.variants] == ["sense10", "comm10", "experiment", "object_to_camera"]
     assert s.applied_variants == ()
 
 
@@ -648,7 +648,7 @@ def test_load_scenario_variants_compose_in_order() -> None:
 def test_load_scenario_unknown_variant_is_named() -> None:
     with pytest.raises(ScenarioError, match=r"paper\.toml: variants: no variant 'sense20'") as info:
         load_scenario("paper:sense20")
-    assert "defined: comm10, experiment, sense10" in str(info.value)
+    assert "defined: comm10, experiment, object_to_camera, sense10" in str(info.value)
     with pytest.raises(ScenarioError, match="no variant 'bogus'"):
         load_scenario("paper", ["bogus"])
 
