@@ -184,8 +184,8 @@ class RobotNode:
             raise ValueError(f"node {robot} got the local track of {local.robot}")
         self.track = local
         self.distributed = DistributedBelief(model, robot, start, config, fusion, downdate)
+        held = (config or BeliefConfig()).cap()  # the most realisations the own slot may hold
         self.limits = limits or node_limits(model.num_classes, config or BeliefConfig())
-        held = (config or BeliefConfig()).cap()
         if self.limits.max_realisations < held:
             raise ValueError(
                 f"limits: max_realisations {self.limits.max_realisations} cannot hold this "
