@@ -138,24 +138,40 @@ def study_archive(
     axes = next(iter(results[0].metrics[methods[0]].values())).shape  # (robots, steps)
     if robots and len(robots) != axes[0]:
         raise ValueError(f"robots {robots} do not match the runs' {axes[0]} robots")
+    cap = _hypothesis_cap(settings or {})
     return ResultsArchive(
         "hybrid",
         scenario,
         tuple(r.seed for r in results),
         axes[1],
-        {m: method_summary(results, m) for m in methods},
+        {m: method_summary(results, m, cap) for m in methods},
         {"robots": robots, **(settings or {})},
         study_arrays(results, methods),
     )
 
 
-def method_summary(results: Sequence[RunResult], method: str) -> dict[str, Any]:
+def _hypothesis_cap(settings: Mapping[str, Any]) -> int | None:
+    """The cap every belief of the study shares (``max_hypotheses``), where no per-robot budget
+    makes it differ between beliefs; None otherwise or where the settings do not say."""
+    cap = settings.get("max_hypotheses")
+    return int(cap) if cap is not None and settings.get("robot_budget") is None else None
+
+
+def method_summary(
+    results: Sequence[RunResult], method: str, cap: int | None = None
+) -> dict[str, Any]:
     """One method's results.json entry: mean curves, pooled class ECE, wall time, step-time
     tails and, where every run measured them, the fleets' fusion times, stack sizes, empty joins
-    and rebuilds (each on its own: a run may record some and not others)."""
+    and rebuilds (each on its own: a run may record some and not others). With the beliefs'
+    hypothesis ``cap``: ``runs_at_cap``, the runs in which some belief of the method held that
+    many hypotheses at some step (it was pruned to the cap: an ``exact`` reference is then not
+    exact)."""
     stacked = stack_runs(results, method)
     all_ms = np.concatenate([r.step_ms[method] for r in results])
     entry: dict[str, Any] = {"mean": {m: mean_curve(stacked[m]) for m in METRICS}}
+    if cap is not None and cap > 1:  # one hypothesis (per-object classes) is no truncation
+        held = stacked["hypotheses"].reshape(len(results), -1)
+        entry["runs_at_cap"] = int(np.sum(np.nanmax(held, axis=1, initial=0.0) >= cap))
     pooled = pooled_calibration(results, method)
     if pooled is not None:
         entry["class_ece_pooled"] = _nullable(ece_from_stats(pooled))

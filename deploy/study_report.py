@@ -86,6 +86,13 @@ def render_summary(
         f"robot NEES (3 dof) 95 % band for the mean over {plural(doc['runs'], 'run')}: "
         f"[{lo:.2f}, {hi:.2f}]"
     )
+    for method, entry in doc["methods"].items():
+        if entry.get("runs_at_cap"):
+            console.print(
+                f"{method}: a belief held the cap of {doc['max_hypotheses']:,} hypotheses in "
+                f"{entry['runs_at_cap']} of {plural(doc['runs'], 'run')} and was pruned to it "
+                "(--hypotheses exact is then not exact)"
+            )
 
 
 def write_plots(

@@ -233,3 +233,29 @@ def test_study_archive_takes_fusion_times_and_stack_sizes_each_on_its_own() -> N
     assert archive.methods["distributed"]["fusion_ms_max"] == 0.5
     assert "stack_bytes_mean" not in archive.methods["distributed"]
     assert archive.arrays["distributed/fusion_ms"].shape == (2, ROBOTS * STEPS)
+
+
+@pytest.mark.parametrize(
+    ("settings", "expected"),
+    [
+        ({"max_hypotheses": 4}, {"local": 1, "distributed": 0}),  # run 1's local held 4
+        ({"max_hypotheses": 5}, {"local": 0, "distributed": 0}),
+        ({"max_hypotheses": 4, "robot_budget": 2}, None),  # caps differ between beliefs
+        ({}, None),
+    ],
+)
+def test_runs_at_the_hypothesis_cap_are_counted(
+    settings: dict[str, Any], expected: dict[str, int] | None
+) -> None:
+    """runs_at_cap: the runs in which some belief held the study's cap of hypotheses (it was
+    pruned to it: an exact reference is then not exact); NaN (unscored) steps are no holding."""
+    runs = _two_runs()
+    held = runs[1].metrics["local"]["hypotheses"]
+    held[:] = np.nan
+    held[1, 2] = 4.0
+    doc = study_archive("w", runs, ["local", "distributed"], settings).document()
+    got = {m: doc["methods"][m].get("runs_at_cap") for m in ("local", "distributed")}
+    if expected is None:
+        assert got == {"local": None, "distributed": None}
+    else:
+        assert got == expected

@@ -558,3 +558,17 @@ def test_study_window_is_the_default_and_all_keeps_every_pose(
     r = study(world, out, "--methods", "local", "--runs", "1", "--jobs", "1", *options)
     assert r.returncode == 0, r.stderr
     assert read_json(out)["window"] == window
+
+
+def test_render_summary_says_which_beliefs_were_pruned_to_the_cap() -> None:
+    doc = _doc(20)
+    doc["max_hypotheses"] = 4096
+    doc["methods"]["distributed"]["runs_at_cap"] = 2
+    doc["methods"]["local"]["runs_at_cap"] = 0
+    console = Console(record=True, width=250)
+    render_summary(doc, console)
+    lines = [line for line in console.export_text().splitlines() if "cap of" in line]
+    assert lines == [
+        "distributed: a belief held the cap of 4,096 hypotheses in 2 of 2 runs and was pruned to "
+        "it (--hypotheses exact is then not exact)"
+    ]
