@@ -20,6 +20,7 @@ from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 from matplotlib.patches import Wedge
 
+from deploy.paper_figures import PaperValue, by_metric
 from deploy.results import pooled_calibration
 from deploy.study import RunResult
 from deploy.ufastslam_study import LABELS, METHODS, MethodRun, SeedRun, semantic_method
@@ -137,6 +138,27 @@ def plot_curves(
     ax.set_title(title)
     ax.grid(True, alpha=0.3)
     ax.legend(fontsize=8)
+
+
+def plot_paper_values(ax: Axes, values: Sequence[PaperValue]) -> None:
+    """The paper's read-off values (deploy.paper_figures) as open diamonds at their step, the bar
+    spanning the interval read, in the colour of their method's curve."""
+    for v in values:
+        colour = _METHOD_STYLE.get(v.method, {}).get("color", "grey")
+        ax.errorbar(
+            [v.step],
+            [v.middle],
+            yerr=[[v.middle - v.low], [v.high - v.middle]],
+            fmt="D",
+            color=colour,
+            mfc="white",
+            ms=6,
+            capsize=4,
+            zorder=4,
+            label=f"paper {v.figure}, {v.method} (read off)",
+        )
+    if values:
+        ax.legend(fontsize=7)
 
 
 def plot_reliability(ax: Axes, ax_counts: Axes, stats: dict[str, np.ndarray], title: str) -> None:
@@ -270,17 +292,24 @@ STUDY_CURVES = (
 
 
 def write_curves_and_reliability(
-    out: Path, doc: dict[str, Any], results: Sequence[RunResult], step: int
+    out: Path,
+    doc: dict[str, Any],
+    results: Sequence[RunResult],
+    step: int,
+    paper: Sequence[PaperValue] = (),
 ) -> list[Path]:
     """The curves of ``doc``'s means and the reliability diagram at ``step`` pooled over
-    ``results`` into ``out`` (a study's, or a merge of its shards); the paths written."""
+    ``results`` into ``out`` (a study's, or a merge of its shards); the paths written. ``paper``:
+    read-off values of the paper's figures, drawn on the curves of their metrics."""
     matplotlib.use("Agg")
     written = []
+    published = by_metric(paper)
     for metric, ylabel, title, dof in STUDY_CURVES:
         fig, ax = plt.subplots(figsize=(7, 4.5))
         curves = {m: e["mean"][metric] for m, e in doc["methods"].items()}
         band = None if dof is None else chi2_bounds(dof, doc["runs"])
         plot_curves(ax, curves, ylabel, f"{doc['scenario']}: {title}", band)
+        plot_paper_values(ax, published.get(metric, []))
         written.append(save(fig, out / f"{metric}.png"))
     pooled = {m: pooled_calibration(results, m) for m in doc["methods"]}
     at_step = {m: p[step - 1] for m, p in pooled.items() if p is not None}
@@ -301,10 +330,12 @@ def write_study_plots(
     results: Sequence[RunResult],
     step: int,
     robot: str,
+    paper: Sequence[PaperValue] = (),
 ) -> list[Path]:
-    """The curves of ``doc``'s means, the reliability diagram at ``step`` and the first run's
-    hypothesis snapshots of ``robot`` into ``out``; the paths written."""
-    written = write_curves_and_reliability(out, doc, results, step)
+    """The curves of ``doc``'s means (with ``paper``'s read-off values), the reliability
+    diagram at ``step`` and the first run's hypothesis snapshots of ``robot`` into ``out``; the
+    paths written."""
+    written = write_curves_and_reliability(out, doc, results, step, paper)
     world = World(scenario)
     for method, snaps in results[0].snapshots.items():
         if robot not in snaps:

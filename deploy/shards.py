@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from deploy.errors import UsageError
+from deploy.paper_figures import PaperValue
 from deploy.results import ENVELOPE, ResultsArchive, read_folder, study_archive, study_runs
 from deploy.study import RunResult
 from estimator.hybrid import BeliefConfig
@@ -181,14 +182,14 @@ def _listed(seeds: Sequence[int], most: int = 8) -> str:
     return shown + (f", … ({len(seeds)} in all)" if len(seeds) > most else "")
 
 
-def write_merged_plots(out: Path, merged: Merged) -> list[Path]:
+def write_merged_plots(out: Path, merged: Merged, paper: Sequence[PaperValue] = ()) -> list[Path]:
     """The plots of ``deploy.plots.write_study_plots`` for the merged archive: the curves and
     the reliability diagram drawn from every run, and the hypothesis plots of the study's first
     seed copied from the shard that ran it (a merge has the runs' numbers, not their beliefs)."""
     from deploy.plots import write_curves_and_reliability
 
     doc, step = merged.archive.document(), merged.snapshot_step
-    written = write_curves_and_reliability(out, doc, merged.runs, step)
+    written = write_curves_and_reliability(out, doc, merged.runs, step, paper)
     pattern = f"hypotheses_*_{merged.snapshot_robot}_k{step}.png"
     for png in sorted(merged.first.glob(pattern)):
         written.append(Path(shutil.copyfile(png, out / png.name)))

@@ -11,6 +11,7 @@ from rich.table import Table
 
 from deploy.args import plural
 from deploy.output import figures_table
+from deploy.paper_figures import Comparison, PaperValue
 from deploy.study import RunResult
 from estimator.metrics import chi2_bounds
 from sim.scenario import Scenario
@@ -95,6 +96,22 @@ def render_summary(
             )
 
 
+def render_paper(rows: list[Comparison], console: Console) -> None:
+    """The study's means against the paper's read-off values (`study --paper`)."""
+    table_rows = []
+    for row in rows:
+        v = row.value
+        read = f"{v.low:.2g}–{v.high:.2g}"
+        ours = "—" if row.ours is None else f"{row.ours:.3g}"
+        ratio = "—" if row.ratio is None else f"{row.ratio:.2f}"
+        within = {None: "—", True: "yes", False: "no"}[row.holds]
+        figure = v.figure.removeprefix("Fig. ")
+        table_rows.append([figure, v.metric, v.method, str(v.step), read, ours, ratio, within])
+    columns = ("fig.", "metric", "method", "k", "paper", "ours", "ratio", "in")
+    title = "the study's means against values read off the paper's figures (docs/paper.md)"
+    console.print(figures_table(title, columns, table_rows))
+
+
 def write_plots(
     out: Path,
     doc: dict[str, Any],
@@ -102,9 +119,10 @@ def write_plots(
     results: list[RunResult],
     step: int,
     robot: str,
+    paper: list[PaperValue] | None = None,
 ) -> list[Path]:
     """:func:`deploy.plots.write_study_plots`, imported when called: matplotlib takes a second to
     import, and every command imports this module."""
     from deploy.plots import write_study_plots
 
-    return write_study_plots(out, doc, scenario, results, step, robot)
+    return write_study_plots(out, doc, scenario, results, step, robot, paper or ())

@@ -11,6 +11,7 @@ archive; splitting it would part each option from its check.
 from __future__ import annotations
 
 import argparse
+import json
 from pathlib import Path
 from typing import Any
 
@@ -21,11 +22,12 @@ from deploy.build import HYPOTHESIS_MANAGEMENT
 from deploy.errors import UsageError
 from deploy.fleet import COMM_MODES
 from deploy.output import runs_progress
+from deploy.paper_figures import PAPER_SOURCE, PaperValue, compare, paper_world_error
 from deploy.results import study_archive, write_archive
 from deploy.scenario_args import scenario_from_args
 from deploy.shards import Shard, merge_shards, shard_entry, study_key, write_merged_plots
 from deploy.study import METHODS, run_study
-from deploy.study_report import render_summary, write_plots
+from deploy.study_report import render_paper, render_summary, write_plots
 from estimator.hybrid import (
     POSE_WINDOW,
     SLOT_LINEARISATIONS,
@@ -65,6 +67,8 @@ def run(args: argparse.Namespace, console: Console, own: dict[str, tuple[str, An
     if args.scenario is None:
         raise UsageError("--scenario is required (or: semfleet study merge DIR... --out DIR)")
     scenario = scenario_from_args(args)
+    if args.paper and (why := paper_world_error(scenario.name)):
+        raise UsageError(why)
     robot = args.snapshot_robot or scenario.robot_ids[0]
     if robot not in scenario.robot_ids:
         raise UsageError(f"--snapshot-robot: no robot {robot!r} in {scenario.name}")
@@ -153,11 +157,24 @@ def run(args: argparse.Namespace, console: Console, own: dict[str, tuple[str, An
     write_archive(out, archive)
     doc = archive.document()
     render_summary(doc, console)
-    plots = write_plots(out, doc, scenario, results, step, robot)
+    paper = _against_paper(out, doc, console) if args.paper else []
+    plots = write_plots(out, doc, scenario, results, step, robot, paper)
     console.print(
         f"wrote {out / 'results.json'}, {out / 'results.npz'} and {len(plots)} plots in {out}"
     )
     return 0
+
+
+def _against_paper(out: Path, doc: dict[str, Any], console: Console) -> list[PaperValue]:
+    """`--paper`: the table of the study's means against the paper's read-off values, the same
+    rows as ``out``/paper.json; the values, for the plots."""
+    rows = compare(doc)
+    render_paper(rows, console)
+    document = {"source": PAPER_SOURCE, "rows": [r.document() for r in rows]}
+    (out / "paper.json").write_text(
+        json.dumps(document, indent=1, allow_nan=False) + "\n", encoding="utf-8"
+    )
+    return [r.value for r in rows]
 
 
 def run_merge(args: argparse.Namespace, console: Console, own: dict[str, tuple[str, Any]]) -> int:
@@ -178,8 +195,11 @@ def run_merge(args: argparse.Namespace, console: Console, own: dict[str, tuple[s
         f"study merge: {len(folders)} shards of {doc['scenario']}, "
         f"{plural(doc['runs'], 'run')} (seeds {doc['seeds'][0]}..{doc['seeds'][-1]})"
     )
+    if args.paper and (why := paper_world_error(doc["scenario"])):
+        raise UsageError(why)
     render_summary(doc, console)
-    plots = write_merged_plots(out, merged)
+    paper = _against_paper(out, doc, console) if args.paper else []
+    plots = write_merged_plots(out, merged, paper)
     console.print(
         f"wrote {out / 'results.json'}, {out / 'results.npz'} and {len(plots)} plots in {out}"
     )
@@ -227,6 +247,12 @@ def add_parser(sub: Any) -> None:
         "(e.g. tcp://10.0.0.5:8786; needs pip install 'semfleet[cluster]'); --jobs is ignored",
     )
     p.add_argument("--out", default="out/study", help="output folder")
+    p.add_argument(
+        "--paper",
+        action="store_true",
+        help="with the paper world: the paper's read-off values (Fig. 2b, 2d, 3a) on the plots, "
+        "a table of the study's means against them, and paper.json (docs/paper.md)",
+    )
     p.add_argument("--weights", choices=WEIGHT_ESTIMATORS, default="geo_conditioned")
     p.add_argument(
         "--comm",
@@ -306,7 +332,7 @@ def add_parser(sub: Any) -> None:
     own = {
         a.dest: (a.option_strings[-1], defaults[a.dest])
         for a in p._actions
-        if a.option_strings and a.dest not in ("help", "out")
+        if a.option_strings and a.dest not in ("help", "out", "paper")
     }
     p.set_defaults(run=lambda args, console: run(args, console, own))
 

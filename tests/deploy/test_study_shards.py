@@ -213,3 +213,13 @@ def test_study_cluster_without_dask_names_the_extra(
     argv = ["study", "--scenario", "lanes:short", "--runs", "1", "--out", str(tmp_path)]
     got = _refusal([*argv, "--cluster", "tcp://127.0.0.1:8786"], capsys)
     assert got == "--cluster needs Dask's distributed scheduler: pip install 'semfleet[cluster]'"
+
+
+def test_study_merge_takes_paper_and_checks_the_world_of_the_shards(
+    runs: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # --paper is presentation, not a setting the shards decided: merge takes it, and refuses it
+    # for a world that is not the paper's as `study` does
+    argv = ["study", "merge", str(runs / "s0"), str(runs / "s1"), "--out", str(tmp_path / "m")]
+    why = _refusal([*argv, "--paper"], capsys)
+    assert "'pair'" in why and "--paper" in why
