@@ -30,7 +30,7 @@ from numpy.typing import NDArray
 
 from deploy.errors import UsageError
 from deploy.study import RunResult
-from estimator.metrics import METRICS, ece_from_stats
+from estimator.metrics import CROSS_METRICS, METRICS, ece_from_stats
 
 Array = NDArray[np.float64]
 
@@ -168,7 +168,7 @@ def method_summary(
     exact)."""
     stacked = stack_runs(results, method)
     all_ms = np.concatenate([r.step_ms[method] for r in results])
-    entry: dict[str, Any] = {"mean": {m: mean_curve(stacked[m]) for m in METRICS}}
+    entry: dict[str, Any] = {"mean": {m: mean_curve(stacked[m]) for m in stacked}}
     if cap is not None and cap > 1:  # one hypothesis (per-object classes) is no truncation
         held = stacked["hypotheses"].reshape(len(results), -1)
         entry["runs_at_cap"] = int(np.sum(np.nanmax(held, axis=1, initial=0.0) >= cap))
@@ -253,6 +253,9 @@ def study_runs(doc: Mapping[str, Any], arrays: Mapping[str, NDArray[Any]]) -> li
         }
         for m in methods:
             metrics[m] = {name: arrays[f"{m}/{name}"][i] for name in METRICS}
+            for name in CROSS_METRICS:  # (absent from archives written before issue 41)
+                if f"{m}/{name}" in arrays:
+                    metrics[m][name] = arrays[f"{m}/{name}"][i]
             if f"{m}/robot_pose" in arrays:
                 metrics[m]["robot_pose"] = arrays[f"{m}/robot_pose"][i]
             if truth is not None:
@@ -288,8 +291,13 @@ def study_runs(doc: Mapping[str, Any], arrays: Mapping[str, NDArray[Any]]) -> li
 
 
 def stack_runs(results: Sequence[RunResult], method: str) -> dict[str, Array]:
-    """METRIC → (runs, robots, steps) for one method."""
-    return {m: np.stack([r.metrics[method][m] for r in results]) for m in METRICS}
+    """METRIC → (runs, robots, steps) for one method: every metric of :data:`METRICS`, and each of
+    :data:`CROSS_METRICS` that every run recorded."""
+    names = [
+        *METRICS,
+        *(m for m in CROSS_METRICS if all(m in r.metrics[method] for r in results)),
+    ]
+    return {m: np.stack([r.metrics[method][m] for r in results]) for m in names}
 
 
 def mean_curve(values: Array) -> list[float | None]:

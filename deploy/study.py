@@ -30,7 +30,15 @@ from deploy.errors import RunFailure
 from deploy.fleet import FleetStats, StepCallback, run_fleets
 from deploy.fleet_view import mixture_moments
 from estimator.hybrid import BeliefConfig, BeliefModel, BeliefSnapshot, HybridBelief
-from estimator.metrics import ECE_BINS, METRICS, evaluate, evaluate_calibration
+from estimator.metrics import (
+    CROSS_METRICS,
+    ECE_BINS,
+    METRICS,
+    class_comparison,
+    evaluate,
+    evaluate_calibration,
+    with_truth,
+)
 from estimator.models import SensorFrame
 from sim.scenario import Scenario
 from sim.sensors import Simulator
@@ -174,6 +182,8 @@ def run_single(
         m: Recorder(scenario, frames, truth_objects, snapshot_step, scored=scored) for m in methods
     }
     fleet_methods = [m for m in methods if m in FLEET_METHODS]
+    for rec in recorders.values():  # the beliefs compare_beliefs holds against each other
+        rec.keep_classes = len(recorders) > 1 and bool({"local", "centralized"} & set(methods))
     if "local" in methods or fleet_methods:
         _run_shared_local(scenario, model, config, seed, comm, frames, recorders, fleet_methods)
     if "centralized" in methods:
@@ -191,6 +201,7 @@ def run_single(
             snaps = belief.snapshots(robots)
             for i, robot in enumerate(robots):
                 rec.record(belief, i, robot, k, ms if i == 0 else 0.0, snaps[robot])
+    compare_beliefs(recorders, {j: c for j, (_, c) in truth_objects.items()})
     for method in methods:
         rec = recorders[method]
         metrics[method] = rec.arrays
@@ -273,6 +284,32 @@ def _run_shared_local(
         recorders[m].fleet = st
 
 
+def compare_beliefs(recorders: Mapping[str, Recorder], true_classes: Mapping[int, int]) -> None:
+    """Fill each method's :data:`CROSS_METRICS` from the class marginals its recorder kept, at
+    every row and step both it and the other belief scored, and drop the marginals:
+    ``class_gap_central`` and ``class_log_loss_centralized_here`` against the centralized
+    belief on this belief's objects, ``class_log_loss_local_objects`` this belief's log-loss on
+    the objects the robot's local belief knows."""
+    pairs = (
+        ("centralized", ("class_gap_central", None, "class_log_loss_centralized_here")),
+        ("local", (None, "class_log_loss_local_objects", None)),
+    )
+    for method, rec in recorders.items():
+        for other, names in pairs:
+            if other == method or other not in recorders:
+                continue
+            theirs = recorders[other].classes
+            for (i, k), (ids, prob) in rec.classes.items():
+                if (i, k) not in theirs:
+                    continue
+                figures = class_comparison(ids, prob, *theirs[i, k], true_classes)
+                for name, value in zip(names, figures, strict=True):
+                    if name is not None:
+                        rec.arrays[name][i, k - 1] = value
+    for rec in recorders.values():
+        rec.classes.clear()
+
+
 def true_objects(scenario: Scenario) -> dict[int, tuple[Array, int]]:
     """Object id → (true pose, true class index): what the metrics score against."""
     return {o.id: (np.array(o.pose), o.class_index) for o in scenario.objects}
@@ -301,7 +338,9 @@ class Recorder:
         self.scored = None if scored is None else frozenset(scored)
         rows = scenario.robot_ids if robots is None else tuple(robots)
         shape = (len(rows), scenario.steps)
-        self.arrays: dict[str, Array] = {m: np.full(shape, np.nan) for m in METRICS}
+        self.arrays: dict[str, Array] = {
+            m: np.full(shape, np.nan) for m in (*METRICS, *CROSS_METRICS)
+        }
         self.arrays.update((name, np.full((*shape, 3), np.nan)) for name in TRACKS)
         for i, robot in enumerate(rows):
             poses = [f.true_pose for f in frames[robot][: scenario.steps]]
@@ -312,6 +351,10 @@ class Recorder:
         self.fleet = FleetStats()
         self.snapshots: dict[str, BeliefSnapshot] = {}
         self.wall_s = 0.0
+        # (row, step) → the scored belief's object ids and class marginals, while a run keeps
+        # them for :func:`compare_beliefs` (``keep_classes``)
+        self.keep_classes = False
+        self.classes: dict[tuple[int, int], tuple[tuple[int, ...], Array]] = {}
 
     def record(
         self,
@@ -352,3 +395,6 @@ class Recorder:
         for name, value in evaluate(snap, num_classes, true_pose, self.truth).items():
             self.arrays[name][i, k - 1] = value
         self.calibration[i, k - 1] = evaluate_calibration(snap, num_classes, self.truth)
+        if self.keep_classes:
+            known = with_truth(snap, self.truth)
+            self.classes[i, k] = (tuple(known.object_ids), known.marginals(num_classes))

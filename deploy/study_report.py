@@ -22,6 +22,7 @@ SUMMARY_METRICS = (
     "msde",
     "class_log_loss",
     "class_ece_pooled",
+    "class_gap_central",
     "robot_error",
     "object_error",
     "robot_nees",

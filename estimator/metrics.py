@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 from numpy.typing import NDArray
@@ -30,6 +30,18 @@ METRICS = (
     "class_log_loss",
     "class_ece",
     "hypotheses",
+)
+
+# Per-step metrics that compare one belief with another of the same robot and step, on the
+# objects both know (docs/results.md, "Against another belief"): the largest |ΔP| of a class
+# marginal against the centralized belief, the centralized belief's class log-loss on this
+# belief's objects, and this belief's class log-loss on the objects the robot's local belief knows.
+# A method's own class_log_loss is over its own objects: a belief that knows more objects than
+# another is scored on harder ones too, and these say how the two compare on the same ones.
+CROSS_METRICS = (
+    "class_gap_central",
+    "class_log_loss_centralized_here",
+    "class_log_loss_local_objects",
 )
 
 # Equal-width bins on [0, 1] of the class expected calibration error.
@@ -59,6 +71,26 @@ def class_log_loss(prob: Array, true_classes: NDArray[np.int64]) -> float:
         return float("nan")
     p = prob[np.arange(len(true_classes)), true_classes]
     return float(np.mean(-np.log(np.maximum(p, _MIN_PROBABILITY))))
+
+
+def class_comparison(
+    ids: Sequence[int],
+    prob: Array,
+    other_ids: Sequence[int],
+    other_prob: Array,
+    true_classes: Mapping[int, int],
+) -> tuple[float, float, float]:
+    """One belief's class marginals ``prob`` (n, M) over objects ``ids`` against another's on the
+    objects both know: the largest |P − P_other| of any class (NaN when none is shared), and the
+    class log-loss of each on those objects (``true_classes``: object id → class index)."""
+    where = {j: i for i, j in enumerate(other_ids)}
+    shared = [(i, where[j]) for i, j in enumerate(ids) if j in where]
+    if not shared:
+        return float("nan"), float("nan"), float("nan")
+    mine, theirs = (np.array(x, dtype=np.int64) for x in zip(*shared, strict=True))
+    truth = np.array([true_classes[ids[i]] for i in mine], dtype=np.int64)
+    gap = float(np.max(np.abs(prob[mine] - other_prob[theirs])))
+    return gap, class_log_loss(prob[mine], truth), class_log_loss(other_prob[theirs], truth)
 
 
 def calibration_stats(prob: Array, true_classes: NDArray[np.int64], bins: int = ECE_BINS) -> Array:

@@ -21,7 +21,7 @@ from deploy.study import run_single
 from deploy.study_report import render_summary, table_steps
 from estimator.distributed import FusionStats
 from estimator.hybrid import POSE_WINDOW, BeliefConfig
-from estimator.metrics import ECE_BINS, METRICS, ece_from_stats
+from estimator.metrics import CROSS_METRICS, ECE_BINS, METRICS, class_comparison, ece_from_stats
 from sim.loader import parse_scenario
 from tests.estimator.scenarios import fleet_text
 from tests.tolerance import assert_close
@@ -152,7 +152,7 @@ def test_study_results_json_schema(two_runs: tuple[subprocess.CompletedProcess[s
     assert doc["xi"] == "auto"
     assert set(doc["methods"]) == set(METHODS)
     for method, entry in doc["methods"].items():
-        assert set(entry["mean"]) == set(METRICS), method
+        assert set(entry["mean"]) == {*METRICS, *CROSS_METRICS}, method
         for metric, curve in entry["mean"].items():
             assert isinstance(curve, list) and len(curve) == STEPS, (method, metric)
             assert all(v is None or isinstance(v, float) for v in curve), (method, metric)
@@ -184,11 +184,11 @@ def test_study_results_json_is_strict(
 def test_study_results_npz_shapes(two_runs: tuple[subprocess.CompletedProcess[str], Path]) -> None:
     _, out = two_runs
     arrays = read_npz(out)
-    keys = (*METRICS, "robot_pose", "step_ms", "wall_s", "calibration")
+    keys = (*METRICS, *CROSS_METRICS, "robot_pose", "step_ms", "wall_s", "calibration")
     expected = {f"{m}/{k}" for m in METHODS for k in keys} | {"seeds", "true_robot_pose"}
     assert set(arrays) == expected
     for method in METHODS:
-        for metric in METRICS:
+        for metric in (*METRICS, *CROSS_METRICS):
             values = arrays[f"{method}/{metric}"]
             assert values.shape == (2, ROBOTS, STEPS), (method, metric)
             assert values.dtype == np.float64, (method, metric)
@@ -265,7 +265,7 @@ def test_study_reruns_are_identical(
     args = ("--methods", "local,centralized", "--runs", "1", "--jobs", "1", "--seed", "6")
     study(world, tmp_path / "a", *args)
     a = metric_arrays(read_npz(tmp_path / "a"))
-    keys = (*METRICS, "robot_pose", "calibration")
+    keys = (*METRICS, *CROSS_METRICS, "robot_pose", "calibration")
     assert set(a) == {f"{m}/{k}" for m in METHODS for k in keys} | {"true_robot_pose"}
     both = metric_arrays(read_npz(two_runs[1]))
     for key in a:
@@ -572,3 +572,33 @@ def test_render_summary_says_which_beliefs_were_pruned_to_the_cap() -> None:
         "distributed: a belief held the cap of 4,096 hypotheses in 2 of 2 runs and was pruned to "
         "it (--hypotheses exact is then not exact)"
     ]
+
+
+def test_run_single_compares_each_belief_with_the_centralized_and_local_ones() -> None:
+    # The cross metrics are class_comparison of the very snapshots the study scores: at the
+    # snapshot step, recomputed from the beliefs' own marginals; NaN where a belief is compared
+    # with itself, and absent (NaN) when the study runs no belief to compare with.
+    scenario = parse_scenario(scenario_text(ROBOTS), "tiny.toml")
+    methods = ["local", "distributed", "centralized"]
+    result = run_single(scenario, methods, 5, BeliefConfig(), snapshot_step=STEPS)
+    truth = {o.id: o.class_index for o in scenario.objects}
+    k = STEPS - 1
+    for i, robot in enumerate(scenario.robot_ids):
+        snaps = {m: result.snapshots[m][robot] for m in methods}
+        marg = {m: (s.object_ids, s.marginals(scenario.num_classes)) for m, s in snaps.items()}
+        got = {m: result.metrics[m] for m in methods}
+        gap, _, central = class_comparison(*marg["distributed"], *marg["centralized"], truth)
+        assert got["distributed"]["class_gap_central"][i, k] == pytest.approx(gap)
+        assert got["distributed"]["class_log_loss_centralized_here"][i, k] == pytest.approx(central)
+        _, on_local, _ = class_comparison(*marg["distributed"], *marg["local"], truth)
+        assert got["distributed"]["class_log_loss_local_objects"][i, k] == pytest.approx(on_local)
+        _, c_on_local, _ = class_comparison(*marg["centralized"], *marg["local"], truth)
+        assert got["centralized"]["class_log_loss_local_objects"][i, k] == pytest.approx(c_on_local)
+        assert np.isnan(got["centralized"]["class_gap_central"][i]).all()
+        assert np.isnan(got["local"]["class_log_loss_local_objects"][i]).all()
+        # the other robot's objects reach D through its slot: D knows more than L here
+        assert len(marg["distributed"][0]) > len(marg["local"][0])
+    assert np.isfinite(result.metrics["local"]["class_gap_central"][:, k]).all()
+    alone = run_single(scenario, ["distributed"], 5, BeliefConfig())
+    for name in CROSS_METRICS:
+        assert np.isnan(alone.metrics["distributed"][name]).all(), name

@@ -17,6 +17,7 @@ from estimator.metrics import (
     calibration_stats,
     chi2_bound,
     chi2_bounds,
+    class_comparison,
     class_ece,
     class_log_loss,
     ece_from_stats,
@@ -560,3 +561,20 @@ def test_per_object_class_marginals_of_no_object_give_nan_and_zero_stats() -> No
     got = evaluate(empty, 2, TRUE_POSE, TRUE_OBJECTS)
     assert math.isnan(got["msde"]) and math.isnan(got["class_ece"])
     assert_close(evaluate_calibration(empty, 2, TRUE_OBJECTS), np.zeros((3, ECE_BINS)))
+
+
+def test_class_comparison_scores_both_beliefs_on_the_objects_both_know_only() -> None:
+    # mine knows 3, 7, 9; theirs 9, 3, 5 (another order): shared 3 and 9
+    prob = np.array([[0.9, 0.1], [0.2, 0.8], [0.35, 0.65]])
+    other = np.array([[0.6, 0.4], [0.7, 0.3], [0.5, 0.5]])
+    truth = {3: 0, 5: 1, 7: 1, 9: 1}
+    gap, mine, theirs = class_comparison([3, 7, 9], prob, [9, 3, 5], other, truth)
+    # object 3: |0.9 − 0.7| = 0.2; object 9: |0.35 − 0.6| = 0.25 (not 7's 0.8 against anything)
+    assert gap == pytest.approx(0.25)
+    assert mine == pytest.approx(-(np.log(0.9) + np.log(0.65)) / 2)
+    assert theirs == pytest.approx(-(np.log(0.7) + np.log(0.4)) / 2)
+    # swapped roles: the same gap, the log-losses swap
+    assert class_comparison([9, 3, 5], other, [3, 7, 9], prob, truth) == pytest.approx(
+        (gap, theirs, mine)
+    )
+    assert all(np.isnan(class_comparison([7], prob[1:2], [5], other[2:], truth)))
