@@ -245,6 +245,14 @@ def study_runs(doc: Mapping[str, Any], arrays: Mapping[str, NDArray[Any]]) -> li
         for m in methods
         if f"{m}/stack_bytes" in arrays
     }
+    per_run = (len(doc["seeds"]), len(doc["robots"]), doc["steps"])
+    for m in methods:
+        for name in (*METRICS, *CROSS_METRICS):
+            got = arrays.get(f"{m}/{name}")
+            if got is not None and got.shape != per_run:
+                raise ValueError(
+                    f"{m}/{name} has shape {got.shape}, not (runs, robots, steps) {per_run}"
+                )
     runs = []
     for i, seed in enumerate(doc["seeds"]):
         metrics: dict[str, dict[str, Array]] = {}

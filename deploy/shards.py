@@ -144,12 +144,23 @@ def merge_shards(folders: Sequence[Path]) -> Merged:
             f"shard {', '.join(map(str, missing))} missing: no folder given holds "
             f"seed{'s' if len(seeds) > 1 else ''} {_listed(seeds)}"
         )
-    runs = {r.seed: r for doc, arrays in docs.values() for r in study_runs(doc, arrays)}
+    runs = {r.seed: r for folder, (doc, arrays) in docs.items() for r in _runs(folder, doc, arrays)}
     ordered = [runs[s] for s in study_seeds]
     skip = {*ENVELOPE, "robots", SHARD}
     settings = {k: v for k, v in ref.items() if k not in skip}
     archive = study_archive(ref["scenario"], ordered, list(ref["methods"]), settings)
     return Merged(archive, ordered, entry["snapshot_step"], entry["snapshot_robot"], by_index[0])
+
+
+def _runs(folder: Path, doc: dict[str, Any], arrays: dict[str, Any]) -> list[RunResult]:
+    """The runs of one shard; an array the shard's results.npz lacks or holds in the wrong shape
+    is a ``UsageError`` naming the folder and the array."""
+    try:
+        return study_runs(doc, arrays)
+    except KeyError as exc:
+        raise UsageError(f"{folder}/results.npz: no array {exc}") from None
+    except (ValueError, IndexError, TypeError) as exc:
+        raise UsageError(f"{folder}/results.npz: {exc}") from None
 
 
 def _difference(a: dict[str, Any], b: dict[str, Any]) -> str:

@@ -223,3 +223,34 @@ def test_study_merge_takes_paper_and_checks_the_world_of_the_shards(
     argv = ["study", "merge", str(runs / "s0"), str(runs / "s1"), "--out", str(tmp_path / "m")]
     why = _refusal([*argv, "--paper"], capsys)
     assert "'pair'" in why and "--paper" in why
+
+
+def _npz_edited(src: Path, dst: Path, edit: Any) -> Path:
+    shutil.copytree(src, dst)
+    with np.load(dst / "results.npz") as npz:
+        arrays = {k: npz[k] for k in npz.files}
+    edit(arrays)
+    np.savez_compressed(dst / "results.npz", **arrays)
+    return dst
+
+
+def test_study_merge_refuses_a_shard_whose_arrays_are_missing_or_misshapen(
+    runs: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    s0, s1 = runs / "s0", runs / "s1"
+    out = str(tmp_path / "m")
+
+    def crop(arrays: dict[str, np.ndarray]) -> None:
+        arrays["distributed/class_log_loss_local_objects"] = arrays[
+            "distributed/class_log_loss_local_objects"
+        ][:, :, :-1]
+
+    bad_shape = _npz_edited(s1, tmp_path / "shape", crop)
+    why = _refusal(["study", "merge", str(s0), str(bad_shape), "--out", out], capsys)
+    assert str(bad_shape) in why and "distributed/class_log_loss_local_objects" in why
+    assert "shape" in why
+
+    missing = _npz_edited(s1, tmp_path / "missing", lambda a: a.pop("local/msde"))
+    why = _refusal(["study", "merge", str(s0), str(missing), "--out", out], capsys)
+    assert str(missing) in why and "local/msde" in why
+    assert not (tmp_path / "m").exists()
