@@ -116,6 +116,7 @@ _METHOD_STYLE: dict[str, dict[str, Any]] = {
     "distributed": {"color": "tab:green", "ls": "-"},
     "double_count": {"color": "tab:red", "ls": "--"},
     "centralized": {"color": "black", "ls": ":"},
+    "received": {"color": "tab:purple", "ls": "-."},
 }
 
 

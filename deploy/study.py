@@ -45,7 +45,12 @@ from sim.sensors import Simulator
 
 Array = NDArray[np.float64]
 
-METHODS = ("local", "distributed", "double_count", "centralized")
+METHODS = ("local", "distributed", "double_count", "centralized", "received")
+RECEIVED_NEEDS = (
+    "the method received follows the slots the distributed fleet received: add distributed"
+)
+# What a study runs unless told: ``received`` costs one centralized belief per robot.
+DEFAULT_METHODS = ("local", "distributed", "double_count", "centralized")
 FLEET_METHODS = {"distributed": "consistent", "double_count": "double_count"}
 # What a run records per robot and step next to the metrics, (robots, steps, 3) each: the
 # belief's estimate of the robot's pose (the hypotheses' weighted mean) and the true pose.
@@ -169,6 +174,8 @@ def run_single(
     unknown = [m for m in methods if m not in METHODS]
     if unknown:
         raise ValueError(f"unknown methods {unknown} (known: {', '.join(METHODS)})")
+    if "received" in methods and "distributed" not in methods:
+        raise ValueError(RECEIVED_NEEDS)
     sim = Simulator(scenario, seed)
     frames = sim.all_frames()
     truth_objects = true_objects(scenario)
@@ -183,7 +190,9 @@ def run_single(
     }
     fleet_methods = [m for m in methods if m in FLEET_METHODS]
     for rec in recorders.values():  # the beliefs compare_beliefs holds against each other
-        rec.keep_classes = len(recorders) > 1 and bool({"local", "centralized"} & set(methods))
+        rec.keep_classes = len(recorders) > 1 and bool(
+            {"local", "centralized", "received"} & set(methods)
+        )
     if "local" in methods or fleet_methods:
         _run_shared_local(scenario, model, config, seed, comm, frames, recorders, fleet_methods)
     if "centralized" in methods:
@@ -201,6 +210,8 @@ def run_single(
             snaps = belief.snapshots(robots)
             for i, robot in enumerate(robots):
                 rec.record(belief, i, robot, k, ms if i == 0 else 0.0, snaps[robot])
+    if "received" in methods:
+        _run_received(scenario, model, config, seed, frames, recorders)
     compare_beliefs(recorders, {j: c for j, (_, c) in truth_objects.items()})
     for method in methods:
         rec = recorders[method]
@@ -259,6 +270,7 @@ def _run_shared_local(
         for m in fleet_methods
     ]
     local = recorders.get("local")
+    received_by = recorders["distributed"] if "received" in recorders else None
 
     def step_locals(k: int) -> None:
         for r in robots:
@@ -274,6 +286,9 @@ def _run_shared_local(
             rec.step_ms.append(ms)
             rec.fusion_ms.append(fused_ms)
             rec.record(node.distributed, index[robot], robot, k, ms)
+            if rec is received_by:
+                versions = {o: node.stack.version_of(o) for o in robots if o != robot}
+                rec.received[robot].append({o: v[1] for o, v in versions.items() if v})
 
         return on_step
 
@@ -284,14 +299,47 @@ def _run_shared_local(
         recorders[m].fleet = st
 
 
+def _run_received(
+    scenario: Scenario,
+    model: BeliefModel,
+    config: BeliefConfig,
+    seed: int,
+    frames: dict[str, list[SensorFrame]],
+    recorders: dict[str, Recorder],
+) -> None:
+    """``received``: for every robot r, a centralized belief over exactly what r's distributed
+    belief was given: r's own frames up to k, and each other robot's up to the stamp of its slot
+    in r's stack after step k (``Recorder.received`` of the distributed fleet). D approximates
+    it (Eq. 20, a sparse ξ), so D against it measures the fusion alone, where D against
+    ``centralized`` also counts the news that has not reached r yet. A robot behind by several
+    steps catches up in several belief steps of its frames alone."""
+    robots = scenario.robot_ids
+    rec = recorders["received"]
+    stamps = recorders["distributed"].received
+    for i, robot in enumerate(robots):
+        belief = HybridBelief(model, {r: scenario.robot(r).start for r in robots}, config)
+        rng = belief_rng(seed, robots)
+        for k in range(1, scenario.steps + 1):
+            target = {**{r: 0 for r in robots}, **stamps[robot][k - 1], robot: k}
+            t = time.perf_counter()
+            while behind := [r for r in robots if belief.step_of[r] < target[r]]:
+                belief.step([frames[r][belief.step_of[r]] for r in behind], rng)
+            ms = 1e3 * (time.perf_counter() - t)
+            rec.step_ms.append(ms)
+            snap = belief.snapshots([robot])[robot] if rec.scores(k) else None
+            rec.record(belief, i, robot, k, ms, snap)
+
+
 def compare_beliefs(recorders: Mapping[str, Recorder], true_classes: Mapping[int, int]) -> None:
     """Fill each method's :data:`CROSS_METRICS` from the class marginals its recorder kept, at
     every row and step both it and the other belief scored, and drop the marginals:
     ``class_gap_central`` and ``class_log_loss_centralized_here`` against the centralized
-    belief on this belief's objects, ``class_log_loss_local_objects`` this belief's log-loss on
-    the objects the robot's local belief knows."""
+    belief on this belief's objects, ``class_gap_received`` against ``received``,
+    ``class_log_loss_local_objects`` this belief's log-loss on the objects the robot's local
+    belief knows."""
     pairs = (
         ("centralized", ("class_gap_central", None, "class_log_loss_centralized_here")),
+        ("received", ("class_gap_received", None, None)),
         ("local", (None, "class_log_loss_local_objects", None)),
     )
     for method, rec in recorders.items():
@@ -355,6 +403,9 @@ class Recorder:
         # them for :func:`compare_beliefs` (``keep_classes``)
         self.keep_classes = False
         self.classes: dict[tuple[int, int], tuple[tuple[int, ...], Array]] = {}
+        # robot → per step, the stamp of every other robot's slot its stack held after the step
+        # (the distributed fleet's, for ``received``)
+        self.received: dict[str, list[dict[str, int]]] = {r: [] for r in rows}
 
     def record(
         self,

@@ -35,12 +35,14 @@ METRICS = (
 # Per-step metrics that compare one belief with another of the same robot and step, on the
 # objects both know (docs/results.md, "Against another belief"): the largest |ΔP| of a class
 # marginal against the centralized belief, the centralized belief's class log-loss on this
-# belief's objects, and this belief's class log-loss on the objects the robot's local belief knows.
+# belief's objects, the largest |ΔP| against the centralized belief over what this robot received,
+# and this belief's class log-loss on the objects the robot's local belief knows.
 # A method's own class_log_loss is over its own objects: a belief that knows more objects than
 # another is scored on harder ones too, and these say how the two compare on the same ones.
 CROSS_METRICS = (
     "class_gap_central",
     "class_log_loss_centralized_here",
+    "class_gap_received",
     "class_log_loss_local_objects",
 )
 

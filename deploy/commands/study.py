@@ -26,7 +26,7 @@ from deploy.paper_figures import PAPER_SOURCE, PaperValue, compare, paper_world_
 from deploy.results import study_archive, write_archive
 from deploy.scenario_args import scenario_from_args
 from deploy.shards import Shard, merge_shards, shard_entry, study_key, write_merged_plots
-from deploy.study import METHODS, run_study
+from deploy.study import DEFAULT_METHODS, METHODS, RECEIVED_NEEDS, run_study
 from deploy.study_report import render_paper, render_summary, write_plots
 from estimator.hybrid import (
     POSE_WINDOW,
@@ -45,6 +45,8 @@ def _methods(text: str) -> list[str]:
         raise argparse.ArgumentTypeError(
             f"unknown method(s) {unknown} (available: {', '.join(METHODS)})"
         )
+    if "received" in methods and "distributed" not in methods:
+        raise argparse.ArgumentTypeError(RECEIVED_NEEDS)
     return list(dict.fromkeys(methods))
 
 
@@ -225,8 +227,10 @@ def add_parser(sub: Any) -> None:
     p.add_argument(
         "--methods",
         type=_methods,
-        default=list(METHODS),
-        help=f"comma-separated, from: {', '.join(METHODS)}",
+        default=list(DEFAULT_METHODS),
+        help=f"comma-separated, from: {', '.join(METHODS)} (default: "
+        f"{','.join(DEFAULT_METHODS)}; received: the centralized belief over what each robot has "
+        "received, needs distributed)",
     )
     p.add_argument("--runs", type=positive_int, default=10)
     p.add_argument("--jobs", type=positive_int, default=2, help="parallel processes")

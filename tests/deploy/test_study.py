@@ -602,3 +602,45 @@ def test_run_single_compares_each_belief_with_the_centralized_and_local_ones() -
     alone = run_single(scenario, ["distributed"], 5, BeliefConfig())
     for name in CROSS_METRICS:
         assert np.isnan(alone.metrics["distributed"][name]).all(), name
+
+
+def test_received_is_the_centralized_belief_over_what_each_robot_was_given(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    # The robots talk from step 8 only: until then each has received nothing and `received`
+    # knows the robot's own objects, as L and D do (not C, which knows both robots'); from step 8
+    # on it catches up with the other robot's frames up to the stamp D holds (7 at step 8, several
+    # belief steps at once) and knows what D knows. D then differs from it by the fusion alone:
+    # far less than from C, which is a step ahead with the other robot's news.
+    objects = []
+    for i in range(ROBOTS):
+        y = 4.0 * i
+        objects += [(4.5, y + 0.5, math.pi / 2, 1 + i), (5.0, y - 0.5, 0.0, 2 - i)]
+    comm = 'mode = "schedule"\nrange = 10.0\nschedule = [[8, 12, "r1", "r2"]]'
+    text = fleet_text("late", STEPS, [0.0, 4.0], objects, communication=comm)
+    scenario = parse_scenario(text, "late.toml")
+    methods = ["local", "distributed", "centralized", "received"]
+    for step in (7, STEPS):
+        result = run_single(scenario, methods, 5, BeliefConfig(), snapshot_step=step)
+        for robot in scenario.robot_ids:
+            known = {m: set(result.snapshots[m][robot].object_ids) for m in methods}
+            assert known["received"] == known["distributed"], (step, robot)
+            assert known["centralized"] == {1, 2, 3, 4}
+            if step == 7:
+                assert known["received"] == known["local"] != known["centralized"]
+            else:
+                assert known["received"] == known["centralized"] != known["local"]
+    d = result.metrics["distributed"]
+    assert np.nanmax(d["class_gap_received"]) < 0.02
+    assert np.nanmax(d["class_gap_central"]) > 0.1
+    assert np.isnan(result.metrics["received"]["class_gap_received"]).all()
+    assert np.isfinite(result.metrics["received"]["robot_error"]).all()
+
+    with pytest.raises(ValueError, match="add distributed"):
+        run_single(scenario, ["local", "received"], 5, BeliefConfig())
+    argv = ["study", "--scenario", "paper", "--methods", "local,received", "--runs", "1"]
+    with pytest.raises(SystemExit) as refused:  # argparse's own refusal, as one line
+        main(argv)
+    assert refused.value.code == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "add distributed" in err, err
