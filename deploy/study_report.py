@@ -23,6 +23,7 @@ SUMMARY_METRICS = (
     "class_log_loss",
     "class_ece_pooled",
     "class_gap_central",
+    "class_gap_received",
     "robot_error",
     "object_error",
     "robot_nees",
@@ -56,15 +57,23 @@ def render_summary(
     table.add_column("metric")
     for k in at:
         table.add_column(f"k = {k}", justify="right")
+
+    def curve(entry: dict[str, Any], metric: str) -> list[float | None]:
+        values = entry[metric] if metric in entry else entry["mean"].get(metric)
+        return [None] * steps if values is None else values
+
+    # a row no method has a figure for (a comparison with a method the study did not run) is left
+    # out of every method's rows
+    shown = [
+        metric
+        for metric in SUMMARY_METRICS
+        if any(curve(e, metric)[k - 1] is not None for e in doc["methods"].values() for k in at)
+    ]
     for method, entry in doc["methods"].items():
-        for i, metric in enumerate(SUMMARY_METRICS):
-            curve = entry[metric] if metric in entry else entry["mean"].get(metric)
-            if curve is None:
-                curve = [None] * steps
-            cells = ["—" if curve[k - 1] is None else f"{curve[k - 1]:.4g}" for k in at]
-            table.add_row(
-                method if i == 0 else "", metric, *cells, end_section=i == len(SUMMARY_METRICS) - 1
-            )
+        for i, metric in enumerate(shown):
+            values = curve(entry, metric)
+            cells = ["—" if values[k - 1] is None else f"{values[k - 1]:.4g}" for k in at]
+            table.add_row(method if i == 0 else "", metric, *cells, end_section=i == len(shown) - 1)
     console.print(table)
     columns = ("method", "wall s", "belief step ms", "fusion ms", "stack bytes")
     counts = ("empty_joins", "rebuilds", "refused")

@@ -384,6 +384,7 @@ def _doc(steps: int) -> dict[str, Any]:
     }
     fleet = {
         **entry,
+        "mean": {**entry["mean"], "class_gap_central": [0.0625] * steps},
         **{
             f"fusion_ms_{q}": v for q, v in (("p50", 0.1), ("p95", 0.2), ("p99", 0.3), ("max", 0.4))
         },
@@ -427,6 +428,17 @@ def test_render_summary_fits_80_columns_without_cutting_a_figure() -> None:
     assert "…" not in text and max(len(line) for line in text.splitlines()) <= 80, text
     assert "1.00 / 2.00 / 3.00 / 4.00" in text and "0.10 / 0.20 / 0.30 / 0.40" in text
     assert "distributed" in text and "rebuilds" in text
+
+
+def test_render_summary_leaves_out_a_comparison_no_method_has() -> None:
+    # the fleet has a gap to the centralized belief, local has none (dashes); no method has one
+    # to `received`, which the study did not run: no row
+    console = Console(record=True, width=250)
+    render_summary(_doc(8), console, [4, 8])
+    rows = [line for line in console.export_text().splitlines() if "class_gap" in line]
+    assert len(rows) == 2 and all("class_gap_central" in r for r in rows), rows
+    assert sorted(r.count("0.0625") for r in rows) == [0, 2]
+    assert sorted(r.count("—") for r in rows) == [0, 2]
 
 
 def test_render_summary_without_pooled_ece_shows_dashes() -> None:
