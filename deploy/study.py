@@ -13,6 +13,7 @@ split, that layout would be spread over modules that must change together.
 
 from __future__ import annotations
 
+import dataclasses
 import multiprocessing
 import time
 from collections.abc import Callable, Collection, Mapping, Sequence
@@ -312,10 +313,14 @@ def _run_received(
     in r's stack after step k (``Recorder.received`` of the distributed fleet). D approximates
     it (Eq. 20, a sparse ξ), so D against it measures the fusion alone, where D against
     ``centralized`` also counts the news that has not reached r yet. A robot behind by several
-    steps catches up in several belief steps of its frames alone."""
+    steps catches up in several belief steps of its frames alone. It keeps every robot pose (no
+    window, ``BeliefConfig.window``): its robots do not step together."""
     robots = scenario.robot_ids
     rec = recorders["received"]
     stamps = recorders["distributed"].received
+    # its robots do not step together (one out of range stays behind): a window of poses would
+    # marginalise the pose a lagging robot continues from, so this reference keeps every pose
+    config = dataclasses.replace(config, window=None)
     for i, robot in enumerate(robots):
         belief = HybridBelief(model, {r: scenario.robot(r).start for r in robots}, config)
         rng = belief_rng(seed, robots)

@@ -955,6 +955,19 @@ class HybridBelief:
                     f"robot {f.robot!r} is at step {self.step_of[f.robot]}, got frame {f.k}"
                 )
             seen.add(f.robot)
+        window = self.config.window
+        if window is not None and len(self.robots) > 1:
+            # the window marginalises every pose older than the newest step less a window: a
+            # robot further behind would lose the pose its next frame continues
+            after = {**self.step_of, **{f.robot: f.k for f in frames}}
+            lead = max(after, key=after.__getitem__)
+            lag = min(after, key=after.__getitem__)
+            if after[lead] - after[lag] > window:
+                raise ValueError(
+                    f"robot {lag!r} would be {after[lead] - after[lag]} steps behind {lead!r}: a "
+                    f"window of {window} poses needs the robots of one belief to step within a "
+                    "window of each other (window=None keeps every pose)"
+                )
 
     @property
     def relinearize_threshold(self) -> float:

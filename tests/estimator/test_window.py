@@ -290,3 +290,28 @@ def test_a_windowed_belief_replays_bit_for_bit() -> None:
     for a, b in zip(first_classes, again_classes, strict=True):
         np.testing.assert_array_equal(a, b)
     np.testing.assert_array_equal(_object_positions(first), _object_positions(again))
+
+
+def test_a_windowed_belief_refuses_a_robot_a_window_behind_the_others() -> None:
+    # The window marginalises every pose older than the newest step less a window: a robot that
+    # far behind would lose the pose its next frame continues, and iSAM2 would fail on a missing
+    # key some steps later. The belief says so at the step that would leave it behind.
+    s = _world(0)
+    model = belief_model(s)
+    frames = Simulator(s, 0).all_frames()
+    lead, lag = s.robot_ids[:2]
+    belief = HybridBelief(
+        model, {r: s.robot(r).start for r in (lead, lag)}, BeliefConfig(window=WINDOW)
+    )
+    rng = belief_rng(0, [lead, lag])
+    for k in range(WINDOW):
+        belief.step([frames[lead][k]], rng)
+    with pytest.raises(ValueError, match=rf"{lag!r} would be {WINDOW + 1} steps behind {lead!r}"):
+        belief.step([frames[lead][WINDOW]], rng)
+    assert belief.step_of[lead] == WINDOW  # refused before anything changed
+    belief.step([frames[lead][WINDOW], frames[lag][0]], rng)  # the laggard catches up: fine
+    free = HybridBelief(
+        model, {r: s.robot(r).start for r in (lead, lag)}, BeliefConfig(window=None)
+    )
+    for k in range(WINDOW + 2):
+        free.step([frames[lead][k]], rng)  # without a window every pose stays: no bound
