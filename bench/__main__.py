@@ -10,7 +10,6 @@ import sys
 import time
 
 from bench import (
-    Result,
     bench_agents,
     bench_belief,
     bench_capacity,
@@ -23,6 +22,7 @@ from bench import (
     bench_secure,
     bench_study,
     bench_ufastslam,
+    format_table,
 )
 
 # The study last: it takes the longest and wants a machine the other benchmarks left alone.
@@ -40,32 +40,6 @@ MODULES = (
     bench_mapscale,
     bench_study,
 )
-
-_HEADER = ("benchmark", "N", "ms", "baseline ms", "speed-up", "throughput /s", "note")
-
-
-def _cells(r: Result) -> tuple[str, ...]:
-    baseline = "" if r.baseline_ms is None else f"{r.baseline_ms:.3f}"
-    speedup = "" if r.speedup is None else f"{r.speedup:.1f}x"
-    rate = "" if r.per_second is None else f"{r.per_second:,.0f} {r.unit}"
-    return (r.name, str(r.n), f"{r.ms:.3f}", baseline, speedup, rate, r.note)
-
-
-def format_table(results: list[Result]) -> str:
-    """Aligned plain-text table: text columns left-aligned, numbers right-aligned."""
-    rows = [_HEADER, *(_cells(r) for r in results)]
-    widths = [max(len(row[i]) for row in rows) for i in range(len(_HEADER))]
-    left = {0, len(_HEADER) - 1}
-
-    def line(row: tuple[str, ...]) -> str:
-        cells = (
-            c.ljust(w) if i in left else c.rjust(w)
-            for i, (c, w) in enumerate(zip(row, widths, strict=True))
-        )
-        return "  ".join(cells).rstrip()
-
-    rule = "  ".join("-" * w for w in widths)
-    return "\n".join([line(rows[0]), rule, *(line(r) for r in rows[1:])])
 
 
 def selected(names: list[str]) -> tuple[object, ...]:

@@ -13,7 +13,7 @@ import time
 import numpy as np
 
 from bench import Result
-from deploy.study import belief_model, belief_rng
+from deploy.base.build import belief_model, belief_rng
 from estimator.hybrid import BeliefConfig, HybridBelief
 from estimator.reference import laplace_class_posterior
 from sim.loader import load_scenario, parse_scenario

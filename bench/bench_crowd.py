@@ -87,7 +87,7 @@ def meeting_text(seed: int = 0) -> str:
 
 
 def _measure(text: str, centralized: bool, queue: mp.Queue[object]) -> None:
-    from deploy.study import belief_model, belief_rng
+    from deploy.base.build import belief_model, belief_rng
     from estimator.hybrid import BeliefConfig, HybridBelief
     from sim.loader import parse_scenario
     from sim.sensors import Simulator

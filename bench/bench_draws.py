@@ -20,7 +20,7 @@ import numpy as np
 from scipy.special import logsumexp
 
 from bench import Result
-from deploy.build import belief_model, belief_rng
+from deploy.base.build import belief_model, belief_rng
 from estimator import hybrid
 from estimator.factors import object_key
 from estimator.hybrid import BeliefConfig, HybridBelief

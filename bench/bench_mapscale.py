@@ -44,8 +44,10 @@ from multiprocessing import get_context
 
 import numpy as np
 
-from bench import Result
-from deploy.study import RunResult, belief_model, belief_rng, run_single
+from bench import Result, format_table
+from deploy.base.build import belief_model, belief_rng
+from deploy.study.runner import run_single
+from deploy.study.types import RunResult
 from estimator.hybrid import BeliefConfig, HybridBelief
 from estimator.slots import summarise
 from estimator.summary import Slot
@@ -267,8 +269,6 @@ def run() -> list[Result]:
 
 
 if __name__ == "__main__":
-    from bench.__main__ import format_table
-
     print(format_table(run()))
     for line in notes():
         print(f"- {line}")

@@ -14,8 +14,8 @@ import time
 import numpy as np
 
 from bench import Result
-from deploy.build import belief_model, belief_rng
-from deploy.study import true_objects
+from deploy.base.build import belief_model, belief_rng
+from deploy.study.runner import true_objects
 from estimator.factors import object_key
 from estimator.hybrid import BeliefConfig, HybridBelief
 from sim.loader import load_scenario

@@ -4,7 +4,7 @@ paper's largest stack, measured in the same run; and the time to sign and to ver
 
 Both paths are the agent's: Zenoh thread → loop → decode (with the roster's keys when secure) →
 merge. The sessions of the secure path hold the identities of a fleet made by
-:func:`deploy.fleet_init.init_fleet` (robot r1 publishes, robot r2 receives).
+:func:`deploy.operator.fleet_init.init_fleet` (robot r1 publishes, robot r2 receives).
 """
 
 from __future__ import annotations
@@ -26,10 +26,10 @@ from agents.node import RobotNode, Signing
 from agents.transport.zenoh_transport import ZenohSettings, ZenohTransport
 from bench import Result
 from bench.gossip_paths import ROUNDS, _Pair, _paper_stacks, _plain_pair
-from deploy.commands.scenario import model_text
-from deploy.fleet_init import init_fleet, loopback_spec
+from deploy.base.build import belief_model, belief_rng
+from deploy.cli.commands.scenario import model_text
 from deploy.launch import free_ports
-from deploy.study import belief_model, belief_rng
+from deploy.operator.fleet_init import init_fleet, loopback_spec
 from protocol.codec import StackMessage, decode, encode, sign_slot
 from protocol.scan import scan
 from protocol.signing import SigningKeys, digest_of_parts, verify_digest

@@ -15,11 +15,11 @@ from pathlib import Path
 
 import numpy as np
 
-from bench import Result, median_seconds
-from deploy.fleet import link_model_for, make_nodes, run_fleet
-from deploy.results import study_archive, write_archive
-from deploy.study import belief_model, belief_rng, run_study
-from deploy.study_report import write_plots
+from bench import Result, format_table, median_seconds
+from deploy.study.archive import study_archive, write_archive
+from deploy.study.fleet import link_model_for, make_nodes, run_fleet
+from deploy.study.report import write_plots
+from deploy.study.runner import belief_model, belief_rng, run_study
 from estimator.hybrid import BeliefConfig
 from estimator.metrics import chi2_bounds
 from protocol.codec import StackMessage, decode, encode
@@ -131,8 +131,6 @@ def run() -> list[Result]:
 
 
 if __name__ == "__main__":
-    from bench.__main__ import format_table
-
     table = format_table(run())
     print(table)
     for line in notes():

@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from bench import Result, median_seconds
-from deploy.ufastslam_study import filter_config
+from deploy.study.ufastslam import filter_config
 from estimator.ufastslam import Observation, UFastSLAM, UFastSLAMConfig
 from sim.ufastslam import Run, UWorld, load_world, simulate
 

@@ -33,9 +33,9 @@ from agents.transport.base import Inbox, Keys
 from agents.transport.zenoh_transport import ZenohTransport, settings_for
 from bench import Result
 from bench.agent_path import agent_row, loop_reading
-from deploy.fleet import link_model_for, make_nodes, run_fleet
+from deploy.base.build import belief_model, belief_rng
 from deploy.launch import free_ports
-from deploy.study import belief_model, belief_rng
+from deploy.study.fleet import link_model_for, make_nodes, run_fleet
 from estimator.hybrid import BeliefConfig
 from protocol.codec import StackMessage, decode, encode
 from protocol.stack import Slot, Stack

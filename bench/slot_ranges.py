@@ -18,8 +18,8 @@ from collections.abc import Iterable
 import numpy as np
 
 from agents.node import RobotNode
-from deploy.fleet import link_model_for, make_nodes, run_fleet
-from deploy.study import belief_model, belief_rng
+from deploy.base.build import belief_model, belief_rng
+from deploy.study.fleet import link_model_for, make_nodes, run_fleet
 from estimator.hybrid import BeliefConfig
 from estimator.slots import summarise
 from estimator.summary import LocalSummary

@@ -1,6 +1,10 @@
 """Evaluation of an estimate against ground truth (design doc §8), for both estimators: the hybrid
 belief's metrics, and the consistency measures every study shares — NEES and its χ² bounds (from
-scipy). Pure functions of arrays."""
+scipy). Pure functions of arrays.
+
+Over 300 lines for a reason: every figure the studies and the launches report is defined here,
+side by side (errors, calibration, consistency, the mixture moments the viewers draw), so that
+all of them score a belief the same way."""
 
 from __future__ import annotations
 
@@ -177,6 +181,22 @@ def mixture_position_moments(weights: Array, pose: Array, cov: Array) -> tuple[A
     within = world_position_cov(pose, cov)
     total = np.sum(w[..., None] * (within + spread[..., :, None] * spread[..., None, :]), axis=0)
     return mean, total
+
+
+def mixture_moments(weights: Array, poses: Array, covs: Array) -> tuple[Array, Array]:
+    """Weighted mean pose (..., 3) and moment-matched world position covariance (..., 2, 2) of
+    the hypotheses' Gaussians: weights (H,), poses (H, ..., 3), covs (H, ..., 3, 3).
+
+    x, y and the covariance are :func:`mixture_position_moments`; θ is the
+    weighted circular mean.
+    """
+    w = weights.reshape((-1,) + (1,) * (poses.ndim - 2))
+    xy, cov = mixture_position_moments(weights, poses, covs)
+    theta = np.arctan2(
+        np.sum(w * np.sin(poses[..., 2]), axis=0),
+        np.sum(w * np.cos(poses[..., 2]), axis=0),
+    )
+    return np.concatenate([xy, theta[..., None]], axis=-1), cov
 
 
 def mixture_position_nees(weights: Array, pose: Array, cov: Array, truth_xy: Array) -> Array:

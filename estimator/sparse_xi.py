@@ -28,7 +28,7 @@ from scipy.linalg import lapack
 from scipy.sparse import bsr_array, coo_array, csr_array
 from scipy.sparse.csgraph import breadth_first_order, minimum_spanning_tree
 
-from estimator.summary import Xi
+from estimator.xi import Xi
 
 if TYPE_CHECKING:  # GTSAM is imported where a factor is made: a decoder needs only the arrays
     import gtsam

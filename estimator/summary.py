@@ -5,30 +5,15 @@ from __future__ import annotations
 
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, overload
+from typing import overload
 
 import numpy as np
 from numpy.typing import NDArray
 
-if TYPE_CHECKING:  # estimator.sparse_xi builds on Xi
-    from estimator.sparse_xi import SparseXi
+from estimator.sparse_xi import SparseXi
+from estimator.xi import Xi
 
 Array = NDArray[np.float64]
-
-
-@dataclass(frozen=True, slots=True, eq=False)
-class Xi:
-    """ξ of Eq. 18: a prior-divided joint Gaussian over the owner's n objects in information form.
-
-    ``lin`` (n, 3) linearisation poses; ``info`` (3n, 3n) Λ, symmetric positive definite; ``eta``
-    (3n,) η, so that ξ ∝ exp(−½ δᵀΛδ + ηᵀδ) over tangent perturbations δ at ``lin``. Several
-    realisations of one slot may share one ξ (the same object): every realisation of a belief
-    whose hypotheses share one continuous belief does (docs/estimator.md).
-    """
-
-    lin: Array
-    info: Array
-    eta: Array
 
 
 @dataclass(frozen=True, slots=True, eq=False)

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import pytest
 
-from deploy.cli import build_parser, main
+from deploy.cli.main import build_parser, main
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]

@@ -5,6 +5,7 @@ from __future__ import annotations
 import ast
 import subprocess
 import sys
+from collections.abc import Mapping
 from pathlib import Path
 
 import pytest
@@ -127,3 +128,126 @@ def test_protocol_imports_no_gtsam() -> None:
 
 def test_gtsam_probe_sees_a_gtsam_import() -> None:
     assert _loads_gtsam(["estimator.summary", "estimator.hybrid"]) == ["estimator.hybrid"]
+
+
+# The floors inside deploy/ (docs/architecture.md, "Where things go"): a folder imports only the
+# folders below it. base is the floor; study the researchers' runs; operator a real fleet; launch
+# local fleets of processes; cli the command line over all of them.
+DEPLOY_FLOORS = ("base", "study", "operator", "launch", "cli")
+CODE_PACKAGES = (*sorted(ALLOWED_PROJECT_IMPORTS), "bench")
+
+
+def _module_name(path: Path) -> str:
+    return ".".join(path.relative_to(ROOT).with_suffix("").parts).removesuffix(".__init__")
+
+
+def _project_modules() -> dict[str, Path]:
+    return {_module_name(p): p for package in CODE_PACKAGES for p in _sources(package)}
+
+
+def _resolve(name: str, modules: Mapping[str, Path]) -> str | None:
+    """The project module that ``name`` (a module, or a name in one) is, if any."""
+    parts = name.split(".")
+    for end in range(len(parts), 0, -1):
+        candidate = ".".join(parts[:end])
+        if candidate in modules:
+            return candidate
+    return None
+
+
+def _import_graph(modules: Mapping[str, Path]) -> dict[str, set[str]]:
+    """Module → the project modules it imports anywhere in its file: at the top, inside a function
+    (a lazy import) or under ``TYPE_CHECKING``; ``from a import b`` counts ``a.b`` if that is a
+    module."""
+    graph: dict[str, set[str]] = {}
+    for module, path in modules.items():
+        tree = ast.parse(path.read_text(encoding="utf-8"), filename=str(path))
+        targets: set[str] = set()
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Import):
+                names = [alias.name for alias in node.names]
+            elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+                names = [f"{node.module}.{alias.name}" for alias in node.names]
+            else:
+                continue
+            targets |= {t for n in names if (t := _resolve(n, modules)) not in (None, module)}
+        graph[module] = targets
+    return graph
+
+
+def _circles(graph: Mapping[str, set[str]]) -> list[list[str]]:
+    """The strongly connected components of more than one module (Tarjan, iterative)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    found: list[list[str]] = []
+    for root in sorted(graph):
+        if root in index:
+            continue
+        work = [(root, iter(sorted(graph[root])))]
+        index[root] = low[root] = len(index)
+        stack.append(root)
+        on_stack.add(root)
+        while work:
+            node, children = work[-1]
+            child = next(children, None)
+            if child is not None:
+                if child not in index:
+                    index[child] = low[child] = len(index)
+                    stack.append(child)
+                    on_stack.add(child)
+                    work.append((child, iter(sorted(graph[child]))))
+                elif child in on_stack:
+                    low[node] = min(low[node], index[child])
+                continue
+            work.pop()
+            if work:
+                low[work[-1][0]] = min(low[work[-1][0]], low[node])
+            if low[node] == index[node]:
+                component = []
+                while True:
+                    member = stack.pop()
+                    on_stack.discard(member)
+                    component.append(member)
+                    if member == node:
+                        break
+                if len(component) > 1:
+                    found.append(sorted(component))
+    return found
+
+
+def test_no_import_circle_between_files() -> None:
+    graph = _import_graph(_project_modules())
+    assert "deploy.study.runner" in graph and "agents.core" in graph
+    assert _circles(graph) == []
+
+
+def test_circle_finder_sees_a_lazy_circle() -> None:
+    graph = {"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}, "e": set()}
+    assert _circles(graph) == [["a", "b", "c"]]
+    assert _circles({"a": {"b"}, "b": set()}) == []
+
+
+def test_deploy_floors_point_down() -> None:
+    """A folder of deploy/ imports only the folders under it; nothing is left at deploy/'s root
+    but its ``__init__``."""
+    root_files = sorted(p.name for p in (ROOT / "deploy").glob("*.py"))
+    assert root_files == ["__init__.py"]
+    assert sorted(
+        p.name for p in (ROOT / "deploy").iterdir() if p.is_dir() and p.name[0] != "_"
+    ) == sorted(DEPLOY_FLOORS)
+    bad = []
+    for path in _sources("deploy"):
+        parts = path.relative_to(ROOT / "deploy").parts
+        if len(parts) == 1:
+            continue
+        floor = DEPLOY_FLOORS.index(parts[0])
+        tree = ast.parse(path.read_text(encoding="utf-8"), filename=str(path))
+        for name, line in _imports(tree):
+            bits = name.split(".")
+            if bits[0] != "deploy" or len(bits) < 2 or bits[1] not in DEPLOY_FLOORS:
+                continue
+            if DEPLOY_FLOORS.index(bits[1]) > floor:
+                bad.append(f"{path.relative_to(ROOT)}:{line} imports {name} (a floor above)")
+    assert not bad, "\n".join(bad)

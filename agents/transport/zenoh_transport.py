@@ -199,7 +199,7 @@ class ZenohTransport:
     """The :class:`~agents.transport.base.Transport` protocol over one Zenoh session."""
 
     # Sessions this process opened: one that did must not tear its interpreter down while Zenoh's
-    # threads may still call into it (``deploy.cli.entry``).
+    # threads may still call into it (``deploy.cli.main.entry``).
     sessions_opened: ClassVar[int] = 0
 
     def __init__(self, settings: ZenohSettings) -> None:

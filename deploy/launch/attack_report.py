@@ -10,11 +10,11 @@ from pathlib import Path
 
 from rich.console import Console
 
-from deploy.errors import UsageError
+from deploy.base.errors import UsageError
+from deploy.base.output import figures_table
 from deploy.launch import LaunchPlan
 from deploy.launch.attack_run import AttackReport, run_each
 from deploy.launch.attacks import parse_attacks
-from deploy.output import figures_table
 from sim.loader import load_scenario
 
 

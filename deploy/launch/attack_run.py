@@ -25,12 +25,12 @@ from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
 
 from agents.transport.base import Keys
 from agents.transport.zenoh_transport import ZenohSettings
-from deploy.build import belief_model, belief_rng, make_nodes
-from deploy.fleet import link_model_for, run_fleet
+from deploy.base.build import belief_model, belief_rng, make_nodes
 from deploy.launch.attacks import Achieved, Attacker, Identity, evidence, open_all, roles
 from deploy.launch.conductor import Conductor, links_at
 from deploy.launch.errors import LaunchError, PlanError
 from deploy.launch.run import Launcher, LaunchPlan
+from deploy.study.fleet import link_model_for, run_fleet
 from estimator.hybrid import BeliefConfig, BeliefSnapshot
 from sim.sensors import Simulator
 

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from deploy.errors import UsageError
+from deploy.base.errors import UsageError
 
 
 class PlanError(UsageError):

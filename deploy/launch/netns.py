@@ -37,7 +37,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from deploy.errors import UsageError
+from deploy.base.errors import UsageError
 from deploy.launch.errors import LaunchError
 from deploy.launch.netns_records import (
     first_line,

@@ -7,10 +7,10 @@ from typing import Any
 
 from rich.console import Console
 
+from deploy.base.output import FiguresTable, figures_table, size
 from deploy.launch.run import LAUNCH_METHODS, LaunchOutcome, LaunchPlan
-from deploy.output import FiguresTable, figures_table, size
-from deploy.results import study_archive, write_archive
-from deploy.study_report import render_summary, write_plots
+from deploy.study.archive import study_archive, write_archive
+from deploy.study.report import render_summary, write_plots
 
 
 def write_outputs(

@@ -27,11 +27,11 @@ import numpy as np
 from numpy.typing import NDArray
 from rich.console import Console
 
-from deploy.errors import RunFailure, UsageError
-from deploy.fleet_view import mixture_moments
+from deploy.base.errors import RunFailure, UsageError
 from deploy.launch.conductor import Collected, Conductor, links_at
 from deploy.launch.rerun_layout import fleet_blueprint
 from deploy.launch.run import LaunchOutcome, LaunchPlan, launch
+from estimator.metrics import mixture_moments
 from estimator.snapshot import BeliefSnapshot
 from protocol.estimate import EstimateMessage
 from sim.scenario import Scenario
@@ -42,7 +42,7 @@ Colour = tuple[int, ...]
 APPLICATION = "semfleet"
 INSTALL_HINT = "pip install 'semfleet[view]'"
 BELIEFS = ("local", "distributed")
-NSIGMA = 2.0  # as deploy/plots.py's ellipses
+NSIGMA = 2.0  # as deploy/study/plots.py's ellipses
 ELLIPSE_VERTICES = 48
 ARROW_M = 1.0  # heading arrows, metres
 RECORD_FLUSH_S = 2.0

@@ -4,7 +4,7 @@ The launcher allocates loopback ports, writes one agent config per robot, starts
 (:mod:`deploy.launch.supervisor`), opens the conductor's own Zenoh session, drives the run in
 ``lockstep`` or ``realtime`` mode (:mod:`deploy.launch.conductor`) with the plan's faults
 (:mod:`deploy.launch.chaos`), and returns the agents' scored estimates as a
-:class:`deploy.study.RunResult` (methods ``local`` and ``distributed``). Whatever happens —
+:class:`deploy.study.runner.RunResult` (methods ``local`` and ``distributed``). Whatever happens —
 success, an agent that died unplanned, SIGTERM, SIGHUP, Ctrl-C — every agent is stopped before
 :meth:`Launcher.run` returns or raises.
 
@@ -35,8 +35,7 @@ from agents.core import CATCH_UP_STEPS, GOSSIP_PERIOD_S
 from agents.links import LinkModel
 from agents.transport.base import Keys
 from agents.transport.zenoh_transport import ZenohSettings, ZenohTransport, loopback_endpoint
-from deploy.fleet import link_model_for
-from deploy.fleet_init import FleetSpec, endpoint_host, init_fleet
+from deploy.base.output import live_display
 from deploy.launch.chaos import KILL, Faults, Garbage
 from deploy.launch.conductor import Collected, Conductor, ConductorError
 from deploy.launch.errors import LaunchError, PlanError
@@ -50,8 +49,9 @@ from deploy.launch.supervisor import (
     write_agent_config,
 )
 from deploy.launch.table import progress_table
-from deploy.output import live_display
-from deploy.study import RunResult
+from deploy.operator.fleet_init import FleetSpec, endpoint_host, init_fleet
+from deploy.study.fleet import link_model_for
+from deploy.study.types import RunResult
 from sim.robot_model import dump_robot_model
 from sim.scenario import Scenario
 from sim.sensors import Simulator
@@ -92,7 +92,7 @@ class LaunchPlan:
     # With observe_stacks: after the last estimates, keep the fleet gossiping up to this many
     # seconds until every robot's stack holds every robot's final slot (Conductor.linger).
     linger: float = 0.0
-    # A throwaway secure fleet (deploy.fleet_init) under out/fleet: mutual TLS on loopback,
+    # A throwaway secure fleet (deploy.operator.fleet_init) under out/fleet: mutual TLS on loopback,
     # access control, owner-signed slots; the conductor holds the operator's identity.
     secure: bool = False
     # Drive the world for agents started elsewhere (a lab test of a real network): the conductor

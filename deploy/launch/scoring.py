@@ -1,5 +1,5 @@
 """The scoring of a launch: the agents' estimates against ground truth, by the study's own
-:class:`deploy.study.Recorder`, so that a launch and a study are measured by the same code.
+:class:`deploy.study.runner.Recorder`, so that a launch and a study are measured by the same code.
 
 The study records beliefs it steps itself; a launch only has the snapshots its agents published,
 so it hands those to a recorder per belief.
@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 
-from deploy.study import Recorder, true_objects
+from deploy.study.runner import Recorder, true_objects
 from estimator.hybrid import BeliefSnapshot
 from estimator.models import SensorFrame
 from sim.scenario import Scenario
@@ -19,8 +19,8 @@ BELIEFS = ("local", "distributed")
 
 class Scorer:
     """Scores beliefs against ground truth: ``metrics[belief][metric]`` (robots, steps), with the
-    recorder's tracks (``deploy.study.TRACKS``, (robots, steps, 3): the estimated and the true
-    robot pose), and the class-ECE bin statistics ``calibration[belief]`` (robots, steps, 3,
+    recorder's tracks (``deploy.study.runner.TRACKS``, (robots, steps, 3): the estimated and the
+    true robot pose), and the class-ECE bin statistics ``calibration[belief]`` (robots, steps, 3,
     ECE_BINS), for the beliefs of :data:`BELIEFS`; a step never recorded stays NaN (metrics,
     estimated pose) or zero (bins)."""
 

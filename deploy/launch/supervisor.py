@@ -34,7 +34,7 @@ from typing import Any, ClassVar
 
 import tomli_w
 
-from deploy.errors import CommandError
+from deploy.base.errors import CommandError
 from deploy.launch.errors import LaunchError
 
 SHUTDOWN_GRACE_S = 2.0

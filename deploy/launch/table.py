@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
+from deploy.base.output import FiguresTable, figures_table
 from deploy.launch.conductor import Conductor
-from deploy.output import FiguresTable, figures_table
 
 PROGRESS = (
     ("hyp L", "hypotheses_local"),

@@ -9,7 +9,7 @@ grid of inducing viewpoints ``g_1..g_G``: ``f(ψ) = offset + Σ_j w_j κ_ℓ(ψ 
 - ``Σ_c(ψ) = exp(s_c(ψ)) · S_c``: a constant residual covariance ``S_c`` (dim × dim, the
   correlations between components) scaled by ``exp`` of a GP ``s_c`` on log residual variances.
 
-The fit (scikit-learn, ``deploy.classifier_fit``) only chooses the numbers; evaluating them is
+The fit (scikit-learn, ``deploy.study.classifier_fit``) only chooses the numbers; evaluating them is
 numpy. :meth:`LearnedClassifier.from_arrays` validates the arrays of a model file and names the
 field at fault; nothing else may escape it.
 

@@ -27,7 +27,7 @@ from agents.journal import Record
 from agents.node import RobotNode
 from agents.runtime import MemoryLog, execute_journal_actions
 from agents.transport.base import Keys
-from deploy.build import belief_model, make_node
+from deploy.base.build import belief_model, make_node
 from estimator.distributed import DistributedBelief
 from estimator.hybrid import BeliefConfig
 from estimator.models import Detection, SensorFrame

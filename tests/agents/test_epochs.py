@@ -11,7 +11,7 @@ import pytest
 from agents.core import CLOCK_SKEW_S, MAX_STEP_RATE, STAMP_SLACK, AgentCore, CoreSettings, Publish
 from agents.runtime import MemoryLog, execute_journal_actions
 from agents.transport.base import Keys
-from deploy.build import belief_model, make_node
+from deploy.base.build import belief_model, make_node
 from estimator.hybrid import BeliefConfig
 from estimator.models import SensorFrame
 from protocol.codec import StackMessage, decode, encode

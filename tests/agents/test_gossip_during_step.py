@@ -15,7 +15,7 @@ from agents.core import DIGEST_REFRESH, AgentCore, CoreSettings
 from agents.runtime import Agent
 from agents.transport import Inbox, Keys, MemoryBus, MemoryTransport
 from bench.bench_crowd import crowd_text
-from deploy.build import belief_model, make_node
+from deploy.base.build import belief_model, make_node
 from estimator.hybrid import BeliefConfig
 from estimator.models import SensorFrame
 from protocol.frames import encode_frame

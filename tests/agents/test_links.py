@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from agents.links import AllOf, Proximity, RandomDrop, Schedule
-from deploy.fleet import link_model_for
+from deploy.study.fleet import link_model_for
 from sim.loader import load_scenario
 from sim.scenario import Scenario
 from sim.world import World

@@ -17,8 +17,8 @@ import pytest
 
 from agents.links import Schedule
 from agents.node import RobotNode
-from deploy.fleet import FleetStats, make_nodes, run_fleet
-from deploy.study import belief_model, belief_rng
+from deploy.base.build import belief_model, belief_rng
+from deploy.study.fleet import FleetStats, make_nodes, run_fleet
 from estimator.factors import object_key
 from estimator.hybrid import BeliefConfig, HybridBelief
 from estimator.models import SensorFrame

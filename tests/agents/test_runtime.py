@@ -27,10 +27,10 @@ from agents.links import Schedule
 from agents.node import RobotNode
 from agents.runtime import Agent
 from agents.transport import Inbox, Keys, MemoryBus, MemoryTransport
-from deploy.build import belief_model, belief_rng, make_node, make_nodes
-from deploy.fleet import run_fleet
+from deploy.base.build import belief_model, belief_rng, make_node, make_nodes
 from deploy.launch import conductor as conductor_module
 from deploy.launch.conductor import Conductor, ConductorError
+from deploy.study.fleet import run_fleet
 from estimator.hybrid import BeliefConfig, BeliefSnapshot
 from estimator.models import SensorFrame
 from protocol.codec import StackMessage, encode

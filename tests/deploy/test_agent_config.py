@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 from agents.journal import Journal
-from deploy.agent_config import AgentConfigError, load_agent_config
+from deploy.operator.agent_config import AgentConfigError, load_agent_config
 from estimator.hybrid import POSE_WINDOW
 from sim.loader import load_scenario
 from sim.robot_model import dump_robot_model
@@ -106,8 +106,8 @@ def test_agent_config_stack_gossip_is_one_of_the_known_ways_ask_by_default(tmp_p
 
 
 def test_agent_config_classes_reach_the_beliefs_of_the_agents_node(tmp_path: Path) -> None:
-    from deploy.agent_config import DEFAULT_CLASSES
-    from deploy.agent_service import node_factory
+    from deploy.operator.agent_config import DEFAULT_CLASSES
+    from deploy.operator.agent_service import node_factory
 
     assert load_agent_config(_write(tmp_path, MINIMAL), "r2").classes == DEFAULT_CLASSES
     for kind in ("per_object", "joint"):
@@ -121,7 +121,7 @@ def test_agent_config_classes_reach_the_beliefs_of_the_agents_node(tmp_path: Pat
 
 
 def test_agent_config_pose_window_reaches_the_beliefs_of_the_agents_node(tmp_path: Path) -> None:
-    from deploy.agent_service import node_factory
+    from deploy.operator.agent_service import node_factory
 
     assert load_agent_config(_write(tmp_path, MINIMAL), "r2").pose_window == POSE_WINDOW
     every = load_agent_config(_write(tmp_path, _set("agent.pose_window", '"all"')), "r1")

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from agents.core import DIGEST_LIFE, AgentCore, CoreSettings, Publish
 from agents.runtime import MemoryLog
-from deploy.build import belief_model, make_node
+from deploy.base.build import belief_model, make_node
 from estimator.hybrid import BeliefConfig
 from protocol.codec import StackMessage, decode, encode
 from protocol.frames import encode_frame

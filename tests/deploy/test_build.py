@@ -1,5 +1,6 @@
-"""deploy.build: a belief built from a robot model file equals the scenario's, and one node built
-alone (as an agent builds it) steps exactly like the same robot's node of the in-process fleet."""
+"""deploy.base.build: a belief built from a robot model file equals the scenario's, and one node
+built alone (as an agent builds it) steps exactly like the same robot's node of the in-process
+fleet."""
 
 from __future__ import annotations
 
@@ -9,8 +10,8 @@ import numpy as np
 import pytest
 
 from agents.node import RobotNode
-from deploy.build import belief_model, belief_rng, link_model_for, make_node, make_nodes
-from deploy.fleet import run_fleet
+from deploy.base.build import belief_model, belief_rng, link_model_for, make_node, make_nodes
+from deploy.study.fleet import run_fleet
 from estimator.hybrid import BeliefConfig, BeliefModel
 from estimator.snapshot import BeliefSnapshot
 from sim.loader import bundled_names, load_scenario

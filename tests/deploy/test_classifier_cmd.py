@@ -10,10 +10,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from deploy.classifier_fit import fit_classifier, truth_gap
-from deploy.classifier_samples import ScoreSamples, draw_samples, read_samples, write_samples
-from deploy.cli import main
-from deploy.errors import UsageError
+from deploy.base.errors import UsageError
+from deploy.cli.main import main
+from deploy.study.classifier_fit import fit_classifier, truth_gap
+from deploy.study.classifier_samples import ScoreSamples, draw_samples, read_samples, write_samples
 from estimator.models import AliasedClassifier, paper_classifier
 from estimator.models.learned import PeriodicGP
 from sim.learned_file import load_learned

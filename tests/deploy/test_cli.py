@@ -21,13 +21,14 @@ import pytest
 from rich.console import Console
 
 from agents.journal import JournalError
-from deploy.agent_config import AgentConfigError
-from deploy.cli import build_parser, exit_code, main
-from deploy.commands import demo as demo_cmd
-from deploy.errors import RunFailure, UsageError
+from deploy.base.errors import RunFailure, UsageError
+from deploy.cli.commands import demo as demo_cmd
+from deploy.cli.main import build_parser, exit_code, main
 from deploy.launch import LaunchError
 from deploy.launch.conductor import ConductorError
-from deploy.study import StudyError, run_seeded
+from deploy.operator.agent_config import AgentConfigError
+from deploy.study.runner import run_seeded
+from deploy.study.types import StudyError
 from estimator.distributed import SlotError
 from protocol.errors import LocalProtocolError, MalformedMessage
 from sim.scenario import ScenarioError
@@ -390,7 +391,7 @@ def test_cli_unexpected_errors_keep_their_traceback(
 def test_cli_unexpected_error_prints_its_traceback_from_a_real_process() -> None:
     script = (
         "import sys\n"
-        "from deploy import cli\nfrom deploy.commands import demo\n"
+        "from deploy.cli import main as cli\nfrom deploy.cli.commands import demo\n"
         "def run(args, console):\n"
         "    raise ValueError('a bug in a command')\n"
         "demo.run = run\n"
@@ -457,7 +458,7 @@ def test_scenario_generate_never_writes_a_file_it_cannot_read_back(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
     monkeypatch.setattr(
-        "deploy.commands.scenario.dump_scenario", lambda s: 'format = 1\nname = "x"\n'
+        "deploy.cli.commands.scenario.dump_scenario", lambda s: 'format = 1\nname = "x"\n'
     )
     out = tmp_path / "g.toml"
     code = main([*GENERATE, "--seed", "1", "-o", str(out)])
@@ -476,7 +477,7 @@ def test_study_refuses_an_unwritable_out_before_any_run(
     def no_run(*args: object, **kwargs: object) -> None:
         raise AssertionError("a run started before --out was checked")
 
-    monkeypatch.setattr("deploy.commands.study.run_study", no_run)
+    monkeypatch.setattr("deploy.cli.commands.study.run_study", no_run)
     (tmp_path / "a-file").write_text("not a directory")
     out = tmp_path / "a-file" / "study"
     code = main(["study", "--scenario", "lanes:short", "--runs", "1", "--out", str(out)])
@@ -546,9 +547,9 @@ def test_the_command_leaves_at_once_only_after_a_zenoh_session(
     monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str], sessions: int
 ) -> None:
     """A process that opened a Zenoh session exits through ``os._exit`` with the command's code
-    and its output flushed (interpreter teardown can abort it: deploy.cli.entry); any other
+    and its output flushed (interpreter teardown can abort it: deploy.cli.main.entry); any other
     through ``sys.exit``, so that its cleanups run."""
-    import deploy.cli as cli
+    import deploy.cli.main as cli
     from agents.transport.zenoh_transport import ZenohTransport
 
     def exit_now(code: int) -> None:
@@ -567,4 +568,4 @@ def test_the_console_script_is_the_entry() -> None:
     (script,) = [
         e for e in importlib.metadata.entry_points(group="console_scripts") if e.name == "semfleet"
     ]
-    assert script.value == "deploy.cli:entry"
+    assert script.value == "deploy.cli.main:entry"

@@ -16,7 +16,7 @@ import os
 import numpy as np
 import pytest
 
-from deploy.study import run_study
+from deploy.study.runner import run_study
 from estimator.hybrid import BeliefConfig
 from estimator.metrics import chi2_bounds
 from sim.loader import load_scenario

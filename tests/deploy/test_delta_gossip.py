@@ -12,7 +12,7 @@ import pytest
 from agents.core import DIGEST_LIFE, DIGEST_REFRESH, AgentCore, CoreSettings, Publish
 from agents.runtime import MemoryLog, execute_journal_actions
 from agents.transport.base import Keys
-from deploy.build import belief_model, make_node
+from deploy.base.build import belief_model, make_node
 from deploy.launch import LaunchPlan, launch
 from estimator.hybrid import BeliefConfig
 from estimator.models import SensorFrame

@@ -12,11 +12,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from deploy.cli import main
+from deploy.cli.main import main
 from deploy.launch.scoring import Scorer
-from deploy.results import study_archive, write_archive
-from deploy.study import RunResult, run_single
-from deploy.tum import tum_lines
+from deploy.study.archive import study_archive, write_archive
+from deploy.study.runner import run_single
+from deploy.study.tum import tum_lines
+from deploy.study.types import RunResult
 from estimator.hybrid import BeliefConfig
 from sim.loader import parse_scenario
 from sim.scenario import Scenario

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
-from deploy.fleet import link_model_for
+from deploy.study.fleet import link_model_for
 from estimator.hybrid import BeliefConfig
 from sim.loader import load_scenario
 from sim.scenario import Scenario

@@ -27,14 +27,15 @@ import pytest
 from agents.control import NeedFrames, Stop, decode_control
 from agents.transport.base import Inbox, Keys, Message
 from agents.transport.zenoh_transport import ZenohSettings, ZenohTransport, loopback_endpoint
-from deploy import cli
-from deploy.args import zenoh_endpoint
-from deploy.errors import UsageError
-from deploy.fleet_session import StopProgress, session_settings, stop_fleet
-from deploy.fleet_view import FleetView, estimates_doc, mixture_moments
+from deploy.base.errors import UsageError
+from deploy.cli import main as cli
+from deploy.cli.args import zenoh_endpoint
 from deploy.launch import free_ports, write_agent_config
 from deploy.launch.conductor import without_truth
+from deploy.operator.fleet_session import StopProgress, session_settings, stop_fleet
+from deploy.operator.fleet_view import FleetView, estimates_doc
 from estimator.hybrid import BeliefSnapshot
+from estimator.metrics import mixture_moments
 from estimator.models import SensorFrame
 from protocol.errors import RemoteProtocolError
 from protocol.estimate import EstimateMessage, decode_estimate, encode_estimate

@@ -21,8 +21,8 @@ from cryptography.hazmat.primitives.asymmetric import ec, ed25519
 from cryptography.x509.oid import NameOID
 
 from agents.transport.zenoh_transport import ZenohConfigError, ZenohSettings
-from deploy.agent_config import AgentConfigError, load_agent_config
-from deploy.cli import main
+from deploy.cli.main import main
+from deploy.operator.agent_config import AgentConfigError, load_agent_config
 from sim.loader import load_scenario
 from sim.robot_model import dump_robot_model
 

@@ -22,9 +22,9 @@ from agents.control import Stop, encode_control
 from agents.perception import RobotLink
 from agents.transport.base import Inbox, Keys
 from agents.transport.zenoh_transport import ZenohSettings, ZenohTransport
-from deploy.commands.scenario import model_text
-from deploy.fleet_init import FleetSpec, init_fleet
+from deploy.cli.commands.scenario import model_text
 from deploy.launch import free_ports
+from deploy.operator.fleet_init import FleetSpec, init_fleet
 from protocol.estimate import EstimateMessage
 from sim.loader import load_scenario
 from sim.sensors import Simulator

@@ -23,9 +23,9 @@ from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
 from agents.control import Status, Stop, encode_control
 from agents.transport.base import Inbox, Keys
 from agents.transport.zenoh_transport import ZenohSettings, ZenohTransport
-from deploy.commands.scenario import model_text
-from deploy.fleet_init import FleetSpec, init_fleet, loopback_spec
+from deploy.cli.commands.scenario import model_text
 from deploy.launch import free_ports
+from deploy.operator.fleet_init import FleetSpec, init_fleet, loopback_spec
 from estimator.summary import LocalSummary, ObjectClasses, Xi
 from protocol.codec import Limits, StackMessage, decode, encode, sign_slot
 from protocol.stack import Slot, Stack

@@ -34,7 +34,7 @@ from agents.transport.zenoh_transport import (
     read_json5,
     settings_for,
 )
-from deploy.fleet import link_model_for, make_nodes, run_fleet
+from deploy.base.build import belief_model, belief_rng
 from deploy.launch import (
     Faults,
     Launcher,
@@ -46,7 +46,7 @@ from deploy.launch import (
     write_agent_config,
 )
 from deploy.launch.conductor import without_truth
-from deploy.study import belief_model, belief_rng
+from deploy.study.fleet import link_model_for, make_nodes, run_fleet
 from estimator.hybrid import BeliefConfig, BeliefSnapshot
 from estimator.metrics import METRICS, evaluate
 from protocol.frames import encode_frame

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from agents.links import Partition
-from deploy.cli import main
+from deploy.cli.main import main
 from deploy.launch import Faults, LaunchPlan, PlanError, garbage_stack
 from protocol.codec import decode
 from protocol.errors import RemoteProtocolError

@@ -23,7 +23,7 @@ import numpy as np
 import pytest
 
 from agents.links import Partition
-from deploy.cli import main
+from deploy.cli.main import main
 from deploy.launch import Faults, LaunchPlan, PlanError, launch
 from deploy.launch import netns as netns_module
 from deploy.launch.netns import Layout, NetnsError, Network, require
@@ -36,7 +36,7 @@ from deploy.launch.packet_faults import (
     receiver_rules,
     ruleset,
 )
-from deploy.study import run_single
+from deploy.study.runner import run_single
 from estimator.hybrid import BeliefConfig
 from sim.loader import load_scenario
 

@@ -11,11 +11,11 @@ import pytest
 from rich.console import Console
 
 from agents.transport.base import Keys, Message
-from deploy.commands.fleet import COUNTER_COLUMNS, fleet_table
-from deploy.fleet_view import FleetView
+from deploy.base.output import FiguresTable, figures_table, live_display, size
+from deploy.cli.commands.fleet import COUNTER_COLUMNS, fleet_table
 from deploy.launch.report import COUNTERS, counters_table
 from deploy.launch.table import PROGRESS, progress_table
-from deploy.output import FiguresTable, figures_table, live_display, size
+from deploy.operator.fleet_view import FleetView
 from protocol.estimate import EstimateMessage, encode_estimate
 from tests.deploy.test_fleet_cmd import HYP
 

@@ -10,8 +10,8 @@ from typing import Any
 
 import pytest
 
-from deploy.cli import main
-from deploy.paper_figures import (
+from deploy.cli.main import main
+from deploy.study.paper_figures import (
     PAPER_VALUES,
     READING,
     Comparison,

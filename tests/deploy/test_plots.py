@@ -9,14 +9,14 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
-from deploy.plots import (
+from deploy.study.plots import (
     plot_error_curves,
     plot_hypotheses,
     plot_paths,
     plot_per_run,
     plot_reliability,
 )
-from deploy.ufastslam_study import MethodRun
+from deploy.study.ufastslam import MethodRun
 from estimator.metrics import ECE_BINS, calibration_stats
 from estimator.snapshot import BeliefSnapshot
 from sim.loader import load_scenario

@@ -12,8 +12,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from deploy.cli import main
-from deploy.errors import UsageError
+from deploy.base.errors import UsageError
+from deploy.cli.main import main
 from deploy.launch.rerun_layout import COUNTER_PLOTS, top_down_eye
 from deploy.launch.rerun_view import (
     ellipses,

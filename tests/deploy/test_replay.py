@@ -19,10 +19,10 @@ import pytest
 from agents.perception import RobotLink
 from agents.transport import Inbox, Keys, MemoryBus, MemoryTransport
 from agents.transport.zenoh_transport import ZenohSettings, loopback_endpoint
-from deploy.cli import main
-from deploy.errors import RunFailure
+from deploy.base.errors import RunFailure
+from deploy.cli.main import main
 from deploy.launch import free_ports, write_agent_config
-from deploy.replay import RESEND_S, wait_until_step
+from deploy.operator.replay import RESEND_S, wait_until_step
 from protocol.estimate import EstimateMessage, encode_estimate
 from sim.loader import load_scenario
 from sim.robot_model import dump_robot_model

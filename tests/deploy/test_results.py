@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from deploy.results import (
+from deploy.study.archive import (
     RESULTS_FORMAT,
     ResultsArchive,
     pooled_calibration,
@@ -22,7 +22,7 @@ from deploy.results import (
     tail,
     write_archive,
 )
-from deploy.study import RunResult
+from deploy.study.types import RunResult
 from estimator.metrics import ECE_BINS, METRICS, calibration_stats
 from tests.tolerance import assert_close
 

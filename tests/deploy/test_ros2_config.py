@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from agents.ros2.bridge import Ros2Settings
-from deploy.agent_config import AgentConfigError, load_agent_config
+from deploy.operator.agent_config import AgentConfigError, load_agent_config
 from sim.loader import load_scenario
 from sim.robot_model import dump_robot_model
 

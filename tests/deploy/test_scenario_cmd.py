@@ -6,8 +6,8 @@ from pathlib import Path
 
 import pytest
 
-from deploy.cli import main
-from deploy.scenario_show import default_cone_steps
+from deploy.cli.main import main
+from deploy.study.scenario_show import default_cone_steps
 from sim.generate import dump_scenario
 from sim.loader import load_scenario
 from sim.robot_model import load_robot_model

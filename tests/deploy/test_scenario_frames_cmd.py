@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from deploy.cli import main
+from deploy.cli.main import main
 from protocol.framelog import read_frame_log
 from sim.loader import load_scenario
 from sim.sensors import Simulator

@@ -15,10 +15,10 @@ import pytest
 from rich.console import Console
 
 from agents.node import RobotNode
-from deploy.cli import main
-from deploy.results import study_archive
-from deploy.study import run_single
-from deploy.study_report import render_summary, table_steps
+from deploy.cli.main import main
+from deploy.study.archive import study_archive
+from deploy.study.report import render_summary, table_steps
+from deploy.study.runner import run_single
 from estimator.distributed import FusionStats
 from estimator.hybrid import POSE_WINDOW, BeliefConfig
 from estimator.metrics import CROSS_METRICS, ECE_BINS, METRICS, class_comparison, ece_from_stats

@@ -6,7 +6,7 @@ import dataclasses
 
 import numpy as np
 
-from deploy.study import run_single
+from deploy.study.runner import run_single
 from estimator.hybrid import BeliefConfig
 from estimator.metrics import CROSS_METRICS
 from sim.loader import load_scenario

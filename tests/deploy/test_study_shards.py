@@ -16,8 +16,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from deploy.cli import main
-from deploy.shards import Shard
+from deploy.cli.main import main
+from deploy.study.shards import Shard
 from tests.estimator.scenarios import fleet_text
 
 SEMFLEET = Path(sys.executable).with_name("semfleet")
@@ -182,7 +182,7 @@ def test_study_shard_without_seeds_is_refused_before_any_run(
     def no_run(*args: object, **kwargs: object) -> None:
         raise AssertionError("a run started")
 
-    monkeypatch.setattr("deploy.commands.study.run_study", no_run)
+    monkeypatch.setattr("deploy.cli.commands.study.run_study", no_run)
     argv = ["study", "--scenario", "lanes:short", "--runs", "2", "--shard", "2/3"]
     assert _refusal([*argv, "--out", str(tmp_path)], capsys) == "--shard 2/3 of 2 runs has no seeds"
     with pytest.raises(SystemExit) as info:

@@ -10,7 +10,7 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from deploy.study import belief_model, belief_rng
+from deploy.base.build import belief_model, belief_rng
 from estimator.distributed import DistributedBelief
 from estimator.hybrid import BeliefConfig, HybridBelief, Hypothesis
 from estimator.models import SensorFrame

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from agents.node import RobotNode
-from deploy.fleet import link_model_for, make_nodes, run_fleet
-from deploy.study import belief_model, belief_rng
+from deploy.base.build import belief_model, belief_rng
+from deploy.study.fleet import link_model_for, make_nodes, run_fleet
 from estimator.hybrid import BeliefConfig, HybridBelief
 from sim.generate import generate_scenario
 from sim.sensors import Simulator

@@ -12,7 +12,7 @@ import math
 import numpy as np
 import pytest
 
-from deploy.study import belief_model
+from deploy.base.build import belief_model
 from estimator.reference import laplace_class_posterior
 from sim.scenario import Scenario
 from sim.sensors import Simulator

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from deploy.study import belief_model
+from deploy.base.build import belief_model
 from estimator import hybrid
 from estimator.hybrid import BeliefConfig, HybridBelief
 from estimator.metrics import chi2_bounds, pose_nees

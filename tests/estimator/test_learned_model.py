@@ -118,7 +118,7 @@ def test_learned_copy_of_the_crafted_model_has_its_likelihood(rng: np.random.Gen
 def test_a_belief_with_the_learned_copy_matches_the_crafted_one() -> None:
     """The estimator uses a learned model through the same interface: the factor graph (Σ as a
     covariance instead of a square-root information) and the class weights agree."""
-    from deploy.build import belief_model, belief_rng
+    from deploy.base.build import belief_model, belief_rng
     from sim.sensors import Simulator
 
     s = tiny_scenario([(2.0, 0.6, 60.0, 1), (3.0, -0.8, -100.0, 2)], steps=4)

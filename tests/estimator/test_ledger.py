@@ -7,7 +7,7 @@ import gtsam
 import numpy as np
 import pytest
 
-from deploy.study import belief_model
+from deploy.base.build import belief_model
 from estimator.factors import object_key, pose_key
 from estimator.hybrid import BeliefConfig, HybridBelief, distinct_continuous
 from estimator.ledger import SemanticLedger

@@ -15,7 +15,7 @@ import gtsam
 import numpy as np
 import pytest
 
-from deploy.study import belief_model, belief_rng
+from deploy.base.build import belief_model, belief_rng
 from estimator.hybrid import BeliefConfig, HybridBelief
 from sim.generate import generate_scenario
 from sim.scenario import Scenario

@@ -14,7 +14,7 @@ import functools
 import numpy as np
 import pytest
 
-from deploy.study import belief_model, belief_rng
+from deploy.base.build import belief_model, belief_rng
 from estimator.distributed import DistributedBelief, SlotError
 from estimator.hybrid import BeliefConfig, HybridBelief
 from estimator.models import SensorFrame

@@ -12,7 +12,7 @@ import gtsam
 import numpy as np
 import pytest
 
-from deploy.study import belief_model
+from deploy.base.build import belief_model
 from estimator.factors import diagonal_noise, object_key, pose_key, semantic_factor
 from estimator.hybrid import BeliefConfig, BeliefModel, Hypothesis
 from estimator.models import SensorFrame, viewpoint

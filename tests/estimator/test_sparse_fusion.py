@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 import estimator.slots
-from deploy.study import belief_model, belief_rng
+from deploy.base.build import belief_model, belief_rng
 from estimator.distributed import (
     DistributedBelief,
     SlotError,

@@ -7,8 +7,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from deploy.fleet import make_nodes
-from deploy.study import belief_model, belief_rng
+from deploy.base.build import belief_model, belief_rng
+from deploy.study.fleet import make_nodes
 from estimator.hybrid import BeliefConfig
 from estimator.summary import LocalSummary, Realisation, Realisations, Slot, Xi
 from sim.loader import load_scenario

@@ -9,7 +9,7 @@ import gtsam
 import numpy as np
 import pytest
 
-from deploy.study import belief_model, belief_rng
+from deploy.base.build import belief_model, belief_rng
 from estimator.distributed import DistributedBelief
 from estimator.factors import object_key, pose_key
 from estimator.hybrid import POSE_WINDOW, BeliefConfig, HybridBelief

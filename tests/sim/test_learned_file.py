@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from deploy.build import belief_model
+from deploy.base.build import belief_model
 from estimator.models import LearnedClassifier, paper_classifier
 from sim.generate import dump_scenario
 from sim.learned_file import LearnedFileError, load_learned, save_learned

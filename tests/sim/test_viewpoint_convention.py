@@ -9,7 +9,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from deploy.study import run_single
+from deploy.study.runner import run_single
 from estimator.hybrid import BeliefConfig
 from sim.generate import generate_scenario
 from sim.scenario import Scenario

@@ -1,4 +1,4 @@
-"""`semfleet ufastslam` and its study (deploy.ufastslam_study): the table, results.json /
+"""`semfleet ufastslam` and its study (deploy.study.ufastslam): the table, results.json /
 results.npz, plots and user errors."""
 
 from __future__ import annotations
@@ -12,8 +12,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from deploy.cli import main
-from deploy.ufastslam_study import (
+from deploy.cli.main import main
+from deploy.study.ufastslam import (
     METHODS,
     SeedRun,
     filter_config,
@@ -284,7 +284,7 @@ def test_filter_nees_is_the_median_and_the_share_above_the_chi2_bound(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     # χ²₃ 99 % is 11.34487: a NEES of 11.34495 is above it (and below the rounded 11.345)
-    import deploy.ufastslam_study as study
+    import deploy.study.ufastslam as study
 
     world = parse_world(WORLD)
     values = [*[1.0, 11.34495] * (world.steps // 2), 20.0, 30.0][: world.steps]

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from deploy.ufastslam_study import dead_reckoning, filter_config, run_filter
+from deploy.study.ufastslam import dead_reckoning, filter_config, run_filter
 from sim.ufastslam import load_world, simulate
 
 SEEDS = range(20)

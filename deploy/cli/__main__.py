@@ -1,0 +1,5 @@
+"""``python -m deploy.cli``: the ``semfleet`` command."""
+
+from deploy.cli.main import entry
+
+entry()

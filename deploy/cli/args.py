@@ -1,0 +1,104 @@
+"""Argument types shared by the ``semfleet`` commands: one clear sentence for a bad value."""
+
+from __future__ import annotations
+
+import argparse
+import ipaddress
+import os
+import re
+from pathlib import Path
+
+from deploy.base.errors import UsageError
+from sim.loader import MAX_CLASSES
+
+MAX_SEED = 2**63 - 1
+
+
+def _integer(text: str) -> int:
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+
+
+def positive_int(text: str) -> int:
+    value = _integer(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{text} must be a positive integer")
+    return value
+
+
+def positive_float(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}") from None
+    if not (v > 0 and v < 1e6):
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}")
+    return v
+
+
+def class_count(text: str) -> int:
+    value = _integer(text)
+    if not 2 <= value <= MAX_CLASSES:
+        raise argparse.ArgumentTypeError(f"{text}: need 2 to {MAX_CLASSES} classes")
+    return value
+
+
+def seed(text: str) -> int:
+    value = _integer(text)
+    if not 0 <= value <= MAX_SEED:
+        raise argparse.ArgumentTypeError(f"{text}: seeds are non-negative integers below 2**63")
+    return value
+
+
+def writable_out(directory: Path) -> None:
+    """Raise a usage error now if ``directory`` cannot be created or written, so that a long run
+    does not find out at its end."""
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+        probe = directory / f".semfleet-write-probe-{os.getpid()}"
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as exc:
+        raise UsageError(f"--out {directory}: cannot write there ({exc.strerror or exc})") from None
+
+
+_DNS_LABEL = re.compile(r"(?!-)[A-Za-z0-9-]{1,63}(?<!-)")
+
+
+def host_name(text: str) -> str:
+    """A name a certificate can carry: an IPv4 or IPv6 address, or a DNS name (labels of
+    letters, digits and inner hyphens, 253 characters at most)."""
+    try:
+        return str(ipaddress.ip_address(text))
+    except ValueError:
+        pass
+    labels = text.rstrip(".").split(".")
+    if not (len(text) <= 253 and all(_DNS_LABEL.fullmatch(label) for label in labels)):
+        raise argparse.ArgumentTypeError(f"{text!r} is neither an IP address nor a DNS name")
+    return text
+
+
+_IP_PROTOCOLS = {"tcp", "udp", "tls", "quic", "ws"}
+_OTHER_PROTOCOLS = {"unixsock-stream", "unixpipe", "serial", "vsock"}
+_ENDPOINT = re.compile(r"^(?P<proto>[a-z][a-z0-9-]*)/(?P<address>[^?#]+)(?P<rest>[?#].*)?$")
+
+
+def zenoh_endpoint(text: str, option: str) -> str:
+    """A Zenoh endpoint ``PROTOCOL/ADDRESS`` (e.g. ``tcp/127.0.0.1:7447``); IP protocols need a
+    ``host:port`` with a port in 1..65535."""
+    m = _ENDPOINT.fullmatch(text)
+    if m is None or m["proto"] not in _IP_PROTOCOLS | _OTHER_PROTOCOLS:
+        known = ", ".join(sorted(_IP_PROTOCOLS | _OTHER_PROTOCOLS))
+        raise UsageError(
+            f"{option} {text!r}: expected PROTOCOL/ADDRESS such as tcp/127.0.0.1:7447 "
+            f"(protocols: {known})"
+        )
+    if m["proto"] in _IP_PROTOCOLS:
+        host, colon, port = m["address"].rpartition(":")
+        if not (colon and host and port.isdigit() and 1 <= int(port) <= 65535):
+            raise UsageError(
+                f"{option} {text!r}: expected HOST:PORT with a port in 1..65535 after {m['proto']}/"
+            )
+    return text

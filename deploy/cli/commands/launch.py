@@ -1,0 +1,259 @@
+"""`semfleet launch` and `semfleet chaos`: multi-process runs of a scenario over loopback Zenoh."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import re
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from rich.console import Console
+from rich.table import Table
+
+from agents.core import STACK_GOSSIP
+from agents.links import Partition
+from deploy.base.errors import UsageError
+from deploy.cli.args import positive_float, positive_int, seed
+from deploy.cli.commands import conductor_only
+from deploy.launch import LAUNCH_METHODS, Faults, LaunchPlan
+from deploy.launch.attack_report import attack_list, run_attacks_command
+from deploy.launch.attacks import ATTACKS
+from deploy.launch.netns import require as require_netns
+from deploy.launch.report import agents, counters_table, write_outputs
+from deploy.launch.rerun_view import add_options as add_view_options
+from deploy.launch.rerun_view import launch_recorded
+from deploy.study.fleet import COMM_MODES
+from deploy.study.runner import run_single
+from estimator.hybrid import BeliefConfig
+from estimator.models import ROBOT_ID
+from sim.loader import load_scenario
+from sim.scenario import Scenario
+
+_STEP = re.compile(r"^\d{1,9}$")
+_PARTITION = re.compile(r"^([A-Za-z0-9_,-]+):(\d{1,9})-(\d{1,9})$")
+
+
+def robot_at(text: str) -> tuple[str, int]:
+    robot, _, step = text.partition("@")
+    if not (ROBOT_ID.fullmatch(robot) and _STEP.fullmatch(step)):
+        raise argparse.ArgumentTypeError(f"expected ROBOT@STEP, got {text!r}")
+    return robot, int(step)
+
+
+def partition(text: str) -> Partition:
+    m = _PARTITION.fullmatch(text)
+    if not m:
+        raise argparse.ArgumentTypeError(f"expected IDS:FROM-TO (e.g. r1,r2:20-30), got {text!r}")
+    ids = frozenset(i for i in m.group(1).split(",") if i)
+    try:
+        return Partition(ids, int(m.group(2)), int(m.group(3)))
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def probability(text: str) -> float:
+    try:
+        p = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number in [0, 1], got {text!r}") from None
+    if not 0.0 <= p <= 1.0:
+        raise argparse.ArgumentTypeError(f"expected a number in [0, 1], got {text!r}")
+    return p
+
+
+def _robots(scenario: Scenario, text: str) -> list[str]:
+    if text == "all":
+        return list(scenario.robot_ids)
+    robots = [r for r in text.split(",") if r]
+    unknown = [r for r in robots if r not in scenario.robot_ids]
+    if unknown or not robots:
+        known = ", ".join(scenario.robot_ids)
+        raise UsageError(f"--robots: unknown robots {unknown} (scenario has {known})")
+    return robots
+
+
+def _steps(scenario: Scenario, steps: int | None) -> int | None:
+    if steps is not None and steps > scenario.steps:
+        raise UsageError(f"--steps: {steps} outside 1..{scenario.steps} (scenario {scenario.name})")
+    return steps
+
+
+def _stack_gossip(args: argparse.Namespace) -> str:
+    if args.stack_gossip is not None and getattr(args, "conductor_only", False):
+        raise UsageError("--stack-gossip: not with --conductor-only (the agents' configs decide)")
+    return str(args.stack_gossip or "ask")
+
+
+def run_launch(args: argparse.Namespace, console: Console) -> int:
+    scenario = load_scenario(args.scenario)
+    plan = LaunchPlan(
+        scenario,
+        args.seed,
+        _robots(scenario, args.robots),
+        Path(args.out),
+        mode=args.mode,
+        period=args.period,
+        comm=args.comm,
+        steps=_steps(scenario, args.steps),
+        secure=args.secure,
+        keep_estimates=bool(args.view or args.record),
+        stack_gossip=_stack_gossip(args),
+        **conductor_only.plan_fields(args),
+    )
+    conductor_only.announce(plan, console)
+    where = (
+        "started elsewhere"
+        if plan.conductor_only
+        else f"on loopback Zenoh; logs in {plan.out / 'logs'}"
+    )
+    console.print(
+        f"launching {agents(len(plan.robots))} of {scenario.name} ({plan.mode}, seed "
+        f"{plan.seed}) {where}"
+    )
+    outcome = launch_recorded(plan, console, args, f"launch {scenario.name} seed {plan.seed}")
+    console.print(counters_table(outcome))
+    console.print(f"run took {outcome.wall_s:.1f} s")
+    write_outputs(plan, outcome, console, {"launch": {"mode": plan.mode, "wall_s": outcome.wall_s}})
+    return 0
+
+
+def run_chaos(args: argparse.Namespace, console: Console) -> int:
+    if args.attack is not None:
+        if args.view or args.record:
+            raise UsageError("--view/--record: not with --attack (one run per attack)")
+        if args.stack_gossip is not None:
+            raise UsageError("--stack-gossip: not with --attack (each attack sets up its fleet)")
+        return run_attacks_command(args, console)
+    scenario = load_scenario(args.scenario)
+    kills, restarts = tuple(args.kill), tuple(args.restart)
+    for r, _ in (*kills, *restarts):
+        if r not in scenario.robot_ids:
+            raise UsageError(f"--kill/--restart: unknown robot {r!r}")
+    faults = Faults(args.drop, tuple(args.partition), kills, restarts, args.garbage)
+    plan = LaunchPlan(
+        scenario,
+        args.seed,
+        list(scenario.robot_ids),
+        Path(args.out),
+        mode="realtime",
+        period=args.period,
+        comm=args.comm,
+        faults=faults,
+        steps=_steps(scenario, args.steps),
+        secure=args.secure,
+        net=args.net,
+        keep_estimates=bool(args.view or args.record),
+        stack_gossip=_stack_gossip(args),
+    )
+    if plan.net == "netns":
+        require_netns()
+    where = ", on real packets between network namespaces" if plan.net == "netns" else ""
+    console.print(
+        f"chaos on {scenario.name}, seed {plan.seed}: {faults.describe()} "
+        f"(realtime, period {plan.period:g} s{where})"
+    )
+    outcome = launch_recorded(plan, console, args, f"chaos {scenario.name} seed {plan.seed}")
+    for e in outcome.events:
+        console.print(f"- {e}")
+    console.print(f"- garbage stacks published: {outcome.garbage_sent}")
+    console.print(counters_table(outcome))
+    chaos = {"events": outcome.events, "net": plan.net, "dropped": outcome.dropped}
+    doc = write_outputs(plan, outcome, console, {"chaos": chaos})
+    steps = plan.run_steps
+    # Frames are pure functions of (seed, robot, step): the first steps of the scenario are the
+    # same run, and the steps after them (48 of the paper's 60 for --steps 12) cost minutes.
+    reference = run_single(
+        dataclasses.replace(scenario, steps=steps),
+        ["local", "distributed"],
+        plan.seed,
+        BeliefConfig(),
+        None,
+        args.comm,
+    )
+    t = Table(
+        title=f"final step {steps}: chaos run vs the lossless in-process run of seed {plan.seed}"
+    )
+    t.add_column("metric")
+    for m in LAUNCH_METHODS:
+        t.add_column(f"{m} chaos", justify="right")
+        t.add_column(f"{m} lossless", justify="right")
+    for metric in ("msde", "robot_error", "object_error", "hypotheses"):
+        row = [metric]
+        for m in LAUNCH_METHODS:
+            got = doc["methods"][m]["mean"][metric][steps - 1]
+            ref = float(np.nanmean(reference.metrics[m][metric][:, steps - 1]))
+            row += ["—" if got is None else f"{got:.4f}", f"{ref:.4f}"]
+        t.add_row(*row)
+    console.print(t)
+    return 0
+
+
+SECURE_HELP = (
+    "a throwaway secure fleet under OUT/fleet: mutual TLS on loopback, access control, "
+    "owner-signed slots (docs/deploy.md)"
+)
+
+
+def _common(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--scenario", required=True, help="bundled scenario name or TOML file")
+    p.add_argument("--seed", type=seed, default=0, help="seed of the simulated world (default 0)")
+    p.add_argument(
+        "--period", type=positive_float, default=0.5, help="realtime step period in s (default 0.5)"
+    )
+    p.add_argument(
+        "--comm",
+        choices=COMM_MODES,
+        default=None,
+        help="override the scenario's communication mode",
+    )
+    p.add_argument("--steps", type=positive_int, default=None, help="run only the first N steps")
+    p.add_argument("--secure", action="store_true", help=SECURE_HELP)
+    p.add_argument(
+        "--stack-gossip",
+        choices=STACK_GOSSIP,
+        default=None,
+        help='what stacks carry: "ask" (default) what peers lack, and a robot asks a neighbour '
+        'for the slots of robots out of its range; "delta" without asks; "full" every held '
+        "slot (docs/wire.md)",
+    )
+    add_view_options(p)
+
+
+def add_parser(sub: Any) -> None:
+    p = sub.add_parser("launch", help="run a scenario as one process per robot over Zenoh")
+    _common(p)
+    p.add_argument("--mode", choices=("lockstep", "realtime"), default="lockstep")
+    p.add_argument("--robots", default="all", help="'all' or comma-separated robot ids")
+    p.add_argument("--out", default="out/launch", help="folder for results, logs, journals")
+    conductor_only.add_options(p)
+    p.set_defaults(run=run_launch)
+
+    c = sub.add_parser("chaos", help="a realtime launch with loss, partitions, kills and garbage")
+    _common(c)
+    c.add_argument("--drop", type=probability, default=0.0, help="probability of losing a stack")
+    c.add_argument(
+        "--partition", type=partition, action="append", default=[], metavar="IDS:FROM-TO"
+    )
+    c.add_argument("--kill", type=robot_at, action="append", default=[], metavar="ID@STEP")
+    c.add_argument("--restart", type=robot_at, action="append", default=[], metavar="ID@STEP")
+    c.add_argument(
+        "--garbage", type=float, default=0.0, metavar="RATE", help="garbage stacks per second"
+    )
+    c.add_argument(
+        "--attack",
+        type=attack_list,
+        default=None,
+        metavar="LIST",
+        help=f"attack the fleet instead: {','.join(ATTACKS)} or all (docs/deploy.md)",
+    )
+    c.add_argument("--out", default="out/chaos", help="folder for results, logs, journals")
+    c.add_argument(
+        "--net",
+        choices=("loopback", "netns"),
+        default="loopback",
+        help="netns (root): each agent in its own network namespace, loss, partitions and "
+        "range applied to real packets with nftables (docs/deploy.md)",
+    )
+    c.set_defaults(run=run_chaos)

@@ -1,0 +1,57 @@
+"""`semfleet scenario frames NAME --seed S --robot ID -o FILE.jsonl`: one robot's simulated frames
+as a frame log (docs/wire.md, "Frame logs"), what that robot's logger would have written. The log
+holds no ground truth: ``protocol.framelog`` never writes it."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import Any
+
+from rich.console import Console
+
+from deploy.cli.args import positive_int, seed
+from deploy.cli.scenario_args import add_scenario_arguments, scenario_from_args, write_new_file
+from protocol.framelog import format_frame_line, format_header
+from sim.scenario import Scenario, ScenarioError
+from sim.sensors import Simulator
+
+
+def frame_log_lines(
+    scenario: Scenario, seed: int, robot: str, steps: int | None = None
+) -> list[str]:
+    """The log of ``robot``'s frames k = 1..``steps`` (default: all) under ``seed``: the header,
+    then one line per frame, without newlines."""
+    if robot not in scenario.robot_ids:
+        known = ", ".join(scenario.robot_ids)
+        raise ScenarioError(f"--robot: {robot!r} is not a robot of {scenario.name} ({known})")
+    last = scenario.steps if steps is None else steps
+    if not 1 <= last <= scenario.steps:
+        raise ScenarioError(
+            f"--steps {last}: outside 1..{scenario.steps} (scenario {scenario.name})"
+        )
+    frames = Simulator(scenario, seed).frames(robot)[:last]
+    return [format_header(), *(format_frame_line(f) for f in frames)]
+
+
+def run(args: argparse.Namespace, console: Console) -> int:
+    scenario = scenario_from_args(args)
+    lines = frame_log_lines(scenario, args.seed, args.robot, args.steps)
+    out = Path(args.output)
+    write_new_file(out, "".join(line + "\n" for line in lines), args.force)
+    console.print(
+        f"wrote {out}: {len(lines) - 1} frames of {args.robot} ({scenario.name}, seed {args.seed})"
+    )
+    return 0
+
+
+def add_parser(ssub: Any) -> None:
+    """Register ``frames`` under the ``scenario`` subcommands ``ssub``."""
+    p = ssub.add_parser("frames", help="a robot's simulated frames as a JSON-lines log, no truth")
+    add_scenario_arguments(p)
+    p.add_argument("--seed", type=seed, required=True, help="the sensor noise seed")
+    p.add_argument("--robot", required=True, help="whose frames (a robot of the scenario)")
+    p.add_argument("--steps", type=positive_int, default=None, help="only frames 1..N")
+    p.add_argument("-o", "--output", required=True, help="the log to write (.jsonl)")
+    p.add_argument("--force", action="store_true", help="overwrite an existing file")
+    p.set_defaults(run=run)
