@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import logging
 from collections import OrderedDict
-from collections.abc import Collection, Iterable, Mapping
+from collections.abc import Callable, Collection, Container, Iterable, Mapping
 from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
 
@@ -35,7 +35,7 @@ from protocol.codec import (
     sign_slot,
     with_wire,
 )
-from protocol.errors import LocalProtocolError, RemoteProtocolError
+from protocol.errors import LocalProtocolError, RemoteProtocolError, SenderMismatch
 from protocol.signing import SigningKeys
 from protocol.stack import Slot, Stack
 
@@ -43,6 +43,64 @@ if TYPE_CHECKING:
     import gtsam
 
 log = logging.getLogger(__name__)
+
+
+def _no_clock() -> float:
+    return 0.0
+
+
+Version = tuple[str, tuple[int, int]]  # a slot version: owner, (epoch, stamp)
+
+# How far ahead of the receiver's clock a slot's version may be (docs/wire.md, "Versions and
+# epochs"): an epoch is its owner's start in ms, so a stamp (a step) can be at most what the owner
+# could have stepped since then at MAX_STEP_RATE, with CLOCK_SKEW_S for unsynchronised clocks and
+# STAMP_SLACK steps for a fleet that starts at a step other than 0.
+MAX_STEP_RATE = 100.0  # steps per second: 50× a 2 Hz robot, above any lock-step simulation here
+CLOCK_SKEW_S = 300.0
+STAMP_SLACK = 10_000
+
+
+@dataclass(frozen=True, slots=True)
+class Received:
+    """What :meth:`RobotNode.receive` made of one stack. ``message``: what was admitted of it
+    (None: refused whole, or the node's own echo); ``merged``: the versions it made the node
+    hold; ``refused`` and ``implausible``: its slots dropped as refused versions or as ahead of
+    their owner's clock; ``error``: why it was refused whole, or what was dropped of it (for
+    the shell's log)."""
+
+    message: StackMessage | None
+    merged: tuple[Version, ...] = ()
+    taken: bool = False
+    refused: int = 0
+    implausible: int = 0
+    error: Exception | None = None
+
+
+def _always(sender: str) -> bool:
+    return True
+
+
+def _without(message: StackMessage, drop: Callable[[Slot], bool]) -> tuple[StackMessage, int]:
+    """``message`` without the slots ``drop`` picks (its digest stays), and how many."""
+    kept = [s for s in message.stack if not drop(s)]
+    if len(kept) == len(message.stack):
+        return message, 0
+    return replace(message, stack=Stack(tuple(kept))), len(message.stack) - len(kept)
+
+
+def _ahead_of(wall_s: float | None) -> Callable[[Slot], bool]:
+    """Whether a slot's version is ahead of what its owner can have made by ``wall_s``: an
+    epoch after the receiver's clock, or a stamp beyond ``MAX_STEP_RATE`` steps per second since
+    the epoch began (both with ``CLOCK_SKEW_S``). Such a version would block every genuine one
+    of its owner until the owner moved past it. None: no bound."""
+    if wall_s is None:
+        return lambda slot: False
+    now_ms = 1000.0 * (wall_s + CLOCK_SKEW_S)
+    return lambda s: (
+        not (
+            s.epoch <= now_ms and s.stamp <= MAX_STEP_RATE * (now_ms - s.epoch) / 1000 + STAMP_SLACK
+        )
+    )
 
 
 @dataclass(slots=True)
@@ -99,10 +157,15 @@ class BeliefError(RuntimeError):
 
 @dataclass(frozen=True, slots=True)
 class StepReport:
-    """One ``on_frame``: the fusion done on D before the local steps."""
+    """One ``on_frame``: the fusion done on D before the local steps, and the time (s, by the
+    step clock the caller gave; 0 without one) of its three phases: the fusion of the held
+    slots into D, L's step, and D's step with its rebuild and checks."""
 
     k: int
     fusion: FusionStats
+    fusion_s: float = 0.0
+    local_s: float = 0.0
+    distributed_s: float = 0.0
 
 
 class LocalTrack:
@@ -219,8 +282,66 @@ class RobotNode:
     def on_stack(self, data: bytes) -> bool:
         """Decode and merge a received stack; True if it brought a newer slot. Invalid input is
         counted and dropped: nothing already accepted is lost."""
-        message = self.decode_stack(data)
-        return message is not None and self.merge(message)
+        return self.receive(data).taken
+
+    def receive(
+        self,
+        payload: bytes,
+        sender: str | None = None,
+        refused: Container[Version] = (),
+        wall_s: float | None = None,
+        merge_if: Callable[[str], bool] | None = _always,
+    ) -> Received:
+        """Every decision on a received stack, in one order: decode (bounded, signatures, only
+        the versions that can change anything parsed), the sender (a stack published on the key
+        of ``sender`` must be that robot's: else forged or misrouted), the ``refused`` versions
+        (they failed a step here before), plausibility (no version ahead of what its owner can
+        have made by ``wall_s``, seconds since the Unix epoch; None: no bound), then — when
+        ``merge_if(sender)`` — the model fit of each new slot and the merge (``taken``: the stack
+        changed the node, its versions or its own epoch, and a journal must keep it).
+        ``merge_if=None`` admits without merging (a lock-step round stack, merged at its step by
+        :meth:`merge_round`). Every refusal is counted; nothing already held is lost."""
+        if sender == self.robot:
+            return Received(None)  # our own publication, echoed by the session
+        message = self.decode_stack(payload)
+        if message is None:
+            return Received(None, error=ValueError(self.counters.last_error))
+        if message.sender == self.robot:
+            return Received(None)
+        if sender is not None and message.sender != sender:
+            # Each robot publishes only on its own key (access control enforces it on a secure
+            # fleet): a stack whose sender is another robot is forged or misrouted.
+            exc = SenderMismatch(f"sent by {message.sender!r} on the key of {sender}", "sender")
+            self.reject(exc)
+            return Received(None, error=exc)
+        message, dropped = _without(message, lambda s: (s.owner, s.version) in refused)
+        message, implausible = _without(message, _ahead_of(wall_s))
+        error = ValueError("a slot version ahead of its owner's clock") if implausible else None
+        taken: bool = False
+        merged: tuple[Version, ...] = ()
+        if merge_if is not None and merge_if(message.sender):
+            taken, merged = self._merged(message)
+        return Received(message, merged, taken, dropped, implausible, error)
+
+    def merge_round(self, message: StackMessage, refused: Container[Version] = ()) -> Received:
+        """Merge a round stack admitted by :meth:`receive` and held for its step (lock-step),
+        without the versions refused since."""
+        message, dropped = _without(message, lambda s: (s.owner, s.version) in refused)
+        taken, merged = self._merged(message)
+        return Received(message, merged, taken, dropped)
+
+    def count_unread(self, payload: bytes) -> None:
+        """A stack the shell dropped unread (a simulated radio out of range): counted as
+        received."""
+        self.counters.stacks_received += 1
+        self.counters.bytes_received += len(payload)
+
+    def _merged(self, message: StackMessage) -> tuple[bool, tuple[Version, ...]]:
+        before = self.stack.versions()
+        if not self.merge(message):
+            return False, ()
+        after = self.stack.versions()
+        return True, tuple((o, v) for o, v in after.items() if before.get(o) != v)
 
     def decode_stack(self, data: bytes) -> StackMessage | None:
         """Decode a received stack (counted); None, counted by error type, if it is invalid."""
@@ -325,7 +446,9 @@ class RobotNode:
             self.epoch,
         )
 
-    def on_frame(self, frame: SensorFrame, fuse: bool = True) -> StepReport:
+    def on_frame(
+        self, frame: SensorFrame, fuse: bool = True, clock: Callable[[], float] | None = None
+    ) -> StepReport:
         """One robot step: integrate changed slots into D, local step on L and on D, rebuild the
         own slot from L (never from D). If a slot could not be joined with D, D is rebuilt from L
         and every held slot once both have taken the step.
@@ -333,15 +456,22 @@ class RobotNode:
         ``fuse=False`` steps D without integrating the held slots (nor a due rebuild): the fusion
         is deferred to a later step, which integrates every slot still newer than D's version —
         as if those slots had come one step later (a shell that is behind its frames catches up
-        this way; see ``agents.core``)."""
+        this way; see ``agents.core``).
+
+        ``clock`` (seconds, e.g. ``time.perf_counter``) times the phases for the report: the
+        node itself reads no clock."""
         if frame.robot != self.robot:
             raise ValueError(f"node {self.robot} got a frame of {frame.robot}")
+        tick = clock if clock is not None else _no_clock
+        t0 = tick()
         fusion = (
             self.integrate_pending()
             if fuse
             else FusionStats((), (), 0, len(self.distributed.hypotheses))
         )
+        t1 = tick()
         self.track.advance(frame)
+        t2 = tick()
         self.distributed.step([frame], self._rng_distributed)
         if self._rebuild_due and fuse:
             rebuilt = self.rebuild()
@@ -353,7 +483,7 @@ class RobotNode:
         # The own slot is rebuilt from L lazily, when a stack is next needed.
         self._own_slot_stale = True
         self._encoded = None
-        return StepReport(frame.k, fusion)
+        return StepReport(frame.k, fusion, t1 - t0, t2 - t1, tick() - t2)
 
     def _checked_position(self) -> tuple[float, float]:
         """D's estimated position, once L and D are checked to be distributions still."""

@@ -20,6 +20,11 @@ robot's ROS 2 odometry and detections into frames (in the worker, ahead of the c
 
 Modes (``CoreSettings.mode``; docs/agents.md): ``realtime`` steps when the next frame is there;
 ``lockstep`` follows a conductor's orders, bit for bit the in-process runner.
+
+Over 300 lines for a reason: the shell's three loops (messages, gossip timer, loop watch), its
+one worker thread and the carrying out of the core's actions share one event loop, one set of
+inboxes and one shutdown order (the worker's step, then the journal); split, that order would be
+spread over modules.
 """
 
 from __future__ import annotations
@@ -32,6 +37,7 @@ import logging
 import math
 import time
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 from agents.core import (
@@ -40,6 +46,7 @@ from agents.core import (
     Append,
     Commit,
     CoreCounters,
+    CoreSettings,
     CutJournal,
     Halt,
     Hear,
@@ -49,7 +56,7 @@ from agents.core import (
 )
 from agents.journal import Journal, MemoryLog, Record
 from agents.node import RobotNode
-from agents.transport.base import Inbox, Message, Transport
+from agents.transport.base import Inbox, Keys, Message, Transport
 from agents.transport.subscriptions import StackSubscriptions
 
 if TYPE_CHECKING:
@@ -83,15 +90,62 @@ def execute_journal_actions(log: Journal | MemoryLog, actions: Sequence[Action])
     return rest
 
 
+@dataclass(slots=True)
+class ShellGauges:
+    """What the shell itself measures, which the core reports with its estimates (its
+    ``shell_counters`` port, :meth:`values`): messages its inboxes dropped, the longest the loop
+    was held and the longest gap between two gossip ticks, the most links seen, and the ROS 2
+    side's counters."""
+
+    inboxes: tuple[Inbox, ...] = ()
+    loop_lag_max_s: float = 0.0  # the longest the loop was held beyond a 50 ms tick
+    gossip_gap_max_s: float = 0.0  # the longest time between two gossip ticks
+    links_max: dict[str, int] = field(default_factory=lambda: {"stream": 0, "datagram": 0})
+    ros2: Ros2Link | None = None
+
+    def values(self) -> dict[str, int]:
+        ros2 = self.ros2.bridge.counter_values() if self.ros2 is not None else {}
+        return {
+            "inbox_dropped": sum(i.dropped for i in self.inboxes),
+            "loop_lag_max_us": round(1e6 * self.loop_lag_max_s),
+            "gossip_gap_max_us": round(1e6 * self.gossip_gap_max_s),
+            **{f"links_{kind}_max": n for kind, n in self.links_max.items()},
+            **ros2,
+        }
+
+
+def new_agent(
+    make_node: Callable[[], RobotNode],
+    keys: Keys,
+    transport: Transport,
+    settings: CoreSettings | None = None,
+    journal: Journal | None = None,
+    wall_clock: Callable[[], float] | None = None,
+    clock: Callable[[], float] = time.monotonic,
+    ros2: Ros2Link | None = None,
+) -> Agent:
+    """An agent on ``transport`` whose core is built with its ports: the journal reader (the
+    records of ``journal``, or of a log in memory), ``wall_clock`` (slot versions' bound), the
+    step clock (``time.perf_counter``) and the shell's gauges."""
+    log: Journal | MemoryLog = journal if journal is not None else MemoryLog()
+    gauges = ShellGauges()
+    core = AgentCore(
+        make_node, keys, settings, log.records, wall_clock, time.perf_counter, gauges.values
+    )
+    return Agent(core, transport, log, gauges, clock, ros2)
+
+
 class Agent:
-    """One robot of the fleet: ``core`` on ``transport``, its records in ``journal`` (or in
-    memory). ``clock`` gives the ``now`` of every event; ``ros2``, if given, its ROS 2 side."""
+    """One robot of the fleet: ``core`` on ``transport``, its records in ``log`` (the journal
+    the core reads, :func:`new_agent`), the shell's measures in ``gauges`` (the core reports
+    them). ``clock`` gives the ``now`` of every event; ``ros2``, if given, its ROS 2 side."""
 
     def __init__(
         self,
         core: AgentCore,
         transport: Transport,
-        journal: Journal | None = None,
+        log: Journal | MemoryLog,
+        gauges: ShellGauges,
         clock: Callable[[], float] = time.monotonic,
         ros2: Ros2Link | None = None,
     ) -> None:
@@ -100,10 +154,8 @@ class Agent:
         self.keys = core.keys
         self.settings = core.settings
         self.transport = transport
-        self.journal = journal
-        self.log: Journal | MemoryLog = journal if journal is not None else MemoryLog()
-        core.committed = self.log.records
-        core.extra_counters = self._shell_counters
+        self.log = log
+        self.gauges = gauges
         self.clock = clock
         self.control = Inbox(1024, CONTROL_INBOX_BYTES)
         self.frames = Inbox(4096, FRAME_INBOX_BYTES)
@@ -113,14 +165,12 @@ class Agent:
         self.ros2_in = Inbox(4096, FRAME_INBOX_BYTES)
         ros2_inboxes = (self.ros2_in,) if ros2 is not None else ()
         self.inboxes = (self.control, self.frames, self.stacks, *ros2_inboxes)
+        gauges.inboxes, gauges.ros2 = self.inboxes, ros2
         self._doorbell = asyncio.Event()  # rung by every inbox: one wait for all of them
         for inbox in self.inboxes:
             inbox.ring(self._doorbell)
         self.stop_reason = ""
         self.worker_busy_s = 0.0
-        self.loop_lag_max_s = 0.0  # the longest the loop was held beyond a 50 ms tick
-        self.gossip_gap_max_s = 0.0  # the longest time between two gossip ticks
-        self.links_max = {"stream": 0, "datagram": 0}  # the most links seen at a tick
         self._links_sampled = -math.inf
         self._worker = concurrent.futures.ThreadPoolExecutor(1, f"agent-{self.robot}")
         self._stop = asyncio.Event()
@@ -205,12 +255,13 @@ class Agent:
                 due = now  # the loop was held for more than a period: skip the missed ticks
             await asyncio.sleep(max(0.0, due - now))
             now = time.perf_counter()
-            self.gossip_gap_max_s = max(self.gossip_gap_max_s, now - last)
+            g = self.gauges
+            g.gossip_gap_max_s = max(g.gossip_gap_max_s, now - last)
             last = now
             if now - self._links_sampled >= LINKS_SAMPLE_S:
                 self._links_sampled = now
                 links = self.transport.links()
-                self.links_max = {k: max(n, links.get(k, 0)) for k, n in self.links_max.items()}
+                g.links_max = {k: max(n, links.get(k, 0)) for k, n in g.links_max.items()}
             self._carry_out(self.core.on_timer(self.clock()))
 
     async def _watch_loop(self, tick: float = 0.05) -> None:
@@ -220,17 +271,8 @@ class Agent:
         while True:
             t0 = time.perf_counter()
             await asyncio.sleep(tick)
-            self.loop_lag_max_s = max(self.loop_lag_max_s, time.perf_counter() - t0 - tick)
-
-    def _shell_counters(self) -> dict[str, int]:
-        ros2 = self.ros2.bridge.counter_values() if self.ros2 is not None else {}
-        return {
-            "inbox_dropped": sum(i.dropped for i in self.inboxes),
-            "loop_lag_max_us": round(1e6 * self.loop_lag_max_s),
-            "gossip_gap_max_us": round(1e6 * self.gossip_gap_max_s),
-            **{f"links_{kind}_max": n for kind, n in self.links_max.items()},
-            **ros2,
-        }
+            lag = time.perf_counter() - t0 - tick
+            self.gauges.loop_lag_max_s = max(self.gauges.loop_lag_max_s, lag)
 
     async def _main(self) -> None:
         while not self._stop.is_set():

@@ -14,9 +14,9 @@ from collections.abc import Callable
 
 import numpy as np
 
-from agents.core import AgentCore, CoreSettings
+from agents.core import CoreSettings
 from agents.node import RobotNode
-from agents.runtime import Agent
+from agents.runtime import new_agent
 from agents.transport.base import Keys
 from agents.transport.zenoh_transport import ZenohTransport, settings_for
 from bench import Result
@@ -55,7 +55,7 @@ async def _agent_latencies(
     a = ZenohTransport(settings_for(a_port, [], gossip=False))
     b = ZenohTransport(settings_for(b_port, [a_port], gossip=False))
     quiet = CoreSettings(mode="realtime", gossip_period=3600.0, publish_local=False)
-    agent = Agent(AgentCore(timed_node, keys, quiet), b)
+    agent = new_agent(timed_node, keys, b, quiet)
     arrivals: list[float] = []
 
     def raw_arrival(_: bytes) -> None:

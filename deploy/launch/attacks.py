@@ -42,7 +42,7 @@ import numpy as np
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
 
 from agents.control import Stop, encode_control
-from agents.core import CLOCK_SKEW_S, MAX_STEP_RATE, STAMP_SLACK
+from agents.node import CLOCK_SKEW_S, MAX_STEP_RATE, STAMP_SLACK
 from agents.transport.base import Inbox, Keys
 from agents.transport.zenoh_transport import ZenohSettings, ZenohTransport
 from deploy.launch.chaos import forged_summary, garbage_stack

@@ -18,11 +18,10 @@ from collections.abc import Callable
 from functools import partial
 from typing import Any
 
-from agents.core import AgentCore
 from agents.journal import Journal, Record
 from agents.node import RobotNode
 from agents.ros2.bridge import Ros2Bridge, Ros2Link
-from agents.runtime import Agent
+from agents.runtime import Agent, new_agent
 from agents.transport.base import Keys
 from agents.transport.zenoh_transport import ZenohTransport
 from deploy.base.build import belief_model, make_node
@@ -78,10 +77,15 @@ def build_agent(config: AgentConfig, transport: ZenohTransport) -> Agent:
     if config.journal is not None:
         journal, records = Journal.open(config.journal, journal_identity(config), epoch)
         epoch = journal.epoch
-    core = AgentCore(
-        node_factory(config, epoch), Keys(config.fleet), config.runtime, wall_clock=time.time
+    agent = new_agent(
+        node_factory(config, epoch),
+        Keys(config.fleet),
+        transport,
+        config.runtime,
+        journal,
+        wall_clock=time.time,
+        ros2=ros2_link(config, transport),
     )
-    agent = Agent(core, transport, journal, ros2=ros2_link(config, transport))
     agent.replay(records)
     return agent
 

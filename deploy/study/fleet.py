@@ -3,6 +3,13 @@
 At the start of step k every robot receives the stacks its linked peers had at the end of step
 k − 1 (relay is one hop per step, as in the paper's table), then every robot processes its frame.
 The run is deterministic: same scenario, seed and link model, same result.
+
+What a stack carries (``gossip``): ``delta``, the default, is the lock-step agents' protocol
+(``agents.gossip.DeltaGossip``, strict): every robot publishes its round stack to the whole fleet
+(a lock-step launch does: every agent reads every digest, and merges only the stacks of the
+senders its order names), with the held slots some peer lacks by its latest digest. ``full``
+sends every held slot. Both deliver the same slots that can change a receiver, so D, and every
+metric, is the same; only the bytes differ (docs/architecture.md, "The study's gossip").
 """
 
 from __future__ import annotations
@@ -11,6 +18,7 @@ import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 
+from agents.gossip import DeltaGossip
 from agents.links import LinkModel
 from agents.node import NodeCounters, RobotNode
 from deploy.base.build import COMM_MODES, link_model_for, make_nodes
@@ -19,6 +27,7 @@ from estimator.models import SensorFrame
 # Built in deploy.base.build; kept importable from here for the callers written before it.
 __all__ = [
     "COMM_MODES",
+    "GOSSIP_MODES",
     "FleetStats",
     "StepCallback",
     "link_model_for",
@@ -28,6 +37,7 @@ __all__ = [
 ]
 
 StepCallback = Callable[[str, int, RobotNode, float, float], None]
+GOSSIP_MODES = ("delta", "full")
 
 
 @dataclass(slots=True)
@@ -51,12 +61,13 @@ def run_fleet(
     links: LinkModel,
     steps: int,
     on_step: StepCallback | None = None,
+    gossip: str = "delta",
 ) -> FleetStats:
     """Drive ``nodes`` through ``steps`` lock-step rounds; ``on_step(robot, k, node, fusion_ms,
     step_ms)`` is called after every robot step with the wall times of the fusion into D and of
     the whole step (fusion included) in ms."""
     callbacks = None if on_step is None else [on_step]
-    return run_fleets([nodes], frames, links, steps, callbacks)[0]
+    return run_fleets([nodes], frames, links, steps, callbacks, gossip=gossip)[0]
 
 
 def run_fleets(
@@ -66,15 +77,20 @@ def run_fleets(
     steps: int,
     on_step: Sequence[StepCallback] | None = None,
     before_step: Callable[[int], None] | None = None,
+    gossip: str = "delta",
 ) -> list[FleetStats]:
     """Several fleets over the same frames and links in one lock-step loop, so that fleets whose
     nodes share a :class:`LocalTrack` per robot step each L once. ``before_step(k)`` runs after
-    the deliveries of step k and before any robot steps (e.g. to step shared tracks itself)."""
+    the deliveries of step k and before any robot steps (e.g. to step shared tracks itself).
+    ``gossip``: what a stack carries (module docstring)."""
+    if gossip not in GOSSIP_MODES:
+        raise ValueError(f"gossip {gossip!r} (known: {', '.join(GOSSIP_MODES)})")
     stats = [FleetStats() for _ in fleets]
+    policies = [_policies(nodes) if gossip == "delta" else None for nodes in fleets]
     for k in range(1, steps + 1):
         # Every fleet delivers before any robot steps: a shared L must not run ahead of a stack.
         for i, nodes in enumerate(fleets):
-            _deliver(nodes, frames, links, k, stats[i])
+            _deliver(nodes, frames, links, k, stats[i], policies[i])
         if before_step is not None:
             before_step(k)
         for i, nodes in enumerate(fleets):
@@ -88,12 +104,40 @@ def _refused(c: NodeCounters) -> int:
     return c.invalid + c.rejected_slots + c.foreign_slots + c.own_slot_invalid
 
 
+def _policies(nodes: Mapping[str, RobotNode]) -> dict[str, DeltaGossip]:
+    """Each robot's lock-step gossip policy, over the fleet as its roster."""
+    roster = frozenset(nodes)
+    return {
+        r: DeltaGossip(r, 1.0, True, False, roster, node.limits.max_slots)
+        for r, node in nodes.items()
+    }
+
+
+def _outgoing(
+    nodes: Mapping[str, RobotNode], senders: Sequence[str], policies: dict[str, DeltaGossip], k: int
+) -> dict[str, bytes | None]:
+    """Delta gossip: every robot's round stack (the held slots some peer lacks by its latest
+    digest; None while it holds nothing, as a full stack), then every robot notes every other's
+    digest (the versions it held when it sent), as every lock-step agent reads every stack."""
+    held = {r: node.current_stack().versions() for r, node in nodes.items()}
+    out = {
+        s: nodes[s].encoded_delta(policies[s].select(held[s], k, unsent=False)) if held[s] else None
+        for s in senders
+    }
+    for sender, have in held.items():
+        for r, policy in policies.items():
+            if r != sender:
+                policy.note_digest(sender, have, frozenset(), k)
+    return out
+
+
 def _deliver(
     nodes: Mapping[str, RobotNode],
     frames: Mapping[str, Sequence[SensorFrame]],
     links: LinkModel,
     k: int,
     stats: FleetStats,
+    policies: dict[str, DeltaGossip] | None = None,
 ) -> None:
     robots = list(nodes)
     positions = {r: frames[r][k - 1].true_pose for r in robots}
@@ -105,12 +149,16 @@ def _deliver(
         and links.allowed(sender, receiver, k, positions[sender], positions[receiver])
     ]
     # Every stack is taken before any is delivered: what peers had at the end of step k − 1.
-    outgoing = {s: nodes[s].outgoing() for s in sorted({s for s, _ in deliveries})}
+    senders = sorted({s for s, _ in deliveries})
+    if policies is None:
+        outgoing = {s: nodes[s].outgoing() for s in senders}
+    else:
+        outgoing = _outgoing(nodes, senders, policies, k)
     for sender, receiver in deliveries:
         data = outgoing[sender]
         if data is None:
             continue
-        nodes[receiver].on_stack(data)
+        nodes[receiver].receive(data, sender)
         nodes[sender].mark_sent(len(data))
         stats.delivered_bytes.append(len(data))
         stats.deliveries += 1
@@ -124,13 +172,9 @@ def _advance(
     on_step: StepCallback | None,
 ) -> None:
     for r in nodes:
-        t0 = time.perf_counter()
-        fused = nodes[r].integrate_pending()
-        t1 = time.perf_counter()
-        # on_frame integrates again; nothing is left by then, but count whatever it reports.
-        again = nodes[r].on_frame(frames[r][k - 1]).fusion
-        t2 = time.perf_counter()
-        stats.empty_joins.append(fused.empty_joins + again.empty_joins)
-        stats.rebuilds.append(fused.rebuilds + again.rebuilds)
+        done = nodes[r].on_frame(frames[r][k - 1], clock=time.perf_counter)
+        stats.empty_joins.append(done.fusion.empty_joins)
+        stats.rebuilds.append(done.fusion.rebuilds)
         if on_step is not None:
-            on_step(r, k, nodes[r], 1e3 * (t1 - t0), 1e3 * (t2 - t0))
+            whole = done.fusion_s + done.local_s + done.distributed_s
+            on_step(r, k, nodes[r], 1e3 * done.fusion_s, 1e3 * whole)

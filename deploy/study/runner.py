@@ -65,10 +65,12 @@ def run_study(
     comm: str | None = None,
     cluster: str | None = None,
     scored: Collection[int] | None = None,
+    gossip: str = "delta",
 ) -> list[RunResult]:
     """Run every seed in its own spawned process, at most ``jobs`` at once, or as tasks of the
     Dask cluster whose scheduler is at ``cluster``; results in seed order. Only the first seed
-    keeps belief snapshots (at ``snapshot_step``). ``scored``: see :func:`run_single`."""
+    keeps belief snapshots (at ``snapshot_step``). ``scored``, ``gossip``: see
+    :func:`run_single`."""
     calls = {
         seed: (
             run_single,
@@ -79,6 +81,7 @@ def run_study(
             snapshot_step if i == 0 else None,
             comm,
             scored,
+            gossip,
         )
         for i, seed in enumerate(seeds)
     }
@@ -131,12 +134,15 @@ def run_single(
     snapshot_step: int | None = None,
     comm: str | None = None,
     scored: Collection[int] | None = None,
+    gossip: str = "delta",
 ) -> RunResult:
     """Run every method on one seeded realisation of ``scenario``; ``comm`` overrides the
-    scenario's communication mode for the distributed methods. ``scored``: the steps at which
-    the beliefs are scored (default every step; the metrics of the others stay NaN). Scoring
-    queries every hypothesis' marginal covariances, about a fifth of a run's time: a caller that
-    reads only some steps' metrics saves it; the beliefs themselves do not change."""
+    scenario's communication mode for the distributed methods, ``gossip`` says what the fleets'
+    stacks carry (``deploy.study.fleet``: the agents' delta gossip, or every held slot).
+    ``scored``: the steps at which the beliefs are scored (default every step; the metrics of the
+    others stay NaN). Scoring queries every hypothesis' marginal covariances, about a fifth of a
+    run's time: a caller that reads only some steps' metrics saves it; the beliefs themselves do
+    not change."""
     unknown = [m for m in methods if m not in METHODS]
     if unknown:
         raise ValueError(f"unknown methods {unknown} (known: {', '.join(METHODS)})")
@@ -160,7 +166,9 @@ def run_single(
             {"local", "centralized", "received"} & set(methods)
         )
     if "local" in methods or fleet_methods:
-        _run_shared_local(scenario, model, config, seed, comm, frames, recorders, fleet_methods)
+        _run_shared_local(
+            scenario, model, config, seed, comm, frames, recorders, fleet_methods, gossip
+        )
     if "centralized" in methods:
         rec = recorders["centralized"]
         belief = HybridBelief(model, {r: scenario.robot(r).start for r in robots}, config)
@@ -212,6 +220,7 @@ def _run_shared_local(
     frames: dict[str, list[SensorFrame]],
     recorders: dict[str, Recorder],
     fleet_methods: Sequence[str],
+    gossip: str = "delta",
 ) -> None:
     """``local`` and the fleets (``distributed``, ``double_count``) in one lock-step loop over one
     local belief per robot: L depends on the robot's own data only, so every method sees the very
@@ -260,7 +269,9 @@ def _run_shared_local(
 
     callbacks = [on_step_for(recorders[m]) for m in fleet_methods]
     links = link_model_for(scenario, comm)
-    stats = run_fleets(fleets, frames, links, scenario.steps, callbacks, before_step=step_locals)
+    stats = run_fleets(
+        fleets, frames, links, scenario.steps, callbacks, before_step=step_locals, gossip=gossip
+    )
     for m, st in zip(fleet_methods, stats, strict=True):
         recorders[m].fleet = st
 

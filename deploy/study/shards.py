@@ -61,7 +61,11 @@ class Shard:
 
 
 def study_key(
-    scenario: Scenario, methods: Sequence[str], config: BeliefConfig, comm: str | None
+    scenario: Scenario,
+    methods: Sequence[str],
+    config: BeliefConfig,
+    comm: str | None,
+    gossip: str = "delta",
 ) -> str:
     """The fingerprint of what decides a study's numbers besides its seeds (hex SHA-256). The
     scenario's ``source`` (the path it was read from) is left out: the same world may live in
@@ -71,7 +75,7 @@ def study_key(
     except importlib.metadata.PackageNotFoundError:
         version = "unknown"
     world = dataclasses.replace(scenario, source="")
-    text = repr((world, tuple(methods), config, comm, version))
+    text = repr((world, tuple(methods), config, comm, gossip, version))
     return hashlib.sha256(text.encode()).hexdigest()
 
 

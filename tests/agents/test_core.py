@@ -12,7 +12,7 @@ import msgpack
 import numpy as np
 import pytest
 
-import agents.core as core_module
+import agents.recovery as recovery
 from agents.control import NeedRound, Status, StepOrder, decode_control, encode_control
 from agents.core import (
     Action,
@@ -197,8 +197,8 @@ def test_frames_orders_and_rounds_stay_within_the_window(frames) -> None:  # typ
     d = Driver(mode="lockstep", window=8)
     for k in range(1, 5001):
         d.send(KEYS.ctl("step"), encode_control(StepOrder(k, {"r1": ("r2",)})))
-    assert len(d.core._orders) == 8
-    assert d.core.counters.orders_ahead == 5000 - 8
+    assert d.core.rounds is not None and len(d.core.rounds.orders) == 8
+    assert d.core.counter_values()["orders_ahead"] == 5000 - 8
     far = SensorFrame("r1", 500, frames["r1"][0].odometry, (), frames["r1"][0].true_pose)
     d.frame(far)
     assert d.core.counters.frames_ahead == 1 and not d.core._frames
@@ -206,7 +206,7 @@ def test_frames_orders_and_rounds_stay_within_the_window(frames) -> None:  # typ
     for k in range(1, 40):
         peer.on_frame(frames["r2"][k - 1])
         d.send(KEYS.stack("r2"), peer.encoded_stack())
-    assert max(step for _, step in d.core._rounds) <= 8
+    assert max(step for _, step in d.core.rounds.held) <= 8
     assert d.core.counter_values()["rounds_dropped"] == 0
 
 
@@ -220,7 +220,7 @@ def test_oversized_and_malformed_control_is_counted_unread() -> None:
     d.send(KEYS.ctl("step"), b"\xc1")
     d.send(KEYS.ctl("step"), msgpack.packb({"type": "step", "k": -1, "links": {}}))
     assert d.core.counters.invalid_control == 3
-    assert not d.core._orders
+    assert d.core.rounds is None  # real time keeps no orders at all
 
 
 def test_slots_of_owners_outside_the_roster_are_refused(frames) -> None:  # type: ignore[no-untyped-def]
@@ -359,9 +359,9 @@ def test_a_lockstep_agent_does_not_ask_for_the_frame_it_is_stepping_with(frames)
     make = _factory("r1")
 
     class Watched(RobotNode):
-        def on_frame(self, frame: SensorFrame, fuse: bool = True):  # type: ignore[no-untyped-def]
+        def on_frame(self, frame: SensorFrame, fuse: bool = True, clock=None):  # type: ignore[no-untyped-def]
             ticks.append(cores[0].on_timer(100.0 + len(ticks)))  # a tick during the step
-            return super().on_frame(frame, fuse)
+            return super().on_frame(frame, fuse, clock)
 
     def make_watched() -> RobotNode:
         node = make()
@@ -682,10 +682,10 @@ def test_an_agent_that_skipped_estimates_while_catching_up_answers_with_its_curr
 
     original = RobotNode.on_frame
 
-    def fails_at_4(self, frame, fuse=True):  # type: ignore[no-untyped-def]
+    def fails_at_4(self, frame, fuse=True, clock=None):  # type: ignore[no-untyped-def]
         if frame.k == 4:
             raise FloatingPointError("step 4 cannot be taken")
-        return original(self, frame, fuse)
+        return original(self, frame, fuse, clock)
 
     monkeypatch.setattr(RobotNode, "on_frame", fails_at_4)
     e = Driver()
@@ -708,14 +708,14 @@ def test_failed_frames_and_refused_slots_are_remembered_within_a_bound(
     """The frames whose bytes failed a step and the slot versions refused are remembered (so
     that they are never tried again) up to MAX_REFUSED each, the oldest forgotten first: a flood
     of distinct failing inputs cannot grow them."""
-    monkeypatch.setattr(core_module, "MAX_REFUSED", 3)
+    monkeypatch.setattr(recovery, "MAX_REFUSED", 3)
 
     original = RobotNode.on_frame
 
-    def fails(self, frame, fuse=True):  # type: ignore[no-untyped-def]
+    def fails(self, frame, fuse=True, clock=None):  # type: ignore[no-untyped-def]
         if frame.k == 2:
             raise FloatingPointError("step 2 cannot be taken")
-        return original(self, frame, fuse)
+        return original(self, frame, fuse, clock)
 
     d = Driver()
     d.frame(frames["r1"][0])
@@ -729,9 +729,9 @@ def test_failed_frames_and_refused_slots_are_remembered_within_a_bound(
     assert d.core.counter_values()["steps_failed"] == 5
     d.frame(variants[0])  # forgotten (the oldest of five, three kept): tried again
     assert d.core.counter_values()["steps_failed"] == 6
-    for i in range(5):
-        d.core._refuse(("r2", (1, i)))
-    assert list(d.core._refused) == [("r2", (1, i)) for i in (2, 3, 4)]
+    d.core.ledger.took([("r2", (1, i)) for i in range(5)], b"stack")
+    d.core.ledger.failed(b"frame")
+    assert list(d.core.ledger.refused) == [("r2", (1, i)) for i in (2, 3, 4)]
 
 
 def test_a_fusion_that_fails_after_deferred_steps_refuses_the_slots_merged_before_them(

@@ -21,11 +21,11 @@ import numpy as np
 import pytest
 
 from agents.control import Status, StepOrder, decode_control, encode_control
-from agents.core import AgentCore, CoreSettings
+from agents.core import CoreSettings
 from agents.journal import Journal
 from agents.links import Schedule
 from agents.node import RobotNode
-from agents.runtime import Agent
+from agents.runtime import Agent, new_agent
 from agents.transport import Inbox, Keys, MemoryBus, MemoryTransport
 from deploy.base.build import belief_model, belief_rng, make_node, make_nodes
 from deploy.launch import conductor as conductor_module
@@ -99,8 +99,7 @@ def _agent(
         listen_in_range=listen_in_range,
     )
     extra = {} if clock is None else {"clock": clock}
-    core = AgentCore(_factory(robot), KEYS, settings)
-    return Agent(core, MemoryTransport(bus), journal, **extra)
+    return new_agent(_factory(robot), KEYS, MemoryTransport(bus), settings, journal, **extra)
 
 
 @contextlib.asynccontextmanager
@@ -288,14 +287,14 @@ async def test_simulated_agent_hears_whom_the_simulator_says_and_counts_the_rest
     async with _running(agent) as (task,):
         world.publish(KEYS.stack("r2"), _stack_from(peer))  # no links yet: nobody is heard
         await _until(lambda: agent.node.counters.stacks_received == 1)
-        assert agent.counters.ignored_out_of_range == 0  # (nor counted out of range)
+        assert agent.counter_values()["ignored_out_of_range"] == 0  # (nor counted out of range)
         assert agent.node.stack.stamps() == {}
         world.publish(KEYS.sim_links(), _links(1, {"r1": (), "r2": ("r1",)}))
         world.publish(KEYS.frames("r1"), encode_frame(frames["r1"][0]))
         await _until(lambda: agent.node.k == 1)
         world.publish(KEYS.stack("r2"), _stack_from(peer))  # step 1's links: r2 → r1 is cut
         await _until(lambda: agent.node.counters.stacks_received == 2)
-        assert agent.counters.ignored_out_of_range == 1
+        assert agent.counter_values()["ignored_out_of_range"] == 1
         assert agent.node.stack.stamps() == {"r1": 1}
         world.publish(KEYS.sim_links(), _links(2, {"r1": ("r2",)}))
         world.publish(KEYS.sim_links(), b"\xff")  # counted, never fatal
@@ -490,8 +489,8 @@ def test_agent_journal_replay_rebuilds_the_identical_belief(
         agent = _agent(robot, MemoryBus(), "lockstep", journal=journal)
         agent.replay(records)
     kinds = [r.kind for r in records]
-    assert agent.counters.replayed_frames == kinds.count("frame") == STEPS
-    assert agent.counters.replayed_stacks == kinds.count("stack") > 0
+    assert agent.counter_values()["replayed_frames"] == kinds.count("frame") == STEPS
+    assert agent.counter_values()["replayed_stacks"] == kinds.count("stack") > 0
     assert agent.node.k == STEPS
     assert agent.node.current_stack().stamps() == lockstep_run.stamps[robot]
     final = lockstep_run.estimates[(robot, STEPS)].beliefs

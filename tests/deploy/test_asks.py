@@ -6,7 +6,8 @@ time."""
 
 from __future__ import annotations
 
-from agents.core import DIGEST_LIFE, AgentCore, CoreSettings, Publish
+from agents.core import AgentCore, CoreSettings, Publish
+from agents.gossip import DIGEST_LIFE
 from agents.runtime import MemoryLog
 from deploy.base.build import belief_model, make_node
 from estimator.hybrid import BeliefConfig
@@ -17,6 +18,10 @@ from sim.loader import load_scenario
 from tests.deploy.test_delta_gossip import KEYS, _hearing_pair, _stacks, _tick
 
 PERIOD = 0.5
+
+
+def _asks_in_force(core: AgentCore) -> dict[str, str]:
+    return core.gossip.current_asks(core.node.stack.versions(), core._now)
 
 
 def _asker(gossip: str = "ask") -> tuple[AgentCore, MemoryLog]:
@@ -97,17 +102,17 @@ def test_a_relay_that_leaves_the_robot_behind_a_period_is_replaced_and_a_silent_
     first = _digest("r2", {"r1": v, "r2": (1, 4)})
     sent = _stacks(r3.on_message(KEYS.stack("r2"), first, now), log3, "r3")
     assert [decode(p).ask for p in sent] == [{"r1": "r2"}]
-    assert r3._current_asks() == {"r1": "r2"} and r3.counter_values()["relays_asked"] == 1
+    assert _asks_in_force(r3) == {"r1": "r2"} and r3.counter_values()["relays_asked"] == 1
     # r4 shows a newer version; r2, heard, was asked just now: no switch.
     _stacks(r3.on_message(KEYS.stack("r4"), _digest("r4", {"r1": (1, 6)}), now + 0.1), log3, "r3")
-    assert r3._current_asks() == {"r1": "r2"}
+    assert _asks_in_force(r3) == {"r1": "r2"}
     # Still behind a period later (r2 keeps sending digests, but not r1's slot): switch to r4.
     _stacks(r3.on_message(KEYS.stack("r2"), _digest("r2", {"r1": v}), now + PERIOD), log3, "r3")
     later = now + PERIOD + 0.05
     sent = _stacks(
         r3.on_message(KEYS.stack("r4"), _digest("r4", {"r1": (1, 6)}), later), log3, "r3"
     )
-    assert r3._current_asks() == {"r1": "r4"}
+    assert _asks_in_force(r3) == {"r1": "r4"}
     assert [decode(p).ask for p in sent] == [{"r1": "r4"}]
     assert r3.counter_values()["relays_asked"] == 2
     # r4 falls silent for DIGEST_LIFE periods, and r2 no longer holds r1's slot: the ask goes,
@@ -115,10 +120,10 @@ def test_a_relay_that_leaves_the_robot_behind_a_period_is_replaced_and_a_silent_
     silent = later + DIGEST_LIFE * PERIOD + 0.05
     _stacks(r3.on_message(KEYS.stack("r2"), _digest("r2", {}), silent), log3, "r3")
     tick = [decode(a.payload) for a in r3.on_timer(silent + 0.05) if isinstance(a, Publish)]
-    assert r3._current_asks() == {} and [m.ask for m in tick] == [None]
+    assert _asks_in_force(r3) == {} and [m.ask for m in tick] == [None]
     # A heard robot whose digest shows the version again is asked for it.
     _stacks(r3.on_message(KEYS.stack("r2"), _digest("r2", {"r1": v}), silent + 0.1), log3, "r3")
-    assert r3._current_asks() == {"r1": "r2"}
+    assert _asks_in_force(r3) == {"r1": "r2"}
 
 
 def test_delta_gossip_makes_no_asks_and_an_ask_for_another_relay_is_not_answered() -> None:
@@ -192,6 +197,6 @@ def test_what_an_asker_keeps_is_bounded_by_the_slot_limit() -> None:
     for i in range(300):
         claim = _digest("x", {f"o{j}": (1, 1) for j in range(i, i + 3)})
         _stacks(r3.on_message(KEYS.stack("x"), claim, 1.0 + 0.01 * i), log3, "r3")
-    assert len(r3._asks) == limit and len(r3._behind) <= limit
+    assert len(r3.gossip.asks) == limit and len(r3.gossip.behind) <= limit
     tick = [decode(a.payload) for a in r3.on_timer(4.5) if isinstance(a, Publish)]
     assert len(tick) == 1 and len(tick[0].ask or {}) == limit

@@ -9,7 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from agents.core import DIGEST_LIFE, DIGEST_REFRESH, AgentCore, CoreSettings, Publish
+from agents.core import AgentCore, CoreSettings, Publish
+from agents.gossip import DIGEST_LIFE, DIGEST_REFRESH
 from agents.runtime import MemoryLog, execute_journal_actions
 from agents.transport.base import Keys
 from deploy.base.build import belief_model, make_node
@@ -131,9 +132,9 @@ def test_a_peer_that_joins_late_gets_every_slot_it_lacks_and_nothing_else_is_res
     assert r3.node.stack.versions() == held
     # Sent once. The answer carried r1's digest too, so the next tick sends nothing; the tick
     # when the digest is due again carries it alone.
-    skipped = r1.digests_skipped
+    skipped = r1.gossip.digests_skipped
     assert [a for a in r1.on_timer(now + 0.1) if isinstance(a, Publish)] == []
-    assert r1.digests_skipped == skipped + 1
+    assert r1.gossip.digests_skipped == skipped + 1
     due = now + DIGEST_REFRESH * r1.settings.gossip_period
     later = [a.payload for a in r1.on_timer(due) if isinstance(a, Publish)]
     assert len(later) == 1 and len(decode(later[0]).stack) == 0
@@ -190,8 +191,8 @@ def test_an_unchanged_digest_goes_only_when_due() -> None:
         return [a.payload for a in r1.on_timer(t) if isinstance(a, Publish)]
 
     # r1's stack of its step carried this very digest, at ``now``.
-    assert tick(now) == [] and r1.digests_skipped == 1
-    assert tick(now + 0.1) == [] and r1.digests_skipped == 2  # unchanged, 0.1 s later
+    assert tick(now) == [] and r1.gossip.digests_skipped == 1
+    assert tick(now + 0.1) == [] and r1.gossip.digests_skipped == 2  # unchanged, 0.1 s later
     assert tick(now + (DIGEST_REFRESH - 0.05) * period) == []
     assert len(tick(now + DIGEST_REFRESH * period)) == 1  # due again
     now += DIGEST_REFRESH * period
@@ -206,7 +207,7 @@ def test_an_unchanged_digest_goes_only_when_due() -> None:
     pulled = tick(now + 0.2 + period)
     assert len(pulled) == 1 and len(decode(pulled[0]).stack) == 0
     assert tick(now + 0.3 + period) == []
-    assert r1.counter_values()["digests_skipped"] == r1.digests_skipped == 7
+    assert r1.counter_values()["digests_skipped"] == r1.gossip.digests_skipped == 7
     # r2 answers the pull with its slot, at once.
     pushed = _stacks(r2.on_message(KEYS.stack("r1"), pulled[0], now + 0.25 + period), log2, "r2")
     assert [decode(p).stack.versions().get("r2") for p in pushed] == [
@@ -322,11 +323,11 @@ def test_digests_of_made_up_senders_are_bounded() -> None:
         sender = f"x{i}"
         data = encode(StackMessage(sender, None, Stack(), 0, have={f"o{i}": (1, 1)}))
         r1.on_message(KEYS.stack(sender), data, float(i))
-    assert len(r1._digests) == r1.node.limits.max_slots
-    assert "x299" in r1._digests and "x0" not in r1._digests
+    assert len(r1.gossip.digests) == r1.node.limits.max_slots
+    assert "x299" in r1.gossip.digests and "x0" not in r1.gossip.digests
     # Nor what it keeps of the versions they claim to hold (each a version r1 lacks).
-    assert len(r1._wanted) == r1.node.limits.max_slots
-    assert "o299" in r1._wanted and "o0" not in r1._wanted
+    assert len(r1.gossip.wanted) == r1.node.limits.max_slots
+    assert "o299" in r1.gossip.wanted and "o0" not in r1.gossip.wanted
 
 
 def test_a_roster_fleet_wants_only_roster_robots_slots_from_roster_robots() -> None:
@@ -348,10 +349,10 @@ def test_a_roster_fleet_wants_only_roster_robots_slots_from_roster_robots() -> N
     r1.on_message(KEYS.stack("x1"), outsider, 1.0)
     # Nor does an outsider's digest count as a peer's: what it lacks is never sent for it (an
     # outsider's empty digests would otherwise have every robot re-send its whole stack).
-    assert "x1" not in r1._digests
+    assert "x1" not in r1.gossip.digests
     claims = encode(StackMessage("r2", None, Stack(), 0, have={"x9": (1, 5), "r3": (1, 2)}))
     r1.on_message(KEYS.stack("r2"), claims, 1.0)
-    assert set(r1._wanted) == {"r3"}
+    assert set(r1.gossip.wanted) == {"r3"}
 
 
 def test_ever_newer_claimed_versions_add_no_digest_sends() -> None:
@@ -373,4 +374,4 @@ def test_ever_newer_claimed_versions_add_no_digest_sends() -> None:
             pulls += len([a for a in r1.on_timer(t) if isinstance(a, Publish)])
     # Only the refreshes go: the version it lacks is always new, so no peer could push it yet.
     assert pulls <= t / (DIGEST_REFRESH * period) + 1, pulls
-    assert len(r1._wanted) == 1
+    assert len(r1.gossip.wanted) == 1

@@ -24,7 +24,7 @@ from deploy.base.output import plural, runs_progress
 from deploy.cli.args import MAX_SEED, positive_int, seed, writable_out
 from deploy.cli.scenario_args import scenario_from_args
 from deploy.study.archive import study_archive, write_archive
-from deploy.study.fleet import COMM_MODES
+from deploy.study.fleet import COMM_MODES, GOSSIP_MODES
 from deploy.study.paper_figures import PAPER_SOURCE, PaperValue, compare, paper_world_error
 from deploy.study.report import render_paper, render_summary, write_plots
 from deploy.study.runner import DEFAULT_METHODS, METHODS, RECEIVED_NEEDS, run_study
@@ -139,6 +139,7 @@ def run(args: argparse.Namespace, console: Console, own: dict[str, tuple[str, An
             lambda: progress.advance(task),
             args.comm,
             args.cluster,
+            gossip=args.gossip,
         )
     settings = {
         "weight_estimator": args.weights,
@@ -151,9 +152,10 @@ def run(args: argparse.Namespace, console: Console, own: dict[str, tuple[str, An
         "slot_linearisation": config.slot_linearisation,
         "window": config.window,
         "communication": comm,
+        "gossip": args.gossip,
     }
     if args.shard is not None:
-        key = study_key(scenario, args.methods, config, args.comm)
+        key = study_key(scenario, args.methods, config, args.comm, args.gossip)
         settings["shard"] = shard_entry(args.shard, seeds, step, robot, key)
     archive = study_archive(scenario.name, results, args.methods, settings)
     out = Path(args.out)
@@ -265,6 +267,14 @@ def add_parser(sub: Any) -> None:
         default=None,
         help="communication for distributed methods: the schedule table, the range rule "
         "(scenario's range, 10 m in paper) or both (default: the scenario's mode)",
+    )
+    p.add_argument(
+        "--gossip",
+        choices=GOSSIP_MODES,
+        default="delta",
+        help="what the fleets' stacks carry: delta (default: the agents' lock-step protocol, "
+        "the held slots some peer lacks) or full (every held slot); the beliefs are the same, "
+        "the bytes differ",
     )
     p.add_argument("--samples", type=positive_int, default=BeliefConfig().num_samples)
     p.add_argument(
