@@ -313,3 +313,10 @@ def test_no_other_installed_distribution_ships_our_top_level_names() -> None:
     shipped = importlib.metadata.packages_distributions()
     others = {name: sorted(set(shipped.get(name, [])) - {"semfleet"}) for name in CODE_PACKAGES}
     assert {n: d for n, d in others.items() if d} == {}
+
+
+def test_plots_and_the_archive_read_value_types_never_a_runner() -> None:
+    graph = _import_graph(_project_modules())
+    runners = {"deploy.study.runner", "deploy.study.ufastslam", "deploy.study.fleet"}
+    for reader in ("deploy.study.plots", "deploy.study.archive", "deploy.study.report"):
+        assert not graph[reader] & runners, (reader, graph[reader] & runners)

@@ -22,8 +22,9 @@ from matplotlib.patches import Wedge
 
 from deploy.study.archive import pooled_calibration
 from deploy.study.paper_figures import PaperValue, by_metric
-from deploy.study.types import RunResult
-from deploy.study.ufastslam import LABELS, METHODS, MethodRun, SeedRun, semantic_method
+from deploy.study.types import UFASTSLAM_LABELS as LABELS
+from deploy.study.types import UFASTSLAM_METHODS as METHODS
+from deploy.study.types import MethodRun, RunResult, SeedRun, semantic_method
 from estimator.hybrid import BeliefSnapshot
 from estimator.metrics import chi2_bounds
 from sim.scenario import Scenario

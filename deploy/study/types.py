@@ -1,5 +1,6 @@
 """The study's value types, at the bottom of ``deploy.study``: what a run returns
-(:class:`RunResult`) and how a run fails (:class:`StudyError`). The runner fills them; the
+(:class:`RunResult`; of the UFastSLAM study, :class:`SeedRun` of :class:`MethodRun`) and how a
+run fails (:class:`StudyError`). The runner fills them; the
 archive, report, plots, shards and cluster read them, and import no runner for it."""
 
 from __future__ import annotations
@@ -48,3 +49,51 @@ class RunResult:
 
 class StudyError(RunFailure):
     """A worker process of a run died (killed, out of memory); the message names the seed."""
+
+
+# -- the UFastSLAM study (deploy.study.ufastslam) --------------------------------------------
+
+# Every method of every run, in table order; results.json's semantic_ufastslam is one of them.
+UFASTSLAM_METHODS = ("odometry", "ufastslam", "semantic_threshold", "semantic_oracle")
+UFASTSLAM_LABELS = {
+    "odometry": "dead reckoning",
+    "ufastslam": "UFastSLAM",
+    "semantic_threshold": "Semantic UFastSLAM (threshold)",
+    "semantic_oracle": "Semantic UFastSLAM (oracle)",
+}
+
+
+@dataclass(frozen=True, slots=True)
+class MethodRun:
+    """One method on one run: the metrics (``pose_nees``: the median over steps, and
+    ``nees_over_bound``: the share of steps above the χ²₃ bound of :data:`NEES_PROBABILITY`,
+    filters only), the estimated path (steps + 1, 3), the final map (landmark ids, (L, 2)) and the
+    relation groups it used (kind, name, member ids)."""
+
+    pose_rmse: float
+    landmark_rmse: float
+    final_error: float
+    step_ms: float
+    relations_true: int
+    relations_false: int
+    pose_nees: float | None
+    nees_over_bound: float | None
+    path: Array
+    map_ids: tuple[int, ...]
+    map_xy: Array
+    groups: tuple[tuple[str, str, tuple[int, ...]], ...]
+
+
+@dataclass(frozen=True, slots=True)
+class SeedRun:
+    """Every method of :data:`UFASTSLAM_METHODS` on the measurements of one seed; ``truth``
+    (steps + 1, 3)."""
+
+    seed: int
+    truth: Array
+    methods: dict[str, MethodRun]
+
+
+def semantic_method(relations: str) -> str:
+    """The method of :data:`UFASTSLAM_METHODS` that results.json calls ``semantic_ufastslam``."""
+    return "ufastslam" if relations == "off" else f"semantic_{relations}"

@@ -10,7 +10,6 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -18,6 +17,9 @@ from numpy.typing import NDArray
 
 from deploy.study.archive import ResultsArchive
 from deploy.study.runner import run_seeded
+from deploy.study.types import UFASTSLAM_LABELS as LABELS
+from deploy.study.types import UFASTSLAM_METHODS as METHODS
+from deploy.study.types import MethodRun, SeedRun, semantic_method
 from estimator.metrics import chi2_bound, world_pose_nees
 from estimator.ufastslam import (
     AcceptedRelation,
@@ -33,14 +35,6 @@ from sim.ufastslam.world import GROUP_TOLERANCE
 Array = NDArray[np.float64]
 
 RELATION_CHOICES = ("threshold", "oracle", "off")
-# Every method of every run, in table order; results.json's semantic_ufastslam is one of them.
-METHODS = ("odometry", "ufastslam", "semantic_threshold", "semantic_oracle")
-LABELS = {
-    "odometry": "dead reckoning",
-    "ufastslam": "UFastSLAM",
-    "semantic_threshold": "Semantic UFastSLAM (threshold)",
-    "semantic_oracle": "Semantic UFastSLAM (oracle)",
-}
 METRICS = ("pose_rmse", "landmark_rmse", "final_error", "step_ms")
 COUNTS = ("relations_true", "relations_false")
 CONSISTENCY = ("pose_nees", "nees_over_bound")
@@ -49,36 +43,6 @@ NEES_PROBABILITY = 0.99
 # The filter's random stream of a run; the same for every method, so that relations "off" is
 # bit-identical to plain UFastSLAM.
 _FILTER_STREAM = 0x5EED
-
-
-@dataclass(frozen=True, slots=True)
-class MethodRun:
-    """One method on one run: the metrics (``pose_nees``: the median over steps, and
-    ``nees_over_bound``: the share of steps above the χ²₃ bound of :data:`NEES_PROBABILITY`,
-    filters only), the estimated path (steps + 1, 3), the final map (landmark ids, (L, 2)) and the
-    relation groups it used (kind, name, member ids)."""
-
-    pose_rmse: float
-    landmark_rmse: float
-    final_error: float
-    step_ms: float
-    relations_true: int
-    relations_false: int
-    pose_nees: float | None
-    nees_over_bound: float | None
-    path: Array
-    map_ids: tuple[int, ...]
-    map_xy: Array
-    groups: tuple[tuple[str, str, tuple[int, ...]], ...]
-
-
-@dataclass(frozen=True, slots=True)
-class SeedRun:
-    """Every method of :data:`METHODS` on the measurements of one seed; ``truth`` (steps + 1, 3)."""
-
-    seed: int
-    truth: Array
-    methods: dict[str, MethodRun]
 
 
 def filter_config(world: UWorld, particles: int, relations: str) -> UFastSLAMConfig:
@@ -200,11 +164,6 @@ def run_all(
             advance()
         return out
     return run_seeded({s: (run_seed, world, s, particles) for s in seeds}, jobs, advance)
-
-
-def semantic_method(relations: str) -> str:
-    """The method of :data:`METHODS` that results.json calls ``semantic_ufastslam``."""
-    return "ufastslam" if relations == "off" else f"semantic_{relations}"
 
 
 def _means(runs: list[SeedRun], method: str) -> dict[str, float]:
