@@ -79,6 +79,20 @@ class Stop:
 
 
 Control = StepOrder | NeedFrames | NeedRound | Status | Stop
+# The one key each kind of control message may come on (under ``ctl/``; ``need/<robot>`` for the
+# requests of that robot): a message on another key is refused (:func:`fits_key`).
+KEY_OF: dict[type, str] = {StepOrder: "step", Stop: "stop", Status: "status"}
+
+
+def fits_key(message: Control, where: str) -> bool:
+    """Whether ``message`` may come on the control key ``ctl/<where>``: a step order only on
+    ``step``, a stop only on ``stop``, a status request only on ``status``, and on
+    ``need/<robot>`` only that robot's requests (``NeedFrames``, ``NeedRound``) — the one control
+    key a fleet member may put on (``deploy.operator.access_control``), so that a member's key
+    never carries an order for the whole fleet (docs/deploy.md, "Threat model")."""
+    if isinstance(message, NeedFrames | NeedRound):
+        return where == f"need/{message.robot}"
+    return KEY_OF.get(type(message)) == where
 
 
 def encode_control(message: Control, max_bytes: int = MAX_CONTROL_BYTES) -> bytes:

@@ -58,6 +58,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from agents.control import (
+    Control,
     NeedFrames,
     NeedRound,
     Status,
@@ -65,6 +66,7 @@ from agents.control import (
     Stop,
     decode_control,
     encode_control,
+    fits_key,
 )
 from agents.gossip import DeltaGossip, Outgoing
 from agents.journal import Record
@@ -367,11 +369,7 @@ class AgentCore:
     # -- input -------------------------------------------------------------------------------
 
     def _on_control(self, key: str, payload: bytes) -> list[Action]:
-        try:
-            order = decode_control(payload, max_bytes=self.settings.max_control_bytes)
-        except RemoteProtocolError as exc:
-            self.counters.invalid_control += 1
-            _log_invalid(self, "ctl", exc)
+        if (order := _decoded_control(self, key, payload)) is None:
             return []
         k = self.node.k
         if isinstance(order, StepOrder):
@@ -775,3 +773,17 @@ def _log_invalid(core: AgentCore, source: str, exc: Exception) -> None:
     if now - last_invalid.get(source, -math.inf) >= core.settings.invalid_log_period:
         last_invalid[source] = now
         log.warning("%s: invalid input from %s: %s", core.robot, source, exc)
+
+
+def _decoded_control(core: AgentCore, key: str, payload: bytes) -> Control | None:
+    """The control message ``payload`` if it decodes and fits its ``key``
+    (:func:`agents.control.fits_key`); else None, counted in ``control_invalid`` and logged."""
+    try:
+        order = decode_control(payload, max_bytes=core.settings.max_control_bytes)
+        if not fits_key(order, key.removeprefix(core.keys.ctl(""))):
+            raise ValueError(f"{type(order).__name__} on {key}, not its key")
+    except (RemoteProtocolError, ValueError) as exc:
+        core.counters.invalid_control += 1
+        _log_invalid(core, "ctl", exc)
+        return None
+    return order

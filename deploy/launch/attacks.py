@@ -14,7 +14,8 @@ The attacks, against the *victim* (the robot the others hear most in the run, :f
 - ``stamp`` — a forged victim slot far ahead of its real version (the largest stamp the owner's
   clock allows under its current epoch), relayed on the *accomplice*'s key (the next most heard
   robot);
-- ``stop`` — ``ctl/stop`` two steps before the end;
+- ``stop`` — ``ctl/stop`` two steps before the end (a member also on ``ctl/need/<its robot>``,
+  the one control key its certificate may put on: agents take only that robot's requests there);
 - ``frames`` — sensor frames for the victim's next steps: no motion, and an object that is not
   there;
 - ``garbage`` — malformed stacks (:func:`deploy.launch.chaos.garbage_stack`) on the victim's and
@@ -176,7 +177,11 @@ class Attacker:
     def _stop(self, k: int) -> list[tuple[str, bytes]]:
         if k != self.steps - 2:  # two steps early: every agent hears it before the last one
             return []
-        return [(self.keys.ctl("stop"), encode_control(Stop("attack")))]
+        stop = encode_control(Stop("attack"))
+        out = [(self.keys.ctl("stop"), stop)]
+        if self.identity.robot is not None:  # a member, on the control key it may put on
+            out.append((self.keys.ctl("need", self.identity.robot), stop))
+        return out
 
     def _frames(self, k: int) -> list[tuple[str, bytes]]:
         scores = np.zeros(self.num_classes)
@@ -280,7 +285,7 @@ def evidence(
         counted = {
             "impersonate": ("stacks_badly_signed", "stacks_misaddressed", "slots_implausible"),
             "stamp": ("stacks_badly_signed", "slots_implausible"),
-            "stop": (),
+            "stop": ("control_invalid",),
             "frames": ("frames_invalid",),
             "garbage": ("stacks_invalid",),
         }[attack]

@@ -13,12 +13,21 @@ import numpy as np
 import pytest
 
 import agents.recovery as recovery
-from agents.control import NeedRound, Status, StepOrder, decode_control, encode_control
+from agents.control import (
+    NeedFrames,
+    NeedRound,
+    Status,
+    StepOrder,
+    Stop,
+    decode_control,
+    encode_control,
+)
 from agents.core import (
     Action,
     AgentCore,
     CoreSettings,
     CutJournal,
+    Halt,
     Hear,
     Publish,
     Quarantine,
@@ -208,6 +217,42 @@ def test_frames_orders_and_rounds_stay_within_the_window(frames) -> None:  # typ
         d.send(KEYS.stack("r2"), peer.encoded_stack())
     assert max(step for _, step in d.core.rounds.held) <= 8
     assert d.core.counter_values()["rounds_dropped"] == 0
+
+
+def test_control_messages_are_taken_only_on_their_own_key() -> None:
+    """A member's certificate lets it put on ctl/need/<its robot> only: a Stop, Status or step
+    order there — or another robot's request — is refused and counted, never obeyed (issue 43,
+    finding 1: one Stop on ctl/need/r3 halted the whole fleet)."""
+    d = Driver(mode="lockstep")
+    d.core.start(0.0)
+    misplaced = [
+        (KEYS.ctl("need", "r3"), Stop("a member's stop")),
+        (KEYS.ctl("need", "r3"), Status()),
+        (KEYS.ctl("need", "r3"), StepOrder(1, {"r1": ()})),
+        (KEYS.ctl("need", "r3"), NeedFrames("r2", 1)),  # r2's request on r3's key
+        (KEYS.ctl("status"), Stop("stop on the status key")),
+        (KEYS.ctl("step"), Status()),
+        (KEYS.ctl("stop"), StepOrder(1, {"r1": ()})),
+        (KEYS.ctl("anything"), Stop("an unknown key")),
+    ]
+    for key, message in misplaced:
+        actions = d.core.on_message(key, encode_control(message), 1.0)
+        assert not any(isinstance(a, (Halt, Publish)) for a in actions), (key, message)
+    assert d.core.counters.invalid_control == len(misplaced) and not d.core.stop_reason
+    assert d.core.rounds is not None and not d.core.rounds.orders
+    assert d.core.counters.status_requests == 0
+    # Each on its own key is obeyed.
+    d.send(KEYS.ctl("need", "r3"), encode_control(NeedFrames("r3", 1)))
+    d.send(KEYS.ctl("step"), encode_control(StepOrder(1, {"r1": ()})))
+    assert 1 in d.core.rounds.orders and d.core.counters.invalid_control == len(misplaced)
+    assert any(
+        isinstance(a, Publish)
+        for a in d.core.on_message(KEYS.ctl("status"), encode_control(Status()), 2.0)
+    )
+    assert any(
+        isinstance(a, Halt)
+        for a in d.core.on_message(KEYS.ctl("stop"), encode_control(Stop("end")), 3.0)
+    )
 
 
 def test_oversized_and_malformed_control_is_counted_unread() -> None:
