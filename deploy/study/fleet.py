@@ -7,9 +7,14 @@ The run is deterministic: same scenario, seed and link model, same result.
 What a stack carries (``gossip``): ``delta``, the default, is the lock-step agents' protocol
 (``agents.gossip.DeltaGossip``, strict): every robot publishes its round stack to the whole fleet
 (a lock-step launch does: every agent reads every digest, and merges only the stacks of the
-senders its order names), with the held slots some peer lacks by its latest digest. ``full``
-sends every held slot. Both deliver the same slots that can change a receiver, so D, and every
-metric, is the same; only the bytes differ (docs/architecture.md, "The study's gossip").
+senders its order names), with the held slots some peer lacks by its latest digest; so, as an
+agent does, every robot rebuilds its own slot at every step. ``full`` sends every held slot,
+and only the robots some peer hears rebuild theirs (the fleet before issue 42, bit for bit).
+Both deliver every slot version that can change a receiver. Where a slot carries the sparse ξ
+(maps above ``SPARSE_XI_ABOVE`` objects) its Bayes-net structure is refitted when the slot is
+rebuilt, so a robot nobody heard for a while comes back with a slightly different (equally
+conservative) slot; elsewhere D is the same bit for bit (docs/architecture.md, "The study's
+gossip").
 """
 
 from __future__ import annotations

@@ -1,5 +1,7 @@
 """The study fleet sends what the lock-step agents send (delta gossip, the default) or every held
-slot (full): the same beliefs and metrics, fewer bytes (deploy/study/fleet.py)."""
+slot (full): on maps of dense ξ slots (up to 32 objects, as here) the same beliefs and metrics
+bit for bit, and the same deliveries (deploy/study/fleet.py; above 32 objects see
+docs/architecture.md, "The study's gossip")."""
 
 from __future__ import annotations
 

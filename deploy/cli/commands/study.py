@@ -273,8 +273,8 @@ def add_parser(sub: Any) -> None:
         choices=GOSSIP_MODES,
         default="delta",
         help="what the fleets' stacks carry: delta (default: the agents' lock-step protocol, "
-        "the held slots some peer lacks) or full (every held slot); the beliefs are the same, "
-        "the bytes differ",
+        "the held slots some peer lacks) or full (every held slot, the fleet before issue 42); "
+        'docs/architecture.md, "The study\'s gossip"',
     )
     p.add_argument("--samples", type=positive_int, default=BeliefConfig().num_samples)
     p.add_argument(
