@@ -14,8 +14,7 @@ The attacks, against the *victim* (the robot the others hear most in the run, :f
 - ``stamp`` — a forged victim slot far ahead of its real version (the largest stamp the owner's
   clock allows under its current epoch), relayed on the *accomplice*'s key (the next most heard
   robot);
-- ``stop`` — ``ctl/stop`` two steps before the end (a member also on ``ctl/need/<its robot>``,
-  the one control key its certificate may put on: agents take only that robot's requests there);
+- ``stop`` — ``ctl/stop`` two steps before the end (a member: on its own ``ctl/need`` key too);
 - ``frames`` — sensor frames for the victim's next steps: no motion, and an object that is not
   there;
 - ``garbage`` — malformed stacks (:func:`deploy.launch.chaos.garbage_stack`) on the victim's and
@@ -177,11 +176,9 @@ class Attacker:
     def _stop(self, k: int) -> list[tuple[str, bytes]]:
         if k != self.steps - 2:  # two steps early: every agent hears it before the last one
             return []
-        stop = encode_control(Stop("attack"))
-        out = [(self.keys.ctl("stop"), stop)]
-        if self.identity.robot is not None:  # a member, on the control key it may put on
-            out.append((self.keys.ctl("need", self.identity.robot), stop))
-        return out
+        keys = [self.keys.ctl("stop")]  # and a member on the one control key it may put on
+        keys += [self.keys.ctl("need", self.identity.robot)] if self.identity.robot else []
+        return [(key, encode_control(Stop("attack"))) for key in keys]
 
     def _frames(self, k: int) -> list[tuple[str, bytes]]:
         scores = np.zeros(self.num_classes)

@@ -116,7 +116,8 @@ def test_chaos_attack_command_prints_the_table_and_refuses_other_faults(tmp_path
     assert run.returncode == 0, run.stderr
     assert "uncertified (the fleet's CA, no certificate): saw 0 of 3" in run.stdout
     row = next(line for line in run.stdout.splitlines() if line.split()[:2] == ["secure", "stop"])
-    assert row.split()[2:] == ["nothing", "—", "18/18"]
+    # The member's Stop on its own ctl/need key reached every agent, which refused it.
+    assert row.split()[2:] == ["nothing", "control_invalid", "3", "18/18"]
     bad = subprocess.run(
         [*cmd, "--attack", "stop", "--drop", "0.2"], capture_output=True, text=True, timeout=60
     )
