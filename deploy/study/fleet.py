@@ -7,14 +7,10 @@ The run is deterministic: same scenario, seed and link model, same result.
 What a stack carries (``gossip``): ``delta``, the default, is the lock-step agents' protocol
 (``agents.gossip.DeltaGossip``, strict): every robot publishes its round stack to the whole fleet
 (a lock-step launch does: every agent reads every digest, and merges only the stacks of the
-senders its order names), with the held slots some peer lacks by its latest digest; so, as an
-agent does, every robot rebuilds its own slot at every step. ``full`` sends every held slot,
-and only the robots some peer hears rebuild theirs (the fleet before issue 42, bit for bit).
-Both deliver every slot version that can change a receiver. Where a slot carries the sparse ξ
-(maps above ``SPARSE_XI_ABOVE`` objects) its Bayes-net structure is refitted when the slot is
-rebuilt, so a robot nobody heard for a while comes back with a slightly different (equally
-conservative) slot; elsewhere D is the same bit for bit (docs/architecture.md, "The study's
-gossip").
+senders its order names), with the held slots some peer lacks by its latest digest. ``full``
+sends every held slot (the fleet before issue 42, bit for bit). Both deliver every slot version
+that can change a receiver, and in both only a robot that sends rebuilds its own slot, so D is
+the same bit for bit; only the bytes differ (docs/architecture.md, "The study's gossip").
 """
 
 from __future__ import annotations
@@ -124,7 +120,7 @@ def _outgoing(
     """Delta gossip: every robot's round stack (the held slots some peer lacks by its latest
     digest; None while it holds nothing, as a full stack), then every robot notes every other's
     digest (the versions it held when it sent), as every lock-step agent reads every stack."""
-    held = {r: node.current_stack().versions() for r, node in nodes.items()}
+    held = {r: _digest(node) for r, node in nodes.items()}
     out = {
         s: nodes[s].encoded_delta(policies[s].select(held[s], k, unsent=False)) if held[s] else None
         for s in senders
@@ -134,6 +130,17 @@ def _outgoing(
             if r != sender:
                 policy.note_digest(sender, have, frozenset(), k)
     return out
+
+
+def _digest(node: RobotNode) -> dict[str, tuple[int, int]]:
+    """The versions ``node``'s stack holds, its own slot's as ``current_stack`` would make it —
+    (epoch, step) once L knows an object — without rebuilding that slot: only a robot that sends
+    rebuilds it, as in a full-stack fleet (so the two give the same slots, and the same D, bit
+    for bit; a lock-step agent, which publishes every round, rebuilds it every step)."""
+    have = node.stack.versions()
+    if node.local.object_ids:
+        have[node.robot] = (node.epoch, node.k)
+    return have
 
 
 def _deliver(

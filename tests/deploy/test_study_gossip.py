@@ -1,7 +1,6 @@
 """The study fleet sends what the lock-step agents send (delta gossip, the default) or every held
-slot (full): on maps of dense ξ slots (up to 32 objects, as here) the same beliefs and metrics
-bit for bit, and the same deliveries (deploy/study/fleet.py; above 32 objects see
-docs/architecture.md, "The study's gossip")."""
+slot (full): the same beliefs and metrics bit for bit, and the same deliveries
+(deploy/study/fleet.py; docs/architecture.md, "The study's gossip")."""
 
 from __future__ import annotations
 
