@@ -22,6 +22,7 @@ from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
 from numpy.typing import ArrayLike
 
 from estimator.distributed import DistributedBelief, FusionStats, SlotError
+from estimator.gate import GateSettings, Held, Implausible, check_summary, held_objects
 from estimator.hybrid import BeliefConfig, BeliefModel, HybridBelief
 from estimator.models import SensorFrame
 from estimator.slots import linearisation_point, summarise
@@ -74,6 +75,7 @@ class Received:
     refused: int = 0
     implausible: int = 0
     error: Exception | None = None
+    gated: int = 0
 
 
 def _always(sender: str) -> bool:
@@ -106,7 +108,8 @@ def _ahead_of(wall_s: float | None) -> Callable[[Slot], bool]:
 @dataclass(slots=True)
 class NodeCounters:
     """What a node has seen. ``invalid`` counts messages rejected by the protocol layer,
-    ``rejected_slots`` slots that decoded but contradict the belief's model, ``foreign_slots``
+    ``rejected_slots`` slots that decoded but contradict the belief's model or what it believes
+    (the belief gate, ``estimator.gate``), ``foreign_slots``
     slots refused because their owner is outside the roster (or the stack is full),
     ``own_slot_invalid`` times the own slot could not be sent (outside the limits),
     ``empty_joins`` slots whose join with D was empty and ``rebuilds`` the times D was rebuilt
@@ -204,6 +207,64 @@ class LocalTrack:
         return self._summary
 
 
+class BeliefGate:
+    """A node's belief gate (``estimator.gate``): which slots of a received stack contradict
+    what D believes, decided once per slot version and content until D next changes."""
+
+    def __init__(
+        self, settings: GateSettings, model: BeliefModel, semantic_poses: bool, max_slots: int
+    ) -> None:
+        self.settings = settings
+        # λmax(R⁻¹) of the detection factors, the information bound's unit; 0 when the semantic
+        # factors also inform the Gaussians (no bound then).
+        self.geometric_info = 0.0 if semantic_poses else 1.0 / min(model.geometric_noise.variances)
+        self._max = 4 * max_slots
+        self._held: Held | None = None  # D's objects, until D next changes
+        self._verdicts: dict[tuple[str, int, int], tuple[LocalSummary, Implausible | None]] = {}
+
+    def changed(self) -> None:
+        self._held = None
+        self._verdicts.clear()
+
+    def refused(
+        self, message: StackMessage, robot: str, held: Stack, belief: DistributedBelief
+    ) -> dict[str, Implausible]:
+        """Owner → why, for every slot of ``message`` newer than the version ``held`` that the
+        gate refuses (``robot``'s own slot is never checked here)."""
+        bad: dict[str, Implausible] = {}
+        for s in message.stack:
+            if s.owner == robot or s.version <= (held.version_of(s.owner) or (-1, -1)):
+                continue
+            key = (s.owner, s.epoch, s.stamp)
+            known = self._verdicts.get(key)
+            if known is not None and known[0] is s.summary:
+                verdict = known[1]
+            else:
+                verdict = self._verdict(s, belief)
+                if len(self._verdicts) >= self._max:
+                    self._verdicts.clear()
+                self._verdicts[key] = (s.summary, verdict)
+            if verdict is not None:
+                bad[s.owner] = verdict
+        return bad
+
+    def _verdict(self, slot: Slot, belief: DistributedBelief) -> Implausible | None:
+        if self._held is None and self.settings.false_alarm and len(belief.object_ids):
+            self._held = held_objects(belief)
+        try:
+            check_summary(
+                slot.owner,
+                slot.summary,
+                slot.stamp,
+                self._held,
+                self.geometric_info,
+                self.settings,
+            )
+        except Implausible as exc:
+            return exc
+        return None
+
+
 def node_limits(num_classes: int, config: BeliefConfig) -> Limits:
     """The default wire limits of a node whose beliefs follow ``config``: the defaults, with room
     for as many class realisations per slot as its own local belief may hold (``config.cap()``;
@@ -233,6 +294,7 @@ class RobotNode:
         roster: frozenset[str] | None = None,
         signing: Signing | None = None,
         epoch: int = 0,
+        gate: GateSettings | None = None,
     ) -> None:
         self.robot = robot
         # The own slot's epoch (docs/wire.md, "Versions and epochs"): the shell gives the one of
@@ -259,6 +321,8 @@ class RobotNode:
             raise ValueError(f"robot {robot} is not in its own roster {sorted(roster)}")
         self.roster = roster
         self.stack = Stack()
+        semantic_poses = (config or BeliefConfig()).semantic_poses
+        self.gate = BeliefGate(gate or GateSettings(), model, semantic_poses, self.limits.max_slots)
         self.counters = NodeCounters()
         self.position: tuple[float, float] | None = None
         self.k = 0
@@ -316,12 +380,28 @@ class RobotNode:
             return Received(None, error=exc)
         message, dropped = _without(message, lambda s: (s.owner, s.version) in refused)
         message, implausible = _without(message, _ahead_of(wall_s))
-        error = ValueError("a slot version ahead of its owner's clock") if implausible else None
+        error: Exception | None = (
+            ValueError("a slot version ahead of its owner's clock") if implausible else None
+        )
+        bad = self.gate.refused(message, self.robot, self.stack, self.distributed)
+        if bad:
+            self.counters.rejected_slots += len(bad)
+            self.counters.last_error = str(next(iter(bad.values())))
+            if message.sender in bad:
+                # A sender whose own slot contradicts what this robot believes is not heard:
+                # its stack is refused whole, so that it takes no lock-step round of its own.
+                return Received(None, refused=dropped, gated=len(bad), error=bad[message.sender])
+            message, _ = _without(message, lambda s: s.owner in bad)
+            error = next(iter(bad.values()))
         taken: bool = False
         merged: tuple[Version, ...] = ()
         if merge_if is not None and merge_if(message.sender):
             taken, merged = self._merged(message)
-        return Received(message, merged, taken, dropped, implausible, error)
+        return Received(message, merged, taken, dropped, implausible, error, len(bad))
+
+    def _changed(self) -> None:
+        """D changed: the gate's view of it and its verdicts are made again when next needed."""
+        self.gate.changed()
 
     def merge_round(self, message: StackMessage, refused: Container[Version] = ()) -> Received:
         """Merge a round stack admitted by :meth:`receive` and held for its step (lock-step),
@@ -479,6 +559,7 @@ class RobotNode:
                 fusion, empty_joins=fusion.empty_joins + rebuilt.empty_joins, rebuilds=1
             )
         self.k = frame.k
+        self._changed()
         self.position = self._checked_position()
         # The own slot is rebuilt from L lazily, when a stack is next needed.
         self._own_slot_stale = True
@@ -508,6 +589,7 @@ class RobotNode:
         incoming = self._checked(self.stack.newer_than(self.distributed.versions, own=self.robot))
         # D is stepped right after (on_frame), which updates iSAM2 again: no settling here.
         stats = self.distributed.integrate(incoming, settle=False)
+        self._changed()
         if stats.empty_joins and self.distributed.fusion == "consistent":
             self._rebuild_due = True
         self.counters.empty_joins += stats.empty_joins
@@ -519,6 +601,7 @@ class RobotNode:
         must be at the same step)."""
         held = self._checked(self.stack.newer_than({}, own=self.robot))
         stats = self.distributed.rebuild(self.local, held)
+        self._changed()
         self._rebuild_due = False
         self.counters.empty_joins += stats.empty_joins
         self.counters.rebuilds += stats.rebuilds

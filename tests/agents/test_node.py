@@ -17,15 +17,17 @@ import pytest
 
 from agents.links import Schedule
 from agents.node import RobotNode
-from deploy.base.build import belief_model, belief_rng
+from deploy.base.build import belief_model, belief_rng, link_model_for
 from deploy.study.fleet import FleetStats, make_nodes, run_fleet
 from estimator.factors import object_key
 from estimator.hybrid import BeliefConfig, HybridBelief
 from estimator.models import SensorFrame
 from estimator.slots import object_log_phi
+from estimator.summary import LocalSummary, ObjectClasses
+from estimator.xi import Xi
 from protocol.codec import Limits, StackMessage, decode, encode
 from protocol.stack import Slot, Stack
-from sim.loader import parse_scenario
+from sim.loader import load_scenario, parse_scenario
 from sim.sensors import Simulator
 from sim.world import World
 from tests.estimator.scenarios import fleet_text
@@ -654,3 +656,68 @@ def test_a_node_holds_every_realisation_its_belief_may_keep() -> None:
     assert RobotNode("r1", start, model, *rngs).limits.max_realisations == 1024
     with pytest.raises(ValueError, match=r"max_realisations 1024 cannot hold .* \(up to 4096"):
         RobotNode("r1", start, model, *rngs, exact, limits=Limits(num_classes=2))
+
+
+# -- the belief gate (issue 43, finding 2) --------------------------------------------------------
+
+
+def _poisoned(node: RobotNode, info: float, shift: float, stamp: int) -> bytes:
+    """``node``'s own slot as a compromised member would make it: its real objects moved by
+    ``shift`` metres in x, with information ``info``·I and no mean offset, within every wire
+    limit."""
+    own = next(s for s in node.current_stack() if s.owner == node.robot)
+    po = own.summary.per_object
+    assert po is not None
+    n = len(own.summary.object_ids)
+    xi = Xi(po.xi.lin + np.array([shift, 0.0, 0.0]), info * np.eye(3 * n), np.zeros(3 * n))
+    summary = LocalSummary(own.summary.object_ids, (), ObjectClasses(po.log_phi, xi))
+    slot = Slot(node.robot, stamp, summary, node.epoch)
+    return encode(StackMessage(node.robot, node.position, Stack((slot,)), stamp), node.limits)
+
+
+def test_the_belief_gate_refuses_poisoned_slots_and_not_the_owners_next_one(
+    frames: dict[str, list[SensorFrame]],
+) -> None:
+    nodes, twin = _nodes(), _nodes()
+    run_fleet(nodes, frames, CHAIN, 8)
+    run_fleet(twin, frames, CHAIN, 8)
+    r1, r2 = nodes["r1"], nodes["r2"]
+    assert r2.distributed.stamps["r1"] == 7  # r2's D holds r1's objects 1 and 2
+    # Finding 2 as found: Λ = 10⁹·I (the wire's cap), 9 km away.
+    got = r2.receive(_poisoned(r1, 1e9, 9000.0, 9), "r1")
+    assert got.message is None and got.gated == 1 and "information" in str(got.error)
+    # Within the information bound (2 × 9 steps × 100), so the Mahalanobis test must catch it.
+    got = r2.receive(_poisoned(r1, 500.0, 9000.0, 9), "r1")
+    assert got.message is None and got.gated == 1 and "Mahalanobis" in str(got.error)
+    assert r2.counters.rejected_slots == 2 and r2.stack.version_of("r1") == (0, 7)
+    # Relayed by r3 as part of its stack: only that slot is dropped.
+    relayed = decode(_poisoned(r1, 500.0, 9000.0, 9)).stack
+    r3_own = [s for s in nodes["r3"].current_stack() if s.owner == "r3"]
+    bytes_ = encode(StackMessage("r3", None, Stack((*r3_own, *relayed)), 9), r2.limits)
+    got = r2.receive(bytes_, "r3")
+    assert got.message is not None and got.gated == 1
+    assert [s.owner for s in got.message.stack] == ["r3"]
+    r2.counters.rejected_slots = 2
+    # r1's genuine next version is taken, and r2 steps exactly as if no poison had come.
+    got = r2.receive(r1.outgoing(), "r1")
+    assert got.taken and got.gated == 0 and r2.stack.version_of("r1") == (0, 8)
+    assert twin["r2"].receive(twin["r1"].outgoing(), "r1").taken
+    twin_r3 = [s for s in twin["r3"].current_stack() if s.owner == "r3"]
+    assert (
+        twin["r2"]
+        .receive(encode(StackMessage("r3", None, Stack(tuple(twin_r3)), 9), r2.limits), "r3")
+        .taken
+    )
+    r2.on_frame(frames["r2"][8])
+    twin["r2"].on_frame(frames["r2"][8])
+    _assert_same_belief(r2.distributed, twin["r2"].distributed, "r2")
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_belief_gate_refuses_nothing_on_honest_runs(seed: int) -> None:
+    paper = load_scenario("paper")
+    nodes = make_nodes(paper, belief_model(paper), BeliefConfig(), lambda r: belief_rng(seed, [r]))
+    frames = Simulator(paper, seed).all_frames()
+    stats = run_fleet(nodes, frames, link_model_for(paper), paper.steps)
+    assert stats.deliveries > 50
+    assert [n.counters.rejected_slots for n in nodes.values()] == [0, 0, 0]

@@ -1,0 +1,144 @@
+"""The belief gate (estimator.gate; issue 43, finding 2): the information bound from the sensor
+model and the two-stage Mahalanobis test against the receiver's belief, on numbers chosen so that
+a dropped term or a flipped sign changes the verdict."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from estimator.gate import (
+    GateSettings,
+    Held,
+    Implausible,
+    _mean_and_marginals,
+    check_xi,
+    gate_threshold,
+)
+from estimator.models import se2
+from estimator.sparse_xi import SparseXi
+from estimator.xi import Xi
+
+LIN = np.array([[1.0, 2.0, 0.3]])
+LAMBDA = np.array([[40.0, 6.0, 1.0], [6.0, 90.0, -2.0], [1.0, -2.0, 250.0]])
+DELTA0 = np.array([0.5, -0.4, 0.2])  # the slot's mean, away from its linearisation point
+COV_D = np.array([[0.05, 0.01, 0.0], [0.01, 0.03, 0.002], [0.0, 0.002, 0.01]])
+SETTINGS = GateSettings()
+
+
+def _xi() -> Xi:
+    return Xi(LIN, LAMBDA, LAMBDA @ DELTA0)
+
+
+def _held_at(offset: np.ndarray, calls: list[int] | None = None) -> Held:
+    """The receiver's belief: object 7 at the slot's mean moved by ``offset`` (tangent), with
+    covariance COV_D."""
+    pose = se2.retract(LIN[0], DELTA0 + offset)[None]
+
+    def covariances(ids):  # type: ignore[no-untyped-def]
+        if calls is not None:
+            calls.append(len(ids))
+        return np.array([COV_D for _ in ids])
+
+    return Held({7: 0}, pose, covariances)
+
+
+def _offset(d2: float) -> np.ndarray:
+    """An offset whose d² against Σ_s + Σ_D is ``d2``."""
+    u = np.array([1.0, -2.0, 0.5])
+    total = np.linalg.inv(LAMBDA) + COV_D
+    return u * np.sqrt(d2 / (u @ np.linalg.solve(total, u)))
+
+
+def test_threshold_is_chi2_with_three_degrees() -> None:
+    assert gate_threshold(1e-9) == pytest.approx(44.84, abs=0.01)
+    assert gate_threshold(1e-3) == pytest.approx(16.27, abs=0.01)
+
+
+@pytest.mark.parametrize("d2, passes", [(40.0, True), (50.0, False)])
+def test_the_gate_adds_both_covariances_and_measures_from_the_slot_mean(
+    d2: float, passes: bool
+) -> None:
+    offset = _offset(d2)
+    # The first stage (the slot's covariance alone) cannot pass either case: the receiver's
+    # covariance decides, so dropping it would refuse the honest case.
+    assert offset @ LAMBDA @ offset > gate_threshold(1e-9)
+    calls: list[int] = []
+    held = _held_at(offset, calls)
+    if passes:
+        check_xi("r2", (7,), _xi(), 100, held, 10.0, SETTINGS)
+    else:
+        with pytest.raises(Implausible, match="object 7 lies at Mahalanobis d² 50"):
+            check_xi("r2", (7,), _xi(), 100, held, 10.0, SETTINGS)
+    assert calls == [1]  # Σ_D asked for, once, for the one suspect object
+
+
+def test_an_object_near_the_slot_mean_never_needs_the_receivers_covariance() -> None:
+    calls: list[int] = []
+    check_xi("r2", (7,), _xi(), 100, _held_at(np.array([0.02, 0.01, 0.0]), calls), 10.0, SETTINGS)
+    assert calls == []
+
+
+def test_the_gate_measures_from_the_slot_mean_not_its_linearisation_point() -> None:
+    far = 5.0 * DELTA0  # d² ≈ 250 between the slot's mean and its linearisation point
+    slot = Xi(LIN, LAMBDA, LAMBDA @ far)
+    at_mean = Held({7: 0}, se2.retract(LIN[0], far)[None], lambda ids: np.array([COV_D]))
+    check_xi("r2", (7,), slot, 100, at_mean, 10.0, SETTINGS)
+    at_lin = Held({7: 0}, LIN.copy(), lambda ids: np.array([COV_D]))
+    with pytest.raises(Implausible, match="Mahalanobis"):
+        check_xi("r2", (7,), slot, 100, at_lin, 10.0, SETTINGS)
+
+
+def test_objects_the_receiver_does_not_hold_pass_on_the_bound_alone() -> None:
+    far = Held({8: 0}, np.array([[9000.0, 0.0, 0.0]]), lambda ids: np.array([COV_D]))
+    check_xi("r2", (7,), _xi(), 100, far, 10.0, SETTINGS)
+
+
+def test_information_bound_follows_the_steps_of_detections() -> None:
+    # λmax(Λ) ≈ 250.3: above 2 × 12 × 10 = 240, below 2 × 13 × 10 = 260.
+    with pytest.raises(Implausible, match=r"object 7 has information λmax 250"):
+        check_xi("r2", (7,), _xi(), 12, None, 10.0, SETTINGS)
+    check_xi("r2", (7,), _xi(), 13, None, 10.0, SETTINGS)
+    check_xi("r2", (7,), _xi(), 12, None, 0.0, SETTINGS)  # no bound: semantic poses
+    off = GateSettings(information_margin=0.0)
+    check_xi("r2", (7,), _xi(), 1, None, 10.0, off)
+    with pytest.raises(ValueError):
+        GateSettings(information_margin=0.5)
+
+
+def test_a_poisoned_slot_at_the_wire_cap_is_refused_either_way() -> None:
+    poison = Xi(LIN + np.array([9000.0, 0.0, 0.0]), 1e9 * np.eye(3), np.zeros(3))
+    with pytest.raises(Implausible, match="information"):
+        check_xi("r3", (7,), poison, 13, _held_at(np.zeros(3)), 10.0, SETTINGS)
+    no_bound = GateSettings(information_margin=0.0)
+    with pytest.raises(Implausible, match="Mahalanobis"):
+        check_xi("r3", (7,), poison, 13, _held_at(np.zeros(3)), 10.0, no_bound)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_sparse_and_dense_solves_agree(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    n = 5
+    a = rng.normal(size=(3 * n, 3 * n))
+    dense = a @ a.T + 3 * n * np.eye(3 * n)
+    edges = np.array([[0, 1], [1, 2], [1, 3], [3, 4]])
+    keep = np.zeros((n, n), bool)
+    keep[np.arange(n), np.arange(n)] = True
+    keep[edges[:, 0], edges[:, 1]] = keep[edges[:, 1], edges[:, 0]] = True
+    blocks = dense.reshape(n, 3, n, 3).transpose(0, 2, 1, 3) * keep[:, :, None, None]
+    lam = blocks.transpose(0, 2, 1, 3).reshape(3 * n, 3 * n)
+    eta = rng.normal(size=3 * n)
+    lin = rng.normal(size=(n, 3))
+    sparse = SparseXi(
+        lin,
+        blocks[np.arange(n), np.arange(n)],
+        edges,
+        blocks[edges[:, 0], edges[:, 1]],
+        eta,
+    )
+    d_s, m_s = _mean_and_marginals(sparse)
+    d_d, m_d = _mean_and_marginals(Xi(lin, lam, eta))
+    inv = np.linalg.inv(lam)
+    assert np.allclose(d_s, d_d) and np.allclose(m_s, m_d)
+    assert np.allclose(d_d.ravel(), inv @ eta)
+    assert np.allclose(m_d[2], inv[6:9, 6:9])
