@@ -684,16 +684,7 @@ class RobotNode:
         they are left out, counted in ``own_slot_invalid``, and the rest still goes out."""
         stack = self.current_stack()
         if self._encoded is None:
-            message = StackMessage(self.robot, self.position, stack, self.k)
-            try:
-                self._encoded = encode(message, self.limits)
-            except LocalProtocolError as exc:
-                self.counters.own_slot_invalid += 1
-                self.counters.last_error = str(exc)
-                log.error("%s: own slot or position not sendable: %s", self.robot, exc)
-                others = Stack(tuple(s for s in stack if s.owner != self.robot))
-                message = StackMessage(self.robot, None, others, self.k)
-                self._encoded = encode(message, self.limits)
+            self._encoded = self._encoded_message(stack, None)
         return self._encoded
 
     def encoded_delta(self, owners: Collection[str], ask: Mapping[str, str] | None = None) -> bytes:
@@ -714,22 +705,39 @@ class RobotNode:
         known = self._deltas.get(key)
         if known is not None:
             return known
-        have = stack.versions()
+        data = self._encoded_message(Stack(chosen), (stack.versions(), asks))
+        self._deltas[key] = data
+        return data
+
+    def _encoded_message(
+        self,
+        stack: Stack,
+        delta: tuple[dict[str, tuple[int, int]], dict[str, str] | None] | None,
+    ) -> bytes:
+        """``stack`` (with ``delta``'s digest and asks) under the node's limits, with D's
+        position; if they refuse that, with L's position, so that the own slot, built from L,
+        never depends on D; failing that, without the own slot and position (counted in
+        ``own_slot_invalid``)."""
+        have, asks = delta if delta is not None else (None, None)
         try:
-            data = encode(
-                StackMessage(self.robot, self.position, Stack(chosen), self.k, have=have, ask=asks),
-                self.limits,
-            )
-            self._deltas[key] = data
-            return data
+            message = StackMessage(self.robot, self.position, stack, self.k, have=have, ask=asks)
+            return encode(message, self.limits)
         except LocalProtocolError as exc:
-            self.counters.own_slot_invalid += 1
-            self.counters.last_error = str(exc)
-            log.error("%s: own slot or position not sendable: %s", self.robot, exc)
-            others = Stack(tuple(s for s in chosen if s.owner != self.robot))
-            return encode(
-                StackMessage(self.robot, None, others, self.k, have=have, ask=asks), self.limits
-            )
+            error = exc
+        if self.position is not None:
+            local = self.local.position(self.robot)
+            try:
+                message = StackMessage(self.robot, local, stack, self.k, have=have, ask=asks)
+                return encode(message, self.limits)
+            except LocalProtocolError as exc:
+                error = exc
+        self.counters.own_slot_invalid += 1
+        self.counters.last_error = str(error)
+        log.error("%s: own slot or position not sendable: %s", self.robot, error)
+        others = Stack(tuple(s for s in stack if s.owner != self.robot))
+        return encode(
+            StackMessage(self.robot, None, others, self.k, have=have, ask=asks), self.limits
+        )
 
     def mark_sent(self, size: int) -> None:
         """Tell the node a stack of ``size`` bytes went out (for its counters)."""

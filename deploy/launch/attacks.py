@@ -18,7 +18,11 @@ The attacks, against the *victim* (the robot the others hear most in the run, :f
 - ``frames`` — sensor frames for the victim's next steps: no motion, and an object that is not
   there;
 - ``garbage`` — malformed stacks (:func:`deploy.launch.chaos.garbage_stack`) on the victim's and
-  the accomplice's keys.
+  the accomplice's keys;
+- ``poison`` — the accomplice's own slot, ahead of its real versions, over the objects the victim
+  holds: each moved :data:`POISON_SHIFT` m in x with information :data:`POISON_INFORMATION`·I (the
+  wire's cap), within every wire limit. A member signs it with its own key: finding 2 of issue
+  43, which wrecked every receiver's D before the belief gate (``estimator.gate``).
 
 A session that holds the accomplice's certificate and signing key (a member's credentials used
 against another member) also tries everything through what its own certificate allows: forged
@@ -26,6 +30,10 @@ victim slots on its own stack key, signed with its own key. Evidence of success 
 estimates: a forged object in anyone's belief, a victim that had to move to a new epoch
 (``own_superseded``), agents that stopped before the run's end, estimates that differ from the
 clean run's.
+
+Over 300 lines for a reason: each attack is a few lines of one ``Attacker`` that observes the
+fleet as it goes, and its evidence is read off the estimates by the functions below it; the
+attacks and what counts as their success belong side by side.
 """
 
 from __future__ import annotations
@@ -48,17 +56,22 @@ from agents.transport.zenoh_transport import ZenohSettings, ZenohTransport
 from deploy.launch.chaos import forged_summary, garbage_stack
 from estimator.hybrid import BeliefConfig
 from estimator.models import MAX_STEP, Detection, SensorFrame
+from estimator.summary import LocalSummary, ObjectClasses, Realisation
+from estimator.xi import Xi
 from protocol.codec import StackMessage, decode, encode, sign_slot
 from protocol.errors import RemoteProtocolError
 from protocol.frames import encode_frame
 from protocol.stack import Slot, Stack
 
-ATTACKS = ("impersonate", "stamp", "stop", "frames", "garbage")
+ATTACKS = ("impersonate", "stamp", "stop", "frames", "garbage", "poison")
 # Object ids no world has: one in a belief can only have come from that attack.
 FORGED_OBJECTS = {"impersonate": 900_001, "stamp": 900_002, "frames": 900_003}
 FORGED = frozenset(FORGED_OBJECTS.values())
 AHEAD = 3  # rounds and steps forged ahead of the fleet
 GARBAGE_PER_STEP = 20
+POISON_SHIFT = 9000.0  # metres: inside the wire's ±world_extent of 10 km
+POISON_INFORMATION = 1e9  # Limits.max_information
+POISONED = 1000.0  # an object estimate this far (m) from the origin can only be the poison
 
 
 def parse_attacks(text: str) -> tuple[str, ...]:
@@ -106,6 +119,8 @@ class Attacker:
     stacks: Inbox = field(default_factory=lambda: Inbox(1_000))
     seen_alive: set[str] = field(default_factory=set)
     versions: dict[str, tuple[int, int]] = field(default_factory=dict)
+    # The objects of the victim's newest slot overheard: ids and linearisation poses.
+    victim_objects: tuple[tuple[int, ...], np.ndarray] | None = None
 
     async def open(self) -> None:
         transport = ZenohTransport(self.identity.settings)
@@ -138,6 +153,11 @@ class Attacker:
                     continue  # its own forgery, delivered back to its own subscriber
                 if slot.version > self.versions.get(slot.owner, (-1, -1)):
                     self.versions[slot.owner] = slot.version
+                    if slot.owner == self.victim:
+                        summary = slot.summary
+                        po = summary.per_object
+                        xi = po.xi if po is not None else summary.distinct_xi()[0][0]
+                        self.victim_objects = (summary.object_ids, np.array(xi.lin))
 
     def on_step(self, k: int) -> None:
         """After the fleet's step ``k``: the forgeries for rounds and steps k+1…k+AHEAD."""
@@ -199,6 +219,27 @@ class Attacker:
         targets = (self.keys.stack(self.victim), self.keys.stack(self.accomplice))
         return [(targets[i % 2], garbage_stack(rng)) for i in range(GARBAGE_PER_STEP)]
 
+    def _poison(self, k: int) -> list[tuple[str, bytes]]:
+        if self.victim_objects is None:
+            return []
+        owner = self.identity.robot or self.accomplice  # a member: its own slot, its own key
+        ids, lin = self.victim_objects
+        n = len(ids)
+        shifted = lin + np.array([POISON_SHIFT, 0.0, 0.0])
+        xi = Xi(shifted, POISON_INFORMATION * np.eye(3 * n), np.zeros(3 * n))
+        if self.classes == "per_object":
+            summary = LocalSummary(ids, (), ObjectClasses(np.zeros((n, self.num_classes)), xi))
+        else:
+            summary = LocalSummary(ids, (Realisation((0,) * n, 0.0, xi),))
+        epoch, stamp = self.versions.get(owner, (0, k))
+        out = []
+        for j in range(k + 1, k + 1 + AHEAD):
+            slot = Slot(owner, min(max(stamp, j) + 1, MAX_STEP), summary, epoch)
+            if self.identity.signing_key is not None:
+                slot = sign_slot(slot, self.identity.signing_key)
+            out.append((self.keys.stack(owner), self._stack(owner, slot, j)))
+        return out
+
     def _forged(self, attack: str, epoch: int, stamp: int) -> Slot:
         """A victim slot the victim never made: one object of class 0 that is not there."""
         summary = forged_summary(FORGED_OBJECTS[attack], self.num_classes, self.classes)
@@ -255,6 +296,18 @@ def forged_objects_seen(
     return seen
 
 
+def poisoned_beliefs(estimates: Mapping[tuple[str, int], object]) -> set[tuple[str, str]]:
+    """{(robot, belief)} whose estimate at any step held an object more than :data:`POISONED`
+    metres from the origin: only the ``poison`` attack puts one there."""
+    out = set()
+    for (robot, _k), est in estimates.items():
+        for belief, snap in est.beliefs.items():  # type: ignore[attr-defined]
+            pose = np.asarray(snap.object_pose)
+            if pose.size and float(np.abs(pose[..., :2]).max()) > POISONED:
+                out.add((robot, belief))
+    return out
+
+
 def evidence(
     attacks: Sequence[str],
     estimates: Mapping[tuple[str, int], object],
@@ -277,6 +330,9 @@ def evidence(
             effects.append(f"forged object in {who}")
         if attack == "stamp" and counters.get(victim, {}).get("own_superseded", 0):
             effects.append(f"{victim} had to move to a new epoch")
+        if attack == "poison" and (hit := poisoned_beliefs(estimates)):
+            who = ", ".join(f"{r} {b[0].upper()}" for r, b in sorted(hit))
+            effects.append(f"objects {POISON_SHIFT / 1000:g} km away in {who}")
         if attack == "stop" and stopped_early:
             effects.append(f"stopped {', '.join(stopped_early)} before step {steps}")
         counted = {
@@ -285,6 +341,7 @@ def evidence(
             "stop": ("control_invalid",),
             "frames": ("frames_invalid",),
             "garbage": ("stacks_invalid",),
+            "poison": ("slots_rejected",),
         }[attack]
         text = ", ".join(f"{name} {total[name]}" for name in counted if total[name])
         out.append(Achieved(attack, tuple(effects), text or "—"))

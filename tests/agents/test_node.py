@@ -721,3 +721,19 @@ def test_the_belief_gate_refuses_nothing_on_honest_runs(seed: int) -> None:
     stats = run_fleet(nodes, frames, link_model_for(paper), paper.steps)
     assert stats.deliveries > 50
     assert [n.counters.rejected_slots for n in nodes.values()] == [0, 0, 0]
+
+
+def test_the_own_slot_goes_out_with_ls_position_when_ds_is_outside_the_limits(
+    frames: dict[str, list[SensorFrame]],
+) -> None:
+    """A robot's own slot is built from L: a D pushed outside the world (finding 2 of issue 43
+    before the gate) must not silence it."""
+    node = _node("r1")
+    _advance(node, frames, 3)
+    node.position = (2e4, 0.0)  # D's position, beyond ±world_extent
+    message = decode(node.encoded_stack(), node.limits)
+    assert [s.owner for s in message.stack] == ["r1"]
+    assert message.position == node.local.position("r1")
+    assert node.counters.own_slot_invalid == 0
+    delta = decode(node.encoded_delta(["r1"]), node.limits)
+    assert [s.owner for s in delta.stack] == ["r1"] and delta.position == message.position

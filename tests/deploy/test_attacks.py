@@ -76,6 +76,9 @@ def test_every_attack_achieves_nothing_on_a_secure_fleet(tmp_path: Path) -> None
     total = {k: sum(c.get(k, 0) for c in report.counters.values()) for k in report.counters["r1"]}
     assert total["stacks_badly_signed"] > 0 and total["stacks_invalid"] > 0
     assert total["own_superseded"] == total["slots_implausible"] == 0
+    # The member's own slot, validly signed, within every wire limit, 9 km off (finding 2 of
+    # issue 43): the belief gate refused it everywhere it arrived.
+    assert total["slots_rejected"] > 0
 
 
 def _insecure(tmp_path: Path, attack: str) -> AttackReport:
@@ -102,6 +105,10 @@ def test_the_same_attacks_on_an_insecure_fleet_show_what_each_would_have_done(
     # Garbage does nothing anywhere: the fail-soft core counts and drops it.
     assert effects["garbage"] == "" and got["garbage"].identical
     assert got["garbage"].achieved[0].counted.startswith("stacks_invalid")
+    # Nor does a poisoned slot, with no TLS at all: the belief gate is not access control.
+    # (Without the gate it put r2's D objects 9 km away: "objects 9 km away in r2 D".)
+    assert effects["poison"] == "" and got["poison"].identical
+    assert got["poison"].achieved[0].counted.startswith("slots_rejected")
 
 
 @pytest.mark.slow
