@@ -75,8 +75,9 @@ from agents.recovery import FRAME, FRAME_UNFUSED, Ledger, Replayed, apply, resto
 from agents.rounds import Answers, Rounds
 from agents.sim_radio import SimRadio
 from agents.transport.base import Keys
+from estimator.gate import Implausible
 from estimator.models import SensorFrame
-from protocol.errors import RemoteProtocolError
+from protocol.errors import BadSignature, RemoteProtocolError, SenderMismatch
 from protocol.estimate import EstimateMessage, encode_estimate
 from protocol.frames import decode_frame, encode_frame
 
@@ -403,7 +404,7 @@ class AgentCore:
                 raise ValueError(f"frame of robot {frame.robot}")
         except (RemoteProtocolError, ValueError) as exc:
             self.counters.invalid_frames += 1
-            _log_invalid(self, "frames", exc)
+            _log_invalid(self, "frames", exc, "frames_invalid")
             return []
         k = self.node.k
         if frame.k <= k:
@@ -461,7 +462,8 @@ class AgentCore:
         self.counters.slots_refused += got.refused
         self.counters.slots_implausible += got.implausible
         if got.error is not None:
-            _log_invalid(self, got.message.sender if got.message else source, got.error)
+            where = got.message.sender if got.message else source
+            _log_invalid(self, where, got.error, _stack_counter(got.error))
 
     def _took(self, got: Received, payload: bytes) -> None:
         """A merge that changed the node: its stack is journaled with the next step, its new
@@ -767,12 +769,35 @@ def _estimate(core: AgentCore) -> bytes:
     return encode_estimate(EstimateMessage(robot, node.k, beliefs, core.counter_values()))
 
 
-def _log_invalid(core: AgentCore, source: str, exc: Exception) -> None:
-    """At most one line per source and ``invalid_log_period`` (at the time of the event)."""
+def _log_invalid(core: AgentCore, source: str, exc: Exception, counter: str = "") -> None:
+    """At most one line per source, kind of error and ``invalid_log_period`` (at the time of
+    the event), naming the counter that counts it: the log and the counters tell the same story
+    (one error kind never hides another behind the rate limit)."""
     now, last_invalid = core._now, core.counters.last_invalid
-    if now - last_invalid.get(source, -math.inf) >= core.settings.invalid_log_period:
-        last_invalid[source] = now
-        log.warning("%s: invalid input from %s: %s", core.robot, source, exc)
+    kind = f"{source}/{type(exc).__name__}"
+    if now - last_invalid.get(kind, -math.inf) >= core.settings.invalid_log_period:
+        if len(last_invalid) >= _MAX_LOG_SOURCES:
+            last_invalid.clear()  # bounded whatever the sources claim to be
+        last_invalid[kind] = now
+        counted = f", counted in {counter}" if counter else ""
+        name = type(exc).__name__
+        log.warning("%s: invalid input from %s (%s%s): %s", core.robot, source, name, counted, exc)
+
+
+_MAX_LOG_SOURCES = 1024
+
+
+def _stack_counter(exc: Exception) -> str:
+    """The counter of a stack refused by ``exc`` (``counter_values``)."""
+    if isinstance(exc, BadSignature):
+        return "stacks_invalid and stacks_badly_signed"
+    if isinstance(exc, SenderMismatch):
+        return "stacks_invalid and stacks_misaddressed"
+    if isinstance(exc, Implausible):
+        return "slots_rejected"
+    if isinstance(exc, RemoteProtocolError):
+        return "stacks_invalid"
+    return "slots_implausible"  # a version ahead of its owner's clock
 
 
 def _decoded_control(core: AgentCore, key: str, payload: bytes) -> Control | None:
@@ -784,6 +809,6 @@ def _decoded_control(core: AgentCore, key: str, payload: bytes) -> Control | Non
             raise ValueError(f"{type(order).__name__} on {key}, not its key")
     except (RemoteProtocolError, ValueError) as exc:
         core.counters.invalid_control += 1
-        _log_invalid(core, "ctl", exc)
+        _log_invalid(core, "ctl", exc, "control_invalid")
         return None
     return order

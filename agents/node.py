@@ -335,6 +335,7 @@ class RobotNode:
         self._parsed: OrderedDict[tuple[str, int, int], Slot] = OrderedDict()
         self._own_slot_stale = False
         self._rebuild_due = False
+        self._last_refusal: Exception | None = None  # why the last stack was refused whole
 
     @property
     def local(self) -> HybridBelief:
@@ -369,7 +370,7 @@ class RobotNode:
             return Received(None)  # our own publication, echoed by the session
         message = self.decode_stack(payload)
         if message is None:
-            return Received(None, error=ValueError(self.counters.last_error))
+            return Received(None, error=self._last_refusal)
         if message.sender == self.robot:
             return Received(None)
         if sender is not None and message.sender != sender:
@@ -629,6 +630,7 @@ class RobotNode:
         return True
 
     def _count_error(self, exc: RemoteProtocolError) -> None:
+        self._last_refusal = exc
         name = type(exc).__name__
         self.counters.invalid += 1
         self.counters.errors_by_type[name] = self.counters.errors_by_type.get(name, 0) + 1

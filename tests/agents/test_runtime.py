@@ -36,6 +36,7 @@ from estimator.models import SensorFrame
 from protocol.codec import StackMessage, encode
 from protocol.estimate import EstimateMessage, decode_estimate, encode_estimate
 from protocol.frames import encode_frame
+from protocol.stack import Stack
 from sim.loader import parse_scenario
 from sim.sensors import Simulator
 from tests.estimator.scenarios import fleet_text, objects_ahead
@@ -433,6 +434,10 @@ async def test_agent_counts_invalid_stacks_frames_and_control_and_keeps_running(
     async with _running(agent) as (task,):
         for data in garbage:
             world.publish(KEYS.stack("r2"), data)
+        # A well-formed stack of r3 on r2's key: another kind of error from the same source,
+        # which must get a line of its own (issue 43, finding 8: the rate limit per source hid
+        # one kind behind another, and the log told another story than the counters).
+        world.publish(KEYS.stack("r2"), encode(StackMessage("r3", None, Stack(()), 1)))
         world.publish(KEYS.stack("chaos"), b"\x00\x01")
         world.publish(KEYS.frames("r1"), b"not a frame")
         world.publish(KEYS.frames("r1"), encode_frame(frames["r2"][0]))  # another robot's frame
@@ -440,16 +445,28 @@ async def test_agent_counts_invalid_stacks_frames_and_control_and_keeps_running(
         world.publish(KEYS.frames("r1"), encode_frame(frames["r1"][0]))
         await _until(lambda: agent.node.k == 1 and len(estimates) > 0)
         counters = agent.counter_values()
-        assert counters["stacks_invalid"] == len(garbage) + 1
+        assert counters["stacks_invalid"] == len(garbage) + 2
+        assert counters["stacks_misaddressed"] == 1
         assert counters["frames_invalid"] == 2
         assert counters["control_invalid"] == 1
         assert counters["frames_processed"] == 1
         world.publish(KEYS.frames("r1"), encode_frame(frames["r1"][1]))
         await _until(lambda: agent.node.k == 2)  # still stepping
         assert not task.done()
-    # One line per source while the (frozen) clock stays within the log period.
-    sources = [r.getMessage().split(": ")[1] for r in caplog.records if "invalid" in r.message]
-    assert sorted(sources) == [f"invalid input from {s}" for s in ("chaos", "ctl", "frames", "r2")]
+    # One line per source and kind of error while the (frozen) clock stays within the log
+    # period, naming the counter that counted it.
+    lines = [r.getMessage().split(": ")[1] for r in caplog.records if "invalid" in r.message]
+    assert len(lines) == len(set(lines))
+    assert {line.split(" (")[0] for line in lines} == {
+        f"invalid input from {s}" for s in ("chaos", "ctl", "frames", "r2")
+    }
+    assert any(line.endswith(", counted in control_invalid)") for line in lines)
+    assert any(line.endswith(", counted in frames_invalid)") for line in lines)
+    stack_lines = [line for line in lines if line.startswith("invalid input from r2")]
+    assert sorted(stack_lines) == [
+        "invalid input from r2 (MalformedMessage, counted in stacks_invalid)",
+        "invalid input from r2 (SenderMismatch, counted in stacks_invalid and stacks_misaddressed)",
+    ]
 
 
 @pytest.mark.asyncio
