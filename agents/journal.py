@@ -74,6 +74,11 @@ _MAX_PAYLOAD = 2**32 - 1
 _MAX_INDEX = 2**63 - 1
 
 
+class BadHeader(Exception):
+    """The file's first record is not an intact header of this format (a flipped byte, a file
+    that is not a journal): raised inside :func:`_read`, see :meth:`Journal.open`."""
+
+
 class JournalError(Exception):
     """A journal that may not be used: not a journal, another identity, already in use, or its
     bad tail could not be set aside. ``key`` names the mismatching identity key, when that is
@@ -257,7 +262,8 @@ class Journal:
     ``truncated_bytes``: the bytes open cut off after the intact prefix, all of them copied to
     the side file ``set_aside`` (None when nothing was cut). ``quarantined`` and
     ``quarantine_failures`` count this session's :meth:`quarantine` calls that reached the disk
-    and that did not; ``epoch`` the one in the header."""
+    and that did not; ``epoch`` the one in the header; ``moved_aside`` where a file with a bad
+    header was moved (``Journal.open(..., set_aside_bad_header=...)``), None if none was."""
 
     def __init__(
         self,
@@ -274,13 +280,18 @@ class Journal:
         self.set_aside = set_aside
         self.quarantined = 0
         self.quarantine_failures = 0
+        self.moved_aside: Path | None = None
         self._fd: int | None = fd
         self._size = size  # bytes on disk, all of them committed
         self._pending = bytearray()
 
     @classmethod
     def open(
-        cls, path: Path, identity: Mapping[str, str | int], epoch: int = 0
+        cls,
+        path: Path,
+        identity: Mapping[str, str | int],
+        epoch: int = 0,
+        set_aside_bad_header: str | None = None,
     ) -> tuple[Journal, list[Record]]:
         """Open (or create, with ``epoch`` in its header) the journal of ``identity`` at ``path``
         and read its records.
@@ -289,11 +300,31 @@ class Journal:
         module docstring). Raises :class:`JournalError` if ``path`` is not a journal, belongs to
         another identity (``key`` names the first differing key), is open in another process, or
         its bad tail cannot be set aside (then the journal is left untouched).
+
+        ``set_aside_bad_header`` (a label, e.g. a UTC time stamp): a file whose header is not
+        intact — a flipped byte, or no journal at all — is instead moved to
+        ``<journal>.bad-header-<label>`` (never replacing a file; ``moved_aside``) and a new,
+        empty journal is made in its place, logged once. A journal of another identity is
+        never moved: it is intact, and another run may need it.
         """
         ident = _check_identity(identity)
         path = Path(path)
         if not (isinstance(epoch, int) and 0 <= epoch <= _MAX_INDEX):
             raise ValueError(f"epoch {epoch!r}: expected an integer in 0..{_MAX_INDEX}")
+        try:
+            return cls._open(path, ident, epoch)
+        except BadHeader as exc:
+            if set_aside_bad_header is None:
+                raise JournalError(str(exc)) from None
+            moved = _move_aside(path, f"bad-header-{set_aside_bad_header}", exc)
+        journal, records = cls._open(path, ident, epoch)
+        journal.moved_aside = moved
+        return journal, records
+
+    @classmethod
+    def _open(
+        cls, path: Path, ident: dict[str, str | int], epoch: int
+    ) -> tuple[Journal, list[Record]]:
         if not path.exists():
             _create(path, ident, epoch)
         fd = os.open(path, os.O_RDWR | os.O_APPEND)
@@ -469,6 +500,27 @@ def _recover(path: Path, fd: int, data: bytes, end: int) -> Path:
     return side
 
 
+def _move_aside(path: Path, label: str, why: BadHeader) -> Path:
+    """Move the file at ``path`` to ``<path>.<label>`` (``.2``, ``.3``… if taken), durably, and
+    log it: the caller makes a new journal in its place."""
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise JournalError(f"{path} is in use by another process") from None
+        try:
+            side = _link_unique(path, path.with_name(f"{path.name}.{label}"))
+            path.unlink()
+            _fsync_dir(path.parent)
+        except OSError as exc:
+            raise JournalError(f"{why}; it could not be moved aside ({exc})") from exc
+    finally:
+        os.close(fd)
+    log.warning("journal %s: %s; moved to %s, starting an empty journal", path, why, side)
+    return side
+
+
 def _append_synced(path: Path, data: bytes) -> None:
     """Append ``data`` to ``path`` (created if missing) and fsync; a failed write is cut back."""
     fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
@@ -506,12 +558,12 @@ def _read(path: Path, identity: dict[str, str | int]) -> tuple[list[Record], int
     first = _parse(data, 0)
     header = _header(first[0]) if first else None
     if first is None or header is None:
-        raise JournalError(f"{path} is not a semfleet journal (no valid header)")
+        raise BadHeader(f"{path} is not a semfleet journal (no valid header)")
     if header.get("format") != FORMAT or not isinstance(header.get("identity"), dict):
-        raise JournalError(f"{path}: not a journal of format {FORMAT}")
+        raise BadHeader(f"{path}: not a journal of format {FORMAT}")
     epoch = header.get("epoch", 0)
     if type(epoch) is not int or not 0 <= epoch <= _MAX_INDEX:
-        raise JournalError(f"{path}: header epoch {epoch!r} is not an integer in 0..{_MAX_INDEX}")
+        raise BadHeader(f"{path}: header epoch {epoch!r} is not an integer in 0..{_MAX_INDEX}")
     stored = header["identity"]
     for key in sorted(set(stored) | set(identity), key=str):
         mine, theirs = identity.get(key), stored.get(key)

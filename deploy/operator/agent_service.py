@@ -70,12 +70,17 @@ def build_agent(config: AgentConfig, transport: ZenohTransport) -> Agent:
 
     The own slots' epoch is the journal's: the time (ms since the Unix epoch) the journal was
     made, or this start's for an agent without one. A robot that lost its journal so starts
-    again above every version it made before (docs/wire.md, "Versions and epochs")."""
+    again above every version it made before (docs/wire.md, "Versions and epochs"). A journal
+    whose header is damaged is moved aside with the UTC time in its name, and the agent starts
+    with an empty one (a new epoch) instead of refusing to start."""
     journal = None
     records: list[Record] = []
     epoch = time.time_ns() // 1_000_000
     if config.journal is not None:
-        journal, records = Journal.open(config.journal, journal_identity(config), epoch)
+        stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
+        journal, records = Journal.open(
+            config.journal, journal_identity(config), epoch, set_aside_bad_header=stamp
+        )
         epoch = journal.epoch
     agent = new_agent(
         node_factory(config, epoch),

@@ -247,6 +247,47 @@ def test_journal_refuses_a_file_that_is_not_a_journal(tmp_path: Path, content: b
     assert path.read_bytes() == content  # a foreign file is never truncated
 
 
+@pytest.mark.parametrize("flip", [0, 4, 9, 20])
+def test_a_journal_with_a_damaged_header_is_moved_aside_and_started_anew(
+    tmp_path: Path, flip: int, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Issue 43, finding 7: a flipped byte in the header (its length, crc or payload) left an
+    agent that would not start until an operator moved the journal aside."""
+    path = tmp_path / "r1.journal"
+    _write(path, [Record("frame", b"k1"), Record("stack", b"s1")])
+    data = bytearray(path.read_bytes())
+    data[flip] ^= 0x10
+    path.write_bytes(bytes(data))
+    with pytest.raises(JournalError, match="not a semfleet journal"):
+        Journal.open(path, IDENTITY)  # without the option: refused, and left as it is
+    assert path.read_bytes() == bytes(data)
+    with caplog.at_level("WARNING", logger="agents.journal"):
+        journal, records = Journal.open(path, IDENTITY, 42, set_aside_bad_header="20261207T010000Z")
+    with journal:
+        assert records == [] and journal.epoch == 42
+        assert journal.moved_aside == tmp_path / "r1.journal.bad-header-20261207T010000Z"
+        assert journal.moved_aside.read_bytes() == bytes(data)  # every byte kept
+    assert [r.getMessage().split(";")[1] for r in caplog.records] == [
+        f" moved to {journal.moved_aside}, starting an empty journal"
+    ]
+    # The new journal works, and a second bad header at the same stamp takes the next name.
+    path.write_bytes(b"junk")
+    journal, _ = Journal.open(path, IDENTITY, 43, set_aside_bad_header="20261207T010000Z")
+    with journal:
+        assert journal.moved_aside == tmp_path / "r1.journal.bad-header-20261207T010000Z.2"
+    reopened, records = Journal.open(path, IDENTITY, set_aside_bad_header="x")
+    with reopened:
+        assert records == [] and reopened.moved_aside is None and reopened.epoch == 43
+
+
+def test_a_journal_of_another_run_is_never_moved_aside(tmp_path: Path) -> None:
+    path = tmp_path / "r1.journal"
+    _write(path, [Record("frame", b"k1")])
+    with pytest.raises(JournalError, match="belongs to another run"):
+        Journal.open(path, {**IDENTITY, "seed": 8}, set_aside_bad_header="x")
+    assert list(tmp_path.iterdir()) == [path]
+
+
 def test_journal_refuses_another_format_version(tmp_path: Path) -> None:
     path = tmp_path / "r1.journal"
     header = msgpack.packb({"format": 2, "identity": IDENTITY})

@@ -346,7 +346,26 @@ async def _attack(
             link.publish_frame(frames[k - 1])
             await observer.until_step(k)
             assert agent.alive()
+            # A flipped byte in the journal's header (issue 43, finding 7): the journal is moved
+            # aside with the time in its name, and the agent starts again with an empty one.
+            agent.kill()
+            journal = agent.tmp / "journal" / "r1.log"
+            damaged = bytearray(journal.read_bytes())
+            damaged[12] ^= 0x01
+            journal.write_bytes(bytes(damaged))
+            agent.start()
+            await asyncio.wait_for(link.wait_for_agent(), 60)
+            observer.estimates.drain()
+            k += 1  # its frames 1…k − 1 come again from the link, asked for with ctl/need
+            link.publish_frame(frames[k - 1])
+            fresh = await observer.until_step(k)
+            assert agent.alive() and fresh.counters["replayed_frames"] == 0
+            (moved,) = journal.parent.glob("r1.log.bad-header-*")
+            assert moved.read_bytes() == bytes(damaged)
+            logged = (agent.tmp / f"agent-{agent.starts - 1}.log").read_text()
+            assert logged.count("starting an empty journal") == 1
         finally:
             await observer.transport.close()
     quarantined = read_quarantine(agent.tmp / "journal" / "r1.log.quarantine")
-    assert [q.kind for q in quarantined] == ["frame"]
+    # The step that raised, then again in the agent that started empty (the link sent it again).
+    assert [q.kind for q in quarantined] == ["frame", "frame"]
