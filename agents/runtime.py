@@ -1,7 +1,8 @@
 """The asyncio shell around one :class:`~agents.core.AgentCore`: an agent of the fleet.
 
 It subscribes the agent's keys — frames (``frames/<robot>``), stacks (``stack/*``; in a simulated
-real time run ``stack/<peer>`` of the peers in range), run control (``ctl/**``) and, in a
+real time run ``stack/<peer>`` of the peers in range), run control (``ctl/stop``, ``ctl/step``,
+``ctl/status``; ``ctl/need/*`` in an inbox of its own) and, in a
 simulation, the simulator's links (``sim/links``) — into bounded inboxes, holds a liveliness
 token (``alive/<robot>``), and carries out the core's actions: publish, journal (append, commit,
 quarantine, cut), listen (whose stacks to subscribe to: the core's first ``Listen``), hear
@@ -67,6 +68,8 @@ log = logging.getLogger(__name__)
 STACK_INBOX_BYTES = 64 * 1024 * 1024
 FRAME_INBOX_BYTES = 16 * 1024 * 1024
 CONTROL_INBOX_BYTES = 4 * 1024 * 1024
+REQUEST_INBOX_BYTES = 1024 * 1024
+ORDER_KEYS = ("stop", "step", "status")  # ctl/<key>: the operator's and the conductor's
 SHUTDOWN_STEP_WAIT_S = 1.0
 LISTEN_ECHO_S = 0.05  # after subscribing to new peers' stacks (a declaration takes ~3 ms here)
 LINKS_SAMPLE_S = 1.0  # how often the gossip timer counts the session's links (a call into Zenoh)
@@ -157,14 +160,19 @@ class Agent:
         self.log = log
         self.gauges = gauges
         self.clock = clock
-        self.control = Inbox(1024, CONTROL_INBOX_BYTES)
+        largest = self.settings.max_control_bytes
+        # Orders (the operator's and the conductor's keys) and the requests any member may put
+        # (``ctl/need/<robot>``) wait in inboxes of their own: a flood of requests never
+        # displaces a Stop or a step order (issue 43, finding 3).
+        self.control = Inbox(1024, CONTROL_INBOX_BYTES, largest)
+        self.requests = Inbox(256, REQUEST_INBOX_BYTES, largest)
         self.frames = Inbox(4096, FRAME_INBOX_BYTES)
         self.stacks = Inbox(1024, STACK_INBOX_BYTES)
         self.stack_subscriptions = StackSubscriptions(transport, self.keys, self.stacks)
         self.ros2 = ros2
         self.ros2_in = Inbox(4096, FRAME_INBOX_BYTES)
         ros2_inboxes = (self.ros2_in,) if ros2 is not None else ()
-        self.inboxes = (self.control, self.frames, self.stacks, *ros2_inboxes)
+        self.inboxes = (self.control, self.requests, self.frames, self.stacks, *ros2_inboxes)
         gauges.inboxes, gauges.ros2 = self.inboxes, ros2
         self._doorbell = asyncio.Event()  # rung by every inbox: one wait for all of them
         for inbox in self.inboxes:
@@ -196,7 +204,9 @@ class Agent:
     async def run(self) -> None:
         """Until :meth:`stop` (or a ``ctl/stop``): always closes the transport and the journal."""
         t, keys = self.transport, self.keys
-        t.subscribe(keys.ctl("**"), self.control)
+        for order in ORDER_KEYS:
+            t.subscribe(keys.ctl(order), self.control)
+        t.subscribe(keys.ctl("need", "*"), self.requests)
         if self.settings.simulation:
             t.subscribe(keys.sim_links(), self.control)
             t.subscribe(keys.sim_listen(), self.control)

@@ -40,17 +40,21 @@ class Inbox:
     Bounded in count (``capacity``) and in payload bytes (``max_bytes``). When a message does not
     fit, older messages *on the same key* go first (stacks are latest-wins: the newest copy is the
     one worth keeping), then the oldest of all; every drop is counted. A message larger than
-    ``max_bytes`` on its own is dropped at once. :meth:`put` may be called from a transport's own
-    threads: it never waits for the loop, and it wakes the loop at most once per batch, so a busy
-    loop cannot make the hand-off grow without bound.
+    ``max_message_bytes`` (default: ``max_bytes``) is dropped at once, so that messages its
+    reader would refuse unread never take room from the others. :meth:`put` may be called from
+    a transport's own threads: it never waits for the loop, and it wakes the loop at most once
+    per batch, so a busy loop cannot make the hand-off grow without bound.
     """
 
-    def __init__(self, capacity: int, max_bytes: int = 256 * 1024 * 1024) -> None:
-        if capacity < 1 or max_bytes < 1:
+    def __init__(
+        self, capacity: int, max_bytes: int = 256 * 1024 * 1024, max_message_bytes: int = 0
+    ) -> None:
+        if capacity < 1 or max_bytes < 1 or max_message_bytes < 0:
             raise ValueError(f"inbox capacity and bytes must be ≥ 1, got {capacity}, {max_bytes}")
         self._items: collections.deque[Message] = collections.deque()
         self.capacity = capacity
         self.max_bytes = max_bytes
+        self.max_message_bytes = min(max_message_bytes or max_bytes, max_bytes)
         self.bytes = 0
         self.dropped = 0
         self.received = 0
@@ -93,7 +97,7 @@ class Inbox:
         size = len(message.payload)
         with self._lock:
             self.received += 1
-            if size > self.max_bytes:
+            if size > self.max_message_bytes:
                 self.dropped += 1
                 return
             self._make_room(message.key, size)

@@ -20,7 +20,14 @@ import msgpack
 import numpy as np
 import pytest
 
-from agents.control import Status, StepOrder, decode_control, encode_control
+from agents.control import (
+    NeedFrames,
+    Status,
+    StepOrder,
+    Stop,
+    decode_control,
+    encode_control,
+)
 from agents.core import CoreSettings
 from agents.journal import Journal
 from agents.links import Schedule
@@ -800,3 +807,32 @@ async def test_an_agent_that_subscribes_to_new_peers_gossips_again_once_subscrib
         await asyncio.sleep(0.2)
         assert len(watched.drain()) == 1 and before >= 1
         assert not task.done()
+
+
+@pytest.mark.asyncio
+async def test_a_flood_of_requests_never_displaces_a_stop(
+    frames: dict[str, list[SensorFrame]],
+) -> None:
+    """Issue 43, findings 3 and 6: requests that any member may put (``ctl/need/<robot>``) wait
+    in an inbox of their own, and control messages larger than the agent reads are dropped on
+    arrival, so neither can push a Stop out of the control inbox before the loop reads it."""
+    bus = MemoryBus()
+    world = MemoryTransport(bus)
+    await world.open()
+    agent = _agent("r1", bus, "realtime")
+    async with _running(agent) as (task,):
+        world.publish(KEYS.frames("r1"), encode_frame(frames["r1"][0]))
+        await _until(lambda: agent.node.k == 1)
+        # All of it is put before the agent's loop runs again: the Stop first, then a flood on
+        # 3,000 distinct request keys (an insecure fleet lets anyone put there) and 40 control
+        # messages of 1 MiB on the operator's own key.
+        world.publish(KEYS.ctl("stop"), encode_control(Stop("the operator's")))
+        need = encode_control(NeedFrames("r1", 1))
+        for i in range(3000):
+            world.publish(KEYS.ctl("need", f"x{i}"), need)
+        for _ in range(40):
+            world.publish(KEYS.ctl("status"), bytes(1 << 20))
+        await asyncio.wait_for(task, 10)
+        assert agent.stop_reason == "the operator's"
+        assert agent.requests.dropped >= 3000 - agent.requests.capacity
+        assert agent.control.dropped == 40  # the 1 MiB messages, on arrival
