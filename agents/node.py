@@ -220,7 +220,10 @@ class BeliefGate:
         self.geometric_info = 0.0 if semantic_poses else 1.0 / min(model.geometric_noise.variances)
         self._max = 4 * max_slots
         self._held: Held | None = None  # D's objects, until D next changes
-        self._verdicts: dict[tuple[str, int, int], tuple[LocalSummary, Implausible | None]] = {}
+        # (owner, epoch, stamp, content) → verdict; the content is told by the slot's signature
+        # or the hash of its bytes, never by holding the slot itself (a refused slot of tens of
+        # MB must not stay in memory because it was refused).
+        self._verdicts: dict[tuple[str, int, int, object], Implausible | None] = {}
 
     def changed(self) -> None:
         self._held = None
@@ -235,20 +238,25 @@ class BeliefGate:
         for s in message.stack:
             if s.owner == robot or s.version <= (held.version_of(s.owner) or (-1, -1)):
                 continue
-            key = (s.owner, s.epoch, s.stamp)
-            known = self._verdicts.get(key)
-            if known is not None and known[0] is s.summary:
-                verdict = known[1]
+            content = s.signature or (hash(s.wire.data) if s.wire is not None else None)
+            key = (s.owner, s.epoch, s.stamp, content)
+            if content is not None and key in self._verdicts:
+                verdict = self._verdicts[key]
             else:
                 verdict = self._verdict(s, belief)
                 if len(self._verdicts) >= self._max:
                     self._verdicts.clear()
-                self._verdicts[key] = (s.summary, verdict)
+                if content is not None:
+                    self._verdicts[key] = verdict
             if verdict is not None:
                 bad[s.owner] = verdict
         return bad
 
     def _verdict(self, slot: Slot, belief: DistributedBelief) -> Implausible | None:
+        try:
+            belief.check(slot)
+        except SlotError:
+            return None  # not this gate's to judge: the model fit refuses it at the merge
         if self._held is None and self.settings.false_alarm and len(belief.object_ids):
             self._held = held_objects(belief)
         try:
@@ -261,7 +269,8 @@ class BeliefGate:
                 self.settings,
             )
         except Implausible as exc:
-            return exc
+            # Without its traceback: its frames hold the slot's matrices (tens of MB at most).
+            return exc.with_traceback(None)
         return None
 
 
@@ -386,6 +395,7 @@ class RobotNode:
         )
         bad = self.gate.refused(message, self.robot, self.stack, self.distributed)
         if bad:
+            self._forget_parsed(message, bad)
             self.counters.rejected_slots += len(bad)
             self.counters.last_error = str(next(iter(bad.values())))
             if message.sender in bad:
@@ -439,6 +449,12 @@ class RobotNode:
         self.counters.slots_reused += len(message.reused)
         self._keep_parsed(s for s in message.stack if s.owner not in message.reused)
         return message
+
+    def _forget_parsed(self, message: StackMessage, owners: Container[str]) -> None:
+        """Refused slots are not kept for reuse: whatever their size, nothing refused stays."""
+        for s in message.stack:
+            if s.owner in owners:
+                self._parsed.pop((s.owner, s.epoch, s.stamp), None)
 
     def _parsed_before(self, owner: str, epoch: int, stamp: int) -> Slot | None:
         return self._parsed.get((owner, epoch, stamp))
@@ -625,12 +641,13 @@ class RobotNode:
         except SlotError as exc:
             self.counters.rejected_slots += 1
             self.counters.last_error = str(exc)
+            self._parsed.pop((slot.owner, slot.epoch, slot.stamp), None)
             log.warning("%s: rejected slot: %s", self.robot, exc)
             return False
         return True
 
     def _count_error(self, exc: RemoteProtocolError) -> None:
-        self._last_refusal = exc
+        self._last_refusal = exc.with_traceback(None)  # its frames would hold the payload
         name = type(exc).__name__
         self.counters.invalid += 1
         self.counters.errors_by_type[name] = self.counters.errors_by_type.get(name, 0) + 1

@@ -737,3 +737,40 @@ def test_the_own_slot_goes_out_with_ls_position_when_ds_is_outside_the_limits(
     assert node.counters.own_slot_invalid == 0
     delta = decode(node.encoded_delta(["r1"]), node.limits)
     assert [s.owner for s in delta.stack] == ["r1"] and delta.position == message.position
+
+
+def test_a_refused_large_slot_leaves_no_bytes_behind(frames: dict[str, list[SensorFrame]]) -> None:
+    """Issue 43, finding 4: slots of tens of MB that are refused (here by the belief gate, and by
+    the model fit) must not stay in the receiver's memory: measured with tracemalloc, which
+    counts what Python and numpy hold, not what the allocator keeps from the OS."""
+    import gc
+    import tracemalloc
+
+    nodes = _nodes()
+    run_fleet(nodes, frames, CHAIN, 4)
+    r1, r2 = nodes["r1"], nodes["r2"]
+    n = 512  # the most objects a slot may carry: a dense ξ of 1,536 × 1,536, 9.5 MB on the wire
+    ids = tuple(range(1000, 1000 + n))
+    xi = Xi(np.zeros((n, 3)), 1e9 * np.eye(3 * n), np.zeros(3 * n))
+    phi = np.zeros((n, SCENARIO.num_classes))
+    poison = LocalSummary(ids, (), ObjectClasses(phi, xi))
+    payloads = [
+        encode(StackMessage("r1", None, Stack((Slot("r1", stamp, poison),)), stamp), r2.limits)
+        for stamp in (5, 6)
+    ]
+    assert min(len(p) for p in payloads) > 9_000_000
+    del xi, poison
+    gc.collect()
+    tracemalloc.start()
+    try:
+        before = tracemalloc.get_traced_memory()[0]
+        for payload in payloads:
+            got = r2.receive(payload, "r1")
+            assert got.message is None and got.gated == 1
+        del got
+        gc.collect()
+        held = tracemalloc.get_traced_memory()[0] - before
+    finally:
+        tracemalloc.stop()
+    assert held < 200_000, held
+    assert r2.stack.version_of("r1") == (0, 3) and r1.k == 4
