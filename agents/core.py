@@ -259,6 +259,7 @@ class AgentCore:
         self.keys = keys
         s = self.settings = settings or CoreSettings()
         self.counters = CoreCounters()
+        self._status_due = False  # a status request came in the current batch
         self.replayed = Replayed()
         self.stop_reason = ""
         self.gossip, self.answers, self.rounds, self.radio = _policies(self.node, s)
@@ -340,6 +341,9 @@ class AgentCore:
                 actions += self._step_all()
         if at_once:
             actions += self._step_all()
+        if self._status_due:
+            self._status_due = False
+            actions += self._publish_estimate()
         actions += self._listen() + self._hear()
         self._refresh()
         data, self._out = self.gossip.send_now(self._out, now)  # real time: what goes at once
@@ -381,8 +385,9 @@ class AgentCore:
             elif order.k > k + self.settings.window:
                 self.counters.orders_ahead += 1
         elif isinstance(order, Status):
+            # One estimate per batch, after its steps, however many asked (issue 43, finding 3).
             self.counters.status_requests += 1
-            return self._publish_estimate()
+            self._status_due = True
         elif isinstance(order, Stop):
             self.stop_reason = self.stop_reason or order.reason or "stopped by the conductor"
             return [Halt(self.stop_reason)]

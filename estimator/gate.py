@@ -160,7 +160,11 @@ def check_xi(
     λmax(R⁻¹); 0: not applied) or the Mahalanobis gate against ``held`` (None: not applied)."""
     if settings.information_margin and geometric_info > 0:
         bound = settings.information_margin * max(stamp, 1) * geometric_info
-        lmax = _block_lmax(_diag_blocks(x))
+        blocks = _diag_blocks(x)
+        # λmax ≤ trace for a positive semi-definite block (the codec refuses a Λ that is not:
+        # κ(Λ) ≤ max_condition), so most slots pass on the trace alone.
+        trace = np.trace(blocks, axis1=1, axis2=2)
+        lmax = _block_lmax(blocks) if not (trace <= bound).all() else trace
         worst = int(np.argmax(lmax)) if len(lmax) else -1
         if worst >= 0 and not lmax[worst] <= bound:
             raise Implausible(
@@ -179,8 +183,7 @@ def check_xi(
         delta, sigma_s = _mean_and_marginals(x)
     except (np.linalg.LinAlgError, RuntimeError, ValueError) as exc:
         raise Implausible(f"slot of {owner}: its ξ cannot be solved ({exc})") from exc
-    lin = np.asarray(x.lin, dtype=float)[mine]
-    diff = se2.local(lin, held.pose[theirs]) - delta[mine]
+    diff = _local(np.asarray(x.lin, dtype=float)[mine], held.pose[theirs]) - delta[mine]
     diff[:, 2] = se2.wrap_angle(diff[:, 2])
     threshold = gate_threshold(settings.false_alarm)
     first = _quadratic(sigma_s[mine], diff)
@@ -198,6 +201,21 @@ def check_xi(
             f"robot's belief (gate {threshold:.3g}, false alarm {settings.false_alarm:g} per "
             f"object); {len(bad)} of {len(shared)} shared objects fail"
         )
+
+
+def _local(p: Array, q: Array) -> Array:
+    """``se2.local(p, q)`` (Logmap(p⁻¹ ∘ q)) for (K, 3) arrays in a few whole-array operations:
+    the gate calls it once per slot version, mostly on a handful of objects, where the general
+    routine's per-call overhead dominated (0.3 ms of its 0.8 ms per check, lanes world)."""
+    c, s = np.cos(p[:, 2]), np.sin(p[:, 2])
+    dx, dy = q[:, 0] - p[:, 0], q[:, 1] - p[:, 1]
+    x, y = c * dx + s * dy, c * dy - s * dx
+    t = se2.wrap_angle(q[:, 2] - p[:, 2])
+    half = t / 2.0
+    small = np.abs(t) < se2.SMALL_ANGLE
+    half_safe = np.where(small, 1.0, half)
+    a = np.where(small, 1.0 - t * t / 12.0, half_safe / np.tan(half_safe))
+    return np.stack([a * x + half * y, -half * x + a * y, t], axis=1)
 
 
 def _quadratic(cov: Array, diff: Array) -> Array:

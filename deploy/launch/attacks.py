@@ -22,7 +22,11 @@ The attacks, against the *victim* (the robot the others hear most in the run, :f
 - ``poison`` — the accomplice's own slot, ahead of its real versions, over the objects the victim
   holds: each moved :data:`POISON_SHIFT` m in x with information :data:`POISON_INFORMATION`·I (the
   wire's cap), within every wire limit. A member signs it with its own key: finding 2 of issue
-  43, which wrecked every receiver's D before the belief gate (``estimator.gate``).
+  43, which wrecked every receiver's D before the belief gate (``estimator.gate``);
+- ``flood`` — :data:`FLOOD_PER_STEP` status requests on ``ctl/status`` and requests on as many
+  distinct ``ctl/need/<id>`` keys after every step; a member also sends status requests and
+  round requests naming every robot on its own ``ctl/need`` key (finding 3 of issue 43: 2,000
+  status requests a second made every agent publish as many estimates).
 
 A session that holds the accomplice's certificate and signing key (a member's credentials used
 against another member) also tries everything through what its own certificate allows: forged
@@ -49,7 +53,7 @@ from pathlib import Path
 import numpy as np
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
 
-from agents.control import Stop, encode_control
+from agents.control import NeedFrames, NeedRound, Status, Stop, encode_control
 from agents.node import CLOCK_SKEW_S, MAX_STEP_RATE, STAMP_SLACK
 from agents.transport.base import Inbox, Keys
 from agents.transport.zenoh_transport import ZenohSettings, ZenohTransport
@@ -63,7 +67,7 @@ from protocol.errors import RemoteProtocolError
 from protocol.frames import encode_frame
 from protocol.stack import Slot, Stack
 
-ATTACKS = ("impersonate", "stamp", "stop", "frames", "garbage", "poison")
+ATTACKS = ("impersonate", "stamp", "stop", "frames", "garbage", "poison", "flood")
 # Object ids no world has: one in a belief can only have come from that attack.
 FORGED_OBJECTS = {"impersonate": 900_001, "stamp": 900_002, "frames": 900_003}
 FORGED = frozenset(FORGED_OBJECTS.values())
@@ -71,6 +75,8 @@ AHEAD = 3  # rounds and steps forged ahead of the fleet
 GARBAGE_PER_STEP = 20
 POISON_SHIFT = 9000.0  # metres: inside the wire's ±world_extent of 10 km
 POISON_INFORMATION = 1e9  # Limits.max_information
+FLOOD_PER_STEP = 300
+FLOOD_ANSWERS = 20  # estimates beyond two a step that still count as answering the fleet
 POISONED = 1000.0  # an object estimate this far (m) from the origin can only be the poison
 
 
@@ -240,6 +246,19 @@ class Attacker:
             out.append((self.keys.stack(owner), self._stack(owner, slot, j)))
         return out
 
+    def _flood(self, k: int) -> list[tuple[str, bytes]]:
+        status = encode_control(Status())
+        out = [(self.keys.ctl("status"), status)] * FLOOD_PER_STEP
+        out += [
+            (self.keys.ctl("need", f"x{i}"), encode_control(NeedFrames(f"x{i}", k)))
+            for i in range(FLOOD_PER_STEP)
+        ]
+        if self.identity.robot is not None:  # a member: on the one control key it may put on
+            own = self.keys.ctl("need", self.identity.robot)
+            rounds = encode_control(NeedRound(self.identity.robot, k, tuple(self.robots)))
+            out += [(own, status), (own, rounds)] * (FLOOD_PER_STEP // 2)
+        return out
+
     def _forged(self, attack: str, epoch: int, stamp: int) -> Slot:
         """A victim slot the victim never made: one object of class 0 that is not there."""
         summary = forged_summary(FORGED_OBJECTS[attack], self.num_classes, self.classes)
@@ -333,6 +352,12 @@ def evidence(
         if attack == "poison" and (hit := poisoned_beliefs(estimates)):
             who = ", ".join(f"{r} {b[0].upper()}" for r, b in sorted(hit))
             effects.append(f"objects {POISON_SHIFT / 1000:g} km away in {who}")
+        if attack == "flood":
+            answered = {r: int(c.get("estimates_sent", 0)) for r, c in counters.items()}
+            loud = sorted(r for r, n in answered.items() if n > 2 * steps + FLOOD_ANSWERS)
+            if loud:
+                most = max(answered[r] for r in loud)
+                effects.append(f"{', '.join(loud)} answered it: up to {most} estimates")
         if attack == "stop" and stopped_early:
             effects.append(f"stopped {', '.join(stopped_early)} before step {steps}")
         counted = {
@@ -342,6 +367,7 @@ def evidence(
             "frames": ("frames_invalid",),
             "garbage": ("stacks_invalid",),
             "poison": ("slots_rejected",),
+            "flood": ("status_requests", "control_invalid", "inbox_dropped"),
         }[attack]
         text = ", ".join(f"{name} {total[name]}" for name in counted if total[name])
         out.append(Achieved(attack, tuple(effects), text or "—"))

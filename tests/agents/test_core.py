@@ -255,6 +255,21 @@ def test_control_messages_are_taken_only_on_their_own_key() -> None:
     )
 
 
+def test_a_batch_of_status_requests_is_answered_with_one_estimate(frames) -> None:  # type: ignore[no-untyped-def]
+    """Issue 43, finding 3: 2,000 status requests a second made every agent publish 2,000
+    estimates; now a batch costs one, made after the batch's steps (so it is the newest)."""
+    d = Driver()
+    status = (KEYS.ctl("status"), encode_control(Status()))
+    frame = (KEYS.frames("r1"), encode_frame(frames["r1"][0]))
+    actions = d.core.on_messages([status] * 500 + [frame] + [status] * 500, 1.0)
+    estimates = [a for a in actions if isinstance(a, Publish) and a.key == KEYS.estimate("r1")]
+    assert len(estimates) == 2  # the step's own, and one for every request of the batch
+    assert decode_estimate(estimates[-1].payload).k == 1
+    assert d.core.counters.status_requests == 1000
+    again = d.core.on_messages([status] * 3, 2.0)
+    assert sum(isinstance(a, Publish) and a.key == KEYS.estimate("r1") for a in again) == 1
+
+
 def test_oversized_and_malformed_control_is_counted_unread() -> None:
     d = Driver(max_control_bytes=4096)
     huge = encode_control(

@@ -33,8 +33,8 @@ def _plan(out: Path, secure: bool) -> LaunchPlan:
 def test_attack_names_and_roles() -> None:
     assert parse_attacks("all") == ATTACKS
     assert parse_attacks("garbage,stamp") == ("stamp", "garbage")  # in ATTACKS order
-    with pytest.raises(ValueError, match="unknown attacks \\['flood'\\]"):
-        parse_attacks("stamp,flood")
+    with pytest.raises(ValueError, match="unknown attacks \\['storm'\\]"):
+        parse_attacks("stamp,storm")
     # The victim is the robot the others hear most, the accomplice the next one.
     links = [{"a": ("b",), "b": ("c",), "c": ("b",)}, {"a": ("c", "b")}]
     assert roles(links, ["a", "b", "c"]) == ("b", "c")
@@ -109,6 +109,9 @@ def test_the_same_attacks_on_an_insecure_fleet_show_what_each_would_have_done(
     # (Without the gate it put r2's D objects 9 km away: "objects 9 km away in r2 D".)
     assert effects["poison"] == "" and got["poison"].identical
     assert got["poison"].achieved[0].counted.startswith("slots_rejected")
+    # A flood of status requests costs one estimate per batch (without: 2,114 per agent).
+    assert effects["flood"] == "" and got["flood"].identical
+    assert got["flood"].achieved[0].counted.startswith("status_requests")
 
 
 @pytest.mark.slow

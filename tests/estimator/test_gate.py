@@ -11,6 +11,7 @@ from estimator.gate import (
     GateSettings,
     Held,
     Implausible,
+    _local,
     _mean_and_marginals,
     check_xi,
     gate_threshold,
@@ -142,3 +143,10 @@ def test_sparse_and_dense_solves_agree(seed: int) -> None:
     assert np.allclose(d_s, d_d) and np.allclose(m_s, m_d)
     assert np.allclose(d_d.ravel(), inv @ eta)
     assert np.allclose(m_d[2], inv[6:9, 6:9])
+
+
+def test_the_gates_local_coordinates_are_se2s() -> None:
+    rng = np.random.default_rng(4)
+    p = rng.normal(size=(40, 3)) * [5.0, 5.0, 3.0]
+    q = np.concatenate([rng.normal(size=(20, 3)) * [5.0, 5.0, 3.0], p[:20] + 1e-9])
+    assert np.allclose(_local(p, q), se2.local(p, q), rtol=0, atol=1e-12)
