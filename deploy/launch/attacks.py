@@ -23,8 +23,9 @@ The attacks, against the *victim* (the robot the others hear most in the run, :f
   holds: each moved :data:`POISON_SHIFT` m in x with information :data:`POISON_INFORMATION`·I (the
   wire's cap), within every wire limit. A member signs it with its own key: finding 2 of issue
   43, which wrecked every receiver's D before the belief gate (``estimator.gate``);
-- ``flood`` — :data:`FLOOD_PER_STEP` status requests on ``ctl/status`` and requests on as many
-  distinct ``ctl/need/<id>`` keys after every step; a member also sends status requests and
+- ``flood`` — :data:`FLOOD_PER_STEP` status requests on ``ctl/status`` (and
+  :data:`FLOOD_LARGE` control messages of 1 MiB) and requests on as many distinct
+  ``ctl/need/<id>`` keys after every step; a member also sends status requests and
   round requests naming every robot on its own ``ctl/need`` key (finding 3 of issue 43: 2,000
   status requests a second made every agent publish as many estimates).
 
@@ -76,7 +77,7 @@ GARBAGE_PER_STEP = 20
 POISON_SHIFT = 9000.0  # metres: inside the wire's ±world_extent of 10 km
 POISON_INFORMATION = 1e9  # Limits.max_information
 FLOOD_PER_STEP = 300
-FLOOD_ANSWERS = 20  # estimates beyond two a step that still count as answering the fleet
+FLOOD_LARGE, FLOOD_LARGE_BYTES = 4, 1 << 20  # control messages of 1 MiB, each step
 POISONED = 1000.0  # an object estimate this far (m) from the origin can only be the poison
 
 
@@ -249,6 +250,7 @@ class Attacker:
     def _flood(self, k: int) -> list[tuple[str, bytes]]:
         status = encode_control(Status())
         out = [(self.keys.ctl("status"), status)] * FLOOD_PER_STEP
+        out += [(self.keys.ctl("status"), bytes(FLOOD_LARGE_BYTES))] * FLOOD_LARGE  # finding 6
         out += [
             (self.keys.ctl("need", f"x{i}"), encode_control(NeedFrames(f"x{i}", k)))
             for i in range(FLOOD_PER_STEP)
@@ -354,7 +356,9 @@ def evidence(
             effects.append(f"objects {POISON_SHIFT / 1000:g} km away in {who}")
         if attack == "flood":
             answered = {r: int(c.get("estimates_sent", 0)) for r, c in counters.items()}
-            loud = sorted(r for r, n in answered.items() if n > 2 * steps + FLOOD_ANSWERS)
+            # Answered: more than two estimates a step plus one for every tenth flood request.
+            bound = 2 * steps + FLOOD_PER_STEP * steps // 10
+            loud = sorted(r for r, n in answered.items() if n > bound)
             if loud:
                 most = max(answered[r] for r in loud)
                 effects.append(f"{', '.join(loud)} answered it: up to {most} estimates")
