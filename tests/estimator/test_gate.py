@@ -150,3 +150,36 @@ def test_the_gates_local_coordinates_are_se2s() -> None:
     p = rng.normal(size=(40, 3)) * [5.0, 5.0, 3.0]
     q = np.concatenate([rng.normal(size=(20, 3)) * [5.0, 5.0, 3.0], p[:20] + 1e-9])
     assert np.allclose(_local(p, q), se2.local(p, q), rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("d2, passes", [(40.0, True), (50.0, False)])
+def test_the_slots_own_marginal_decides_when_the_receiver_is_certain(
+    d2: float, passes: bool
+) -> None:
+    """Σ_D ≈ 0: the second stage (the slot's marginal alone) must pass the 40 and the third
+    refuse the 50 — a wrong marginal in the second stage shows here."""
+    tiny = 1e-9 * np.eye(3)
+    u = np.array([1.0, -2.0, 0.5])
+    calls: list[int] = []
+
+    def covariances(ids):  # type: ignore[no-untyped-def]
+        calls.append(len(ids))
+        return np.array([tiny for _ in ids])
+
+    # Two objects, correlated: the marginal of object 7 differs from its conditional block.
+    lam2 = np.zeros((6, 6))
+    lam2[:3, :3], lam2[3:, 3:] = LAMBDA, 2.0 * LAMBDA
+    lam2[:3, 3:] = lam2[3:, :3] = -0.9 * LAMBDA
+    lin2 = np.vstack([LIN, LIN + np.array([3.0, 0.0, 0.0])])
+    slot = Xi(lin2, lam2, lam2 @ np.concatenate([DELTA0, np.zeros(3)]))
+    sigma7 = np.linalg.inv(lam2)[:3, :3]
+    offset = u * np.sqrt(d2 / (u @ np.linalg.solve(sigma7, u)))
+    held = Held({7: 0}, se2.retract(LIN[0], DELTA0 + offset)[None], covariances)
+    assert offset @ lam2[:3, :3] @ offset > gate_threshold(1e-9)  # the first stage cannot pass
+    if passes:
+        check_xi("r2", (7, 8), slot, 100, held, 10.0, SETTINGS)
+        assert calls == []  # passed on the slot's own marginal
+    else:
+        with pytest.raises(Implausible, match="d² 50"):
+            check_xi("r2", (7, 8), slot, 100, held, 10.0, SETTINGS)
+        assert calls == [1]
