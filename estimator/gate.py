@@ -20,10 +20,12 @@ model, and neither needs anything the receiver does not already hold.
    receiver's estimate m_D differ by Δ (at the slot's linearisation point). Under the model Δ has
    covariance at most Σ_s + Σ_D (the two share information, which only shrinks it), so
    d² = Δᵀ(Σ_s + Σ_D)⁻¹Δ is at most χ²₃ and the slot is refused when d² exceeds χ²₃'s quantile at
-   ``false_alarm`` per object (10⁻⁹: 44.84). The test runs in two stages: d²_s = Δᵀ Σ_s⁻¹ Δ ≥ d²
-   comes from the slot alone, and only an object with d²_s above the threshold pays for the
-   receiver's marginal covariance Σ_D. Honest slots gave d²_s ≤ 6.9 (5,852 + 393 object checks
-   on the dense and paper worlds).
+   ``false_alarm`` per object (10⁻⁹: 44.84). The test runs in three stages, each an upper bound
+   on the next, so only an object one cannot pass pays for the next: ΔᵀΛ_jjΔ with the slot's
+   conditional block (Λ_jj ⪰ Σ_s⁻¹, no solve), d²_s = Δᵀ Σ_s⁻¹ Δ with the slot's marginal
+   (three solves of the factored Λ per object), then d² with the receiver's marginal Σ_D. Honest
+   slots gave d²_s ≤ 6.9 (5,852 + 393 object checks on the dense and paper worlds); the first
+   stage passes 91 % of the dense world's objects.
 
 Objects the receiver does not hold yet pass on the information bound alone: the receiver has no
 belief to test them against, and an owner's slot carries no trajectory to bound where its objects
