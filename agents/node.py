@@ -271,6 +271,8 @@ class BeliefGate:
         except Implausible as exc:
             # Without its traceback: its frames hold the slot's matrices (tens of MB at most).
             return exc.with_traceback(None)
+        except (ArithmeticError, ValueError, RuntimeError) as exc:  # numbers it cannot judge
+            return Implausible(f"slot of {slot.owner}: cannot be checked ({exc})")
         return None
 
 
