@@ -22,7 +22,14 @@ from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
 from numpy.typing import ArrayLike
 
 from estimator.distributed import DistributedBelief, FusionStats, SlotError
-from estimator.gate import GateSettings, Held, Implausible, check_summary, held_objects
+from estimator.gate import (
+    GateSettings,
+    Held,
+    Implausible,
+    check_summary,
+    evidence_per_detection,
+    held_objects,
+)
 from estimator.hybrid import BeliefConfig, BeliefModel, HybridBelief
 from estimator.models import SensorFrame
 from estimator.slots import linearisation_point, summarise
@@ -218,6 +225,12 @@ class BeliefGate:
         # λmax(R⁻¹) of the detection factors, the information bound's unit; 0 when the semantic
         # factors also inform the Gaussians (no bound then).
         self.geometric_info = 0.0 if semantic_poses else 1.0 / min(model.geometric_noise.variances)
+        # B, the class evidence one detection can give (the class-evidence bound's unit; 0 with
+        # semantic_poses too): scores plausible at the gate's false-alarm rate (10⁻⁹ when off).
+        plausible = settings.false_alarm or GateSettings().false_alarm
+        self.per_detection = (
+            0.0 if semantic_poses else evidence_per_detection(model.classifier, plausible)
+        )
         self._max = 4 * max_slots
         self._held: Held | None = None  # D's objects, until D next changes
         # (owner, epoch, stamp, content) → verdict; the content is told by the slot's signature
@@ -267,6 +280,7 @@ class BeliefGate:
                 self._held,
                 self.geometric_info,
                 self.settings,
+                self.per_detection,
             )
         except Implausible as exc:
             # Without its traceback: its frames hold the slot's matrices (tens of MB at most).

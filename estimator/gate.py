@@ -27,14 +27,27 @@ model, and neither needs anything the receiver does not already hold.
    slots gave d²_s ≤ 6.9 (5,852 + 393 object checks on the dense and paper worlds); the first
    stage passes 91 % of the dense world's objects.
 
-Objects the receiver does not hold yet pass on the information bound alone: the receiver has no
-belief to test them against, and an owner's slot carries no trajectory to bound where its objects
-may lie. The class evidence (log φ) is bounded by the wire limits only.
+3. **Class-evidence bound.** A slot's log φ is its owner's class evidence, the prior divided
+   out: a sum over the owner's detections of each object, at most one a frame, of log P(z | c, ψ)
+   (the ledger's form: the likelihood integrated over ψ when first weighed, moved by its change
+   at the current estimate, so three terms each between two classes at one viewpoint or a
+   mixture of them). For any scores z the classifier model calls plausible (within χ²_dim's
+   quantile at ``false_alarm`` of some class at some viewpoint) one such term separates two
+   classes by at most B (:func:`evidence_per_detection`, from the model's means and covariances
+   on a grid of viewpoints). So at the owner's step ``stamp`` an object's log φ spans at most
+   3 · stamp · B between its classes (a realisation table's log φ, over n objects, n times
+   that), and ``information_margin`` again allows for the grid. Not applied with
+   ``semantic_poses`` either: realisation weights then carry geometric evidence too.
+
+Objects the receiver does not hold yet pass on the two bounds alone: the receiver has no belief
+to test them against, and an owner's slot carries no trajectory to bound where its objects may
+lie.
 """
 
 from __future__ import annotations
 
 import contextlib
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from functools import lru_cache
@@ -47,7 +60,7 @@ from numpy.typing import NDArray
 from scipy.stats import chi2
 
 from estimator.factors import object_key
-from estimator.models import se2
+from estimator.models import ClassifierModel, se2
 from estimator.smoother import marginal_covariances
 from estimator.sparse_xi import SparseXi
 from estimator.summary import LocalSummary
@@ -104,6 +117,65 @@ def held_objects(belief: object) -> Held:
         return marginal_covariances(cont.isam, [object_key(j) for j in which])
 
     return Held({j: i for i, j in enumerate(ids)}, pose, covariances)
+
+
+VIEWPOINTS = 360  # the grid over ψ ∈ [0, 2π) on which B is read off the classifier model
+EVIDENCE_TERMS = 3  # terms of one detection in a slot's log φ (the module docstring, item 3)
+
+
+def evidence_per_detection(classifier: ClassifierModel, false_alarm: float) -> float:
+    """B: how far one detection's log P(z | c, ψ) can separate two classes a, b at one viewpoint
+    ψ, for scores z the model calls plausible: z within χ²_dim's quantile g at ``false_alarm``
+    of some class c at some viewpoint ψ₀ (the classifier's Gaussian, Σ_c(ψ₀)).
+
+    log P(z|a,ψ) − log P(z|b,ψ) = ½q_b − ½q_a + ½ log(|Σ_b|/|Σ_a|) with q ≥ 0, and
+    q_b ≤ ‖z − μ_b(ψ)‖² / λmin(Σ_b(ψ)), ‖z − μ_b(ψ)‖ ≤ ‖μ_c(ψ₀) − μ_b(ψ)‖ + √(g λmax(Σ_c(ψ₀))).
+    Every mean lies within r of their centroid, so ‖μ_c(ψ₀) − μ_b(ψ)‖ ≤ 2r. Maxima over the
+    classes and :data:`VIEWPOINTS` viewpoints; 0 for a model without classes to tell apart."""
+    m, dim = classifier.num_classes, classifier.dim
+    if m < 2:
+        return 0.0
+    psi = np.linspace(0.0, 2.0 * np.pi, VIEWPOINTS, endpoint=False)
+    means = np.stack([np.asarray(classifier.mean(c, psi), float) for c in range(m)])
+    covs = np.stack([np.asarray(classifier.cov(c, psi), float) for c in range(m)])
+    eig = np.linalg.eigvalsh(0.5 * (covs + covs.swapaxes(-1, -2)))  # (M, K, dim)
+    if not np.isfinite(means).all() or not (eig[..., 0] > 0).all():
+        raise ValueError("classifier model: means not finite or a covariance not positive")
+    points = means.reshape(-1, dim)
+    radius = float(np.linalg.norm(points - points.mean(axis=0), axis=1).max())
+    reach = 2.0 * radius + math.sqrt(float(chi2.isf(false_alarm, dim)) * float(eig[..., -1].max()))
+    logdet = np.log(eig).sum(axis=-1)
+    return 0.5 * reach**2 / float(eig[..., 0].min()) + 0.5 * float(logdet.max() - logdet.min())
+
+
+def check_classes(
+    owner: str, summary: LocalSummary, stamp: int, per_detection: float, margin: float
+) -> None:
+    """Raise :class:`Implausible` if a slot's class evidence spans more than ``margin`` ×
+    :data:`EVIDENCE_TERMS` × ``stamp`` × ``per_detection`` (B) between two classes of an object
+    (a realisation table: between two realisations, n times that). ``per_detection`` or
+    ``margin`` 0: not applied."""
+    if not per_detection or not margin:
+        return
+    bound = margin * EVIDENCE_TERMS * max(stamp, 1) * per_detection
+    what = "its classes"
+    if summary.per_object is not None:
+        log_phi = np.asarray(summary.per_object.log_phi, dtype=float)
+        spans = log_phi.max(axis=1) - log_phi.min(axis=1) if log_phi.size else log_phi[:, 0]
+    else:
+        rows = summary.realisations
+        log_phi = np.asarray([r.log_phi for r in rows] if isinstance(rows, tuple) else rows.log_phi)
+        spans = np.array([np.ptp(log_phi)]) if len(log_phi) else np.zeros(0)
+        bound *= max(len(summary.object_ids), 1)
+        what = "its realisations"
+    bad = np.flatnonzero(~(spans <= bound))
+    if len(bad):
+        b = int(bad[np.argmax(np.nan_to_num(spans[bad], nan=np.inf))])
+        which = f"object {summary.object_ids[b]}" if summary.per_object is not None else "table"
+        raise Implausible(
+            f"slot of {owner}: {which} has class evidence spanning {spans[b]:.3g} nats between "
+            f"{what}, above what {stamp} steps of detections can give ({bound:.3g})"
+        )
 
 
 def _block_lmax(blocks: Array) -> Array:
@@ -271,8 +343,11 @@ def check_summary(
     held: Held | None,
     geometric_info: float,
     settings: GateSettings,
+    per_detection: float = 0.0,
 ) -> None:
-    """:func:`check_xi` on every distinct ξ of a slot's summary."""
+    """:func:`check_classes` (``per_detection``: B of :func:`evidence_per_detection`; 0: not
+    applied) and :func:`check_xi` on every distinct ξ of a slot's summary."""
+    check_classes(owner, summary, stamp, per_detection, settings.information_margin)
     if summary.per_object is not None:
         xis: list[Xi | SparseXi] = [summary.per_object.xi]
     else:

@@ -14,16 +14,21 @@ The attacks, against the *victim* (the robot the others hear most in the run, :f
 - ``stamp`` — a forged victim slot far ahead of its real version (the largest stamp the owner's
   clock allows under its current epoch), relayed on the *accomplice*'s key (the next most heard
   robot);
-- ``stop`` — ``ctl/stop`` two steps before the end (a member: on its own ``ctl/need`` key too);
+- ``epoch`` — the victim's genuine newest slot, its signature kept, under the next epoch
+  (finding 8 of issue 43): on a secure fleet its signature no longer verifies, and the agents
+  count it as badly signed; on an insecure one the victim has to move to a newer epoch;
+- ``stop`` (``member-stop``) — ``ctl/stop`` two steps before the end (a member: on its own
+  ``ctl/need`` key too);
 - ``frames`` — sensor frames for the victim's next steps: no motion, and an object that is not
   there;
 - ``garbage`` — malformed stacks (:func:`deploy.launch.chaos.garbage_stack`) on the victim's and
   the accomplice's keys;
-- ``poison`` — the accomplice's own slot, ahead of its real versions, over the objects the victim
-  holds: each moved :data:`POISON_SHIFT` m in x with information :data:`POISON_INFORMATION`·I (the
-  wire's cap), within every wire limit. A member signs it with its own key: finding 2 of issue
-  43, which wrecked every receiver's D before the belief gate (``estimator.gate``);
-- ``flood`` — :data:`FLOOD_PER_STEP` status requests on ``ctl/status`` (and
+- ``poison`` (``member-poison``) — the accomplice's own slot, ahead of its real versions, over
+  the objects the victim holds: each moved :data:`POISON_SHIFT` m in x with information
+  :data:`POISON_INFORMATION`·I (the wire's cap), within every wire limit. A member signs it with
+  its own key: finding 2 of issue 43, which wrecked every receiver's D before the belief gate
+  (``estimator.gate``);
+- ``flood`` (``status-flood``) — :data:`FLOOD_PER_STEP` status requests on ``ctl/status`` (and
   :data:`FLOOD_LARGE` control messages of 1 MiB) and requests on as many distinct
   ``ctl/need/<id>`` keys after every step; a member also sends status requests and
   round requests naming every robot on its own ``ctl/need`` key (finding 3 of issue 43: 2,000
@@ -68,7 +73,10 @@ from protocol.errors import RemoteProtocolError
 from protocol.frames import encode_frame
 from protocol.stack import Slot, Stack
 
-ATTACKS = ("impersonate", "stamp", "stop", "frames", "garbage", "poison", "flood")
+ATTACKS = ("impersonate", "stamp", "epoch", "stop", "frames", "garbage", "poison", "flood")
+# Issue 43's names for the member's attacks: each attack already runs as an uncertified session
+# and, on a secure fleet, as a member (the accomplice's certificate and signing key).
+ALIASES = {"member-stop": "stop", "member-poison": "poison", "status-flood": "flood"}
 # Object ids no world has: one in a belief can only have come from that attack.
 FORGED_OBJECTS = {"impersonate": 900_001, "stamp": 900_002, "frames": 900_003}
 FORGED = frozenset(FORGED_OBJECTS.values())
@@ -82,14 +90,15 @@ POISONED = 1000.0  # an object estimate this far (m) from the origin can only be
 
 
 def parse_attacks(text: str) -> tuple[str, ...]:
-    """``impersonate,stamp`` → the attacks, in :data:`ATTACKS` order; ``all`` → every attack.
-    Raises ValueError naming an unknown one."""
+    """``impersonate,stamp`` → the attacks, in :data:`ATTACKS` order (:data:`ALIASES` name
+    some of them too); ``all`` → every attack. Raises ValueError naming an unknown one."""
     if text == "all":
         return ATTACKS
-    names = [a for a in text.split(",") if a]
+    names = [ALIASES.get(a, a) for a in text.split(",") if a]
     unknown = [a for a in names if a not in ATTACKS]
     if unknown or not names:
-        raise ValueError(f"unknown attacks {unknown} (known: {', '.join(ATTACKS)}, or all)")
+        known = ", ".join((*ATTACKS, *ALIASES))
+        raise ValueError(f"unknown attacks {unknown} (known: {known}, or all)")
     return tuple(a for a in ATTACKS if a in names)
 
 
@@ -128,6 +137,7 @@ class Attacker:
     versions: dict[str, tuple[int, int]] = field(default_factory=dict)
     # The objects of the victim's newest slot overheard: ids and linearisation poses.
     victim_objects: tuple[tuple[int, ...], np.ndarray] | None = None
+    victim_slot: Slot | None = None  # the newest genuine one overheard, as signed
 
     async def open(self) -> None:
         transport = ZenohTransport(self.identity.settings)
@@ -161,6 +171,7 @@ class Attacker:
                 if slot.version > self.versions.get(slot.owner, (-1, -1)):
                     self.versions[slot.owner] = slot.version
                     if slot.owner == self.victim:
+                        self.victim_slot = slot
                         summary = slot.summary
                         po = summary.per_object
                         xi = po.xi if po is not None else summary.distinct_xi()[0][0]
@@ -197,6 +208,16 @@ class Attacker:
         slot = self._forged("stamp", epoch, int(min(ceiling + STAMP_SLACK, MAX_STEP)))
         return [
             (self.keys.stack(self.accomplice), self._stack(self.accomplice, slot, j))
+            for j in range(k + 1, k + 1 + AHEAD)
+        ]
+
+    def _epoch(self, k: int) -> list[tuple[str, bytes]]:
+        if self.victim_slot is None:
+            return []
+        slot = self.victim_slot
+        moved = Slot(slot.owner, slot.stamp, slot.summary, slot.epoch + 1, slot.signature)
+        return [
+            (self.keys.stack(self.accomplice), self._stack(self.accomplice, moved, j))
             for j in range(k + 1, k + 1 + AHEAD)
         ]
 
@@ -349,7 +370,7 @@ def evidence(
         if seen.get(attack):
             who = ", ".join(f"{r} {b[0].upper()}" for r, b in sorted(seen[attack]))
             effects.append(f"forged object in {who}")
-        if attack == "stamp" and counters.get(victim, {}).get("own_superseded", 0):
+        if attack in ("stamp", "epoch") and counters.get(victim, {}).get("own_superseded", 0):
             effects.append(f"{victim} had to move to a new epoch")
         if attack == "poison" and (hit := poisoned_beliefs(estimates)):
             who = ", ".join(f"{r} {b[0].upper()}" for r, b in sorted(hit))
@@ -367,6 +388,7 @@ def evidence(
         counted = {
             "impersonate": ("stacks_badly_signed", "stacks_misaddressed", "slots_implausible"),
             "stamp": ("stacks_badly_signed", "slots_implausible"),
+            "epoch": ("stacks_badly_signed",),
             "stop": ("control_invalid",),
             "frames": ("frames_invalid",),
             "garbage": ("stacks_invalid",),

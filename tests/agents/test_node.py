@@ -713,6 +713,42 @@ def test_the_belief_gate_refuses_poisoned_slots_and_not_the_owners_next_one(
     _assert_same_belief(r2.distributed, twin["r2"].distributed, "r2")
 
 
+def _class_poisoned(node: RobotNode, boost: float, stamp: int) -> bytes:
+    """``node``'s own slot with its genuine ξ, and ``boost`` nats on the last class of its first
+    object: within the wire's |log φ| ≤ 10⁶, beyond any detections' worth."""
+    own = next(s for s in node.current_stack() if s.owner == node.robot)
+    po = own.summary.per_object
+    assert po is not None
+    phi = np.array(po.log_phi, dtype=float)
+    phi[0, -1] += boost
+    summary = LocalSummary(own.summary.object_ids, (), ObjectClasses(phi, po.xi))
+    slot = Slot(node.robot, stamp, summary, node.epoch)
+    return encode(StackMessage(node.robot, node.position, Stack((slot,)), stamp), node.limits)
+
+
+def test_the_belief_gate_refuses_class_evidence_no_detections_can_give(
+    frames: dict[str, list[SensorFrame]],
+) -> None:
+    nodes = _nodes()
+    run_fleet(nodes, frames, CHAIN, 8)
+    r1, r2 = nodes["r1"], nodes["r2"]
+    first = next(s for s in r1.current_stack() if s.owner == "r1").summary.object_ids[0]
+    b = r2.gate.per_detection
+    assert 10.0 < b < 1e3  # the paper's classifier: tens of nats per detection at most
+    got = r2.receive(_class_poisoned(r1, 1e5, 9), "r1")
+    assert got.message is None and got.gated == 1
+    assert f"object {first} has class evidence" in str(got.error)
+    assert r2.counters.rejected_slots == 1 and r2.stack.version_of("r1") == (0, 7)
+    # Without the bound the same slot is taken, and r2's D is certain of the forged class.
+    r2.gate.per_detection = 0.0
+    r2.gate.changed()
+    assert r2.receive(_class_poisoned(r1, 1e5, 9), "r1").taken
+    r2.on_frame(frames["r2"][8])
+    d = r2.distributed
+    marginal = d.class_marginals()[list(d.object_ids).index(first)]
+    assert marginal[-1] > 1 - 1e-9, marginal
+
+
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_the_belief_gate_refuses_nothing_on_honest_runs(seed: int) -> None:
     paper = load_scenario("paper")

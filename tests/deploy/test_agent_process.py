@@ -29,18 +29,24 @@ from agents.transport.base import Inbox, Keys
 from agents.transport.zenoh_transport import ZenohSettings, ZenohTransport, loopback_endpoint
 from deploy.launch import free_ports, write_agent_config
 from estimator.models import Detection, SensorFrame
+from estimator.summary import LocalSummary, ObjectClasses
+from estimator.xi import Xi
+from protocol.codec import Limits, StackMessage, encode
 from protocol.estimate import EstimateMessage, decode_estimate
+from protocol.stack import Slot, Stack
 from sim.loader import load_scenario
 from sim.robot_model import dump_robot_model
 from sim.sensors import Simulator
 
 ROOT = Path(__file__).resolve().parents[2]
+BIG_LIMITS = Limits(num_classes=64)
 SCENARIO = load_scenario("paper")
 SEED = 11
 FLEET = "hostile"
 KEYS = Keys(FLEET)
 MEMORY_BOUND_MB = 1200  # peak RSS of the agent through every attack (idle: ~300 MB)
 LOOP_HOLD_S = 0.2
+BLOATED, BLOATED_GROWTH_MB = 6, 12.0  # refused large versions; RSS growth from the 2nd to the last
 DELIVERY_S = 30.0  # how long an attack's messages may take to reach the agent and be counted
 RESEND_S = 5.0  # an attack not counted yet is sent again after this long
 
@@ -95,11 +101,17 @@ class AgentProcess:
         return self.proc is not None and self.proc.poll() is None
 
     def peak_rss_mb(self) -> float:
+        return self._status_mb("VmHWM:")
+
+    def rss_mb(self) -> float:
+        return self._status_mb("VmRSS:")
+
+    def _status_mb(self, field: str) -> float:
         assert self.proc is not None
         for line in Path(f"/proc/{self.proc.pid}/status").read_text().splitlines():
-            if line.startswith("VmHWM:"):
+            if line.startswith(field):
                 return int(line.split()[1]) / 1024
-        raise AssertionError("no VmHWM")
+        raise AssertionError(f"no {field}")
 
     def kill(self) -> None:
         assert self.proc is not None
@@ -214,6 +226,18 @@ def huge_stack() -> bytes:
     return _stack("r3", [_slot("r3", 8, list(range(1000, 1000 + n)), reals)])
 
 
+def bloated_stack(stamp: int) -> bytes:
+    """r3's own slot at ``stamp``, 9.4 MB on the wire: 512 objects, a dense ξ of 10⁶·I, far
+    beyond what ``stamp`` steps of detections can give, so the belief gate refuses it after
+    decoding it whole (finding 4 of issue 43: refused slots kept hundreds of MB)."""
+    n = 512
+    xi = Xi(np.tile([1.0, 1.0, 0.0], (n, 1)), 1e6 * np.eye(3 * n), np.zeros(3 * n))
+    phi = np.zeros((n, SCENARIO.num_classes))
+    summary = LocalSummary(tuple(range(3000, 3000 + n)), (), ObjectClasses(phi, xi))
+    slot = Slot("r3", stamp, summary)
+    return encode(StackMessage("r3", None, Stack((slot,)), stamp), BIG_LIMITS)
+
+
 def many_owners() -> bytes:
     info = np.eye(3)
     reals = [_real([0], 0.0, np.array([[1.0, 1.0, 0.0]]), info)]
@@ -289,6 +313,7 @@ async def _attack(
             await observer.until_step(5)
             k = 5
             est = await observer.status(5)
+            rss_before = agent.rss_mb()
             for name, make in ATTACKS.items():
                 counted = est.counters
                 for key, payload in make():
@@ -318,8 +343,27 @@ async def _attack(
                     est = await observer.status()
                 assert agent.alive(), name
                 report[name] = (est.counters["loop_lag_max_us"] / 1e6, agent.peak_rss_mb())
+                print(f"{name}: RSS {agent.rss_mb():.0f} MB (before the attacks {rss_before:.0f})")
                 more = sum(est.counters[c] - counted[c] for c in names)
                 assert more >= n, (name, {c: est.counters[c] - counted[c] for c in est.counters})
+            # Finding 4 of issue 43: version after version of a large slot refused after decoding
+            # leaves nothing behind. RSS settles at what the transport keeps of the largest
+            # messages it has carried (a plain Zenoh subscriber, nothing decoded: 24 → 107 MB
+            # over 28 MB puts, flat from the third); each refused version held would add 10 MB.
+            held = []
+            for v in range(BLOATED):
+                rejected = est.counters["slots_rejected"]
+                payload = bloated_stack(100 + v)
+                deadline = time.monotonic() + DELIVERY_S
+                while est.counters["slots_rejected"] == rejected:
+                    assert time.monotonic() < deadline, est.counters
+                    observer.transport.publish(KEYS.stack("r3"), payload)
+                    await asyncio.sleep(1.0)
+                    est = await observer.status()
+                held.append(agent.rss_mb())
+            del payload
+            print(f"RSS after each refused 9.4 MB version: {held} MB")
+            assert held[-1] - held[1] <= BLOATED_GROWTH_MB, held
             c = est.counters
             assert c["loop_lag_max_us"] <= 1e6 * LOOP_HOLD_S, c
             assert agent.peak_rss_mb() <= MEMORY_BOUND_MB

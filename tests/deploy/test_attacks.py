@@ -33,6 +33,8 @@ def _plan(out: Path, secure: bool) -> LaunchPlan:
 def test_attack_names_and_roles() -> None:
     assert parse_attacks("all") == ATTACKS
     assert parse_attacks("garbage,stamp") == ("stamp", "garbage")  # in ATTACKS order
+    # Issue 43's names for the member's attacks.
+    assert parse_attacks("status-flood,member-poison,member-stop") == ("stop", "poison", "flood")
     with pytest.raises(ValueError, match="unknown attacks \\['storm'\\]"):
         parse_attacks("stamp,storm")
     # The victim is the robot the others hear most, the accomplice the next one.
@@ -100,6 +102,8 @@ def test_the_same_attacks_on_an_insecure_fleet_show_what_each_would_have_done(
     assert "forged object in" in effects["impersonate"] and got["impersonate"].differing
     assert f"{victim} had to move to a new epoch" in effects["stamp"]
     assert got["stamp"].counters[victim]["own_superseded"] >= 1
+    # Without signatures a genuine slot under another epoch is taken: its owner moves on.
+    assert f"{victim} had to move to a new epoch" in effects["epoch"]
     assert "stopped r1, r2, r3" in effects["stop"] and got["stop"].failure
     assert f"forged object in {victim} D, {victim} L" in effects["frames"]
     # Garbage does nothing anywhere: the fail-soft core counts and drops it.
@@ -118,7 +122,7 @@ def test_the_same_attacks_on_an_insecure_fleet_show_what_each_would_have_done(
 def test_chaos_attack_command_prints_the_table_and_refuses_other_faults(tmp_path: Path) -> None:
     cmd = [sys.executable, "-m", "deploy.cli", "chaos", "--scenario", "paper", "--steps", "6"]
     run = subprocess.run(
-        [*cmd, "--secure", "--attack", "stop", "--out", str(tmp_path)],
+        [*cmd, "--secure", "--attack", "member-stop,epoch", "--out", str(tmp_path)],
         capture_output=True,
         text=True,
         timeout=300,
@@ -128,6 +132,11 @@ def test_chaos_attack_command_prints_the_table_and_refuses_other_faults(tmp_path
     row = next(line for line in run.stdout.splitlines() if line.split()[:2] == ["secure", "stop"])
     # The member's Stop on its own ctl/need key reached every agent, which refused it.
     assert row.split()[2:] == ["nothing", "control_invalid", "3", "18/18"]
+    # Finding 8: a genuine slot under another epoch, relayed by a member, is counted as badly
+    # signed (it was counted invalid only, while the log said its signature did not verify).
+    row = next(line for line in run.stdout.splitlines() if line.split()[:2] == ["secure", "epoch"])
+    assert row.split()[2:4] == ["nothing", "stacks_badly_signed"] and row.split()[-1] == "18/18"
+    assert int(row.split()[4]) > 0
     bad = subprocess.run(
         [*cmd, "--attack", "stop", "--drop", "0.2"], capture_output=True, text=True, timeout=60
     )

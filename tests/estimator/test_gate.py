@@ -6,19 +6,27 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy.stats import chi2
 
 from estimator.gate import (
+    EVIDENCE_TERMS,
     GateSettings,
     Held,
     Implausible,
     _local,
     _mean_and_marginals,
+    check_classes,
+    check_summary,
     check_xi,
+    evidence_per_detection,
     gate_threshold,
 )
-from estimator.models import se2
+from estimator.models import ClassifierModel, se2
+from estimator.models.classifier import AliasedClassifier
 from estimator.sparse_xi import SparseXi
+from estimator.summary import LocalSummary, ObjectClasses, Realisation
 from estimator.xi import Xi
+from tests.estimator.test_learned_model import random_model
 
 LIN = np.array([[1.0, 2.0, 0.3]])
 LAMBDA = np.array([[40.0, 6.0, 1.0], [6.0, 90.0, -2.0], [1.0, -2.0, 250.0]])
@@ -183,3 +191,105 @@ def test_the_slots_own_marginal_decides_when_the_receiver_is_certain(
         with pytest.raises(Implausible, match="d² 50"):
             check_xi("r2", (7, 8), slot, 100, held, 10.0, SETTINGS)
         assert calls == [1]
+
+
+def _largest_separation(model: ClassifierModel, rng: np.random.Generator, draws: int) -> float:
+    """The largest |log P(z|a,ψ) − log P(z|b,ψ)| seen over scores on the edge of the plausible
+    set (χ²_dim's 10⁻⁹ quantile around a random class at a random viewpoint ψ₀), each weighed
+    at a random ψ: the worst the class-evidence bound has to cover."""
+    g = float(chi2.isf(1e-9, model.dim))
+    worst = 0.0
+    for _ in range(draws):
+        c = int(rng.integers(model.num_classes))
+        psi0, psi = rng.uniform(0, 2 * np.pi, 2)
+        u = rng.normal(size=model.dim)
+        chol = np.linalg.cholesky(np.asarray(model.cov(c, psi0)))
+        z = np.asarray(model.mean(c, psi0)) + np.sqrt(g) * chol @ (u / np.linalg.norm(u))
+        ll = np.array([float(model.log_likelihood(z, a, psi)) for a in range(model.num_classes)])
+        worst = max(worst, float(ll.max() - ll.min()))
+    return worst
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_one_detections_class_evidence_stays_within_b(seed: int) -> None:
+    """B covers every plausible score vector, for the aliased model and a learned one whose
+    covariance changes with the viewpoint, and is not loose beyond a small factor."""
+    rng = np.random.default_rng(seed)
+    for model in (AliasedClassifier.random(4, rng), random_model(rng)):
+        bound = evidence_per_detection(model, 1e-9)
+        seen = _largest_separation(model, rng, 400)
+        assert seen <= bound, (seen, bound)
+        assert bound <= 8.0 * seen, (seen, bound)
+
+
+class _TwoLevels:
+    """A one-dimensional score: class 0 around 0, class 1 around ``gap``, noise σ, at every ψ."""
+
+    num_classes, dim = 2, 1
+
+    def __init__(self, gap: float, sigma: float) -> None:
+        self.gap, self.sigma = gap, sigma
+
+    def mean(self, c: int, psi: np.ndarray) -> np.ndarray:
+        return np.full((*np.shape(psi), 1), c * self.gap)
+
+    def cov(self, c: int, psi: np.ndarray) -> np.ndarray:
+        return np.full((*np.shape(psi), 1, 1), self.sigma**2)
+
+
+def test_b_is_tight_where_the_triangle_inequality_is() -> None:
+    """Two well-separated levels: the plausible scores reach √g σ beyond either level, and there
+    one detection separates the classes by (gap² + 2 gap √g σ) / 2σ² exactly; B is within 1 %."""
+    model, g = _TwoLevels(10.0, 0.1), float(chi2.isf(1e-9, 1))
+    exact = (100.0 + 2 * 10.0 * np.sqrt(g) * 0.1) / (2 * 0.01)
+    bound = evidence_per_detection(model, 1e-9)  # type: ignore[arg-type]
+    assert exact <= bound <= 1.01 * exact, (exact, bound)
+
+
+def test_b_grows_with_the_plausible_set_and_the_noise() -> None:
+    sharp = AliasedClassifier.random(4, np.random.default_rng(5), noise_std=0.2)
+    noisy = AliasedClassifier.random(4, np.random.default_rng(5), noise_std=0.4)
+    assert evidence_per_detection(sharp, 1e-9) > evidence_per_detection(sharp, 1e-3)
+    # Sharper scores tell classes apart more per detection.
+    assert evidence_per_detection(sharp, 1e-9) > evidence_per_detection(noisy, 1e-9)
+
+
+def _per_object(spans: list[float]) -> LocalSummary:
+    """Objects 11, 12, … whose log φ span ``spans`` between their classes (non-uniform rows)."""
+    rows = np.array([[0.3 * s, s, 0.0, 0.7 * s] for s in spans]) - 5.0
+    n = len(spans)
+    xi = Xi(np.zeros((n, 3)), np.eye(3 * n), np.zeros(3 * n))
+    return LocalSummary(tuple(range(11, 11 + n)), (), ObjectClasses(rows, xi))
+
+
+def test_class_evidence_bound_follows_the_steps_of_detections() -> None:
+    b, margin, stamp = 5.0, 2.0, 10
+    bound = margin * EVIDENCE_TERMS * stamp * b  # 300
+    assert bound == 300.0
+    check_classes("r2", _per_object([1.0, 299.0]), stamp, b, margin)
+    with pytest.raises(Implausible, match=r"object 12 has class evidence spanning 301 nats"):
+        check_classes("r2", _per_object([1.0, 301.0]), stamp, b, margin)
+    # One step later the same evidence is within what 11 steps can give.
+    check_classes("r2", _per_object([1.0, 301.0]), stamp + 1, b, margin)
+    check_classes("r2", _per_object([1e5]), stamp, 0.0, margin)  # B = 0: not applied
+    with pytest.raises(Implausible, match="object 11"):
+        check_classes("r2", _per_object([np.nan]), stamp, b, margin)
+
+
+def test_a_tables_bound_is_n_times_an_objects() -> None:
+    xi = Xi(np.zeros((2, 3)), np.eye(6), np.zeros(6))
+    reals = lambda top: (  # noqa: E731
+        Realisation((0, 1), 0.0, xi),
+        Realisation((1, 1), -top, xi),
+    )
+    # 2 objects, stamp 10, B 5, margin 2: 600 nats between realisations.
+    check_classes("r2", LocalSummary((4, 5), reals(599.0)), 10, 5.0, 2.0)
+    with pytest.raises(Implausible, match="table has class evidence spanning 601"):
+        check_classes("r2", LocalSummary((4, 5), reals(601.0)), 10, 5.0, 2.0)
+
+
+def test_check_summary_applies_the_class_bound_before_the_geometry() -> None:
+    summary = _per_object([1e4])
+    with pytest.raises(Implausible, match="class evidence"):
+        check_summary("r2", summary, 10, None, 0.0, SETTINGS, per_detection=5.0)
+    check_summary("r2", summary, 10, None, 0.0, SETTINGS)  # per_detection 0: not applied
