@@ -30,7 +30,7 @@ from estimator.gate import (
     evidence_per_detection,
     held_objects,
 )
-from estimator.hybrid import BeliefConfig, BeliefModel, HybridBelief
+from estimator.hybrid import SPARSE_XI_ABOVE, BeliefConfig, BeliefModel, HybridBelief
 from estimator.models import SensorFrame
 from estimator.slots import linearisation_point, summarise
 from estimator.summary import LocalSummary
@@ -46,6 +46,7 @@ from protocol.codec import (
 from protocol.errors import LocalProtocolError, RemoteProtocolError, SenderMismatch
 from protocol.signing import SigningKeys
 from protocol.stack import Slot, Stack
+from protocol.stack_size import largest_stack_bytes
 
 if TYPE_CHECKING:
     import gtsam
@@ -345,8 +346,15 @@ class RobotNode:
         if roster is not None and robot not in roster:
             raise ValueError(f"robot {robot} is not in its own roster {sorted(roster)}")
         self.roster = roster
+        # Refuse unread any stack larger than the largest this fleet's configuration can send
+        # (protocol.stack_size): one slot per roster robot, each as large as the form allows.
+        cfg = config or BeliefConfig()
+        robots = len(roster) if roster is not None else self.limits.max_slots
+        largest = largest_stack_bytes(self.limits, robots, cfg.classes, cfg.xi, SPARSE_XI_ABOVE)
+        if largest < self.limits.max_message_bytes:
+            self.limits = replace(self.limits, max_message_bytes=largest)
         self.stack = Stack()
-        semantic_poses = (config or BeliefConfig()).semantic_poses
+        semantic_poses = cfg.semantic_poses
         self.gate = BeliefGate(gate or GateSettings(), model, semantic_poses, self.limits.max_slots)
         self.counters = NodeCounters()
         self.position: tuple[float, float] | None = None

@@ -42,6 +42,10 @@ model, and neither needs anything the receiver does not already hold.
 Objects the receiver does not hold yet pass on the two bounds alone: the receiver has no belief
 to test them against, and an owner's slot carries no trajectory to bound where its objects may
 lie.
+
+Over 300 lines for a reason: the three tests share the slot's summary and its factored Λ, and
+each is a derivation from the sensor or classifier model whose bound and whose check belong
+side by side.
 """
 
 from __future__ import annotations
