@@ -28,6 +28,10 @@ The attacks, against the *victim* (the robot the others hear most in the run, :f
   :data:`POISON_INFORMATION`·I (the wire's cap), within every wire limit. A member signs it with
   its own key: finding 2 of issue 43, which wrecked every receiver's D before the belief gate
   (``estimator.gate``);
+- ``bloat`` — the accomplice's own slot at its next stamp with :data:`BLOAT_OBJECTS` objects
+  and a dense ξ, 9.4 MB within every wire limit, once a step; a member signs it (finding 4 of
+  issue 43: two such slots kept hundreds of MB in every victim). Agents refuse it unread, by
+  its size (``stacks_invalid``), where they once decoded it before refusing it;
 - ``flood`` (``status-flood``) — :data:`FLOOD_PER_STEP` status requests on ``ctl/status`` (and
   :data:`FLOOD_LARGE` control messages of 1 MiB) and requests on as many distinct
   ``ctl/need/<id>`` keys after every step; a member also sends status requests and
@@ -73,7 +77,17 @@ from protocol.errors import RemoteProtocolError
 from protocol.frames import encode_frame
 from protocol.stack import Slot, Stack
 
-ATTACKS = ("impersonate", "stamp", "epoch", "stop", "frames", "garbage", "poison", "flood")
+ATTACKS = (
+    "impersonate",
+    "stamp",
+    "epoch",
+    "stop",
+    "frames",
+    "garbage",
+    "poison",
+    "bloat",
+    "flood",
+)
 # Issue 43's names for the member's attacks: each attack already runs as an uncertified session
 # and, on a secure fleet, as a member (the accomplice's certificate and signing key).
 ALIASES = {"member-stop": "stop", "member-poison": "poison", "status-flood": "flood"}
@@ -86,6 +100,7 @@ POISON_SHIFT = 9000.0  # metres: inside the wire's ±world_extent of 10 km
 POISON_INFORMATION = 1e9  # Limits.max_information
 FLOOD_PER_STEP = 300
 FLOOD_LARGE, FLOOD_LARGE_BYTES = 4, 1 << 20  # control messages of 1 MiB, each step
+BLOAT_OBJECTS = 512  # Limits.max_objects: a dense ξ of 9.4 MB on the wire
 POISONED = 1000.0  # an object estimate this far (m) from the origin can only be the poison
 
 
@@ -268,6 +283,22 @@ class Attacker:
             out.append((self.keys.stack(owner), self._stack(owner, slot, j)))
         return out
 
+    def _bloat(self, k: int) -> list[tuple[str, bytes]]:
+        owner = self.identity.robot or self.accomplice
+        n = BLOAT_OBJECTS
+        lin = np.tile([1.0, 1.0, 0.0], (n, 1))
+        xi = Xi(lin, 1e6 * np.eye(3 * n), np.zeros(3 * n))
+        summary = LocalSummary(
+            tuple(range(800_000, 800_000 + n)),
+            (),
+            ObjectClasses(np.zeros((n, self.num_classes)), xi),
+        )
+        epoch, stamp = self.versions.get(owner, (0, k))
+        slot = Slot(owner, min(max(stamp, k) + 1, MAX_STEP), summary, epoch)
+        if self.identity.signing_key is not None:
+            slot = sign_slot(slot, self.identity.signing_key)
+        return [(self.keys.stack(owner), self._stack(owner, slot, k + 1))]
+
     def _flood(self, k: int) -> list[tuple[str, bytes]]:
         status = encode_control(Status())
         out = [(self.keys.ctl("status"), status)] * FLOOD_PER_STEP
@@ -393,6 +424,7 @@ def evidence(
             "frames": ("frames_invalid",),
             "garbage": ("stacks_invalid",),
             "poison": ("slots_rejected",),
+            "bloat": ("stacks_invalid", "slots_rejected"),
             "flood": ("status_requests", "control_invalid", "inbox_dropped"),
         }[attack]
         text = ", ".join(f"{name} {total[name]}" for name in counted if total[name])

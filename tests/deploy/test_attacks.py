@@ -113,6 +113,9 @@ def test_the_same_attacks_on_an_insecure_fleet_show_what_each_would_have_done(
     # (Without the gate it put r2's D objects 9 km away: "objects 9 km away in r2 D".)
     assert effects["poison"] == "" and got["poison"].identical
     assert got["poison"].achieved[0].counted.startswith("slots_rejected")
+    # Nor a slot of 9.4 MB: refused unread by its size.
+    assert effects["bloat"] == "" and got["bloat"].identical
+    assert got["bloat"].achieved[0].counted.startswith("stacks_invalid")
     # A flood of status requests costs one estimate per batch (without: 2,114 per agent).
     assert effects["flood"] == "" and got["flood"].identical
     assert got["flood"].achieved[0].counted.startswith("status_requests")
@@ -122,7 +125,7 @@ def test_the_same_attacks_on_an_insecure_fleet_show_what_each_would_have_done(
 def test_chaos_attack_command_prints_the_table_and_refuses_other_faults(tmp_path: Path) -> None:
     cmd = [sys.executable, "-m", "deploy.cli", "chaos", "--scenario", "paper", "--steps", "6"]
     run = subprocess.run(
-        [*cmd, "--secure", "--attack", "member-stop,epoch", "--out", str(tmp_path)],
+        [*cmd, "--secure", "--attack", "member-stop,epoch,bloat", "--out", str(tmp_path)],
         capture_output=True,
         text=True,
         timeout=300,
@@ -137,6 +140,11 @@ def test_chaos_attack_command_prints_the_table_and_refuses_other_faults(tmp_path
     row = next(line for line in run.stdout.splitlines() if line.split()[:2] == ["secure", "epoch"])
     assert row.split()[2:4] == ["nothing", "stacks_badly_signed"] and row.split()[-1] == "18/18"
     assert int(row.split()[4]) > 0
+    # Finding 4: the member's signed 9.4 MB slot is refused unread, by its size, never decoded
+    # (it would then count in slots_rejected: its Λ is beyond what its steps can give).
+    row = next(line for line in run.stdout.splitlines() if line.split()[:2] == ["secure", "bloat"])
+    assert row.split()[2:4] == ["nothing", "stacks_invalid"] and row.split()[-1] == "18/18"
+    assert "slots_rejected" not in row
     bad = subprocess.run(
         [*cmd, "--attack", "stop", "--drop", "0.2"], capture_output=True, text=True, timeout=60
     )
