@@ -1,0 +1,268 @@
+"""Reading a UTIAS MRCLAM dataset (Leung, Halpern, Barfoot & Liu, IJRR 30(8):969–974, 2011):
+the files of one ``MRCLAM_DatasetN`` folder, or of its ``.tar.xz`` archive as shipped, checked
+row by row (issue 44, item 2; the format is in ``../shared/data/mrclam/README.md``).
+
+Five robots drive for about 900 s among 15 point landmarks. Per robot: Vicon ground truth
+(time, x, y, θ), wheel odometry as a stream of velocity commands (time, v, ω) and camera
+measurements of barcodes (time, barcode, range, bearing). ``Barcodes.dat`` maps subjects to
+barcodes: subjects 1–5 are the robots, 6–20 the landmarks; a measured barcode of a robot is a
+sighting of that robot, one in no row a misread.
+
+What this module gives, and nothing else: the tables as read (:class:`MrclamDataset`), the
+robot's motion between two times integrated from its velocity commands (:class:`Odometry`: each
+command held until the next, integrated exactly along its arc), and each measurement sorted
+into a landmark sighting, a robot sighting or a misread (:func:`sightings`). Ground truth is
+kept for scoring only; whatever turns the tables into a run never hands it to an estimator.
+"""
+
+from __future__ import annotations
+
+import io
+import lzma
+import tarfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+Array = NDArray[np.float64]
+
+ROBOTS = 5
+LANDMARK_SUBJECTS = range(6, 21)
+SMALL_OMEGA = 1e-9  # rad/s: below this a command is a straight line
+# file → (columns, what they are)
+_COLUMNS = {
+    "Barcodes.dat": 2,
+    "Landmark_Groundtruth.dat": 5,
+    "Groundtruth": 4,
+    "Odometry": 3,
+    "Measurement": 4,
+}
+
+
+class MrclamError(ValueError):
+    """A folder or archive that is not a readable MRCLAM dataset; the message names the file
+    and, where there is one, the row (1-based line number in the file)."""
+
+
+@dataclass(frozen=True, slots=True)
+class RobotLog:
+    """One robot's files: ``groundtruth`` (N, 4) time, x, y, θ; ``odometry`` (N, 3) time, v,
+    ω; ``measurements`` (N, 4) time, barcode, range, bearing. Times in Unix seconds."""
+
+    subject: int
+    groundtruth: Array
+    odometry: Array
+    measurements: Array
+
+
+@dataclass(frozen=True, slots=True)
+class MrclamDataset:
+    """``barcodes``: barcode → subject; ``landmarks``: subject → Vicon (x, y); ``robots``: the
+    five robots' logs, subjects 1–5 in order."""
+
+    name: str
+    barcodes: dict[int, int]
+    landmarks: dict[int, tuple[float, float]]
+    robots: tuple[RobotLog, ...]
+
+    def robot_barcodes(self) -> dict[int, int]:
+        """barcode → robot subject (1–5)."""
+        return {b: s for b, s in self.barcodes.items() if 1 <= s <= ROBOTS}
+
+
+def read_mrclam(path: str | Path) -> MrclamDataset:
+    """The dataset in folder ``path`` (its files directly inside) or in the ``.tar.xz`` archive
+    ``path`` (one folder inside, as shipped). Raises :class:`MrclamError`."""
+    path = Path(path)
+    if path.is_dir():
+        texts = _folder(path)
+        name = path.name
+    elif path.is_file() and path.name.endswith((".tar.xz", ".txz")):
+        texts = _archive(path)
+        name = path.name.removesuffix(".tar.xz").removesuffix(".txz")
+    elif path.exists():
+        raise MrclamError(f"{path}: not a folder nor a .tar.xz archive of an MRCLAM dataset")
+    else:
+        raise MrclamError(f"{path}: no such folder or archive")
+    lines, rows = _table(texts, "Barcodes.dat", 2)
+    barcodes: dict[int, int] = {}
+    subjects: set[int] = set()
+    for line, (subject, barcode) in zip(lines, rows.tolist(), strict=True):
+        s, b = _whole(subject, "Barcodes.dat", line), _whole(barcode, "Barcodes.dat", line)
+        if b in barcodes or s in subjects:
+            raise MrclamError(f"Barcodes.dat: row {line}: subject {s} or barcode {b} repeated")
+        barcodes[b] = s
+        subjects.add(s)
+    missing = [s for s in (*range(1, ROBOTS + 1), *LANDMARK_SUBJECTS) if s not in subjects]
+    if missing:
+        raise MrclamError(f"Barcodes.dat: no barcode for subjects {missing}")
+    landmarks = {}
+    lines, rows = _table(texts, "Landmark_Groundtruth.dat", 5)
+    for line, row in zip(lines, rows.tolist(), strict=True):
+        s = _whole(row[0], "Landmark_Groundtruth.dat", line)
+        if s not in LANDMARK_SUBJECTS or s in landmarks:
+            raise MrclamError(
+                f"Landmark_Groundtruth.dat: row {line}: subject {s} is not a landmark (6–20) "
+                "or is repeated"
+            )
+        landmarks[s] = (float(row[1]), float(row[2]))
+    robots = []
+    for r in range(1, ROBOTS + 1):
+        logs = []
+        for kind in ("Groundtruth", "Odometry", "Measurement"):
+            name_r = f"Robot{r}_{kind}.dat"
+            lines, data = _table(texts, name_r, _COLUMNS[kind])
+            _increasing(data[:, 0], name_r, lines)
+            logs.append(data)
+        robots.append(RobotLog(r, *logs))
+    for r in robots:
+        if not len(r.odometry) or not len(r.groundtruth):
+            raise MrclamError(f"Robot{r.subject}: no odometry or no ground truth rows")
+    return MrclamDataset(name, barcodes, landmarks, tuple(robots))
+
+
+def _folder(path: Path) -> dict[str, str]:
+    out = {}
+    for f in sorted(path.iterdir()):
+        if f.is_file() and f.suffix == ".dat":
+            try:
+                out[f.name] = f.read_text(encoding="utf-8")
+            except (OSError, UnicodeDecodeError) as exc:
+                raise MrclamError(f"{f.name}: cannot be read ({exc})") from None
+    return out
+
+
+def _archive(path: Path) -> dict[str, str]:
+    out = {}
+    try:
+        with tarfile.open(path, "r:xz") as tar:
+            for member in tar.getmembers():
+                if not member.isfile() or not member.name.endswith(".dat"):
+                    continue
+                handle = tar.extractfile(member)
+                if handle is None:
+                    continue
+                out[Path(member.name).name] = io.TextIOWrapper(handle, encoding="utf-8").read()
+    except (tarfile.TarError, lzma.LZMAError, OSError, EOFError, UnicodeDecodeError) as exc:
+        raise MrclamError(f"{path.name}: not a readable .tar.xz archive ({exc})") from None
+    return out
+
+
+def _table(texts: dict[str, str], name: str, columns: int) -> tuple[list[int], Array]:
+    """(line numbers, numbers (N, columns)) of file ``name``'s data rows; ``#`` lines and blank
+    lines are skipped. Parsed at once, row by row only to name a broken row."""
+    if name not in texts:
+        raise MrclamError(
+            f"{name}: missing (an MRCLAM folder holds Barcodes.dat, Landmark_Groundtruth.dat "
+            "and Robot1–5 Groundtruth, Odometry and Measurement .dat files)"
+        )
+    lines, fields = [], []
+    for line, text in enumerate(texts[name].splitlines(), start=1):
+        row = text.split()
+        if row and not row[0].startswith("#"):
+            lines.append(line)
+            fields.append(row)
+    for line, row in zip(lines, fields, strict=True):
+        if len(row) != columns:
+            raise MrclamError(f"{name}: row {line}: expected {columns} numbers, got {len(row)}")
+    try:
+        data = np.array(fields, dtype=float).reshape(-1, columns)
+    except ValueError:
+        for line, row in zip(lines, fields, strict=True):
+            try:
+                [float(f) for f in row]
+            except ValueError:
+                raise MrclamError(
+                    f"{name}: row {line}: not a number in {' '.join(row)!r}"
+                ) from None
+        raise
+    bad = np.flatnonzero(~np.isfinite(data).all(axis=1))
+    if len(bad):
+        raise MrclamError(f"{name}: row {lines[int(bad[0])]}: a number that is not finite")
+    return lines, data
+
+
+def _whole(value: float, name: str, line: int) -> int:
+    if value != int(value) or value < 0:
+        raise MrclamError(f"{name}: row {line}: {value:g} is not a subject or barcode number")
+    return int(value)
+
+
+def _increasing(times: Array, name: str, lines: list[int]) -> None:
+    back = np.flatnonzero(np.diff(times) < 0)
+    if len(back):
+        i = int(back[0]) + 1
+        raise MrclamError(f"{name}: row {lines[i]}: time {times[i]:.3f} before the row above")
+
+
+class Odometry:
+    """A robot's dead-reckoned pose at any time, from its velocity commands: each command
+    (v, ω) holds from its time to the next command's, integrated exactly (an arc of radius
+    v/ω); before the first command the robot stands still, after the last it keeps it."""
+
+    def __init__(self, commands: Array) -> None:
+        t, v, w = commands[:, 0], commands[:, 1], commands[:, 2]
+        self.t, self.v, self.w = t, v, w
+        dt = np.diff(t)
+        theta = np.concatenate([[0.0], np.cumsum(w[:-1] * dt)])
+        x, y = _arcs(v[:-1], w[:-1], theta[:-1], dt)
+        self.pose = np.stack(
+            [np.concatenate([[0.0], np.cumsum(x)]), np.concatenate([[0.0], np.cumsum(y)]), theta],
+            axis=1,
+        )
+
+    def at(self, times: Array) -> Array:
+        """Dead-reckoned poses (K, 3) at ``times`` (K,), in the frame of the first command."""
+        times = np.asarray(times, dtype=float)
+        i = np.clip(np.searchsorted(self.t, times, side="right") - 1, 0, len(self.t) - 1)
+        dt = np.maximum(times - self.t[i], 0.0)
+        base = self.pose[i]
+        x, y = _arcs(self.v[i], self.w[i], base[:, 2], dt)
+        return np.stack([base[:, 0] + x, base[:, 1] + y, base[:, 2] + self.w[i] * dt], axis=1)
+
+    def between(self, t0: Array, t1: Array) -> Array:
+        """The motion (K, 3) from time t0 to t1 in the robot's frame at t0: x forward, y left,
+        θ wrapped to (−π, π]."""
+        return relative(self.at(t0), self.at(t1))
+
+
+def _arcs(v: Array, w: Array, theta: Array, dt: Array) -> tuple[Array, Array]:
+    """World-frame displacement of arcs (v, ω) held for dt from heading θ."""
+    straight = np.abs(w) < SMALL_OMEGA
+    w_safe = np.where(straight, 1.0, w)
+    end = theta + w * dt
+    x = np.where(straight, v * dt * np.cos(theta), v / w_safe * (np.sin(end) - np.sin(theta)))
+    y = np.where(straight, v * dt * np.sin(theta), v / w_safe * (np.cos(theta) - np.cos(end)))
+    return x, y
+
+
+def relative(a: Array, b: Array) -> Array:
+    """a⁻¹ ∘ b for poses (K, 3): b in the frame of a, θ wrapped to (−π, π]."""
+    c, s = np.cos(a[:, 2]), np.sin(a[:, 2])
+    dx, dy = b[:, 0] - a[:, 0], b[:, 1] - a[:, 1]
+    dtheta = np.angle(np.exp(1j * (b[:, 2] - a[:, 2])))
+    return np.stack([c * dx + s * dy, -s * dx + c * dy, dtheta], axis=1)
+
+
+@dataclass(frozen=True, slots=True)
+class Sightings:
+    """One robot's measurements sorted: ``landmarks`` (N, 4) time, landmark subject, range,
+    bearing; ``robots`` (N, 4) time, robot subject, range, bearing; ``misreads`` the number of
+    rows whose barcode is in no row of ``Barcodes.dat``."""
+
+    landmarks: Array
+    robots: Array
+    misreads: int
+
+
+def sightings(data: MrclamDataset, log: RobotLog) -> Sightings:
+    """``log``'s measurements by what their barcode names (a robot's own barcode, which it
+    cannot see, counts as a misread)."""
+    m = log.measurements
+    subjects = np.array([data.barcodes.get(int(b), -1) for b in m[:, 1]], dtype=float)
+    robot = (subjects >= 1) & (subjects <= ROBOTS) & (subjects != log.subject)
+    landmark = np.isin(subjects, list(LANDMARK_SUBJECTS))
+    rows = np.column_stack([m[:, 0], subjects, m[:, 2], m[:, 3]])
+    return Sightings(rows[landmark], rows[robot], int((~robot & ~landmark).sum()))
