@@ -127,7 +127,24 @@ VIEWPOINTS = 360  # the grid over ψ ∈ [0, 2π) on which B is read off the cla
 EVIDENCE_TERMS = 3  # terms of one detection in a slot's log φ (the module docstring, item 3)
 
 
+_PER_DETECTION: dict[tuple[int, float], tuple[ClassifierModel, float]] = {}
+
+
 def evidence_per_detection(classifier: ClassifierModel, false_alarm: float) -> float:
+    """:func:`per_detection_bound`, kept for the last few models (every node of a fleet shares
+    one model object, and a 64-class model takes about a second)."""
+    key = (id(classifier), false_alarm)
+    held = _PER_DETECTION.get(key)
+    if held is not None and held[0] is classifier:
+        return held[1]
+    bound = per_detection_bound(classifier, false_alarm)
+    if len(_PER_DETECTION) >= 8:
+        _PER_DETECTION.clear()
+    _PER_DETECTION[key] = (classifier, bound)
+    return bound
+
+
+def per_detection_bound(classifier: ClassifierModel, false_alarm: float) -> float:
     """B: how far one detection's log P(z | c, ψ) can separate two classes a, b at one viewpoint
     ψ, for scores z the model calls plausible: z within χ²_dim's quantile g at ``false_alarm``
     of some class c at some viewpoint ψ₀ (the classifier's Gaussian, Σ_c(ψ₀)).
@@ -141,8 +158,7 @@ def evidence_per_detection(classifier: ClassifierModel, false_alarm: float) -> f
         return 0.0
     psi = np.linspace(0.0, 2.0 * np.pi, VIEWPOINTS, endpoint=False)
     means = np.stack([np.asarray(classifier.mean(c, psi), float) for c in range(m)])
-    covs = np.stack([np.asarray(classifier.cov(c, psi), float) for c in range(m)])
-    eig = np.linalg.eigvalsh(0.5 * (covs + covs.swapaxes(-1, -2)))  # (M, K, dim)
+    eig = np.stack([_cov_eigenvalues(np.asarray(classifier.cov(c, psi), float)) for c in range(m)])
     if not np.isfinite(means).all() or not (eig[..., 0] > 0).all():
         raise ValueError("classifier model: means not finite or a covariance not positive")
     points = means.reshape(-1, dim)
@@ -150,6 +166,15 @@ def evidence_per_detection(classifier: ClassifierModel, false_alarm: float) -> f
     reach = 2.0 * radius + math.sqrt(float(chi2.isf(false_alarm, dim)) * float(eig[..., -1].max()))
     logdet = np.log(eig).sum(axis=-1)
     return 0.5 * reach**2 / float(eig[..., 0].min()) + 0.5 * float(logdet.max() - logdet.min())
+
+
+def _cov_eigenvalues(covs: Array) -> Array:
+    """Eigenvalues (K, dim) of one class's covariances (K, dim, dim) over the viewpoints,
+    decomposed once when the model holds them constant over ψ (the aliased model: one Σ)."""
+    sym = 0.5 * (covs + covs.swapaxes(-1, -2))
+    if (sym == sym[:1]).all():
+        return np.broadcast_to(np.linalg.eigvalsh(sym[0]), sym.shape[:2])
+    return np.asarray(np.linalg.eigvalsh(sym))
 
 
 def check_classes(

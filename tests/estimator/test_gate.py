@@ -20,6 +20,7 @@ from estimator.gate import (
     check_xi,
     evidence_per_detection,
     gate_threshold,
+    per_detection_bound,
 )
 from estimator.models import ClassifierModel, se2
 from estimator.models.classifier import AliasedClassifier
@@ -242,7 +243,7 @@ def test_b_is_tight_where_the_triangle_inequality_is() -> None:
     one detection separates the classes by (gap² + 2 gap √g σ) / 2σ² exactly; B is within 1 %."""
     model, g = _TwoLevels(10.0, 0.1), float(chi2.isf(1e-9, 1))
     exact = (100.0 + 2 * 10.0 * np.sqrt(g) * 0.1) / (2 * 0.01)
-    bound = evidence_per_detection(model, 1e-9)  # type: ignore[arg-type]
+    bound = per_detection_bound(model, 1e-9)  # type: ignore[arg-type]
     assert exact <= bound <= 1.01 * exact, (exact, bound)
 
 
