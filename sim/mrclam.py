@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import io
 import lzma
+import math
 import tarfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -117,9 +118,9 @@ def read_mrclam(path: str | Path) -> MrclamDataset:
             _increasing(data[:, 0], name_r, lines)
             logs.append(data)
         robots.append(RobotLog(r, *logs))
-    for r in robots:
-        if not len(r.odometry) or not len(r.groundtruth):
-            raise MrclamError(f"Robot{r.subject}: no odometry or no ground truth rows")
+    for log in robots:
+        if not len(log.odometry) or not len(log.groundtruth):
+            raise MrclamError(f"Robot{log.subject}: no odometry or no ground truth rows")
     return MrclamDataset(name, barcodes, landmarks, tuple(robots))
 
 
@@ -266,3 +267,130 @@ def sightings(data: MrclamDataset, log: RobotLog) -> Sightings:
     landmark = np.isin(subjects, list(LANDMARK_SUBJECTS))
     rows = np.column_stack([m[:, 0], subjects, m[:, 2], m[:, 3]])
     return Sightings(rows[landmark], rows[robot], int((~robot & ~landmark).sum()))
+
+
+# -- steps, and noise against Vicon -----------------------------------------------------------
+
+
+def truth_at(log: RobotLog, times: Array) -> Array:
+    """Vicon poses (K, 3) at ``times``, interpolated linearly (θ unwrapped first), θ wrapped to
+    (−π, π]; for scoring and calibration only."""
+    gt = log.groundtruth
+    theta = np.interp(times, gt[:, 0], np.unwrap(gt[:, 3]))
+    x, y = np.interp(times, gt[:, 0], gt[:, 1]), np.interp(times, gt[:, 0], gt[:, 2])
+    return np.stack([x, y, np.angle(np.exp(1j * theta))], axis=1)
+
+
+def step_times(data: MrclamDataset, rate: float) -> Array:
+    """t₀ … t_K every 1/``rate`` s, within every robot's odometry and ground truth (the span all
+    five cover); step k of a run ends at t_k."""
+    if not rate > 0:
+        raise ValueError(f"rate {rate} must be > 0 Hz")
+    start = max(max(r.odometry[0, 0], r.groundtruth[0, 0]) for r in data.robots)
+    end = min(min(r.odometry[-1, 0], r.groundtruth[-1, 0]) for r in data.robots)
+    if end <= start:
+        raise MrclamError("the robots' odometry and ground truth share no time span")
+    return start + np.arange(math.floor((end - start) * rate) + 1) / rate
+
+
+def odometry_increments(log: RobotLog, times: Array) -> Array:
+    """The motion (K, 3) from t_{k−1} to t_k integrated from the velocity commands, in the
+    robot's frame at t_{k−1}: what a run's step k reads as odometry."""
+    return Odometry(log.odometry).between(times[:-1], times[1:])
+
+
+def landmark_steps(log: RobotLog, landmarks: Array, times: Array) -> Array:
+    """Landmark sightings (N, 5) as the steps see them: step k (1…K, the sighting's time in
+    (t_{k−1}, t_k]), landmark subject, range, bearing in the robot's frame at t_k, and the
+    time moved (t_k − t ≥ 0, at most 1/rate). The robot's motion over that time comes from its
+    own odometry, so nothing but what the robot measured goes in. Sightings before t₀ or after
+    t_K are left out."""
+    t = landmarks[:, 0]
+    keep = (t > times[0]) & (t <= times[-1])
+    t, rows = t[keep], landmarks[keep]
+    k = np.searchsorted(times, t, side="left")
+    motion = Odometry(log.odometry).between(t, times[k])  # from t to t_k, in the frame at t
+    r, b = rows[:, 2], rows[:, 3]
+    p = np.stack([r * np.cos(b), r * np.sin(b), np.zeros_like(r)], axis=1)
+    seen = relative(motion, p)  # the point in the frame at t_k
+    return np.column_stack(
+        [
+            k,
+            rows[:, 1],
+            np.hypot(seen[:, 0], seen[:, 1]),
+            np.arctan2(seen[:, 1], seen[:, 0]),
+            times[k] - t,
+        ]
+    )
+
+
+@dataclass(frozen=True, slots=True)
+class Calibration:
+    """Noise measured against Vicon: per step (at ``rate``) of odometry, σ of x, y, θ
+    (``odometry``), and per landmark sighting σ of range and bearing (``range``, ``bearing``),
+    each 1.4826 × the median absolute residual (robust to the few gross errors: ``outliers``,
+    the share of residuals beyond 5 σ, and the plain standard deviations ``odometry_std``,
+    ``range_std``, ``bearing_std`` say how few), the median residuals (``range_bias``,
+    ``bearing_bias``: the σ are taken about them); ``steps`` and ``sightings`` the samples, over
+    ``seconds`` from the start."""
+
+    rate: float
+    seconds: float
+    steps: int
+    sightings: int
+    odometry: tuple[float, float, float]
+    range: float
+    bearing: float
+    odometry_std: tuple[float, float, float]
+    range_std: float
+    bearing_std: float
+    outliers: float
+    range_bias: float  # the median range residual (measured − Vicon), m
+    bearing_bias: float  # rad
+
+
+def calibrate(data: MrclamDataset, rate: float, seconds: float) -> Calibration:
+    """Odometry and range–bearing noise of every robot over the first ``seconds`` s of the
+    common span (data a run should not then be scored on)."""
+    times = step_times(data, rate)
+    times = times[times <= times[0] + seconds]
+    if len(times) < 3:
+        raise MrclamError(f"fewer than 3 steps in the first {seconds:g} s at {rate:g} Hz")
+    odo_res, rb_res = [], []
+    for log in data.robots:
+        truth = relative(truth_at(log, times[:-1]), truth_at(log, times[1:]))
+        odo_res.append(relative(truth, odometry_increments(log, times)))
+        rows = sightings(data, log).landmarks
+        rows = rows[(rows[:, 0] >= times[0]) & (rows[:, 0] <= times[-1])]
+        pose = truth_at(log, rows[:, 0])
+        marks = np.array([data.landmarks[int(j)] for j in rows[:, 1]]).reshape(-1, 2)
+        at = relative(pose, np.column_stack([marks, np.zeros(len(marks))]))
+        dr = rows[:, 2] - np.hypot(at[:, 0], at[:, 1])
+        db = np.angle(np.exp(1j * (rows[:, 3] - np.arctan2(at[:, 1], at[:, 0]))))
+        rb_res.append(np.column_stack([dr, db]))
+    odo, rb = np.concatenate(odo_res), np.concatenate(rb_res)
+    if not len(rb):
+        raise MrclamError(f"no landmark sighting in the first {seconds:g} s")
+    robust = 1.4826 * np.median(np.abs(odo - np.median(odo, axis=0)), axis=0)
+    robust_rb = 1.4826 * np.median(np.abs(rb - np.median(rb, axis=0)), axis=0)
+    far = np.concatenate(
+        [
+            (np.abs(odo) > 5 * np.maximum(robust, 1e-12)).ravel(),
+            (np.abs(rb) > 5 * np.maximum(robust_rb, 1e-12)).ravel(),
+        ]
+    )
+    return Calibration(
+        rate,
+        float(times[-1] - times[0]),
+        len(odo),
+        len(rb),
+        (float(robust[0]), float(robust[1]), float(robust[2])),
+        float(robust_rb[0]),
+        float(robust_rb[1]),
+        tuple(float(v) for v in odo.std(axis=0)),  # type: ignore[arg-type]
+        float(rb[:, 0].std()),
+        float(rb[:, 1].std()),
+        float(far.mean()),
+        float(np.median(rb[:, 0])),
+        float(np.median(rb[:, 1])),
+    )

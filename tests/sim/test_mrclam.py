@@ -15,9 +15,14 @@ import pytest
 from sim.mrclam import (
     MrclamError,
     Odometry,
+    calibrate,
+    landmark_steps,
+    odometry_increments,
     read_mrclam,
     relative,
     sightings,
+    step_times,
+    truth_at,
 )
 
 HEADER = "# UTIAS Multi-Robot Cooperative Localization and Mapping Dataset\n# test\n"
@@ -235,3 +240,92 @@ def test_dataset_7_as_shipped() -> None:
         error = np.hypot(*(got[:, :2] - want[:, :2]).T)
         print(f"robot {log.subject}: odometry vs Vicon over 0.5 s: median {np.median(error):.4f} m")
         assert np.median(error) < 0.02
+
+
+def test_steps_odometry_and_sightings_at_steps(tmp_path: Path) -> None:
+    _dataset(tmp_path / "d")
+    data = read_mrclam(tmp_path / "d")
+    times = step_times(data, 2.0)
+    assert np.allclose(np.diff(times), 0.5)
+    assert times[0] >= max(r.odometry[0, 0] for r in data.robots)
+    assert times[-1] <= min(r.groundtruth[-1, 0] for r in data.robots)
+    for log in data.robots:
+        gt = log.groundtruth
+        np.testing.assert_allclose(truth_at(log, gt[::9, 0]), gt[::9, 1:], atol=1e-9)
+        exact = _truth(log.odometry, gt[0, 1:], times)
+        truth = relative(exact[:-1], exact[1:])
+        np.testing.assert_allclose(odometry_increments(log, times), truth, atol=1e-5)
+        rows = sightings(data, log).landmarks
+        steps = landmark_steps(log, rows, times)
+        inside = (rows[:, 0] > times[0]) & (rows[:, 0] <= times[-1])
+        assert len(steps) == inside.sum() > 0
+        k = steps[:, 0].astype(int)
+        assert ((times[k - 1] < rows[inside, 0]) & (rows[inside, 0] <= times[k])).all()
+        assert ((steps[:, 4] >= 0) & (steps[:, 4] <= 0.5)).all()
+        # Each sighting, moved to its step's frame, points at the landmark from the true pose
+        # at t_k.
+        pose = _truth(log.odometry, log.groundtruth[0, 1:], times[k])
+        r, b = steps[:, 2], steps[:, 3]
+        seen = pose[:, :2] + r[:, None] * np.column_stack(
+            [np.cos(pose[:, 2] + b), np.sin(pose[:, 2] + b)]
+        )
+        truth_xy = np.array([data.landmarks[int(j)] for j in steps[:, 1]])
+        np.testing.assert_allclose(seen, truth_xy, atol=1e-4)
+
+
+def test_calibration_recovers_the_noise_put_in(tmp_path: Path) -> None:
+    """Range and bearing with known noise (and 2 % gross errors), exact odometry."""
+    rows = {name: [list(r) for r in table] for name, table in _rows().items()}
+    rng = np.random.default_rng(3)
+    data = read_mrclam(_write_noisy(tmp_path / "n", rows, rng, 0.05, 0.02))
+    cal = calibrate(data, 2.0, 1e6)
+    assert cal.sightings > 1000
+    # 1.4826 MAD over about 5,000 residuals: within 2 % (1 SE) of σ, plus about 2.5 % from the
+    # gross errors it does not wholly ignore.
+    assert cal.range == pytest.approx(0.05, rel=0.08) and cal.bearing == pytest.approx(
+        0.02, rel=0.08
+    )
+    assert cal.range_bias == pytest.approx(0.03, abs=0.01)  # the bias put in
+    assert max(cal.odometry) < 1e-4  # exact commands
+    assert cal.range_std > cal.range  # the gross errors, which the robust σ leaves out
+    assert 0.005 < cal.outliers < 0.03
+
+
+def _write_noisy(
+    folder: Path, rows: dict[str, list[list[float]]], rng: np.random.Generator, sr: float, sb: float
+) -> Path:
+    """``rows`` with every robot measuring 1,000 times in all, range biased by 3 cm and with
+    noise σ ``sr``, bearing noise ``sb``; 2 % of ranges off by 2 m."""
+    landmarks = {int(r[0]): np.array(r[1:3]) for r in rows["Landmark_Groundtruth.dat"]}
+    for r in range(1, 6):
+        cmd = np.array(rows[f"Robot{r}_Odometry.dat"])
+        start = np.array(rows[f"Robot{r}_Groundtruth.dat"][0][1:])
+        times = np.sort(rng.uniform(cmd[0, 0] + 0.2, cmd[-1, 0] - 0.2, 1000))
+        poses = _truth(cmd, start, times)
+        meas = []
+        for t, p in zip(times, poses, strict=True):
+            s = int(rng.integers(6, 21))
+            d = relative(p[None], np.array([[*landmarks[s], 0.0]]))[0]
+            rng_m = (
+                np.hypot(d[0], d[1])
+                + 0.03
+                + sr * rng.normal()
+                + (2.0 if rng.random() < 0.02 else 0)
+            )
+            meas.append([t, BARCODES[s], rng_m, np.arctan2(d[1], d[0]) + sb * rng.normal()])
+        rows[f"Robot{r}_Measurement.dat"] = meas
+    _write(folder, rows)
+    return folder
+
+
+@pytest.mark.skipif(
+    not (SHARED / "MRCLAM_Dataset7.tar.xz").exists(),
+    reason=f"the shared MRCLAM Dataset 7 is not at {SHARED}",
+)
+def test_dataset_7_calibrates_on_its_first_300_s() -> None:
+    data = read_mrclam(SHARED / "MRCLAM_Dataset7.tar.xz")
+    cal = calibrate(data, 2.0, 300.0)
+    print(cal)
+    assert cal.steps == 5 * 600 and cal.sightings > 5000
+    assert 0.05 < cal.range < 0.3 and 0.003 < cal.bearing < 0.03
+    assert max(cal.odometry[:2]) < 0.02 and cal.odometry[2] < 0.05
