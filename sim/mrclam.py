@@ -13,6 +13,12 @@ robot's motion between two times integrated from its velocity commands (:class:`
 command held until the next, integrated exactly along its arc), and each measurement sorted
 into a landmark sighting, a robot sighting or a misread (:func:`sightings`). Ground truth is
 kept for scoring only; whatever turns the tables into a run never hands it to an estimator.
+:func:`calibrate` measures the noise against Vicon on a stretch of data that a run should then
+not be scored on.
+
+Over 300 lines for a reason: the reader, the odometry and the calibration read the same tables
+of one format, and every check of a table names the file and row it read; apart, the format's
+rules would be split from the code that relies on them.
 """
 
 from __future__ import annotations
