@@ -224,8 +224,14 @@ class BeliefGate:
     ) -> None:
         self.settings = settings
         # λmax(R⁻¹) of the detection factors, the information bound's unit; 0 when the semantic
-        # factors also inform the Gaussians (no bound then).
-        self.geometric_info = 0.0 if semantic_poses else 1.0 / min(model.geometric_noise.variances)
+        # factors also inform the Gaussians (no bound then), and for point objects: a bearing's
+        # Jacobian in the point grows as 1/range, unbounded without a minimum range.
+        pose_objects = model.objects.dim == 3
+        self.geometric_info = (
+            1.0 / min(model.geometric_noise.variances)
+            if pose_objects and not semantic_poses
+            else 0.0
+        )
         # B, the class evidence one detection can give (the class-evidence bound's unit; 0 with
         # semantic_poses too): scores plausible at the gate's false-alarm rate (10⁻⁹ when off).
         plausible = settings.false_alarm or GateSettings().false_alarm

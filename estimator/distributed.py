@@ -22,7 +22,7 @@ import gtsam
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from estimator.factors import object_key
+from estimator.factors import object_key, object_prior, object_value
 from estimator.hybrid import (
     BeliefConfig,
     BeliefModel,
@@ -223,23 +223,23 @@ def xi_factor(keys: Sequence[int], r: Xi, sign: float = 1.0) -> gtsam.LinearCont
     """ξ as a GTSAM factor on the object ``keys``: an n-key HessianFactor (summed
     from unary and pairwise pieces; Python constructors stop at three keys) wrapped in a
     LinearContainerFactor at ``r.lin``. ``sign = −1`` gives the anti-factor."""
-    n = len(keys)
+    n, d = len(keys), r.dim
     info, eta = sign * r.info, sign * r.eta
     pieces = gtsam.GaussianFactorGraph()
-    zero = np.zeros((3, 3))
+    zero = np.zeros((d, d))
     for i in range(n):
-        bi = slice(3 * i, 3 * i + 3)
+        bi = slice(d * i, d * i + d)
         pieces.add(gtsam.HessianFactor(keys[i], info[bi, bi], eta[bi], 0.0))
         for j in range(i + 1, n):
-            bj = slice(3 * j, 3 * j + 3)
+            bj = slice(d * j, d * j + d)
             pieces.add(
                 gtsam.HessianFactor(
-                    keys[i], keys[j], zero, info[bi, bj], np.zeros(3), zero, np.zeros(3), 0.0
+                    keys[i], keys[j], zero, info[bi, bj], np.zeros(d), zero, np.zeros(d), 0.0
                 )
             )
     lin = gtsam.Values()
     for key, pose in zip(keys, r.lin, strict=True):
-        lin.insert(key, gtsam.Pose2(*pose))
+        lin.insert(key, object_value(pose))
     return gtsam.LinearContainerFactor(gtsam.HessianFactor(pieces), lin)
 
 
@@ -255,16 +255,17 @@ def sparse_xi_factors(
     n = len(keys)
     if len(sx.lin) != n:
         raise ValueError(f"{n} keys for a ξ of {len(sx.lin)} objects")
-    diag, edge_info, eta = sign * sx.diag_info, sign * sx.edge_info, sign * sx.eta.reshape(n, 3)
+    d = sx.dim
+    diag, edge_info, eta = sign * sx.diag_info, sign * sx.edge_info, sign * sx.eta.reshape(n, d)
     edges = np.asarray(sx.edges).tolist()
-    poses = [gtsam.Pose2(*pose) for pose in np.asarray(sx.lin).tolist()]
+    poses = [object_value(pose) for pose in np.asarray(sx.lin, dtype=float)]
     out = []
     for members, edge_ids in clique_groups(n, sx.edges):
         objs = sorted({*members, *(v for e in edge_ids for v in edges[e])})
         at = {v: a for a, v in enumerate(objs)}
         k = len(objs)
-        blocks = np.zeros((k, k, 3, 3))
-        g = np.zeros((k, 3))
+        blocks = np.zeros((k, k, d, d))
+        g = np.zeros((k, d))
         for v in members:
             blocks[at[v], at[v]] = diag[v]
             g[at[v]] = eta[v]
@@ -280,11 +281,11 @@ def sparse_xi_factors(
 
 
 def _hessian(keys: Sequence[int], blocks: Array, g: Array) -> gtsam.HessianFactor:
-    """The HessianFactor ½ δᵀGδ − gᵀδ on up to four ``keys`` from its upper blocks (k, k, 3, 3)
-    (``blocks[a, b]`` for a ≤ b; the lower ones are their transposes) and g (k, 3). GTSAM's
+    """The HessianFactor ½ δᵀGδ − gᵀδ on up to four ``keys`` from its upper blocks (k, k, d, d)
+    (``blocks[a, b]`` for a ≤ b; the lower ones are their transposes) and g (k, d). GTSAM's
     Python constructors stop at three keys: a fourth is added as two more factors."""
-    k = len(keys)
-    b, z, none = blocks, np.zeros((3, 3)), np.zeros(3)
+    k, d = len(keys), blocks.shape[-1]
+    b, z, none = blocks, np.zeros((d, d)), np.zeros(d)
     if k == 1:
         return gtsam.HessianFactor(keys[0], b[0, 0], g[0], 0.0)
     if k == 2:
@@ -611,7 +612,8 @@ class DistributedBelief(HybridBelief):
         n = len(s.summary.object_ids)
         # As if every hypothesis held its own ξ: it bounds the slot's objects (223 with the
         # defaults), and with them the work of building and eliminating its dense ξ factor.
-        fusion_bytes = (1 if self.per_object else self.cap) * (3 * n) ** 2 * 8
+        d = self._kind.dim
+        fusion_bytes = (1 if self.per_object else self.cap) * (d * n) ** 2 * 8
         if fusion_bytes > self.config.max_fusion_bytes:
             cap = self.config.max_fusion_bytes / 2**20
             raise SlotError(
@@ -631,9 +633,10 @@ class DistributedBelief(HybridBelief):
             if phi.shape != (n, m) or not np.isfinite(phi).all():
                 raise SlotError(f"slot of {s.owner}: class log φ is not finite ({n}, {m})")
             x = s.summary.per_object.xi
+            _check_dim(s.owner, x, d)
             if isinstance(x, SparseXi):
                 _check_sparse(s.owner, x, n)
-            elif x.lin.shape != (n, 3) or x.info.shape != (3 * n, 3 * n) or x.eta.shape != (3 * n,):
+            elif x.lin.shape != (n, d) or x.info.shape != (d * n, d * n) or x.eta.shape != (d * n,):
                 raise SlotError(f"slot of {s.owner}: ξ shapes do not fit {n} objects")
             return
         rs = s.summary.realisations
@@ -648,7 +651,8 @@ class DistributedBelief(HybridBelief):
                 f"slot of {s.owner}: realisation classes do not fit {n} objects, {m} classes"
             )
         for x in s.summary.distinct_xi()[0]:
-            if x.lin.shape != (n, 3) or x.info.shape != (3 * n, 3 * n) or x.eta.shape != (3 * n,):
+            _check_dim(s.owner, x, d)
+            if x.lin.shape != (n, d) or x.info.shape != (d * n, d * n) or x.eta.shape != (d * n,):
                 raise SlotError(f"slot of {s.owner}: ξ shapes do not fit {n} objects")
 
     def _join(self, batch: Sequence[Slot]) -> tuple[_Join, set[str]]:
@@ -746,10 +750,10 @@ class DistributedBelief(HybridBelief):
             ids = s.summary.object_ids
             for i, j in enumerate(ids):
                 if j in new_objects and j not in h.object_priors:
-                    pose = gtsam.Pose2(*real.lin[i])
-                    graph.add(gtsam.PriorFactorPose2(object_key(j), pose, self._object_prior))
-                    values.insert(object_key(j), pose)
-                    h.object_priors[j] = real.lin[i].copy()
+                    obj = np.asarray(real.lin[i], dtype=float)
+                    graph.add(object_prior(object_key(j), obj, self._object_prior))
+                    values.insert(object_key(j), object_value(obj))
+                    h.object_priors[j] = obj.copy()
             old = h.used.get(s.owner)
             carried: tuple[int, ...] = ()
             anti = range(0)
@@ -778,19 +782,27 @@ class DistributedBelief(HybridBelief):
         h.updated()
 
 
+def _check_dim(owner: str, x: Xi | SparseXi, d: int) -> None:
+    """A slot's objects are of this belief's kind (``estimator.models.objects``)."""
+    if np.ndim(x.lin) != 2 or np.shape(x.lin)[1] != d:
+        got = np.shape(x.lin)[1] if np.ndim(x.lin) == 2 else "?"
+        raise SlotError(f"slot of {owner}: objects of dimension {got}, this belief's are {d}")
+
+
 def _check_sparse(owner: str, x: SparseXi, n: int) -> None:
-    """A sparse ξ's shapes and pattern fit n objects: ``lin`` (n, 3), ``diag_info`` (n, 3, 3),
-    ``edges`` (E, 2) integer pairs i < j < n, each once, ``edge_info`` (E, 3, 3), ``eta`` (3n,)
-    (its factors index objects by ``edges``: a pair out of range or twice would put the
-    information on the wrong objects or count it twice)."""
+    """A sparse ξ's shapes and pattern fit n objects of dimension d: ``lin`` (n, d),
+    ``diag_info`` (n, d, d), ``edges`` (E, 2) integer pairs i < j < n, each once, ``edge_info``
+    (E, d, d), ``eta`` (dn,) (its factors index objects by ``edges``: a pair out of range or
+    twice would put the information on the wrong objects or count it twice)."""
     edges = np.asarray(x.edges)
     e = len(edges) if edges.ndim == 2 else -1
+    d = x.dim
     if (
-        np.shape(x.lin) != (n, 3)
-        or np.shape(x.diag_info) != (n, 3, 3)
+        np.shape(x.lin) != (n, d)
+        or np.shape(x.diag_info) != (n, d, d)
         or edges.shape != (e, 2)
-        or np.shape(x.edge_info) != (e, 3, 3)
-        or np.shape(x.eta) != (3 * n,)
+        or np.shape(x.edge_info) != (e, d, d)
+        or np.shape(x.eta) != (d * n,)
     ):
         raise SlotError(f"slot of {owner}: sparse ξ shapes do not fit {n} objects")
     if e == 0:

@@ -17,6 +17,7 @@ from numpy.typing import NDArray
 from estimator.models import MAX_STEP, AliasedClassifier, ClassifierModel, GaussianNoise
 
 Array = NDArray[np.float64]
+_OBJECT = ord("o")  # the character of object_key (gtsam.Symbol: it sits in the top 8 bits)
 
 
 def pose_key(slot: int, k: int) -> int:
@@ -27,6 +28,54 @@ def pose_key(slot: int, k: int) -> int:
 def object_key(object_id: int) -> int:
     """Key of object ``object_id``'s pose."""
     return int(gtsam.symbol("o", object_id))
+
+
+def is_object_key(key: int) -> bool:
+    """Whether ``key`` is an object's (``object_key``), not a robot pose's."""
+    return int(key) >> 56 == _OBJECT
+
+
+def object_value(obj: Array) -> gtsam.Pose2 | Array:
+    """The GTSAM value of an object (``estimator.models.objects``): a Pose2 for (x, y, θ), a
+    Point2 (a 2-vector) for (x, y)."""
+    o = np.asarray(obj, dtype=float)
+    if o.shape == (3,):
+        return gtsam.Pose2(*o)
+    if o.shape == (2,):
+        return o.copy()
+    raise ValueError(f"an object is (x, y, θ) or (x, y), got shape {o.shape}")
+
+
+def object_array(values: gtsam.Values, key: int, dim: int) -> Array:
+    """Object ``key`` of ``values`` as an array (dim,): (x, y, θ) or (x, y)."""
+    if dim == 3:
+        p = values.atPose2(key)
+        return np.array([p.x(), p.y(), p.theta()])
+    return np.asarray(values.atPoint2(key), dtype=float).copy()
+
+
+def object_prior(key: int, obj: Array, noise: gtsam.noiseModel.Base) -> gtsam.NonlinearFactor:
+    """A prior on object ``key`` at ``obj`` (3,) or (2,), in its own tangent space."""
+    value = object_value(obj)
+    if isinstance(value, gtsam.Pose2):
+        return gtsam.PriorFactorPose2(key, value, noise)
+    return gtsam.PriorFactorPoint2(key, value, noise)
+
+
+def detection_factor(
+    x_key: int, o_key: int, z_geo: Array, noise: gtsam.noiseModel.Base
+) -> gtsam.NonlinearFactor:
+    """The geometric factor of one detection (``estimator.models.objects``): the relative pose
+    of a pose object (``BetweenFactorPose2``), or (bearing, range) of a point
+    (``BearingRangeFactor2D``)."""
+    z = np.asarray(z_geo, dtype=float)
+    if z.shape == (3,):
+        return gtsam.BetweenFactorPose2(x_key, o_key, gtsam.Pose2(*z), noise)
+    if z.shape == (2,):
+        return gtsam.BearingRangeFactor2D(x_key, o_key, gtsam.Rot2(float(z[0])), float(z[1]), noise)
+    raise ValueError(
+        f"a detection's z_geo is 3 (relative pose) or 2 (bearing, range), got {z.shape}"
+    )
 
 
 def diagonal_noise(noise: GaussianNoise) -> gtsam.noiseModel.Diagonal:
@@ -64,9 +113,17 @@ def semantic_error(
 
 
 def semantic_factor(
-    model: ClassifierModel, c: int, z_sem: Array, x_key: int, o_key: int, psi0: float
+    model: ClassifierModel,
+    c: int,
+    z_sem: Array,
+    x_key: int,
+    o_key: int,
+    psi0: float,
+    point: bool = False,
 ) -> gtsam.CustomFactor:
     """Eq. 1 as a factor on (X_k, O_j): error ``h_c(ψ) − z_sem`` with Σ_c evaluated at ``psi0``.
+    ``point``: O_j is a Point2, whose viewpoint is read in the world frame (heading 0,
+    ``estimator.models.objects``).
 
     For models with constant Σ_c (the paper's and the aliased model) this is exact; a model whose
     Σ_c varies with ψ is linearised at the viewpoint of the first estimate.
@@ -93,7 +150,7 @@ def semantic_factor(
         def slope(psi: float) -> Array:
             return model.mean_dpsi(c, psi)
 
-    callback = _semantic_callback(x_key, o_key, residual, slope)
+    callback = _semantic_callback(x_key, o_key, residual, slope, point)
     return gtsam.CustomFactor(noise, gtsam.KeyVector([x_key, o_key]), callback)
 
 
@@ -108,6 +165,7 @@ def _semantic_callback(
     o_key: int,
     residual: Callable[[float], Array],
     slope: Callable[[float], Array],
+    point: bool = False,
 ) -> Callable[..., Array]:
     """The GTSAM callback of a semantic factor: ``residual(ψ)`` = h_c(ψ) − z and its Jacobians
     ``slope(ψ)`` = dh_c/dψ times dψ/dδx, dψ/dδo. The same maths as viewpoint_with_jacobians, inlined
@@ -116,10 +174,15 @@ def _semantic_callback(
     def error(
         this: gtsam.CustomFactor, values: gtsam.Values, jacobians: list[Array] | None
     ) -> Array:
-        x, o = values.atPose2(x_key), values.atPose2(o_key)
-        ot = o.theta()
+        x = values.atPose2(x_key)
+        if point:
+            ox, oy = values.atPoint2(o_key)
+            ot = 0.0
+        else:
+            o = values.atPose2(o_key)
+            ox, oy, ot = o.x(), o.y(), o.theta()
         co, so = math.cos(ot), math.sin(ot)
-        dx, dy = x.x() - o.x(), x.y() - o.y()
+        dx, dy = x.x() - ox, x.y() - oy
         px, py = co * dx + so * dy, -so * dx + co * dy
         psi = math.atan2(py, px)
         if jacobians is not None:
@@ -129,7 +192,10 @@ def _semantic_callback(
             cd, sd = math.cos(d), math.sin(d)
             dh = slope(psi)[:, None]
             jacobians[0] = dh * np.array((gx * cd + gy * sd, -gx * sd + gy * cd, 0.0))
-            jacobians[1] = dh * np.array((-gx, -gy, gx * py - gy * px))
+            # a point's tangent is the world translation: the pose's first two columns at θ = 0
+            jacobians[1] = dh * (
+                np.array((-gx, -gy)) if point else np.array((-gx, -gy, gx * py - gy * px))
+            )
         return residual(psi)
 
     return error

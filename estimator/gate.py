@@ -90,9 +90,10 @@ class GateSettings:
 
 
 @lru_cache(maxsize=8)
-def gate_threshold(false_alarm: float) -> float:
-    """χ²₃'s quantile at 1 − ``false_alarm`` (an object pose has three dimensions)."""
-    return float(chi2.isf(false_alarm, 3))
+def gate_threshold(false_alarm: float, dim: int = 3) -> float:
+    """χ²'s quantile at 1 − ``false_alarm`` with an object's ``dim`` degrees of freedom (3 for
+    a pose, 2 for a point)."""
+    return float(chi2.isf(false_alarm, dim))
 
 
 class Implausible(ValueError):
@@ -102,8 +103,8 @@ class Implausible(ValueError):
 
 @dataclass(frozen=True, slots=True)
 class Held:
-    """What the gate reads of the receiver's belief: object id → index into ``pose`` (n, 3),
-    the receiver's object estimates, and a function that gives the marginal covariances (K, 3, 3)
+    """What the gate reads of the receiver's belief: object id → index into ``pose`` (n, d),
+    the receiver's object estimates, and a function that gives the marginal covariances (K, d, d)
     of the objects of given ids (called only for an object the first stage cannot pass)."""
 
     index: dict[int, int]
@@ -115,7 +116,7 @@ def held_objects(belief: object) -> Held:
     """:class:`Held` of a belief's most probable hypothesis (a ``HybridBelief``)."""
     cont = belief.map_hypothesis().continuous  # type: ignore[attr-defined]
     ids = list(belief.object_ids)  # type: ignore[attr-defined]
-    pose = np.array([cont.pose(object_key(j)) for j in ids]).reshape(len(ids), 3)
+    pose = np.array([cont.pose(object_key(j)) for j in ids]).reshape(len(ids), cont.object_dim)
 
     def covariances(which: Sequence[int]) -> Array:
         return marginal_covariances(cont.isam, [object_key(j) for j in which])
@@ -208,32 +209,32 @@ def check_classes(
 
 
 def _block_lmax(blocks: Array) -> Array:
-    """λmax of each symmetric 3 × 3 block (n, 3, 3) → (n,)."""
+    """λmax of each symmetric d × d block (n, d, d) → (n,)."""
     return np.asarray(np.linalg.eigvalsh(0.5 * (blocks + blocks.swapaxes(1, 2)))[:, -1], float)
 
 
 def _diag_blocks(x: Xi | SparseXi) -> Array:
     if isinstance(x, SparseXi):
         return np.asarray(x.diag_info, dtype=float)
-    n = len(x.lin)
-    info = x.info.reshape(n, 3, n, 3)
+    n, d = len(x.lin), x.dim
+    info = x.info.reshape(n, d, n, d)
     idx = np.arange(n)
     return info[idx, :, idx, :]
 
 
 class _Solver:
     """Λ of a ξ factored once: its mean offset δ = Λ⁻¹η and, for chosen objects only, the
-    diagonal blocks of Λ⁻¹ (each from three solves, never the whole inverse)."""
+    diagonal blocks of Λ⁻¹ (each from d solves, never the whole inverse)."""
 
     def __init__(self, x: Xi | SparseXi) -> None:
-        n = len(x.lin)
-        self.n = n
+        n, d = len(x.lin), x.dim
+        self.n, self.d = n, d
         if isinstance(x, SparseXi):
-            base = 3 * np.arange(n)
-            r3, c3 = np.meshgrid(np.arange(3), np.arange(3), indexing="ij")
+            base = d * np.arange(n)
+            r3, c3 = np.meshgrid(np.arange(d), np.arange(d), indexing="ij")
             edges = np.asarray(x.edges, dtype=np.intp).reshape(-1, 2)
-            diag = np.asarray(x.diag_info, dtype=float).reshape(n, 3, 3)
-            off = np.asarray(x.edge_info, dtype=float).reshape(len(edges), 3, 3)
+            diag = np.asarray(x.diag_info, dtype=float).reshape(n, d, d)
+            off = np.asarray(x.edge_info, dtype=float).reshape(len(edges), d, d)
             i, j = edges[:, 0], edges[:, 1]
             rows = np.concatenate(
                 [
@@ -250,24 +251,25 @@ class _Solver:
                 ]
             )
             vals = np.concatenate([diag.ravel(), off.ravel(), off.swapaxes(1, 2).ravel()])
-            lam = scipy.sparse.csc_matrix((vals, (rows, cols)), (3 * n, 3 * n))
+            lam = scipy.sparse.csc_matrix((vals, (rows, cols)), (d * n, d * n))
             self._solve = scipy.sparse.linalg.splu(lam).solve
         else:
             factor = scipy.linalg.lu_factor(np.asarray(x.info, dtype=float), check_finite=True)
             self._solve = lambda rhs: scipy.linalg.lu_solve(factor, rhs)
-        self.delta = np.asarray(self._solve(np.asarray(x.eta, dtype=float))).reshape(n, 3)
+        self.delta = np.asarray(self._solve(np.asarray(x.eta, dtype=float))).reshape(n, d)
 
     def marginals(self, which: NDArray[np.intp]) -> Array:
-        """The diagonal blocks (K, 3, 3) of Λ⁻¹ for the objects ``which``."""
-        rhs = np.zeros((3 * self.n, 3 * len(which)))
-        cols = np.arange(3 * len(which))
-        rhs[(3 * np.repeat(which, 3) + np.tile(np.arange(3), len(which))), cols] = 1.0
-        sol = np.asarray(self._solve(rhs)).reshape(self.n, 3, len(which), 3)
+        """The diagonal blocks (K, d, d) of Λ⁻¹ for the objects ``which``."""
+        d = self.d
+        rhs = np.zeros((d * self.n, d * len(which)))
+        cols = np.arange(d * len(which))
+        rhs[(d * np.repeat(which, d) + np.tile(np.arange(d), len(which))), cols] = 1.0
+        sol = np.asarray(self._solve(rhs)).reshape(self.n, d, len(which), d)
         return sol[which, :, np.arange(len(which)), :]
 
 
 def _mean_and_marginals(x: Xi | SparseXi) -> tuple[Array, Array]:
-    """δ = Λ⁻¹η (n, 3) and the diagonal blocks of Λ⁻¹ (n, 3, 3)."""
+    """δ = Λ⁻¹η (n, d) and the diagonal blocks of Λ⁻¹ (n, d, d)."""
     solver = _Solver(x)
     return solver.delta, solver.marginals(np.arange(solver.n))
 
@@ -308,9 +310,13 @@ def check_xi(
         solver = _Solver(x)
     except (np.linalg.LinAlgError, RuntimeError, ValueError) as exc:
         raise Implausible(f"slot of {owner}: its ξ cannot be solved ({exc})") from exc
-    diff = _local(np.asarray(x.lin, dtype=float)[mine], held.pose[theirs]) - solver.delta[mine]
-    diff[:, 2] = se2.wrap_angle(diff[:, 2])
-    threshold = gate_threshold(settings.false_alarm)
+    lin = np.asarray(x.lin, dtype=float)[mine]
+    if x.dim == 3:
+        diff = _local(lin, held.pose[theirs]) - solver.delta[mine]
+        diff[:, 2] = se2.wrap_angle(diff[:, 2])
+    else:  # a point's tangent is its world translation
+        diff = held.pose[theirs] - lin - solver.delta[mine]
+    threshold = gate_threshold(settings.false_alarm, x.dim)
     # Three stages, each an upper bound on the last, so that only the objects a stage cannot
     # pass pay for the next: the slot's conditional information Λ_jj ⪰ Σ_s⁻¹ (no solve), the
     # slot's marginal Σ_s (three solves per object), then Σ_s + Σ_D (the receiver's marginal).
@@ -353,7 +359,7 @@ def _local(p: Array, q: Array) -> Array:
 
 
 def _quadratic(cov: Array, diff: Array) -> Array:
-    """diffᵀ cov⁻¹ diff per row, (K, 3, 3) and (K, 3) → (K,); infinite where cov is singular."""
+    """diffᵀ cov⁻¹ diff per row, (K, d, d) and (K, d) → (K,); infinite where cov is singular."""
     try:
         return np.einsum("ki,ki->k", diff, np.linalg.solve(cov, diff[..., None])[..., 0])
     except np.linalg.LinAlgError:

@@ -24,14 +24,19 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from estimator.factors import (
+    detection_factor,
     diagonal_noise,
+    is_object_key,
     object_key,
+    object_prior,
+    object_value,
     pose_key,
     semantic_factor,
 )
 from estimator.ledger import SemanticLedger
 from estimator.logsumexp import logsumexp
 from estimator.models import ClassifierModel, Detection, GaussianNoise, SensorFrame, viewpoint
+from estimator.models.objects import POSE, ObjectKind
 from estimator.pruning import PRUNINGS, PruningRule, class_marginals, match_marginals, select
 from estimator.smoother import WindowedISAM2, marginal_covariances, pose_steps
 from estimator.snapshot import BeliefSnapshot  # re-exported: it used to live here
@@ -279,13 +284,17 @@ class BeliefConfig:
 
 @dataclass(frozen=True, slots=True)
 class BeliefModel:
-    """What the belief assumes about the world: classes, their prior, the classifier, the noise."""
+    """What the belief assumes about the world: classes, their prior, the classifier, the noise,
+    and what an object is (``objects``: pose objects, the paper's, or point landmarks measured by
+    bearing and range, ``estimator.models.objects``); ``geometric_noise`` is a detection's, so it
+    has as many variances as an object has dimensions."""
 
     num_classes: int
     class_prior: tuple[float, ...]
     classifier: ClassifierModel
     odometry_noise: GaussianNoise
     geometric_noise: GaussianNoise
+    objects: ObjectKind = POSE
 
     def __post_init__(self) -> None:
         if (
@@ -293,6 +302,13 @@ class BeliefModel:
             or self.classifier.num_classes != self.num_classes
         ):
             raise ValueError("class prior, classifier and num_classes disagree")
+        if len(self.geometric_noise.variances) != self.objects.dim:
+            raise ValueError(
+                f"{self.objects.name} objects need {self.objects.dim} detection variances, got"
+                f" {len(self.geometric_noise.variances)}"
+            )
+        if len(self.odometry_noise.variances) != 3:
+            raise ValueError("odometry noise needs three variances (x, y, θ)")
 
 
 @dataclass(frozen=True, slots=True)
@@ -325,12 +341,16 @@ class Continuous:
     object_priors: dict[int, Array] = field(default_factory=dict, repr=False)
     used: dict[str, UsedXi] = field(default_factory=dict, repr=False)
     ledger: SemanticLedger | None = field(default=None, repr=False)
+    # 2: objects are Point2 (``estimator.models.objects``); robot poses are always Pose2
+    object_dim: int = 3
 
     def copy(self) -> Continuous:
         """An independent copy (``gtsam.ISAM2``'s copy constructor)."""
         ledger = None if self.ledger is None else self.ledger.copy()
         isam = self.isam.copy() if isinstance(self.isam, WindowedISAM2) else gtsam.ISAM2(self.isam)
-        return Continuous(isam, self.cached, dict(self.object_priors), dict(self.used), ledger)
+        return Continuous(
+            isam, self.cached, dict(self.object_priors), dict(self.used), ledger, self.object_dim
+        )
 
     @property
     def estimate(self) -> gtsam.Values:
@@ -351,14 +371,26 @@ class Continuous:
             return self.cached.atPose2(key)
         return self.isam.calculateEstimatePose2(key)
 
+    def point(self, key: int) -> Array:
+        """A point object's estimate (x, y)."""
+        if self.cached is not None:
+            return np.asarray(self.cached.atPoint2(key), dtype=float)
+        return np.asarray(self.isam.calculateEstimatePoint2(key), dtype=float)
+
+    def is_point(self, key: int) -> bool:
+        return self.object_dim == 2 and is_object_key(key)
+
     def pose(self, key: int) -> Array:
+        """A robot pose (x, y, θ), or an object as its kind holds it ((x, y, θ) or (x, y))."""
+        if self.is_point(key):
+            return self.point(key)
         return _xytheta(self.pose2(key))
 
     def values(self, keys: Sequence[int]) -> gtsam.Values:
         """The estimates of ``keys`` only (to linearise a factor on them)."""
         out = gtsam.Values()
         for key in keys:
-            out.insert(key, self.pose2(key))
+            out.insert(key, self.point(key) if self.is_point(key) else self.pose2(key))
         return out
 
 
@@ -392,6 +424,41 @@ class Hypothesis:
 
 def _xytheta(p: gtsam.Pose2) -> Array:
     return np.array([p.x(), p.y(), p.theta()])
+
+
+# A point object has no heading: in the involved Gaussian of a step (weights) it takes a pose's
+# place with its heading pinned at 0 by this information (rad⁻²), so that the sampled headings
+# stay within 1e-6 rad of 0 and the translation samples are the point's own (a pose at heading 0
+# retracted by (δx, δy, 0) moves by (δx, δy) in the world frame, a Point2's tangent). Decoupled
+# from every other coordinate, it cancels between the prior and the posterior determinants.
+_PINNED_HEADING = 1e12
+# A snapshot's covariance of a point object's heading, which nothing estimates: "unknown" as the
+# ROS convention reads a large variance (position blocks are exact).
+UNKNOWN_HEADING_VARIANCE = 1e6
+
+
+def _as_pose_blocks(info: Array, is_point: Sequence[bool]) -> Array:
+    """A joint information over robot poses (3 each) and point objects (2 each), in the order
+    ``is_point`` gives, laid out with 3 rows per variable: a point's third one pinned
+    (``_PINNED_HEADING``)."""
+    dims = np.array([2 if p else 3 for p in is_point])
+    index = np.concatenate([3 * i + np.arange(d) for i, d in enumerate(dims)])
+    out = np.zeros((3 * len(dims), 3 * len(dims)))
+    out[np.ix_(index, index)] = info
+    pinned = 3 * np.flatnonzero(np.asarray(is_point)) + 2
+    out[pinned, pinned] = _PINNED_HEADING
+    return out
+
+
+def as_pose_covariances(cov: Array) -> Array:
+    """Object covariances (..., d, d) as a pose's (..., 3, 3): themselves for d = 3; for a
+    point (d = 2) its position block with an unknown heading (``UNKNOWN_HEADING_VARIANCE``)."""
+    if cov.shape[-1] == 3:
+        return cov
+    out = np.zeros((*cov.shape[:-2], 3, 3))
+    out[..., :2, :2] = cov
+    out[..., 2, 2] = UNKNOWN_HEADING_VARIANCE
+    return out
 
 
 def distinct_continuous(hypotheses: Sequence[Hypothesis]) -> tuple[list[Continuous], IntArray]:
@@ -483,8 +550,12 @@ class HybridBelief:
         self._object_index: dict[int, int] = {}
         self._odometry_noise = diagonal_noise(model.odometry_noise)
         self._geometric_noise = diagonal_noise(model.geometric_noise)
+        self._kind = model.objects
+        if self._kind is not POSE and self.config.weight_estimator == "paper_mc":
+            raise ValueError('weight_estimator "paper_mc" is for pose objects (the paper\'s)')
+        # a point object's prior: the position part of the pose objects' (x, y)
         self._object_prior = gtsam.noiseModel.Diagonal.Sigmas(
-            np.array(self.config.object_prior_sigmas)
+            np.array(self.config.object_prior_sigmas[: self._kind.dim])
         )
         self._log_prior = np.log(np.asarray(model.class_prior, dtype=float))
         # class_matrix(): the classes tuples it was built from (kept alive, compared by identity)
@@ -510,7 +581,7 @@ class HybridBelief:
             )
         isam.update(graph, values)
         ledger = None if self.config.semantic_poses else SemanticLedger()
-        first = Continuous(isam, ledger=ledger)
+        first = Continuous(isam, ledger=ledger, object_dim=self._kind.dim)
         self.hypotheses = [Hypothesis((), first, 0.0)]
         # Per-object classes: every known object's class log-evidence L (n, M), the prior left
         # out (P(c_j) ∝ P(c) · exp(L_j)); empty and unused for joint realisations.
@@ -622,12 +693,17 @@ class HybridBelief:
                 return np.broadcast_to(per_cont, (len(hyps), *per_cont.shape[1:]))
             return per_cont[which]
 
+        kind, dim = self._kind, self._kind.dim
         object_pose = per_hypothesis(
-            np.array([[c.pose(key) for key in keys] for c in conts]).reshape(len(conts), n, 3)
+            kind.as_pose(
+                np.array([[c.pose(key) for key in keys] for c in conts]).reshape(len(conts), n, dim)
+            )
         )
         object_cov = per_hypothesis(
-            np.array([marginal_covariances(c.isam, keys) for c in conts]).reshape(
-                len(conts), n, 3, 3
+            as_pose_covariances(
+                np.array([marginal_covariances(c.isam, keys) for c in conts]).reshape(
+                    len(conts), n, dim, dim
+                )
             )
         )
         classes = self.class_matrix()
@@ -1005,10 +1081,10 @@ class HybridBelief:
             new_pose[f.robot] = h.pose2(prev).compose(u)
             values.insert(cur, new_pose[f.robot])
         for j, (f, d) in first.items():
-            o = new_pose[f.robot].compose(gtsam.Pose2(*d.z_geo))
-            graph.add(gtsam.PriorFactorPose2(object_key(j), o, self._object_prior))
-            values.insert(object_key(j), o)
-            h.object_priors[j] = np.array([o.x(), o.y(), o.theta()])
+            o = self._kind.place(_xytheta(new_pose[f.robot]), d.z_geo)
+            graph.add(object_prior(object_key(j), o, self._object_prior))
+            values.insert(object_key(j), object_value(o))
+            h.object_priors[j] = o
         h.isam.update(graph, values)
         h.updated()
 
@@ -1038,20 +1114,25 @@ class HybridBelief:
                     keys.append(key)
         n = 3 * len(keys)
         at = h.values(keys)
+        dim = self._kind.dim
         rows, rhs = [], []
         for f, d in detections:
             xk, oj = self.pose_key(f.robot, f.k), object_key(d.object_id)
-            factor = gtsam.BetweenFactorPose2(xk, oj, gtsam.Pose2(*d.z_geo), self._geometric_noise)
+            factor = detection_factor(xk, oj, d.z_geo, self._geometric_noise)
             a, b = factor.linearize(at).jacobian()
             rv, ov = keys.index(xk), keys.index(oj)
-            row = np.zeros((3, n))
+            row = np.zeros((dim, n))
             row[:, 3 * rv : 3 * rv + 3] = a[:, :3]
-            row[:, 3 * ov : 3 * ov + 3] = a[:, 3:6]
+            row[:, 3 * ov : 3 * ov + dim] = a[:, 3 : 3 + dim]
             rows.append(row)
             rhs.append(b)
         joint = h.isam.jointMarginalInformation(gtsam.KeyVector(keys))
         info = np.asarray(joint.fullMatrix())  # blocks in the order of ``keys``
-        lin = np.array([_xytheta(at.atPose2(key)) for key in keys])
+        lin = np.array(
+            [self._kind.as_pose(h.pose(key)) if is_object_key(key) else h.pose(key) for key in keys]
+        )
+        if dim != 3:
+            info = _as_pose_blocks(info, [is_object_key(k) for k in keys])
         return InvolvedGaussian(
             lin, info, np.vstack(rows), np.concatenate(rhs), len(detections) * self._geo_log_norm
         )
@@ -1143,17 +1224,16 @@ class HybridBelief:
         """Add the geometric factors of this step's detections (Eq. 5), and with
         ``semantic_poses`` the semantic factors of ``classes``."""
         graph = gtsam.NonlinearFactorGraph()
+        point = self._kind is not POSE
         for f, d in detections:
             xk, oj = self.pose_key(f.robot, f.k), object_key(d.object_id)
-            graph.add(
-                gtsam.BetweenFactorPose2(xk, oj, gtsam.Pose2(*d.z_geo), self._geometric_noise)
-            )
+            graph.add(detection_factor(xk, oj, d.z_geo, self._geometric_noise))
             if h.ledger is not None:
                 h.ledger.add(xk, d.object_id, d.z_sem)
             if self.config.semantic_poses:
                 c = classes[self._object_index[d.object_id]]
-                psi0 = float(viewpoint(h.pose(xk), h.pose(oj)))
-                graph.add(semantic_factor(self.model.classifier, c, d.z_sem, xk, oj, psi0))
+                psi0 = float(viewpoint(h.pose(xk), self._kind.as_pose(h.pose(oj))))
+                graph.add(semantic_factor(self.model.classifier, c, d.z_sem, xk, oj, psi0, point))
         h.isam.update(graph, gtsam.Values())
         for _ in range(self.config.extra_updates):
             h.isam.update()

@@ -76,9 +76,9 @@ class SemanticLedger:
         if known == d:
             return
         robot_keys, object_keys, scores = self._arrays()
-        keys = np.concatenate([robot_keys[known:], object_keys[known:]])
-        poses = np.array([pose(int(k)) for k in keys])
-        psi = viewpoint(poses[: d - known], poses[d - known :])
+        robots = np.array([pose(int(k)) for k in robot_keys[known:]])
+        objects = np.array([_as_pose(pose(int(k))) for k in object_keys[known:]])
+        psi = viewpoint(robots, objects)
         now = all_log_likelihoods(model, scores[known:], psi[None, :])[0]
         applied = self.applied if known else np.zeros((0, model.num_classes))
         self.applied = np.concatenate([applied, now])
@@ -163,17 +163,38 @@ class SemanticLedger:
 
 
 def _poses(estimate: gtsam.Values, keys: KeyArray) -> Array:
-    """The (x, y, θ) of ``keys`` (K,) in ``estimate``, read in one call where every value is a
-    Pose2 (``extractPose2`` gives them in key order), key by key otherwise."""
+    """The (x, y, θ) of ``keys`` (K,) in ``estimate`` (a point object as (x, y, 0), the pose
+    its viewpoint is read at: ``estimator.models.objects``), read in one or two calls where
+    every value is a Pose2 or a point object (``extractPose2`` and ``extractPoint2`` give each
+    kind in key order), key by key otherwise."""
     every = np.array(estimate.keys(), dtype=np.uint64)
-    table = np.asarray(gtsam.utilities.extractPose2(estimate))
-    if len(table) == len(every):
+    poses = np.asarray(gtsam.utilities.extractPose2(estimate)).reshape(-1, 3)
+    points = np.asarray(gtsam.utilities.extractPoint2(estimate)).reshape(-1, 2)
+    is_point = np.zeros(len(every), dtype=bool)
+    if len(points):
+        is_point = (every >> np.uint64(56)) == np.uint64(ord("o"))
+    if len(poses) == (~is_point).sum() and len(points) == is_point.sum():
+        table = np.empty((len(every), 3))
+        table[~is_point] = poses
+        table[is_point] = _as_pose(points)
         rows = np.searchsorted(every, keys)
         if (rows < len(every)).all() and (every[np.minimum(rows, len(every) - 1)] == keys).all():
             return table[rows]
     return np.array([_pose(estimate, int(k)) for k in keys])
 
 
+def _as_pose(p: Array) -> Array:
+    """Positions (..., 2) as poses at heading 0 (..., 3); poses (..., 3) as they are."""
+    a = np.asarray(p, dtype=float)
+    if a.shape[-1] == 3:
+        return a
+    return np.concatenate([a, np.zeros((*a.shape[:-1], 1))], axis=-1)
+
+
 def _pose(estimate: gtsam.Values, key: int) -> tuple[float, float, float]:
-    p = estimate.atPose2(key)
+    try:
+        p = estimate.atPose2(key)
+    except RuntimeError:  # a point object
+        x, y = estimate.atPoint2(key)
+        return (float(x), float(y), 0.0)
     return (p.x(), p.y(), p.theta())

@@ -26,7 +26,7 @@ import gtsam
 import numpy as np
 from numpy.typing import NDArray
 
-from estimator.factors import object_key
+from estimator.factors import is_object_key, object_array, object_key, object_prior
 from estimator.hybrid import (
     SPARSE_XI_ABOVE,
     BeliefConfig,
@@ -64,7 +64,10 @@ def summarise(belief: HybridBelief, at: gtsam.Values | None = None) -> LocalSumm
     if not belief.object_ids:
         return None
     ids = tuple(belief.object_ids)
-    prior_noise = gtsam.noiseModel.Diagonal.Sigmas(np.array(belief.config.object_prior_sigmas))
+    dim = belief.model.objects.dim
+    prior_noise = gtsam.noiseModel.Diagonal.Sigmas(
+        np.array(belief.config.object_prior_sigmas[:dim])
+    )
     if belief.per_object:
         cont = belief.hypotheses[0].continuous
         xi = None if at is None else _marginal_at(belief, cont, ids, prior_noise, at)
@@ -149,10 +152,14 @@ def _marginal_at(
     graph = h.isam.getFactorsUnsafe()
     estimate = h.isam.calculateEstimate()
     values = gtsam.Values()
+    point = h.object_dim == 2
     for key in estimate.keys():  # noqa: SIM118 - gtsam.Values is not iterable
-        values.insert(key, at.atPose2(key) if at.exists(key) else estimate.atPose2(key))
+        source = at if at.exists(key) else estimate
+        values.insert(
+            key, source.atPoint2(key) if point and is_object_key(key) else source.atPose2(key)
+        )
     excess = 2.0 * (graph.error(values) - graph.error(estimate))
-    dims = 3 * values.size()
+    dims = values.dim()
     belief.slot_fit = excess / dims
     if not excess <= dims + max(FIT_SIGMAS * np.sqrt(2.0 * dims), FIT_FLOOR):
         belief.slot_fit_refused += 1
@@ -169,7 +176,7 @@ def _marginal_at(
     for key in keys:
         order.push_back(key)
     augmented = np.asarray(linear.augmentedHessian(order))
-    n = 3 * len(keys)
+    n = h.object_dim * len(keys)
     info, eta = augmented[:n, :n].copy(), augmented[:n, n].copy()
     return _without_priors(h, ids, prior_noise, values, info, eta)
 
@@ -184,14 +191,14 @@ def _without_priors(
 ) -> Xi:
     """ξ at ``values`` from the marginal [Λ η] on the objects ``ids`` (in place): each object's
     weak prior, linearised there, divided out, tiny eigenvalues floored."""
-    lin = np.empty((len(ids), 3))
+    d = h.object_dim
+    lin = np.empty((len(ids), d))
     for i, j in enumerate(ids):
         key = object_key(j)
-        p = values.atPose2(key)
-        lin[i] = (p.x(), p.y(), p.theta())
-        prior = gtsam.PriorFactorPose2(key, gtsam.Pose2(*h.object_priors[j]), prior_noise)
+        lin[i] = object_array(values, key, d)
+        prior = object_prior(key, h.object_priors[j], prior_noise)
         a, b = prior.linearize(values).jacobian()
-        block = slice(3 * i, 3 * i + 3)
+        block = slice(d * i, d * i + d)
         info[block, block] -= a.T @ a
         eta[block] -= a.T @ b
     return Xi(lin, _floor_eigenvalues(info), eta)

@@ -59,12 +59,15 @@ def pose_steps(keys: Sequence[int] | np.ndarray) -> np.ndarray:
 
 
 def marginal_covariances(isam: gtsam.ISAM2 | WindowedISAM2, keys: Sequence[int]) -> np.ndarray:
-    """The marginal covariance of each of ``keys`` (Pose2), (K, 3, 3): key by key from a full
+    """The marginal covariance of each of ``keys``, (K, d, d) (d = 3 for Pose2, 2 for a point
+    object; all keys of one kind): key by key from a full
     iSAM2, whose cliques keep them apart; from one joint marginal from a windowed one
     (:meth:`WindowedISAM2.marginal_covariances`)."""
     if isinstance(isam, WindowedISAM2):
         return isam.marginal_covariances(keys)
-    return np.array([isam.marginalCovariance(k) for k in keys]).reshape(len(keys), 3, 3)
+    if not keys:
+        return np.zeros((0, 3, 3))
+    return np.array([isam.marginalCovariance(k) for k in keys])
 
 
 class _Result:
@@ -166,20 +169,22 @@ class WindowedISAM2:
         values = gtsam.Values()
         for k in keys:
             if k not in dropped:
-                values.insert(k, estimate.atPose2(k))
+                values.insert(k, _value(estimate, k))
         for i in range(marginal.size()):
             g = marginal.at(i)
             if g is None or g.empty():
                 continue
-            if self.relative:
+            lin = gtsam.Values()
+            for k in g.keys():  # noqa: SIM118 - not iterable
+                lin.insert(int(k), _value(estimate, int(k)))
+            # The root-shifted form is written for poses; a marginal that holds point objects
+            # keeps the linear form (docs/estimator.md, "A window of poses").
+            if self.relative and len(gtsam.utilities.extractPoint2(lin)) == 0:
                 factor = relative_marginal(g, estimate)
                 if factor is None:
                     continue
                 kept.push_back(factor)
             else:
-                lin = gtsam.Values()
-                for k in g.keys():  # noqa: SIM118 - not iterable
-                    lin.insert(int(k), estimate.atPose2(int(k)))
                 kept.push_back(gtsam.LinearContainerFactor(g, lin))
             kept_stable.append(None)
         self.isam = gtsam.ISAM2(self._params)
@@ -198,6 +203,9 @@ class WindowedISAM2:
     def calculateEstimatePose2(self, key: int) -> gtsam.Pose2:
         return self.isam.calculateEstimatePose2(key)
 
+    def calculateEstimatePoint2(self, key: int) -> np.ndarray:
+        return self.isam.calculateEstimatePoint2(key)
+
     def jointMarginalInformation(self, keys: gtsam.KeyVector) -> gtsam.JointMarginal:
         return self.isam.jointMarginalInformation(keys)
 
@@ -208,7 +216,7 @@ class WindowedISAM2:
         return self.isam.marginalCovariance(key)
 
     def marginal_covariances(self, keys: Sequence[int]) -> np.ndarray:
-        """Each key's marginal covariance, (K, 3, 3), from one joint marginal: the window's
+        """Each key's marginal covariance, (K, d, d), from one joint marginal: the window's
         marginal puts every object its old poses saw into one clique, and recovering each key's
         covariance from it one by one repeats that clique's inversion per key (598 ms against
         14 ms for 81 objects of the dense world, equal to 3e-12)."""
@@ -228,3 +236,11 @@ class WindowedISAM2:
 
     def params(self) -> gtsam.ISAM2Params:
         return self.isam.params()
+
+
+def _value(values: gtsam.Values, key: int) -> gtsam.Pose2 | np.ndarray:
+    """``key``'s value in ``values``: a Pose2, or a point object's Point2."""
+    try:
+        return values.atPose2(key)
+    except RuntimeError:
+        return values.atPoint2(key)

@@ -78,11 +78,12 @@ class Structure:
 
 @dataclass(frozen=True, slots=True, eq=False)
 class SparseXi:
-    """ξ with Λ on a sparse block pattern: ``lin`` (n, 3) linearisation poses as in :class:`Xi`;
-    ``diag_info`` (n, 3, 3) the diagonal blocks of Λ_s; ``edges`` (E, 2) object pairs i < j and
-    ``edge_info`` (E, 3, 3) the blocks Λ_s[i, j] (Λ_s[j, i] is the transpose); every other block
-    is zero. ``eta`` (3n,) η_s. ``structure`` the sender's Bayes net, kept to be reused by its
-    next rebuild (None where unknown, e.g. decoded; the receiver never needs it)."""
+    """ξ with Λ on a sparse block pattern: ``lin`` (n, d) linearisation points as in :class:`Xi`
+    (d = 3 for Pose2 objects, 2 for Point2); ``diag_info`` (n, d, d) the diagonal blocks of Λ_s;
+    ``edges`` (E, 2) object pairs i < j and ``edge_info`` (E, d, d) the blocks Λ_s[i, j]
+    (Λ_s[j, i] is the transpose); every other block is zero. ``eta`` (dn,) η_s. ``structure``
+    the sender's Bayes net, kept to be reused by its next rebuild (None where unknown, e.g.
+    decoded; the receiver never needs it)."""
 
     lin: Array
     diag_info: Array
@@ -91,26 +92,31 @@ class SparseXi:
     eta: Array
     structure: Structure | None = None
 
+    @property
+    def dim(self) -> int:
+        """d, the tangent dimension of one object (3: Pose2; 2: Point2)."""
+        return int(np.shape(self.lin)[1])
+
     def dense(self) -> Xi:
-        """The same ξ with a dense (3n, 3n) Λ."""
-        n = len(self.lin)
-        info = np.zeros((n, n, 3, 3))
+        """The same ξ with a dense (dn, dn) Λ."""
+        n, d = len(self.lin), self.dim
+        info = np.zeros((n, n, d, d))
         idx = np.arange(n)
         info[idx, idx] = self.diag_info
         i, j = self.edges.T
         info[i, j] = self.edge_info
         info[j, i] = self.edge_info.swapaxes(1, 2)
-        return Xi(self.lin, info.transpose(0, 2, 1, 3).reshape(3 * n, 3 * n), self.eta)
+        return Xi(self.lin, info.transpose(0, 2, 1, 3).reshape(d * n, d * n), self.eta)
 
     def bytes_per_object(self, float32: bool = True) -> float:
         """Wire bytes per object of what must travel, Λ_s and η as float32 (else float64): per
         object its id, ``lin`` (float64 always: float32 would move a pose in a 10 km world by
         up to 0.5 mm), η and the 6 distinct entries of its symmetric diagonal block; per edge
         its 9 entries and two uint16 object indices."""
-        n = len(self.lin)
+        n, d = len(self.lin), self.dim
         width = 4 if float32 else 8
-        per_object = _ID_BYTES + 3 * 8 + (3 + 6) * width
-        total = n * per_object + len(self.edges) * (9 * width + _EDGE_INDEX_BYTES)
+        per_object = _ID_BYTES + d * 8 + (d + d * (d + 1) // 2) * width
+        total = n * per_object + len(self.edges) * (d * d * width + _EDGE_INDEX_BYTES)
         return total / n if n else 0.0
 
     def float32(self) -> SparseXi:
@@ -137,23 +143,23 @@ def sparsify(xi: Xi, extra_parents: int = 2, structure: Structure | None = None)
     Chow–Liu tree of the objects' mutual information, ordered breadth first, each object's
     parents its tree parent and up to ``extra_parents`` earlier objects chosen greedily.
     ValueError if Λ is not positive definite."""
-    n = len(xi.lin)
+    n, d = len(xi.lin), xi.dim
     if structure is not None and len(structure.parents) != n:
         raise ValueError(f"structure for {len(structure.parents)} objects, ξ has {n}")
     if n == 0:  # an owner that has seen no object yet
-        none = np.zeros((0, 3, 3))
+        none = np.zeros((0, d, d))
         return SparseXi(xi.lin, none, np.zeros((0, 2), np.intp), none, xi.eta, Structure((), ()))
     sigma, mean = _covariance_and_mean(xi.info, xi.eta)
-    s4 = _blocks(sigma)
+    s4 = _blocks(sigma, d)
     if structure is None:
         structure = _fit_structure(s4, extra_parents)
     g = _net_rows(s4, structure)
     r = g @ (g @ sigma).T  # Ḡ Σ Ḡᵀ, Σ symmetric
-    bound = _block_bound(_blocks(0.5 * (r + r.T)))
+    bound = _block_bound(_blocks(0.5 * (r + r.T), d))
     info = _weighted_gram(g, np.asarray(np.linalg.inv(bound), dtype=np.float64)) * (1.0 - MARGIN)
     info = 0.5 * (info + info.T)
     edges = structure.edges()
-    b4 = _blocks(info)
+    b4 = _blocks(info, d)
     return SparseXi(
         xi.lin,
         b4[np.arange(n), np.arange(n)].copy(),
@@ -175,10 +181,11 @@ def sparse_xi_factor(
     if len(keys) != len(sx.lin):
         raise ValueError(f"{len(keys)} keys for a ξ of {len(sx.lin)} objects")
     pieces = gtsam.GaussianFactorGraph()
-    eta = sign * sx.eta.reshape(-1, 3)
+    d = sx.dim
+    eta = sign * sx.eta.reshape(-1, d)
     for key, block, g in zip(keys, sign * sx.diag_info, eta, strict=True):
         pieces.add(gtsam.HessianFactor(key, block, g, 0.0))
-    zero, none = np.zeros((3, 3)), np.zeros(3)
+    zero, none = np.zeros((d, d)), np.zeros(d)
     for (i, j), block in zip(sx.edges, sign * sx.edge_info, strict=True):
         pieces.add(gtsam.HessianFactor(keys[i], keys[j], zero, block, none, zero, none, 0.0))
     lin = gtsam.Values()
@@ -191,10 +198,10 @@ def _round_under32(diag: Array, edges: Index, edge_info: Array) -> tuple[Array, 
     """Blocks as :meth:`SparseXi.float32` rounds them: off-diagonal entries to nearest, each
     diagonal entry lowered by its row's absolute off-diagonal errors and rounded down."""
     diag32, edge32 = _nearest32(diag), _nearest32(edge_info)
-    idx = np.arange(3)
+    idx = np.arange(diag.shape[-1])
     inner = np.abs(diag - diag32)
     inner[:, idx, idx] = 0.0
-    error = inner.sum(axis=2)  # (n, 3): row sums, 3n-matrix row 3i + a at [i, a]
+    error = inner.sum(axis=2)  # (n, d): row sums, dn-matrix row di + a at [i, a]
     across = np.abs(edge_info - edge32)
     np.add.at(error, edges[:, 0], across.sum(axis=2))
     np.add.at(error, edges[:, 1], across.sum(axis=1))
@@ -236,10 +243,10 @@ def _covariance_and_mean(info: Array, eta: Array) -> tuple[Array, Array]:
     return np.asarray(sigma, dtype=np.float64), np.asarray(mean, dtype=np.float64)
 
 
-def _blocks(a: Array) -> Array:
-    """(3n, 3n) → (n, n, 3, 3) view of its 3 × 3 blocks."""
-    n = len(a) // 3
-    return a.reshape(n, 3, n, 3).transpose(0, 2, 1, 3)
+def _blocks(a: Array, d: int) -> Array:
+    """(dn, dn) → (n, n, d, d) view of its d × d blocks."""
+    n = len(a) // d
+    return a.reshape(n, d, n, d).transpose(0, 2, 1, 3)
 
 
 def _fit_structure(s4: Array, extra_parents: int) -> Structure:
@@ -256,7 +263,7 @@ def _mutual_information(s4: Array) -> Array:
     w = np.linalg.inv(np.linalg.cholesky(s4[idx, idx]))
     r = np.einsum("iab,ijbc->ijac", w, s4)
     r = np.einsum("ijac,jdc->ijad", r, w)
-    det = np.linalg.det(np.eye(3) - r @ r.swapaxes(2, 3))
+    det = np.linalg.det(np.eye(s4.shape[-1]) - r @ r.swapaxes(2, 3))
     mi = -0.5 * np.log(np.clip(det, np.finfo(float).tiny, 1.0))
     mi[idx, idx] = 0.0
     return mi
@@ -312,27 +319,28 @@ def _choose_parents(
 
 
 def _conditionals(s4: Array, f: Index, parents: Index) -> tuple[Array, Array]:
-    """For m objects ``f`` (m,) with k parents each (m, k): K = Σ_fP Σ_PP⁻¹ (m, 3, 3k) and
-    Cov(x_f | x_P) = Σ_ff − K Σ_Pf (m, 3, 3)."""
+    """For m objects ``f`` (m,) with k parents each (m, k): K = Σ_fP Σ_PP⁻¹ (m, d, dk) and
+    Cov(x_f | x_P) = Σ_ff − K Σ_Pf (m, d, d)."""
     m, k = parents.shape
+    d = s4.shape[-1]
     cov = s4[f, f]
     if k == 0:
-        return np.zeros((m, 3, 0)), cov
+        return np.zeros((m, d, 0)), cov
     spp = s4[parents[:, :, None], parents[:, None, :]].transpose(0, 1, 3, 2, 4)
-    sfp = s4[f[:, None], parents].transpose(0, 2, 1, 3).reshape(m, 3, 3 * k)
-    gain = np.linalg.solve(spp.reshape(m, 3 * k, 3 * k), sfp.swapaxes(1, 2)).swapaxes(1, 2)
+    sfp = s4[f[:, None], parents].transpose(0, 2, 1, 3).reshape(m, d, d * k)
+    gain = np.linalg.solve(spp.reshape(m, d * k, d * k), sfp.swapaxes(1, 2)).swapaxes(1, 2)
     return np.asarray(gain, dtype=np.float64), cov - gain @ sfp.swapaxes(1, 2)
 
 
 def _net_rows(s4: Array, structure: Structure) -> csr_array | Array:
-    """Ḡ (3n, 3n): rows G_f = W_f [I, −K_f] on (f, P_f) with W_fᵀ W_f = Ω_f =
+    """Ḡ (dn, dn): rows G_f = W_f [I, −K_f] on (f, P_f) with W_fᵀ W_f = Ω_f =
     Cov(x_f | x_P)⁻¹, so that Ḡ Σ Ḡᵀ has identity diagonal blocks. W_f = chol(Cov)⁻¹ rather than
     chol(Ω_f)ᵀ: they differ by a rotation per row block, which Λ_s does not see (U_f turns
     with it), and no Ω_f need be formed. Sparse (CSR) above ``DENSE_UP_TO`` objects, a dense
     array up to it (where scipy.sparse's fixed costs exceed the dense products')."""
-    n = len(s4)
+    n, d = len(s4), s4.shape[-1]
     dense = n <= DENSE_UP_TO
-    g4 = np.zeros((n, n, 3, 3)) if dense else None
+    g4 = np.zeros((n, n, d, d)) if dense else None
     rows, cols, vals = [], [], []
     sizes = np.array([len(ps) for ps in structure.parents])
     for k in np.unique(sizes):
@@ -340,38 +348,38 @@ def _net_rows(s4: Array, structure: Structure) -> csr_array | Array:
         parents = np.array([structure.parents[i] for i in f], dtype=np.intp).reshape(len(f), k)
         gain, cov = _conditionals(s4, f, parents)
         w = np.linalg.inv(np.linalg.cholesky(cov))
-        block = np.concatenate([w, -w @ gain], axis=2).reshape(len(f), 3, k + 1, 3)
+        block = np.concatenate([w, -w @ gain], axis=2).reshape(len(f), d, k + 1, d)
         family = np.column_stack([f, parents])
         if g4 is not None:
             g4[f[:, None], family] = block.transpose(0, 2, 1, 3)
             continue
-        a = np.arange(3)
-        rows.append(np.broadcast_to((3 * f)[:, None, None, None] + a[:, None, None], block.shape))
-        cols.append(np.broadcast_to(3 * family[:, None, :, None] + a, block.shape))
+        a = np.arange(d)
+        rows.append(np.broadcast_to((d * f)[:, None, None, None] + a[:, None, None], block.shape))
+        cols.append(np.broadcast_to(d * family[:, None, :, None] + a, block.shape))
         vals.append(block)
     if g4 is not None:
-        return g4.transpose(0, 2, 1, 3).reshape(3 * n, 3 * n)
+        return g4.transpose(0, 2, 1, 3).reshape(d * n, d * n)
     flat = [np.concatenate([x.ravel() for x in xs]) for xs in (vals, rows, cols)]
-    return csr_array(coo_array((flat[0], (flat[1], flat[2])), shape=(3 * n, 3 * n)))
+    return csr_array(coo_array((flat[0], (flat[1], flat[2])), shape=(d * n, d * n)))
 
 
 def _weighted_gram(g: csr_array | Array, weights: Array) -> Array:
-    """Ḡᵀ blockdiag(``weights``) Ḡ as a dense (3n, 3n) array; ``weights`` (n, 3, 3)."""
-    n = len(weights)
+    """Ḡᵀ blockdiag(``weights``) Ḡ as a dense (dn, dn) array; ``weights`` (n, d, d)."""
+    n, d = len(weights), weights.shape[-1]
     if isinstance(g, np.ndarray):
-        return np.asarray(g.T @ (weights @ g.reshape(n, 3, 3 * n)).reshape(3 * n, 3 * n))
-    w = bsr_array((weights, np.arange(n), np.arange(n + 1)), shape=(3 * n,) * 2)
+        return np.asarray(g.T @ (weights @ g.reshape(n, d, d * n)).reshape(d * n, d * n))
+    w = bsr_array((weights, np.arange(n), np.arange(n + 1)), shape=(d * n,) * 2)
     return np.asarray((g.T @ (w @ g)).toarray())
 
 
 def _block_bound(r4: Array) -> Array:
-    """(n, 3, 3) U with blockdiag(U) ⪰ R: U_f = R_ff + Σ_{g≠f} (R_fg R_fgᵀ)^½. Per pair, with
+    """(n, d, d) U with blockdiag(U) ⪰ R: U_f = R_ff + Σ_{g≠f} (R_fg R_fgᵀ)^½. Per pair, with
     R_fg = A S Bᵀ (SVD), [[A S Aᵀ, −R_fg], [−R_fgᵀ, B S Bᵀ]] = [A; −B] S [A; −B]ᵀ ⪰ 0, so the
     sum over pairs of these is U − R ⪰ 0; one SVD gives both roots as an exact pair."""
     n = len(r4)
     iu, ju = np.triu_indices(n, 1)
     a, s, bt = np.linalg.svd(r4[iu, ju])
-    roots = np.zeros((n, n, 3, 3))
+    roots = np.zeros(r4.shape)
     roots[iu, ju] = (a * s[:, None, :]) @ a.swapaxes(1, 2)
     roots[ju, iu] = (bt.swapaxes(1, 2) * s[:, None, :]) @ bt
     idx = np.arange(n)

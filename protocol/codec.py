@@ -75,7 +75,10 @@ _REF_KEYS = frozenset({"c", "phi", "xi"})
 # M, the (n, M) class log φ as float32 and the one ξ.
 _OBJECTS_KEYS = frozenset({"kind", "dim", "m", "phi", "lin", "info", "eta"})
 OBJECTS_KIND = "objects"
-OBJECT_DIM = 3  # Pose2 objects: x, y, θ (the only dimension so far)
+OBJECT_DIM = 3  # Pose2 objects: x, y, θ (a realisation table's, always)
+# Per-object slots: Pose2 objects (x, y, θ) or Point2 landmarks (x, y)
+# (estimator.models.objects); older peers refuse a dimension they do not know, by name.
+OBJECT_DIMS = (3, 2)
 _F32 = np.dtype("<f4")
 # A per-object slot whose ξ is sparse (``"xi": "sparse"``, docs/wire.md, "Sparse ξ"): Λ_s as the
 # upper entries of its diagonal blocks, its edges (object pairs) and their blocks, all float32.
@@ -134,14 +137,17 @@ class Limits:
 MAX_ABS_THETA = 2.0 * math.pi
 
 
-def eta_bound(n: int, lim: Limits) -> float:
-    """δmax(n): the longest tangent offset ‖δ‖₂ between two poses of n objects in the world.
+def eta_bound(n: int, lim: Limits, d: int = 3) -> float:
+    """δmax(n): the longest tangent offset ‖δ‖₂ between two poses (d = 3) or two points
+    (d = 2) of n objects in the world.
 
     η = Λδ, with δ the offset of ξ's mean from ``lin`` (both in the world), so ‖η‖₂ ≤ λmax·‖δ‖₂.
-    Per object, |δθ| ≤ π, and the Pose2 logarithm maps a translation t to V(θ)⁻¹t with
-    ‖V⁻¹‖ ≤ (π/2)/sin(π/2) = π/2 for |θ| ≤ π, while ‖t‖₂ ≤ 2√2·W in the world box [−W, W]²;
-    so ‖δ_i‖₂² ≤ (π/2)²·8W² + π² = π²(2W² + 1).
+    Per object, ‖t‖₂ ≤ 2√2·W for a translation t in the world box [−W, W]². A point's tangent
+    is t: ‖δ_i‖₂² ≤ 8W². A pose's: |δθ| ≤ π, and the Pose2 logarithm maps t to V(θ)⁻¹t with
+    ‖V⁻¹‖ ≤ (π/2)/sin(π/2) = π/2 for |θ| ≤ π, so ‖δ_i‖₂² ≤ (π/2)²·8W² + π² = π²(2W² + 1).
     """
+    if d == 2:
+        return math.sqrt(n * 8.0) * lim.world_extent
     return math.pi * math.sqrt(n * (2.0 * lim.world_extent**2 + 1.0))
 
 
@@ -169,26 +175,26 @@ class StackMessage:
 
 
 @functools.lru_cache(maxsize=64)
-def _tri(n: int) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
-    """The upper-triangle indices of a 3n × 3n matrix (cached: only read, never written)."""
-    return np.triu_indices(3 * n)
+def _tri(n: int, d: int = 3) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+    """The upper-triangle indices of a dn × dn matrix (cached: only read, never written)."""
+    return np.triu_indices(d * n)
 
 
 @functools.lru_cache(maxsize=64)
-def _mirror_index(n: int) -> NDArray[np.intp]:
-    """(3n, 3n): the position in the upper triangle (row by row) of every entry of the matrix."""
-    iu = _tri(n)
-    index = np.zeros((3 * n, 3 * n), dtype=np.intp)
+def _mirror_index(n: int, d: int = 3) -> NDArray[np.intp]:
+    """(dn, dn): the position in the upper triangle (row by row) of every entry of the matrix."""
+    iu = _tri(n, d)
+    index = np.zeros((d * n, d * n), dtype=np.intp)
     index[iu] = np.arange(len(iu[0]))
     index[iu[1], iu[0]] = np.arange(len(iu[0]))
     index.flags.writeable = False
     return index
 
 
-def _mirror(upper: Array, n: int) -> Array:
-    """(R, 3n, 3n) symmetric matrices from their upper triangles (R, 3n(3n+1)/2), row by row:
+def _mirror(upper: Array, n: int, d: int = 3) -> Array:
+    """(R, dn, dn) symmetric matrices from their upper triangles (R, dn(dn+1)/2), row by row:
     one gather (each entry a copy of its upper-triangle value, −0.0 included)."""
-    return np.take(upper, _mirror_index(n), axis=1)
+    return np.take(upper, _mirror_index(n, d), axis=1)
 
 
 # --------------------------------------------------------------------------- shared rules
@@ -244,12 +250,13 @@ def numbers_problem(
         bad = magnitude[..., :2].max(axis=(1, 2)) > lim.world_extent
         field = _at(where, bad, "lin", rows)
         return LimitExceeded, field, f"a position outside ±{lim.world_extent:g} m"
-    if float(magnitude[..., 2].max()) > MAX_ABS_THETA:
+    if lin.shape[-1] == 3 and float(magnitude[..., 2].max()) > MAX_ABS_THETA:
         bad = magnitude[..., 2].max(axis=1) > MAX_ABS_THETA
         return InvalidValue, _at(where, bad, "lin", rows), "an angle outside ±2π"
-    if _certified(info, eta, lim):
+    d = lin.shape[-1]
+    if _certified(info, eta, lim, d):
         return None
-    return _spectral_problem(where, info, eta, lim, rows)
+    return _spectral_problem(where, info, eta, lim, rows, d)
 
 
 def _at(where: str, bad: Any, name: str, rows: IntArray | None = None) -> str:
@@ -268,7 +275,7 @@ def _eta_norm(eta: Array) -> Array:
         return np.asarray(scale * unit)
 
 
-def _certified(info: Array, eta: Array, lim: Limits) -> bool:
+def _certified(info: Array, eta: Array, lim: Limits, d: int = 3) -> bool:
     """True when one batched Cholesky proves every Λ and η rule for all (R, 3n, 3n) ``info``, so
     that no eigendecomposition is needed (the common case; it costs a fifth of ``eigvalsh``).
 
@@ -279,13 +286,13 @@ def _certified(info: Array, eta: Array, lim: Limits) -> bool:
     and the eigenvalues decide.
     """
     if len(info) == 1:
-        return _certified_one(info[0], eta[0], lim)
+        return _certified_one(info[0], eta[0], lim, d)
     with np.errstate(over="ignore"):  # inf fails the bound below
         gershgorin = np.abs(info).sum(axis=2).max(axis=1)
     if not (gershgorin <= lim.max_information).all():
         return False
     largest_diagonal = np.diagonal(info, axis1=1, axis2=2).max(axis=1)
-    reach = largest_diagonal * eta_bound(info.shape[1] // 3, lim)
+    reach = largest_diagonal * eta_bound(info.shape[1] // d, lim, d)
     # ‖η‖ ≤ √m·max|ηᵢ|: that bound decides most slots without the norm itself (an overflow to
     # inf fails it, and the scaled norm decides)
     with np.errstate(over="ignore"):
@@ -301,7 +308,7 @@ def _certified(info: Array, eta: Array, lim: Limits) -> bool:
     return True
 
 
-def _certified_one(info: Array, eta: Array, lim: Limits) -> bool:
+def _certified_one(info: Array, eta: Array, lim: Limits, d: int = 3) -> bool:
     """:func:`_certified` for one (3n, 3n) Λ and its η (a slot's realisations nearly always share
     one ξ): the same bounds in floats, and LAPACK's Cholesky called directly. For a single
     matrix the batched form took a third of a paper stack's decode (0.12 of 0.38 ms), this one
@@ -314,7 +321,7 @@ def _certified_one(info: Array, eta: Array, lim: Limits) -> bool:
     gershgorin = float(magnitude.sum(axis=1).max())
     if not gershgorin <= lim.max_information:
         return False
-    reach = float(info.diagonal().max()) * eta_bound(len(info) // 3, lim)
+    reach = float(info.diagonal().max()) * eta_bound(len(info) // d, lim, d)
     if (
         not math.sqrt(len(eta)) * float(np.abs(eta).max()) <= reach
         and not float(_eta_norm(eta[None])[0]) <= reach
@@ -328,7 +335,7 @@ def _certified_one(info: Array, eta: Array, lim: Limits) -> bool:
 
 
 def _spectral_problem(
-    where: str, info: Array, eta: Array, lim: Limits, rows: IntArray
+    where: str, info: Array, eta: Array, lim: Limits, rows: IntArray, d: int = 3
 ) -> Problem | None:
     """The first broken Λ or η rule, decided by Λ's extreme eigenvalues (one batched
     ``eigvalsh``)."""
@@ -358,7 +365,7 @@ def _spectral_problem(
             _at(where, bad, "info", rows),
             f"condition number {value:.3g} > max_condition",
         )
-    bad = ~(_eta_norm(eta) <= np.maximum(hi, 0.0) * eta_bound(info.shape[1] // 3, lim))
+    bad = ~(_eta_norm(eta) <= np.maximum(hi, 0.0) * eta_bound(info.shape[1] // d, lim, d))
     if bad.any():
         return (
             LimitExceeded,
@@ -625,9 +632,12 @@ def _encode_objects(summary: LocalSummary, where: str, n: int, lim: Limits) -> d
     m = raw_phi.shape[1]
     _local(1 <= m <= lim.num_classes, f"{field}.m", f"{m} outside 1..{lim.num_classes}")
     xi = po.xi
-    d = OBJECT_DIM
+    d = int(np.shape(xi.lin)[1]) if np.ndim(xi.lin) == 2 else -1
+    _local(
+        d in OBJECT_DIMS, f"{field}.dim", f"objects of dimension {d} (known: 3, Pose2; 2, Point2)"
+    )
     if not isinstance(xi, Xi):  # the other form: a SparseXi
-        shapes = _sparse_shapes(xi, n)
+        shapes = _sparse_shapes(xi, n, d)
     else:
         shapes = (
             np.shape(xi.lin) == (n, d)
@@ -646,9 +656,9 @@ def _encode_objects(summary: LocalSummary, where: str, n: int, lim: Limits) -> d
     lin = np.ascontiguousarray(xi.lin, dtype=_F64)
     info = np.ascontiguousarray(xi.info, dtype=_F64)
     eta = np.ascontiguousarray(xi.eta, dtype=_F64)
-    iu = _tri(n)
+    iu = _tri(n, d)
     upper = info[iu]
-    sent = _mirror(upper[None], n)[0]  # what decode rebuilds: validate exactly that
+    sent = _mirror(upper[None], n, d)[0]  # what decode rebuilds: validate exactly that
     if n:
         with np.errstate(over="ignore", invalid="ignore"):  # inf or nan fail the test below
             symmetric = bool(np.abs(info - info.T).max() <= 1e-12 * np.abs(info).max())
@@ -670,20 +680,21 @@ def _encode_objects(summary: LocalSummary, where: str, n: int, lim: Limits) -> d
     }
 
 
-def _sparse_shapes(xi: SparseXi, n: int) -> bool:
-    """Whether a sparse ξ's arrays are numbers of the shapes n objects need: ``lin`` (n, 3),
-    ``diag_info`` (n, 3, 3), ``edges`` (E, 2) integers, ``edge_info`` (E, 3, 3), ``eta`` (3n,)."""
+def _sparse_shapes(xi: SparseXi, n: int, d: int) -> bool:
+    """Whether a sparse ξ's arrays are numbers of the shapes n objects of dimension d need:
+    ``lin`` (n, d), ``diag_info`` (n, d, d), ``edges`` (E, 2) integers, ``edge_info`` (E, d, d),
+    ``eta`` (dn,)."""
     arrays = [np.asarray(a) for a in (xi.lin, xi.diag_info, xi.edges, xi.edge_info, xi.eta)]
     lin, diag, edges, edge_info, eta = arrays
     e = len(edges) if edges.ndim == 2 else -1
     return (
         all(a.dtype.kind in "fiu" for a in arrays)
         and (edges.dtype.kind in "iu" or edges.size == 0)
-        and lin.shape == (n, OBJECT_DIM)
-        and diag.shape == (n, 3, 3)
+        and lin.shape == (n, d)
+        and diag.shape == (n, d, d)
         and edges.shape == (e, 2)
-        and edge_info.shape == (e, 3, 3)
-        and eta.shape == (OBJECT_DIM * n,)
+        and edge_info.shape == (e, d, d)
+        and eta.shape == (d * n,)
     )
 
 
@@ -702,7 +713,8 @@ def _encode_sparse(xi: SparseXi, where: str, n: int, lim: Limits) -> dict[str, A
         with np.errstate(over="ignore", invalid="ignore"):
             exact = np.array_equal(a.astype(_F32).astype(np.float64), a, equal_nan=True)
         _local(exact, f"{field}.{name}", "not float32 values (round them with SparseXi.float32)")
-    sent = _mirror3(diag[:, _UPPER3[0], _UPPER3[1]])  # what decode rebuilds: validate that
+    upper = np.triu_indices(diag.shape[-1])
+    sent = _mirror3(diag[:, upper[0], upper[1]])  # what decode rebuilds: validate that
     if n:
         with np.errstate(over="ignore", invalid="ignore"):
             asymmetry = np.abs(diag - diag.transpose(0, 2, 1)).max()
@@ -717,7 +729,7 @@ def _encode_sparse(xi: SparseXi, where: str, n: int, lim: Limits) -> dict[str, A
     return {
         "lin": lin.tobytes(),
         "xi": SPARSE_XI,
-        "diag": diag[:, _UPPER3[0], _UPPER3[1]].astype(_F32).tobytes(),
+        "diag": diag[:, upper[0], upper[1]].astype(_F32).tobytes(),
         "edges": edges.astype(_EDGE_INDEX).tobytes(),
         "edge_info": edge_info.astype(_F32).tobytes(),
         "eta": eta.astype(_F32).tobytes(),
@@ -725,10 +737,12 @@ def _encode_sparse(xi: SparseXi, where: str, n: int, lim: Limits) -> dict[str, A
 
 
 def _mirror3(upper: Array) -> Array:
-    """(n, 3, 3) symmetric blocks from their 6 upper entries (n, 6), row by row."""
-    blocks = np.empty((len(upper), 3, 3))
-    blocks[:, _UPPER3[0], _UPPER3[1]] = upper
-    blocks[:, _UPPER3[1], _UPPER3[0]] = upper
+    """(n, d, d) symmetric blocks from their d(d+1)/2 upper entries (n, 6 or 3), row by row."""
+    d = 3 if upper.shape[-1] == 6 else 2
+    iu = _UPPER3 if d == 3 else np.triu_indices(2)
+    blocks = np.empty((len(upper), d, d))
+    blocks[:, iu[0], iu[1]] = upper
+    blocks[:, iu[1], iu[0]] = upper
     return blocks
 
 
@@ -764,16 +778,16 @@ def sparse_edges_problem(where: str, edges: IntArray, n: int) -> Problem | None:
 
 
 def _sparse_info(diag: Array, edges: IntArray, edge_info: Array) -> Array:
-    """Λ_s (3n, 3n) from its diagonal blocks (n, 3, 3), edges (E, 2) and their blocks (E, 3, 3),
+    """Λ_s (dn, dn) from its diagonal blocks (n, d, d), edges (E, 2) and their blocks (E, d, d),
     as ``SparseXi.dense`` builds it (here without importing it: it would load GTSAM)."""
-    n = len(diag)
-    info = np.zeros((n, n, 3, 3))
+    n, d = len(diag), diag.shape[-1]
+    info = np.zeros((n, n, d, d))
     idx = np.arange(n)
     info[idx, idx] = diag
     i, j = edges[:, 0], edges[:, 1]
     info[i, j] = edge_info
     info[j, i] = edge_info.swapaxes(1, 2)
-    return info.transpose(0, 2, 1, 3).reshape(3 * n, 3 * n)
+    return info.transpose(0, 2, 1, 3).reshape(d * n, d * n)
 
 
 def _blocks_problem(field: str, diag: Array, lim: Limits) -> Problem | None:
@@ -818,7 +832,7 @@ def sparse_xi_problem(
     magnitude = np.abs(lin)  # the rules of numbers_problem, in its words
     if float(magnitude[:, :2].max()) > lim.world_extent:
         return LimitExceeded, f"{field}.lin", f"a position outside ±{lim.world_extent:g} m"
-    if float(magnitude[:, 2].max()) > MAX_ABS_THETA:
+    if lin.shape[1] == 3 and float(magnitude[:, 2].max()) > MAX_ABS_THETA:
         return InvalidValue, f"{field}.lin", "an angle outside ±2π"
     problem = _blocks_problem(f"{field}.diag", diag, lim)
     if problem is not None:
@@ -1168,15 +1182,17 @@ def _decode_objects(body: memoryview, where: str, n: int, lim: Limits) -> Object
             f"{kind!r} is not a known kind (expected {OBJECTS_KIND!r})",
             InvalidValue,
         )
+    d = OBJECT_DIM
     if "dim" in raw:
         dim = raw["dim"]
         need(type(dim) is int, f"{field}.dim", "expected an integer")
         need(
-            dim == OBJECT_DIM,
+            dim in OBJECT_DIMS,
             f"{field}.dim",
-            f"objects of dimension {dim} are not supported (only {OBJECT_DIM}: Pose2)",
+            f"objects of dimension {dim} are not supported (known: 3, Pose2; 2, Point2)",
             InvalidValue,
         )
+        d = dim
     if "xi" in raw:
         form = raw["xi"]
         need(isinstance(form, str), f"{field}.xi", "expected a string")
@@ -1186,21 +1202,20 @@ def _decode_objects(body: memoryview, where: str, n: int, lim: Limits) -> Object
             f"{form!r} is not a known ξ form (expected {SPARSE_XI!r}; a dense ξ has no xi)",
             InvalidValue,
         )
-        return _decode_sparse(raw, where, n, lim)
+        return _decode_sparse(raw, where, n, lim, d)
     r = as_map(raw, field, _OBJECTS_KEYS)
     m = as_int(r["m"], f"{field}.m", 1, lim.num_classes)
-    d = OBJECT_DIM
     counts: dict[str, tuple[np.dtype[Any], int]] = {
         "phi": (_F32, n * m),
         "lin": (_F64, d * n),
-        "info": (_F64, len(_tri(n)[0])),
+        "info": (_F64, len(_tri(n, d)[0])),
         "eta": (_F64, d * n),
     }
     arrays = {name: _blob(r, field, name, dtype, count) for name, (dtype, count) in counts.items()}
     phi = arrays["phi"].reshape(n, m)
     _raise_remote(class_phi_problem(where, phi, lim))
     lin = arrays["lin"].reshape(n, d)
-    info = _mirror(arrays["info"][None], n)[0]
+    info = _mirror(arrays["info"][None], n, d)[0]
     eta = arrays["eta"]
     _raise_remote(object_xi_problem(where, lin, info, eta, lim))
     for a in (phi, lin, info, eta):
@@ -1219,7 +1234,9 @@ def _blob(r: dict[str, Any], field: str, name: str, dtype: np.dtype[Any], count:
         return np.frombuffer(value, dtype=dtype).astype(np.float64)
 
 
-def _decode_sparse(raw: dict[str, Any], where: str, n: int, lim: Limits) -> ObjectClasses:
+def _decode_sparse(
+    raw: dict[str, Any], where: str, n: int, lim: Limits, d: int = OBJECT_DIM
+) -> ObjectClasses:
     """A per-object ``real`` map whose ξ is sparse (docs/wire.md, "Sparse ξ"), after its kind,
     dimension and ``xi``: exactly its keys, M, the byte counts (E from ``edges``), log φ, the
     edges, then the numbers of ξ (:func:`sparse_xi_problem`)."""
@@ -1227,8 +1244,9 @@ def _decode_sparse(raw: dict[str, Any], where: str, n: int, lim: Limits) -> Obje
     r = as_map(raw, field, _SPARSE_KEYS)
     m = as_int(r["m"], f"{field}.m", 1, lim.num_classes)
     phi = _blob(r, field, "phi", _F32, n * m).reshape(n, m)
-    lin = _blob(r, field, "lin", _F64, OBJECT_DIM * n).reshape(n, OBJECT_DIM)
-    diag = _mirror3(_blob(r, field, "diag", _F32, 6 * n).reshape(n, 6))
+    lin = _blob(r, field, "lin", _F64, d * n).reshape(n, d)
+    upper = d * (d + 1) // 2
+    diag = _mirror3(_blob(r, field, "diag", _F32, upper * n).reshape(n, upper))
     raw_edges = r["edges"]
     need(isinstance(raw_edges, bytes), f"{field}.edges", "expected binary uint16 pairs")
     need(
@@ -1237,8 +1255,8 @@ def _decode_sparse(raw: dict[str, Any], where: str, n: int, lim: Limits) -> Obje
         f"expected uint16 pairs (4 bytes each), got {len(raw_edges)} bytes",
     )
     edges = np.frombuffer(raw_edges, dtype=_EDGE_INDEX).astype(np.intp).reshape(-1, 2)
-    edge_info = _blob(r, field, "edge_info", _F32, 9 * len(edges)).reshape(-1, 3, 3)
-    eta = _blob(r, field, "eta", _F32, OBJECT_DIM * n)
+    edge_info = _blob(r, field, "edge_info", _F32, d * d * len(edges)).reshape(-1, d, d)
+    eta = _blob(r, field, "eta", _F32, d * n)
     _raise_remote(class_phi_problem(where, phi, lim))
     _raise_remote(sparse_edges_problem(where, edges, n))
     _raise_remote(sparse_xi_problem(where, lin, diag, edges, edge_info, eta, lim))

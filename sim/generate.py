@@ -20,6 +20,10 @@ from sim.scenario import (
     Sensor,
 )
 
+# A point landmark's detection noise in generated worlds: (σ²_bearing, σ²_range), σ 0.1 rad and
+# 0.32 m, the paper's relative-pose position σ as the range's.
+POINT_GEOMETRIC = GaussianNoise((0.01, 0.1))
+
 _SPEED = 0.25
 _MAX_TURN = 0.15
 _STEER_GAIN = 0.5
@@ -34,11 +38,17 @@ def generate_scenario(
     steps: int = 60,
     area: float | None = None,
     comm_range: float = 10.0,
+    kind: str = "pose",
 ) -> Scenario:
     """A random world: ``objects`` objects with uniform classes in a square of side ``area`` metres
     (default grows with √objects), ``robots`` robots wandering inside it with smooth turns, an
     aliased classifier with random aliases and best views, the paper's noise, range communication.
+    ``kind`` "point": the objects are point landmarks measured by bearing and range
+    (:data:`POINT_GEOMETRIC`), heading 0 (their viewpoint is read in the world frame); the
+    same world otherwise (the same random draws).
     """
+    if kind not in ("pose", "point"):
+        raise ValueError(f"object kind {kind!r} (known: pose, point)")
     if robots < 1 or objects < 1 or classes < 2 or steps < 1:
         raise ValueError("need robots ≥ 1, objects ≥ 1, classes ≥ 2 and steps ≥ 1")
     rng = np.random.default_rng(np.random.SeedSequence([seed, 0x5E4F1EE7]))
@@ -47,11 +57,13 @@ def generate_scenario(
     obj_xy = rng.uniform(-half, half, size=(objects, 2))
     obj_yaw = rng.uniform(-np.pi, np.pi, size=objects)
     obj_cls = rng.integers(0, classes, size=objects)
+    if kind == "point":
+        obj_yaw = np.zeros(objects)
     object_specs = tuple(
         Object(j + 1, (float(x), float(y), float(t)), int(c))
         for j, ((x, y), t, c) in enumerate(zip(obj_xy, obj_yaw, obj_cls, strict=True))
     )
-    sensor = Sensor(math.radians(50.0), 5.0)
+    sensor = Sensor(math.radians(50.0), 5.0, kind)
     robot_specs = tuple(
         _wandering_robot(f"r{i + 1}", rng, half, steps, sensor) for i in range(robots)
     )
@@ -70,7 +82,7 @@ def generate_scenario(
         robots=robot_specs,
         objects=object_specs,
         odometry_noise=PAPER_ODOMETRY,
-        geometric_noise=PAPER_GEOMETRIC,
+        geometric_noise=PAPER_GEOMETRIC if kind == "pose" else POINT_GEOMETRIC,
         classifier=ClassifierSpec("aliased", tuple(alias), tuple(best), 0.35),
         sensor=sensor,
         communication=Communication("range", comm_range, ()),
@@ -148,7 +160,7 @@ def model_tables(model: RobotModel, scenario: Scenario | None = None) -> list[st
         out += ["", "[classifier.estimator]", *_classifier_lines(scenario.estimator_classifier)]
     out += ["", "[noise]", f"odometry_var = {_noise(model.odometry_noise)}"]
     out += [f"geometric_var = {_noise(model.geometric_noise)}"]
-    return [*out, "", "[sensor]", *_sensor_lines(model.sensor)]
+    return [*out, "", "[sensor]", *_sensor_lines(model.sensor, model=True)]
 
 
 def _classifier_lines(c: ClassifierSpec) -> list[str]:
@@ -197,10 +209,14 @@ def _motion_lines(r: Robot) -> list[str]:
     return [f"actions = [{', '.join(_nums(a) for a in r.actions)}]"]
 
 
-def _sensor_lines(sensor: Sensor) -> list[str]:
+def _sensor_lines(sensor: Sensor, model: bool = False) -> list[str]:
+    """A ``[sensor]`` table; ``model``: the model's, which says what it measures (a robot's own
+    sensor shares it)."""
+    kind = [f'objects = "{sensor.objects}"'] if model and sensor.objects != "pose" else []
     return [
         f"half_angle_deg = {_num(_degrees_read_back(sensor.half_angle))}",
         f"range = {_num(sensor.range)}",
+        *kind,
     ]
 
 

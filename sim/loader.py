@@ -21,6 +21,7 @@ from typing import Any
 
 from estimator.models import ROBOT_ID, ROBOT_ID_RULE, GaussianNoise
 from estimator.models.classifier import OBJECT_TO_CAMERA, VIEWPOINTS
+from estimator.models.objects import OBJECT_KINDS, object_kind
 from sim.learned_file import LearnedFileError, load_learned
 from sim.scenario import (
     FORMAT_VERSION,
@@ -335,7 +336,7 @@ def _build(raw: dict[str, Any], label: str, folder: Path | None) -> Scenario:
     model = robot_model_tables(top, "scenario", folder)
     estimator = _estimator_classifier(top.table("classifier"), model.num_classes, folder)
     robots = _robots(top, steps, model.sensor)
-    objects = _objects(top, model.num_classes)
+    objects = _objects(top, model.num_classes, model.sensor.objects)
     robot_ids = [r.id for r in robots]
     communication = _communication(top.table("communication"), steps, robot_ids)
     return Scenario(
@@ -362,8 +363,8 @@ def robot_model_tables(top: FieldReader, owner: str, folder: Path | None = None)
     relative to ``folder`` (None: the current folder)."""
     num_classes, prior = _classes(top.table("classes"))
     classifier = _classifier(top.table("classifier"), num_classes, owner, folder)
-    odometry, geometric = _noise(top.table("noise"))
-    sensor = _sensor(top.table("sensor"))
+    sensor = _sensor(top.table("sensor"), kinds=True)
+    odometry, geometric = _noise(top.table("noise"), object_kind(sensor.objects).dim)
     return RobotModel(num_classes, prior, classifier, odometry, geometric, sensor)
 
 
@@ -455,19 +456,28 @@ def _learned(f: FieldReader, m: int, owner: str, folder: Path | None) -> Classif
     return ClassifierSpec("learned", file=str(path), digest=digest)
 
 
-def _noise(f: FieldReader) -> tuple[GaussianNoise, GaussianNoise]:
+def _noise(f: FieldReader, detection_dim: int) -> tuple[GaussianNoise, GaussianNoise]:
+    """``geometric_var``: (x, y, θ) of a relative pose, or (bearing, range) of a point
+    (``[sensor] objects``)."""
     f.check_keys({"odometry_var", "geometric_var"})
-    odometry = GaussianNoise(tuple(f.vector("odometry_var", 3, positive=True)))  # type: ignore[arg-type]
-    geometric = GaussianNoise(tuple(f.vector("geometric_var", 3, positive=True)))  # type: ignore[arg-type]
+    odometry = GaussianNoise(tuple(f.vector("odometry_var", 3, positive=True)))
+    geometric = GaussianNoise(tuple(f.vector("geometric_var", detection_dim, positive=True)))
     return odometry, geometric
 
 
-def _sensor(f: FieldReader) -> Sensor:
-    f.check_keys({"half_angle_deg", "range"})
+def _sensor(f: FieldReader, kinds: bool = False) -> Sensor:
+    """A ``[sensor]`` table; ``kinds``: it may say what it measures (``objects``, the model's
+    sensor; a robot's own ``sensor`` shares the model's)."""
+    f.check_keys({"half_angle_deg", "range", "objects"} if kinds else {"half_angle_deg", "range"})
     half = f.number("half_angle_deg", positive=True)
     if half > 180.0:
         raise f.fail("half_angle_deg", f"{half} must be ≤ 180")
-    return Sensor(math.radians(half), f.number("range", positive=True))
+    objects = f.string("objects") if f.has("objects") else "pose"
+    if objects not in OBJECT_KINDS:
+        raise f.fail(
+            "objects", f"{objects!r} is not an object kind (known: {', '.join(OBJECT_KINDS)})"
+        )
+    return Sensor(math.radians(half), f.number("range", positive=True), objects)
 
 
 def _check_id(f: FieldReader, key: str | int, value: str) -> None:
@@ -490,7 +500,10 @@ def _robots(top: FieldReader, steps: int, default_sensor: Sensor) -> tuple[Robot
         seen.add(rid)
         start = tuple(f.vector("start", 3))
         actions = _actions(f, steps)
-        sensor = _sensor(f.table("sensor")) if f.has("sensor") else default_sensor
+        sensor = default_sensor
+        if f.has("sensor"):
+            own = _sensor(f.table("sensor"))
+            sensor = dataclasses.replace(own, objects=default_sensor.objects)
         robots.append(Robot(rid, start, actions, sensor))  # type: ignore[arg-type]
     return tuple(robots)
 
@@ -519,7 +532,9 @@ def _actions(f: FieldReader, steps: int) -> tuple[tuple[float, float, float], ..
     return tuple((speed, 0.0, omega) for count, omega in parsed for _ in range(count))
 
 
-def _objects(top: FieldReader, m: int) -> tuple[Object, ...]:
+def _objects(top: FieldReader, m: int, kind: str = "pose") -> tuple[Object, ...]:
+    """``kind`` "point": a point object has no heading (its viewpoint is read in the world
+    frame), so its yaw must be 0 rather than be silently ignored."""
     objects: list[Object] = []
     seen: set[int] = set()
     for f in top.tables("objects"):
@@ -529,6 +544,8 @@ def _objects(top: FieldReader, m: int) -> tuple[Object, ...]:
             raise f.fail("id", f"duplicate object id {oid}")
         seen.add(oid)
         pose = tuple(f.vector("pose", 3))
+        if kind == "point" and pose[2] != 0.0:
+            raise f.fail("pose", f"a point object has no heading: yaw {pose[2]:g} must be 0")
         cls = f.integer("class")
         if not 1 <= cls <= m:
             raise f.fail("class", f"{cls} is out of range 1..{m}")

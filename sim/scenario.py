@@ -39,10 +39,13 @@ class Variant:
 
 @dataclass(frozen=True, slots=True)
 class Sensor:
-    """Camera-like sensor: objects within ``range`` metres and ``|bearing| ≤ half_angle`` rad."""
+    """Camera-like sensor: objects within ``range`` metres and ``|bearing| ≤ half_angle`` rad.
+    ``objects``: what it measures (``estimator.models.objects``): ``"pose"`` objects by their
+    relative pose (the paper's), ``"point"`` landmarks by bearing and range."""
 
     half_angle: float
     range: float
+    objects: str = "pose"
 
 
 @dataclass(frozen=True, slots=True)

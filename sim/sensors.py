@@ -15,6 +15,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from estimator.models import ClassifierModel, Detection, SensorFrame, se2, viewpoint
+from estimator.models.objects import object_kind
 from sim.scenario import Scenario
 from sim.world import World
 
@@ -57,6 +58,7 @@ class Simulator:
         self.seed = check_seed(seed)
         self.world = World(scenario)
         self.classifier = classifier if classifier is not None else scenario.classifier.build()
+        self.kind = object_kind(scenario.sensor.objects)
 
     @cached_property
     def _object_index(self) -> dict[int, int]:
@@ -77,11 +79,12 @@ class Simulator:
 
     def _detect(self, robot: str, k: int, x_k: Array, oid: int) -> Detection:
         j = self._object_index[oid]
-        obj = self.world.object_poses[j]
-        geo_noise = standard_normals(self.seed, _GEOMETRIC, robot, k, oid, 3)
-        z_geo = self.scenario.geometric_noise.corrupt(se2.between(x_k, obj), geo_noise)
+        # a point object is its position; the classifier sees it at heading 0 (world frame)
+        obj = self.kind.from_pose(self.world.object_poses[j])
+        geo_noise = standard_normals(self.seed, _GEOMETRIC, robot, k, oid, self.kind.dim)
+        z_geo = self.scenario.geometric_noise.corrupt(self.kind.measure(x_k, obj), geo_noise)
         c = self.scenario.objects[j].class_index
-        psi = viewpoint(x_k, obj)
+        psi = viewpoint(x_k, self.kind.as_pose(obj))
         m = self.classifier.dim
         sem_noise = standard_normals(self.seed, _SEMANTIC, robot, k, oid, m)
         chol = np.linalg.cholesky(self.classifier.cov(c, psi))

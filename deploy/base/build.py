@@ -15,6 +15,7 @@ from numpy.typing import ArrayLike
 from agents.links import AllOf, LinkModel, Partition, Proximity, RandomDrop, Schedule
 from agents.node import LocalTrack, RobotNode, Signing
 from estimator.hybrid import BeliefConfig, BeliefModel
+from estimator.models.objects import object_kind
 from protocol.codec import Limits
 from sim.loader import COMM_MODES
 from sim.scenario import RobotModel, Scenario
@@ -50,6 +51,7 @@ def belief_model(model: RobotModel | Scenario) -> BeliefModel:
         model.classifier.build(),
         model.odometry_noise,
         model.geometric_noise,
+        object_kind(model.sensor.objects),
     )
 
 

@@ -1,4 +1,5 @@
-"""Gaussian noise on SE(2) tangent spaces: motion (odometry) and geometric (relative pose)."""
+"""Gaussian noise of motion (odometry, on SE(2)'s tangent space) and of detections (a relative
+pose on SE(2)'s tangent space, or a point's bearing and range: ``estimator.models.objects``)."""
 
 from __future__ import annotations
 
@@ -14,38 +15,46 @@ Array = NDArray[np.float64]
 
 @dataclass(frozen=True, slots=True)
 class GaussianNoise:
-    """Zero-mean Gaussian with diagonal covariance in the body-frame tangent space of Pose2.
+    """Zero-mean Gaussian with diagonal covariance.
 
-    ``variances`` is (3,) = (σ²_x, σ²_y, σ²_θ). A measurement of the true relative pose ``t`` is
-    ``retract(t, n)`` with ``n ~ N(0, diag(variances))``, matching ``BetweenFactorPose2``'s error
-    ``Logmap(t⁻¹ z)``.
+    ``variances`` (3,) = (σ²_x, σ²_y, σ²_θ) in the body-frame tangent space of Pose2: a
+    measurement of the true relative pose ``t`` is ``retract(t, n)`` with
+    ``n ~ N(0, diag(variances))``, matching ``BetweenFactorPose2``'s error ``Logmap(t⁻¹ z)``.
+    ``variances`` (2,) = (σ²_bearing, σ²_range) of a point's detection: ``t + n``, the bearing
+    wrapped to [−π, π), matching ``BearingRangeFactor2D``'s error.
     """
 
-    variances: tuple[float, float, float]
+    variances: tuple[float, ...]
 
     def __post_init__(self) -> None:
         v = np.asarray(self.variances, dtype=float)
-        if v.shape != (3,) or not np.all(np.isfinite(v)) or np.any(v <= 0):
+        if v.shape not in ((3,), (2,)) or not np.all(np.isfinite(v)) or np.any(v <= 0):
             raise ValueError(
-                f"variances must be three finite positive numbers, got {self.variances}"
+                "variances must be three (x, y, θ) or two (bearing, range) finite positive"
+                f" numbers, got {self.variances}"
             )
 
     @property
     def sigmas(self) -> Array:
-        """Standard deviations (3,)."""
+        """Standard deviations (3,) or (2,)."""
         return np.sqrt(np.asarray(self.variances, dtype=float))
 
     @property
     def cov(self) -> Array:
-        """Covariance (3, 3)."""
+        """Covariance (3, 3) or (2, 2)."""
         return np.diag(np.asarray(self.variances, dtype=float))
 
     def corrupt(self, truth: Array, standard_normal: Array) -> Array:
-        """Noisy measurement of poses ``truth`` (..., 3) from standard normal draws (..., 3)."""
-        return se2.retract(truth, np.asarray(standard_normal) * self.sigmas)
+        """Noisy measurement of ``truth`` (..., d) from standard normal draws (..., d), d the
+        number of variances."""
+        n = np.asarray(standard_normal) * self.sigmas
+        if len(self.variances) == 3:
+            return se2.retract(truth, n)
+        z = np.asarray(truth, dtype=float) + n
+        return np.stack([se2.wrap_angle(z[..., 0]), z[..., 1]], -1)
 
     def sample(self, truth: Array, rng: np.random.Generator) -> Array:
-        """Noisy measurement of poses ``truth`` (..., 3) with fresh draws from ``rng``."""
+        """Noisy measurement of ``truth`` (..., d) with fresh draws from ``rng``."""
         t = np.asarray(truth, dtype=float)
         return self.corrupt(t, rng.standard_normal(t.shape))
 

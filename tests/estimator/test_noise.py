@@ -46,7 +46,8 @@ def _assert_covariance(samples: np.ndarray, variances: np.ndarray, what: str) ->
         (1.0, -0.1, 1.0),
         (1.0, 1.0, math.nan),
         (math.inf, 1.0, 1.0),
-        (1.0, 1.0),
+        (1.0,),  # two (bearing, range) or three (x, y, θ)
+        (0.0, 1.0),
         (1.0, 1.0, 1.0, 1.0),
     ],
 )
