@@ -21,7 +21,7 @@ from sim.scenario import Scenario, ScenarioError
 
 
 def run_show(args: argparse.Namespace, console: Console) -> int:
-    render_show(scenario_from_args(args), console)
+    render_show(scenario_from_args(args), console, args.overrides)
     return 0
 
 
