@@ -331,7 +331,9 @@ def test_cli_output_path_under_a_file_is_a_usage_error(tmp_path: Path) -> None:
     (tmp_path / "a-file").write_text("not a directory")
     r = semfleet("scenario", "plot", "paper", "-o", "a-file/x.png", cwd=tmp_path)
     assert r.returncode == 2, (r.stdout, r.stderr)
-    assert r.stderr == "semfleet: error: a-file: File exists\n", r.stderr
+    assert r.stderr == (
+        "semfleet: error: --output a-file/x.png: cannot write there (a-file is a file)\n"
+    ), r.stderr
 
 
 def _raising(exc: BaseException) -> Callable[[argparse.Namespace, Console], int]:
