@@ -57,6 +57,8 @@ def test_an_output_under_a_file_is_one_line_naming_the_option(tmp_path: Path) ->
     (tmp_path / "a-file").write_text("not a folder")
     r = semfleet("scenario", "generate", *GENERATE, "-o", "a-file/g.toml", cwd=tmp_path)
     usage_error(r, "--output a-file/g.toml: cannot write there (a-file is a file)")
+    r = semfleet("study", "--scenario", "lanes:short", "--out", "a-file/study", cwd=tmp_path)
+    usage_error(r, "--out a-file/study: cannot write there (a-file is a file)")
 
 
 def test_scenario_plot_without_a_suffix_says_it_added_png(tmp_path: Path) -> None:
@@ -104,6 +106,38 @@ def test_a_command_refuses_an_existing_file_unless_force(tmp_path: Path, name: s
     assert r.returncode == 0, r.stderr
     assert out.read_text(errors="replace") != "keep me\n"
     assert [p.name for p in tmp_path.iterdir()] == [OUT]  # no temporary file left
+
+
+# Commands that write a folder (DIR): refused before anything starts (no run, agent or session).
+DIR = "out"
+FOLDER_COMMANDS = {
+    "study": ("study", "--scenario", "lanes:short", "--runs", "1", "--out", DIR),
+    "ufastslam": ("ufastslam", "--scenario", "rectangle", "--runs", "1", "--out", DIR),
+    "launch": ("launch", "--scenario", "lanes:short", "--out", DIR),
+    "chaos": ("chaos", "--scenario", "lanes:short", "--out", DIR),
+    "chaos --attack": ("chaos", "--scenario", "lanes:short", "--attack", "all", "--out", DIR),
+    "demo": ("demo", "--out", DIR),
+    "fleet watch": ("fleet", "watch", "--connect", "tcp/127.0.0.1:9", "--fleet", "f", "--out", DIR),
+}
+
+
+@pytest.mark.parametrize("name", FOLDER_COMMANDS)
+def test_a_command_refuses_a_folder_that_is_not_empty_before_it_starts(
+    tmp_path: Path, name: str
+) -> None:
+    (tmp_path / DIR).mkdir()
+    (tmp_path / DIR / "results.json").write_text("{}\n")
+    r = semfleet(*FOLDER_COMMANDS[name], cwd=tmp_path)
+    usage_error(r, f"--out {DIR}: exists and is not empty (--force writes over the outputs in it)")
+    assert r.stdout == ""  # nothing started
+    assert [p.name for p in (tmp_path / DIR).iterdir()] == ["results.json"]
+
+
+def test_a_recording_is_refused_if_it_exists(tmp_path: Path) -> None:
+    (tmp_path / "run.rrd").write_text("an earlier recording")
+    r = semfleet("launch", "--scenario", "lanes:short", "--record", "run.rrd", cwd=tmp_path)
+    usage_error(r, "--record run.rrd: already exists (--force overwrites it)")
+    assert not (tmp_path / "out").exists()
 
 
 def test_a_failed_write_leaves_the_old_file_and_no_temporary_one(tmp_path: Path) -> None:
