@@ -20,7 +20,7 @@ $(STAMP): pyproject.toml
 	@touch $(STAMP)
 
 demo: $(STAMP)
-	$(BIN)/semfleet demo
+	$(BIN)/semfleet demo --force
 
 # Two phases: everything but the `serial` tests spread over the cores, then those alone
 # (tests/conftest.py says which and why). Each phase fails the target on a failure or on no test.

@@ -4,9 +4,7 @@ from __future__ import annotations
 
 import argparse
 import ipaddress
-import os
 import re
-from pathlib import Path
 
 from deploy.base.errors import UsageError
 from sim.loader import MAX_CLASSES
@@ -50,18 +48,6 @@ def seed(text: str) -> int:
     if not 0 <= value <= MAX_SEED:
         raise argparse.ArgumentTypeError(f"{text}: seeds are non-negative integers below 2**63")
     return value
-
-
-def writable_out(directory: Path) -> None:
-    """Raise a usage error now if ``directory`` cannot be created or written, so that a long run
-    does not find out at its end."""
-    try:
-        directory.mkdir(parents=True, exist_ok=True)
-        probe = directory / f".semfleet-write-probe-{os.getpid()}"
-        probe.write_bytes(b"")
-        probe.unlink()
-    except OSError as exc:
-        raise UsageError(f"--out {directory}: cannot write there ({exc.strerror or exc})") from None
 
 
 _DNS_LABEL = re.compile(r"(?!-)[A-Za-z0-9-]{1,63}(?<!-)")

@@ -1,11 +1,9 @@
-"""The scenario options every command that reads a world shares, and the writer of the files
-`scenario model` and `scenario frames` create."""
+"""The scenario options every command that reads a world shares."""
 
 from __future__ import annotations
 
 import argparse
 import tomllib
-from pathlib import Path
 from typing import Any
 
 from sim.loader import load_scenario
@@ -47,13 +45,3 @@ def parse_override(text: str) -> tuple[str, Any]:
 def scenario_from_args(args: argparse.Namespace) -> Scenario:
     overrides = dict(parse_override(t) for t in args.overrides)
     return load_scenario(args.scenario, args.variant, overrides)
-
-
-def write_new_file(out: Path, text: str, force: bool) -> None:
-    """Write ``text`` to ``out``; an existing file is an error unless ``force``."""
-    out.parent.mkdir(parents=True, exist_ok=True)
-    try:
-        with out.open("w" if force else "x", encoding="utf-8") as f:
-            f.write(text)
-    except FileExistsError:
-        raise FileExistsError(f"{out}: already exists (--force overwrites it)") from None

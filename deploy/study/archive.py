@@ -29,6 +29,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from deploy.base.errors import UsageError
+from deploy.base.files import write_atomically, write_text_atomically
 from deploy.study.types import RunResult
 from estimator.metrics import CROSS_METRICS, METRICS, ece_from_stats
 
@@ -90,12 +91,15 @@ def write_archive(out: Path, archive: ResultsArchive) -> None:
 def _write(
     out: Path, doc: Mapping[str, Any], arrays: Mapping[str, NDArray[Any]], seeds: Sequence[int]
 ) -> None:
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "results.json").write_text(
-        json.dumps(doc, indent=1, allow_nan=False) + "\n", encoding="utf-8"
-    )
+    text = json.dumps(doc, indent=1, allow_nan=False) + "\n"
     npz = {**arrays, "seeds": np.array(seeds, dtype=np.int64)}
-    np.savez_compressed(out / "results.npz", **npz)  # type: ignore[arg-type]
+
+    def savez(tmp: Path) -> None:
+        np.savez_compressed(tmp, **npz)  # type: ignore[arg-type]
+
+    # Each file whole: a study stopped while writing leaves no half archive to read back.
+    write_atomically(out / "results.npz", savez)
+    write_text_atomically(out / "results.json", text)
 
 
 def read_results(path: Path) -> dict[str, Any]:

@@ -5,9 +5,11 @@ from __future__ import annotations
 
 import itertools
 import math
+from collections.abc import Sequence
 from pathlib import Path
 
 from rich.console import Console
+from rich.markup import escape
 from rich.table import Table
 
 from sim.scenario import ClassifierSpec, Scenario
@@ -35,14 +37,22 @@ def link_intervals(world: World) -> list[tuple[str, str, list[tuple[int, int]]]]
     return out
 
 
-def render_show(scenario: Scenario, console: Console) -> None:
-    """Print the scenario as tables: overview, robots, objects, communication."""
+def render_show(scenario: Scenario, console: Console, overrides: Sequence[str] = ()) -> None:
+    """Print the scenario as tables: overview, robots, objects, communication. ``overrides``:
+    the ``--set FIELD=VALUE`` texts it was loaded with, named in the header."""
     world = World(scenario)
     s = scenario
     variants = ", ".join(s.applied_variants) or "none"
-    console.print(f"[bold]{s.name}[/bold] ({s.source}, variants applied: {variants})")
+    changed = "".join(f"; --set {o}" for o in overrides)
+    console.print(
+        f"[bold]{escape(s.name)}[/bold] ({escape(s.source)}, variants applied: "
+        f"{escape(variants + changed)})"
+    )
     if s.description:
-        console.print(s.description)
+        # The file's own words, which no variant or override rewrites: the lines below and the
+        # tables are the world as loaded.
+        before = "the file's description, before variants and --set: "
+        console.print((before if s.applied_variants or overrides else "") + s.description)
     prior = ", ".join(f"{p:.3g}" for p in s.class_prior)
     console.print(
         f"steps 1..{s.steps} · {len(s.robots)} robots · {len(s.objects)} objects · "
@@ -53,6 +63,7 @@ def render_show(scenario: Scenario, console: Console) -> None:
         f"noise variances: odometry {list(s.odometry_noise.variances)}, "
         f"geometric {list(s.geometric_noise.variances)}"
     )
+    console.print(_sensing(s))
     comm = s.communication
     rng = f", range {comm.range:g} m" if comm.range is not None else ""
     console.print(f"communication: mode {comm.mode}{rng}")
@@ -119,6 +130,16 @@ def save_ground_truth_plot(scenario: Scenario, out: Path, cone_steps: list[int])
     fig.savefig(out, dpi=120, bbox_inches="tight")
     plt.close(fig)
     return out
+
+
+def _sensing(s: Scenario) -> str:
+    """The robots' sensors as loaded: one for all, or each robot's."""
+    sensors = {
+        r.id: f"{math.degrees(r.sensor.half_angle):g}°, {r.sensor.range:g} m" for r in s.robots
+    }
+    if len(set(sensors.values())) == 1:
+        return f"sensing: {next(iter(sensors.values()))} (half angle, range; every robot)"
+    return "sensing (half angle, range): " + "; ".join(f"{r} {t}" for r, t in sensors.items())
 
 
 def default_cone_steps(steps: int, count: int = 3) -> list[int]:

@@ -83,6 +83,23 @@ def test_scenario_show_applies_variants_and_overrides() -> None:
     assert "mode range" in r.stdout
 
 
+def test_scenario_show_header_is_the_world_after_variants_and_set() -> None:
+    args = ("scenario", "show", "paper", "--variant", "sense10", "--set", "sensor.range=5")
+    r = semfleet(*args)
+    assert r.returncode == 0, r.stderr
+    lines = r.stdout.splitlines()
+    assert lines[0] == "paper (paper.toml, variants applied: sense10; --set sensor.range=5)"
+    assert "sensing: 50°, 5 m (half angle, range; every robot)" in lines
+    # The file's description (its "sensing 3.5 m") is said to be the file's, not the world's.
+    said = [line for line in lines if "3.5 m" in line]
+    assert said and all(
+        line.startswith("the file's description, before variants and --set: ") for line in said
+    )
+    plain = semfleet("scenario", "show", "paper").stdout.splitlines()
+    assert plain[0] == "paper (paper.toml, variants applied: none)"
+    assert plain[1].startswith("3 robots, 15 objects") and "sensing: 50°, 3.5 m" in plain[4]
+
+
 @pytest.mark.parametrize(
     ("args", "fragment"),
     [
@@ -314,7 +331,9 @@ def test_cli_output_path_under_a_file_is_a_usage_error(tmp_path: Path) -> None:
     (tmp_path / "a-file").write_text("not a directory")
     r = semfleet("scenario", "plot", "paper", "-o", "a-file/x.png", cwd=tmp_path)
     assert r.returncode == 2, (r.stdout, r.stderr)
-    assert r.stderr == "semfleet: error: a-file: File exists\n", r.stderr
+    assert r.stderr == (
+        "semfleet: error: --output a-file/x.png: cannot write there (a-file is a file)\n"
+    ), r.stderr
 
 
 def _raising(exc: BaseException) -> Callable[[argparse.Namespace, Console], int]:

@@ -148,3 +148,27 @@ def test_export_tum_refuses_results_without_trajectories(
     )
     assert main(["export", "tum", str(tmp_path / "none"), "-o", str(tmp_path / "tum")]) == 2
     assert "results.json: No such file or directory" in capsys.readouterr().err
+
+
+def test_export_tum_refuses_a_folder_that_is_not_empty_unless_force(
+    results: Path, tmp_path: Path
+) -> None:
+    out = tmp_path / "tum"
+    out.mkdir()
+    (out / "notes.txt").write_text("mine\n")
+
+    def export(*extra: str) -> subprocess.CompletedProcess[str]:
+        argv = [str(SEMFLEET), "export", "tum", str(results), "-o", str(out), *extra]
+        return subprocess.run(argv, capture_output=True, text=True, timeout=120)
+
+    r = export()
+    assert r.returncode == 2, (r.stdout, r.stderr)
+    assert r.stderr == (
+        f"semfleet: error: --out {out}: exists and is not empty (--force writes over the outputs "
+        "in it)\n"
+    )
+    assert [p.name for p in out.iterdir()] == ["notes.txt"]
+    r = export("--force")
+    assert r.returncode == 0, r.stderr
+    assert (out / "notes.txt").read_text() == "mine\n"  # other files stay
+    assert (out / f"seed-{SEED}" / "r1_truth.tum").is_file()

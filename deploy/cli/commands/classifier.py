@@ -13,7 +13,9 @@ from rich.console import Console
 from rich.table import Table
 
 from deploy.base.errors import UsageError
+from deploy.base.files import write_atomically
 from deploy.cli.args import positive_int, seed
+from deploy.cli.outputs import add_force, figure_file, new_file
 from deploy.cli.scenario_args import add_scenario_arguments, scenario_from_args
 from deploy.study.classifier_fit import Fit, fit_classifier, truth_gap
 from deploy.study.classifier_samples import MAX_SAMPLES, draw_samples, read_samples, write_samples
@@ -23,20 +25,14 @@ from sim.learned_file import save_learned
 from sim.loader import load_scenario
 
 
-def _refuse_existing(out: Path, force: bool) -> None:
-    if out.exists() and not force:
-        raise FileExistsError(f"{out}: already exists (--force overwrites it)")
-
-
 def run_sample(args: argparse.Namespace, console: Console) -> int:
     scenario = scenario_from_args(args)
     if args.n > MAX_SAMPLES:
         raise UsageError(f"-n {args.n}: at most {MAX_SAMPLES} samples")
-    out = Path(args.output)
-    _refuse_existing(out, args.force)
+    out = new_file(Path(args.output), "--output", args.force)
     model = scenario.classifier.build()
     samples = draw_samples(model, args.n, np.random.default_rng(args.seed), args.viewpoint)
-    write_samples(samples, out)
+    write_atomically(out, lambda tmp: write_samples(samples, tmp))
     console.print(
         f"wrote {out}: {args.n} samples of the {scenario.classifier.model} model of "
         f"{scenario.name} (M = {model.num_classes}, seed {args.seed}, ψ {args.viewpoint})",
@@ -47,8 +43,12 @@ def run_sample(args: argparse.Namespace, console: Console) -> int:
 
 
 def run_fit(args: argparse.Namespace, console: Console) -> int:
-    samples_path, out = Path(args.samples), Path(args.output)
-    _refuse_existing(out, args.force)
+    samples_path = Path(args.samples)
+    out = new_file(Path(args.output), "--output", args.force)
+    plot_text = args.plot or str(out.with_suffix(".png"))
+    plot, note = figure_file(plot_text, "--plot", args.force, out.stem)
+    if plot.resolve() == out.resolve():
+        raise UsageError(f"--plot {plot}: the model file (--output) itself; name another figure")
     samples = read_samples(samples_path)
     truth = None
     if args.truth is not None:
@@ -64,7 +64,7 @@ def run_fit(args: argparse.Namespace, console: Console) -> int:
     # table and the plot compare in semfleet's ψ too: the saved model, the truth scenario's
     # model, and the samples turned back by the convention's offset.
     model = replace(fit.model, viewpoint=args.viewpoint)
-    save_learned(model, out)
+    write_atomically(out, lambda tmp: save_learned(model, tmp))
     for table in _quality_tables(fit):
         console.print(table)
     if truth is not None:
@@ -72,10 +72,11 @@ def run_fit(args: argparse.Namespace, console: Console) -> int:
     from deploy.study.classifier_plot import save_fit_plot
 
     ours = replace(samples, psi=_wrap(samples.psi - view_offset(args.viewpoint)))
-    plot = save_fit_plot(Path(args.plot or out.with_suffix(".png")), ours, model, truth)
+    write_atomically(plot, lambda tmp: save_fit_plot(tmp, ours, model, truth))
     console.print(
         f"wrote {out} ({len(samples.psi)} samples, M = {samples.num_classes}, "
-        f"{fit.model.means[0].inducing.size} inducing viewpoints) and {plot}",
+        f"{fit.model.means[0].inducing.size} inducing viewpoints) and {plot}"
+        + (f" ({note})" if note else ""),
         markup=False,
         highlight=False,
     )
@@ -136,13 +137,17 @@ def add_parser(sub: Any) -> None:
     sample.add_argument("-n", type=positive_int, required=True, help="number of samples")
     sample.add_argument("-o", "--output", required=True, help="CSV file to write")
     sample.add_argument("--seed", type=seed, default=0)
-    sample.add_argument("--force", action="store_true", help="overwrite an existing file")
+    add_force(sample)
     sample.add_argument(*_VIEWPOINT[0], **_VIEWPOINT[1], help="the convention of ψ to write")
     sample.set_defaults(run=run_sample)
     fit = csub.add_parser("fit", help="learn h_c(ψ), Σ_c(ψ) from samples by GP regression")
     fit.add_argument("samples", help="CSV file of samples (class,psi,z1,…,zM)")
     fit.add_argument("-o", "--output", required=True, help="model file (.npz) to write")
-    fit.add_argument("--plot", default=None, help="PNG to write (default: the model's name .png)")
+    fit.add_argument(
+        "--plot",
+        default=None,
+        help="the figure to write: .png, .pdf or .svg (default: the model's name with .png)",
+    )
     fit.add_argument(
         "--truth",
         default=None,
@@ -150,7 +155,7 @@ def add_parser(sub: Any) -> None:
         help="compare with this scenario's classifier model (the one that drew the samples)",
     )
     fit.add_argument("--seed", type=seed, default=0, help="the optimiser's restarts and subsets")
-    fit.add_argument("--force", action="store_true", help="overwrite an existing file")
+    add_force(fit)
     fit.add_argument(
         *_VIEWPOINT[0],
         **_VIEWPOINT[1],

@@ -16,7 +16,8 @@ from rich.console import Console
 from rich.table import Table
 
 from deploy.cli.args import seed
-from deploy.cli.commands.launch import SECURE_HELP
+from deploy.cli.commands.launch import SECURE_HELP, check_outputs
+from deploy.cli.outputs import add_force
 from deploy.launch import LaunchPlan
 from deploy.launch.report import counters_table, write_outputs
 from deploy.launch.rerun_view import add_options as add_view_options
@@ -47,6 +48,7 @@ def final_table(doc: dict[str, Any], steps: int) -> Table:
 
 def run(args: argparse.Namespace, console: Console) -> int:
     start = time.perf_counter()
+    check_outputs(args)
     console.rule("semfleet demo")
     scenario = load_scenario("paper")
     render_show(scenario, console)
@@ -82,4 +84,5 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--out", default="out/demo", help="folder for outputs (default out/demo)")
     p.add_argument("--secure", action="store_true", help=SECURE_HELP)
     add_view_options(p)
+    add_force(p)
     p.set_defaults(run=run)

@@ -11,7 +11,7 @@ from typing import Any
 from rich.console import Console
 
 from deploy.base.output import figures_table
-from deploy.cli.args import writable_out
+from deploy.cli.outputs import add_force, new_folder
 from deploy.study.tum import TRUTH, export_tum
 
 
@@ -26,8 +26,7 @@ def _period(text: str) -> float:
 
 
 def run_tum(args: argparse.Namespace, console: Console) -> int:
-    out = Path(args.out)
-    writable_out(out)
+    out = new_folder(Path(args.out), "--out", args.force)
     written = export_tum(Path(args.results), out, args.period)
     rows = [
         [
@@ -56,7 +55,8 @@ def add_parser(sub: Any) -> None:
         "tum", help="per run and robot: the true, L and D trajectories as TUM files (for evo)"
     )
     tum.add_argument("results", metavar="RESULTS_DIR", help="a folder of results.json/npz")
-    tum.add_argument("-o", "--out", required=True, help="output folder")
+    tum.add_argument("-o", "--out", required=True, help="output folder (new or empty)")
+    add_force(tum)
     tum.add_argument(
         "--period",
         type=_period,

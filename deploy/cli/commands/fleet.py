@@ -31,6 +31,7 @@ from deploy.base.errors import RunFailure, UsageError
 from deploy.base.output import FiguresTable, figures_table, live_display
 from deploy.cli.args import zenoh_endpoint
 from deploy.cli.commands.fleet_init import add_init_parser
+from deploy.cli.outputs import add_force, new_folder
 from deploy.operator.fleet_session import collect_status, session_settings, stop_fleet, watch_fleet
 from deploy.operator.fleet_view import FleetView, status_doc, write_watch_results
 from estimator.models import ROBOT_ID_RULE
@@ -110,6 +111,8 @@ def run_watch(args: argparse.Namespace, console: Console) -> int:
     settings, keys = connection(args)
     if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
         raise UsageError(f"--duration {args.duration}: must be a positive number")
+    if args.out is not None:
+        new_folder(Path(args.out), "--out", args.force)
     title = f"fleet {keys.fleet} at {', '.join(settings.connect)}"
     with live_display(console) as live:
 
@@ -175,6 +178,7 @@ def add_parser(sub: Any) -> None:
     _common(watch, 10.0, "the first robot")
     watch.add_argument("--duration", type=float, help="stop watching after this many seconds")
     watch.add_argument("--out", help="write estimates.json and map.png here when the watch ends")
+    add_force(watch)
     watch.set_defaults(run=run_watch)
     stop = actions.add_parser("stop", help="ctl/stop, then wait until every token is gone")
     _common(stop, 5.0, "every token to go")

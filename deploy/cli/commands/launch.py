@@ -17,6 +17,7 @@ from agents.links import Partition
 from deploy.base.errors import UsageError
 from deploy.cli.args import positive_float, positive_int, seed
 from deploy.cli.commands import conductor_only
+from deploy.cli.outputs import add_force, new_file, new_folder
 from deploy.launch import LAUNCH_METHODS, Faults, LaunchPlan
 from deploy.launch.attack_report import attack_list, run_attacks_command
 from deploy.launch.attacks import ATTACKS
@@ -86,6 +87,13 @@ def _stack_gossip(args: argparse.Namespace) -> str:
     return str(args.stack_gossip or "ask")
 
 
+def check_outputs(args: argparse.Namespace) -> None:
+    """``--out`` and ``--record`` of ``demo``, ``launch`` and ``chaos``, before anything starts."""
+    new_folder(Path(args.out), "--out", args.force)
+    if args.record is not None:
+        new_file(Path(args.record), "--record", args.force)
+
+
 def run_launch(args: argparse.Namespace, console: Console) -> int:
     scenario = load_scenario(args.scenario)
     plan = LaunchPlan(
@@ -102,6 +110,7 @@ def run_launch(args: argparse.Namespace, console: Console) -> int:
         stack_gossip=_stack_gossip(args),
         **conductor_only.plan_fields(args),
     )
+    check_outputs(args)
     conductor_only.announce(plan, console)
     where = (
         "started elsewhere"
@@ -125,6 +134,7 @@ def run_chaos(args: argparse.Namespace, console: Console) -> int:
             raise UsageError("--view/--record: not with --attack (one run per attack)")
         if args.stack_gossip is not None:
             raise UsageError("--stack-gossip: not with --attack (each attack sets up its fleet)")
+        check_outputs(args)
         return run_attacks_command(args, console)
     scenario = load_scenario(args.scenario)
     kills, restarts = tuple(args.kill), tuple(args.restart)
@@ -149,6 +159,7 @@ def run_chaos(args: argparse.Namespace, console: Console) -> int:
     )
     if plan.net == "netns":
         require_netns()
+    check_outputs(args)
     where = ", on real packets between network namespaces" if plan.net == "netns" else ""
     console.print(
         f"chaos on {scenario.name}, seed {plan.seed}: {faults.describe()} "
@@ -219,6 +230,7 @@ def _common(p: argparse.ArgumentParser) -> None:
         "slot (docs/wire.md)",
     )
     add_view_options(p)
+    add_force(p)
 
 
 def add_parser(sub: Any) -> None:

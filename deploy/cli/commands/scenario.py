@@ -10,9 +10,11 @@ from typing import Any
 from rich.console import Console
 
 from deploy.base.errors import UsageError
+from deploy.base.files import write_atomically, write_text_atomically
 from deploy.cli.args import class_count, positive_int, seed
 from deploy.cli.commands import scenario_frames
-from deploy.cli.scenario_args import add_scenario_arguments, scenario_from_args, write_new_file
+from deploy.cli.outputs import add_force, figure_file, new_file
+from deploy.cli.scenario_args import add_scenario_arguments, scenario_from_args
 from deploy.study.scenario_show import default_cone_steps, render_show, save_ground_truth_plot
 from sim.generate import dump_scenario, generate_scenario
 from sim.loader import parse_scenario
@@ -21,7 +23,7 @@ from sim.scenario import Scenario, ScenarioError
 
 
 def run_show(args: argparse.Namespace, console: Console) -> int:
-    render_show(scenario_from_args(args), console)
+    render_show(scenario_from_args(args), console, args.overrides)
     return 0
 
 
@@ -31,8 +33,9 @@ def run_plot(args: argparse.Namespace, console: Console) -> int:
     bad = [k for k in cones if not 0 <= k <= scenario.steps]
     if bad:
         raise ScenarioError(f"--cones: steps {bad} are outside 0..{scenario.steps}")
-    path = save_ground_truth_plot(scenario, Path(args.output), cones)
-    console.print(f"wrote {path}")
+    path, note = figure_file(args.output, "--output", args.force, scenario.name)
+    write_atomically(path, lambda tmp: save_ground_truth_plot(scenario, tmp, cones))
+    console.print(f"wrote {path}" + (f" ({note})" if note else ""), markup=False, highlight=False)
     return 0
 
 
@@ -40,6 +43,7 @@ def run_generate(args: argparse.Namespace, console: Console) -> int:
     for option, value in (("--area", args.area), ("--comm-range", args.comm_range)):
         if value is not None and not 0 < value < math.inf:
             raise UsageError(f"{option} {value}: must be a positive number of metres")
+    out = new_file(Path(args.output), "--output", args.force)
     scenario = generate_scenario(
         robots=args.robots,
         objects=args.objects,
@@ -54,9 +58,7 @@ def run_generate(args: argparse.Namespace, console: Console) -> int:
         parse_scenario(text, args.output)
     except ScenarioError as exc:
         raise UsageError(f"the generated world would not load: {exc}") from None
-    out = Path(args.output)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(text, encoding="utf-8")
+    write_text_atomically(out, text)
     console.print(f"wrote {out} ({scenario.name})")
     return 0
 
@@ -76,9 +78,9 @@ def model_text(scenario: Scenario, robot: str | None = None) -> str:
 
 
 def run_model(args: argparse.Namespace, console: Console) -> int:
+    out = new_file(Path(args.output), "--output", args.force)
     text = model_text(scenario_from_args(args), args.robot)
-    out = Path(args.output)
-    write_new_file(out, text, args.force)
+    write_text_atomically(out, text)
     console.print(f"wrote {out}:", markup=False, highlight=False, soft_wrap=True)
     console.print(text, markup=False, highlight=False, soft_wrap=True, end="")
     return 0
@@ -94,7 +96,14 @@ def add_parser(sub: Any) -> None:
     show.set_defaults(run=run_show)
     plot = ssub.add_parser("plot", help="the ground truth as a PNG (like the paper's Fig. 2a)")
     add_scenario_arguments(plot)
-    plot.add_argument("-o", "--output", required=True, help="PNG file to write")
+    plot.add_argument(
+        "-o",
+        "--output",
+        required=True,
+        help="the figure to write: .png, .pdf or .svg (no suffix: .png is added; a folder: "
+        "FOLDER/<scenario>.png)",
+    )
+    add_force(plot)
     plot.add_argument(
         "--cones",
         type=int,
@@ -114,6 +123,7 @@ def add_parser(sub: Any) -> None:
     gen.add_argument("--area", type=float, default=None, help="side of the square world [m]")
     gen.add_argument("--comm-range", type=float, default=10.0, help="communication range [m]")
     gen.add_argument("-o", "--output", required=True, help="TOML file to write")
+    add_force(gen)
     gen.set_defaults(run=run_generate)
     model = ssub.add_parser("model", help="write a scenario's robot model (for semfleet agent)")
     add_scenario_arguments(model)
@@ -124,7 +134,7 @@ def add_parser(sub: Any) -> None:
         help="take this robot's own sensor (default: [sensor])",
     )
     model.add_argument("-o", "--output", required=True, help="TOML file to write")
-    model.add_argument("--force", action="store_true", help="overwrite an existing file")
+    add_force(model)
     model.set_defaults(run=run_model)
 
     scenario_frames.add_parser(ssub)

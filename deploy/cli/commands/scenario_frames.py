@@ -10,8 +10,10 @@ from typing import Any
 
 from rich.console import Console
 
+from deploy.base.files import write_text_atomically
 from deploy.cli.args import positive_int, seed
-from deploy.cli.scenario_args import add_scenario_arguments, scenario_from_args, write_new_file
+from deploy.cli.outputs import add_force, new_file
+from deploy.cli.scenario_args import add_scenario_arguments, scenario_from_args
 from protocol.framelog import format_frame_line, format_header
 from sim.scenario import Scenario, ScenarioError
 from sim.sensors import Simulator
@@ -35,10 +37,10 @@ def frame_log_lines(
 
 
 def run(args: argparse.Namespace, console: Console) -> int:
+    out = new_file(Path(args.output), "--output", args.force)
     scenario = scenario_from_args(args)
     lines = frame_log_lines(scenario, args.seed, args.robot, args.steps)
-    out = Path(args.output)
-    write_new_file(out, "".join(line + "\n" for line in lines), args.force)
+    write_text_atomically(out, "".join(line + "\n" for line in lines))
     console.print(
         f"wrote {out}: {len(lines) - 1} frames of {args.robot} ({scenario.name}, seed {args.seed})"
     )
@@ -53,5 +55,5 @@ def add_parser(ssub: Any) -> None:
     p.add_argument("--robot", required=True, help="whose frames (a robot of the scenario)")
     p.add_argument("--steps", type=positive_int, default=None, help="only frames 1..N")
     p.add_argument("-o", "--output", required=True, help="the log to write (.jsonl)")
-    p.add_argument("--force", action="store_true", help="overwrite an existing file")
+    add_force(p)
     p.set_defaults(run=run)

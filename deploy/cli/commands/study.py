@@ -21,7 +21,8 @@ from rich.console import Console
 from deploy.base.build import HYPOTHESIS_MANAGEMENT
 from deploy.base.errors import UsageError
 from deploy.base.output import plural, runs_progress
-from deploy.cli.args import MAX_SEED, positive_int, seed, writable_out
+from deploy.cli.args import MAX_SEED, positive_int, seed
+from deploy.cli.outputs import FORCE_HELP, new_folder
 from deploy.cli.scenario_args import scenario_from_args
 from deploy.study.archive import study_archive, write_archive
 from deploy.study.fleet import COMM_MODES, GOSSIP_MODES
@@ -116,7 +117,7 @@ def run(args: argparse.Namespace, console: Console, own: dict[str, tuple[str, An
     if not ran:
         raise UsageError(f"--shard {args.shard} of {plural(args.runs, 'run')} has no seeds")
     comm = args.comm or scenario.communication.mode
-    writable_out(Path(args.out))  # before any run, not after all of them
+    out = new_folder(Path(args.out), "--out", args.force)  # before any run, not after them
     where = plural(args.jobs, "job") if args.cluster is None else f"Dask cluster {args.cluster}"
     which = f"seeds {seeds[0]}..{seeds[-1]}"
     if args.shard is not None:
@@ -158,7 +159,6 @@ def run(args: argparse.Namespace, console: Console, own: dict[str, tuple[str, An
         key = study_key(scenario, args.methods, config, args.comm, args.gossip)
         settings["shard"] = shard_entry(args.shard, seeds, step, robot, key)
     archive = study_archive(scenario.name, results, args.methods, settings)
-    out = Path(args.out)
     write_archive(out, archive)
     doc = archive.document()
     render_summary(doc, console)
@@ -193,7 +193,7 @@ def run_merge(args: argparse.Namespace, console: Console, own: dict[str, tuple[s
     if any(out.resolve() == f.resolve() for f in folders):
         raise UsageError(f"--out {out} is one of the shards: merge into another folder")
     merged = merge_shards(folders)
-    writable_out(out)
+    new_folder(out, "--out", args.force)
     write_archive(out, merged.archive)
     doc = merged.archive.document()
     console.print(
@@ -253,7 +253,8 @@ def add_parser(sub: Any) -> None:
         help="run the seeds on the Dask cluster whose scheduler is at ADDRESS "
         "(e.g. tcp://10.0.0.5:8786; needs pip install 'semfleet[cluster]'); --jobs is ignored",
     )
-    p.add_argument("--out", default="out/study", help="output folder")
+    p.add_argument("--out", default="out/study", help="output folder (new or empty)")
+    p.add_argument("--force", action="store_true", help=FORCE_HELP)
     p.add_argument(
         "--paper",
         action="store_true",
@@ -347,7 +348,7 @@ def add_parser(sub: Any) -> None:
     own = {
         a.dest: (a.option_strings[-1], defaults[a.dest])
         for a in p._actions
-        if a.option_strings and a.dest not in ("help", "out", "paper")
+        if a.option_strings and a.dest not in ("help", "out", "paper", "force")
     }
     p.set_defaults(run=lambda args, console: run(args, console, own))
 

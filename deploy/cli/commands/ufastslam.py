@@ -13,6 +13,7 @@ from rich.table import Table
 from deploy.base.errors import UsageError
 from deploy.base.output import runs_progress
 from deploy.cli.args import MAX_SEED, positive_int, seed
+from deploy.cli.outputs import add_force, new_folder
 from deploy.study.archive import write_archive
 
 # filter_config: imported from here by bench/bench_ufastslam.py before issue 12.
@@ -67,6 +68,7 @@ def run(args: argparse.Namespace, console: Console) -> int:
     if args.seed + args.runs - 1 > MAX_SEED:
         raise UsageError(f"--seed {args.seed} with --runs {args.runs} runs past the largest seed")
     seeds = [args.seed + i for i in range(args.runs)]
+    out = new_folder(Path(args.out), "--out", args.force)  # before the runs, not after them
     console.print(
         f"ufastslam: {world.name} ({world.steps} steps of {world.dt} s, "
         f"{len(world.landmark_ids)} landmarks, {len(world.groups)} relation groups), "
@@ -77,7 +79,6 @@ def run(args: argparse.Namespace, console: Console) -> int:
         task = progress.add_task("runs", total=len(seeds))
         runs = run_all(world, seeds, args.particles, args.jobs, lambda: progress.advance(task))
     archive = ufastslam_archive(world, runs, args.particles, args.relations)
-    out = Path(args.out)
     write_archive(out, archive)
     render(archive.document(), console)
     # Imported here: matplotlib takes a second to import, and every command imports this module.
@@ -110,5 +111,6 @@ def add_parser(sub: Any) -> None:
         default="oracle",
         help="relation source of results.json's semantic_ufastslam (the table shows both)",
     )
-    p.add_argument("--out", default="out/ufastslam", help="output folder")
+    p.add_argument("--out", default="out/ufastslam", help="output folder (new or empty)")
+    add_force(p)
     p.set_defaults(run=run)
