@@ -71,6 +71,8 @@ SPARSE_XI_ABOVE = 32
 # Where a per-object slot's ξ is linearised (``BeliefConfig.slot_linearisation``): at the
 # owner's fused estimate (D's), or at L's own linearisation point (the reference).
 SLOT_LINEARISATIONS = ("fused", "local")
+# Where a per-object slot's class evidence is read (``BeliefConfig.slot_evidence``).
+SLOT_EVIDENCES = ("fused", "local")
 # The default window of robot poses (per-object classes): poses older than 100–200 steps are
 # marginalised. Measured against every pose on five seeds of a 2,000-step mission, a mission
 # whose map is known early, and the 120- and 300-object worlds: errors within the seeds' spread,
@@ -155,6 +157,14 @@ class BeliefConfig:
     (docs/distributed.md, "Where a slot is linearised"). Only the linearisation point comes
     from D: Λ and η are the owner's own factors', so nothing is counted twice.
 
+    ``slot_evidence`` (``"per_object"`` only): where the viewpoints of the owner's detections
+    are read for its slot's class log φ. ``"fused"`` (default): at the same point as ξ (when ξ
+    is taken there): each detection's log P(z | c, ψ̂) moved from L's ψ̂ to the fused one, as
+    the ledger moves it when L's own estimate moves; ``"local"`` (the reference): at L's
+    estimate. Only the viewpoints come from D: the detections are the owner's own. It matters
+    where a viewpoint depends on the map's heading (point objects, read in the world frame):
+    there L's log φ carried its heading drift (docs/estimator.md, "Point objects").
+
     ``semantic_poses``: whether the semantic factors also enter the Gaussians, so that every
     class realisation has a continuous belief of its own (Eq. 5 taken literally, the paper's
     model; ``BeliefConfig.paper()``). By default they do not: the semantic measurements weigh the
@@ -186,6 +196,7 @@ class BeliefConfig:
     classes: str = "per_object"
     xi: str = "auto"
     slot_linearisation: str = "fused"
+    slot_evidence: str = "fused"
 
     def __post_init__(self) -> None:
         if self.classes not in CLASS_KINDS:
@@ -197,6 +208,9 @@ class BeliefConfig:
         if self.slot_linearisation not in SLOT_LINEARISATIONS:
             known = ", ".join(SLOT_LINEARISATIONS)
             raise ValueError(f"slot_linearisation {self.slot_linearisation!r} (known: {known})")
+        if self.slot_evidence not in SLOT_EVIDENCES:
+            known = ", ".join(SLOT_EVIDENCES)
+            raise ValueError(f"slot_evidence {self.slot_evidence!r} (known: {known})")
         if self.classes == "per_object" and self.semantic_poses:
             raise ValueError(
                 'classes = "per_object" needs one continuous belief (semantic_poses = False)'

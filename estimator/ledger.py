@@ -142,6 +142,26 @@ class SemanticLedger:
         self.psi = psi
         return out
 
+    def moved_to(
+        self, values: gtsam.Values, model: ClassifierModel, object_index: dict[int, int]
+    ) -> Array:
+        """The change (n, M) of every object's Σ_d log P(z_d | c, ψ̂_d) were ψ̂ read at
+        ``values`` instead of where the weights last took it (objects in ``object_index``
+        order); nothing is changed. Detections that have no reference yet contribute nothing."""
+        out = np.zeros((len(object_index), model.num_classes))
+        known = len(self.psi)
+        if not known:
+            return out
+        robot_keys, object_keys, scores = self._arrays()
+        poses = _poses(values, np.concatenate([robot_keys[:known], object_keys[:known]]))
+        psi = viewpoint(poses[:known], poses[known:])
+        moved = np.flatnonzero(psi != self.psi)
+        if len(moved):
+            now = all_log_likelihoods(model, scores[moved], psi[moved][None, :])[0]
+            rows = np.array([object_index[self.object_ids[i]] for i in moved], dtype=np.int64)
+            np.add.at(out, rows, now - self.applied[moved])
+        return out
+
     def _arrays(self) -> tuple[KeyArray, KeyArray, Array]:
         """Robot pose keys (D,), object keys (D,) and scores (D, dim) of every detection."""
         d = len(self.robot_keys)

@@ -15,7 +15,9 @@ other variable eliminated, so that ξ is the same information about the objects,
 the receivers' estimates are. Its own estimate must not be implausible under its own data:
 if the fused estimate costs L's factors more than ``FIT_SIGMAS`` standard deviations of a χ²
 over L's dimensions above L's own optimum, ξ is taken at L's point and the refusal counted
-(``HybridBelief.slot_fit_refused``): a poisoned D never bends what the owner shares.
+(``HybridBelief.slot_fit_refused``): a poisoned D never bends what the owner shares. Where ξ
+is taken at the fused estimate, so is the class evidence (``BeliefConfig.slot_evidence``): the
+ledger's detections' viewpoints read there (``SemanticLedger.moved_to``).
 """
 
 from __future__ import annotations
@@ -70,13 +72,19 @@ def summarise(belief: HybridBelief, at: gtsam.Values | None = None) -> LocalSumm
     )
     if belief.per_object:
         cont = belief.hypotheses[0].continuous
-        xi = None if at is None else _marginal_at(belief, cont, ids, prior_noise, at)
-        if xi is None:
+        taken = None if at is None else _marginal_at(belief, cont, ids, prior_noise, at)
+        evidence = belief.log_evidence
+        if taken is None:
             xi = _prior_divided_marginal(cont, ids, prior_noise)
+        else:
+            xi, values = taken
+            if cont.ledger is not None and belief.config.slot_evidence == "fused":
+                index = {j: i for i, j in enumerate(ids)}
+                evidence = evidence + cont.ledger.moved_to(values, belief.model.classifier, index)
         shared: Xi | SparseXi = (
             _sparse(belief, ids, xi) if sends_sparse(belief.config, len(ids)) else xi
         )
-        return LocalSummary(ids, (), ObjectClasses(object_log_phi(belief.log_evidence), shared))
+        return LocalSummary(ids, (), ObjectClasses(object_log_phi(evidence), shared))
     log_prior = np.log(np.asarray(belief.model.class_prior, dtype=float))
     conts, which = distinct_continuous(belief.hypotheses)
     xis = [_prior_divided_marginal(c, ids, prior_noise) for c in conts]
@@ -144,7 +152,7 @@ def _marginal_at(
     ids: Sequence[int],
     prior_noise: gtsam.noiseModel.Base,
     at: gtsam.Values,
-) -> Xi | None:
+) -> tuple[Xi, gtsam.Values] | None:
     """The prior-divided marginal on the objects ``ids`` of ``h``'s factors linearised at
     ``at`` (the belief's estimate where ``at`` lacks a key): every other variable eliminated
     from the linearised graph, what is left read as [Λ η]. None (and the refusal counted) when
@@ -178,7 +186,7 @@ def _marginal_at(
     augmented = np.asarray(linear.augmentedHessian(order))
     n = h.object_dim * len(keys)
     info, eta = augmented[:n, :n].copy(), augmented[:n, n].copy()
-    return _without_priors(h, ids, prior_noise, values, info, eta)
+    return _without_priors(h, ids, prior_noise, values, info, eta), values
 
 
 def _without_priors(

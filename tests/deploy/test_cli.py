@@ -588,3 +588,21 @@ def test_the_console_script_is_the_entry() -> None:
         e for e in importlib.metadata.entry_points(group="console_scripts") if e.name == "semfleet"
     ]
     assert script.value == "deploy.cli.main:entry"
+
+
+def test_a_generated_world_of_point_objects_runs_through_a_study(tmp_path: Path) -> None:
+    """``--kind point`` (issue 44): point landmarks by bearing and range, in the file and through
+    ``study``'s local, distributed and centralized beliefs."""
+    world = tmp_path / "points.toml"
+    args = ("--robots", "3", "--objects", "12", "--classes", "3", "--seed", "4", "--steps", "20")
+    r = semfleet("scenario", "generate", *args, "--kind", "point", "-o", str(world))
+    assert r.returncode == 0, r.stderr
+    text = world.read_text()
+    assert 'objects = "point"' in text and "geometric_var = [0.01, 0.1]" in text
+    out = tmp_path / "study"
+    methods = "local,distributed,centralized"
+    r = semfleet(
+        "study", "--scenario", str(world), "--runs", "1", "--methods", methods, "--out", str(out)
+    )
+    assert r.returncode == 0, r.stderr
+    assert (out / "results.json").exists()

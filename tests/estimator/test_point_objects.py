@@ -350,3 +350,70 @@ def test_the_ledger_reads_each_point_where_the_estimate_holds_it_at_heading_0() 
     )
     points = np.array([est.atPoint2(object_key(j)) for j in ledger.object_ids])
     assert_close(ledger.psi, viewpoint(robots, POINT.as_pose(points)), atol=1e-12, what="ψ")
+
+
+def _turned(values: gtsam.Values, about: np.ndarray, angle: float, dim: int) -> gtsam.Values:
+    """``values`` with every pose and object turned by ``angle`` about the point ``about``."""
+    c, s = math.cos(angle), math.sin(angle)
+    out = gtsam.Values()
+    for key in values.keys():  # noqa: SIM118 - gtsam.Values is not iterable
+        if dim == 2 and int(key) >> 56 == ord("o"):
+            p = values.atPoint2(key) - about
+            out.insert(key, about + np.array([c * p[0] - s * p[1], s * p[0] + c * p[1]]))
+            continue
+        q = values.atPose2(key)
+        x, y = q.x() - about[0], q.y() - about[1]
+        out.insert(
+            key, gtsam.Pose2(about[0] + c * x - s * y, about[1] + s * x + c * y, q.theta() + angle)
+        )
+    return out
+
+
+@pytest.mark.parametrize("kind", ["point", "pose"])
+def test_a_slot_reads_its_class_evidence_where_its_xi_is_taken(kind: str) -> None:
+    """``slot_evidence = "fused"``: log φ moves every detection's log P(z | c, ψ̂) from L's ψ̂ to
+    the one at ``at``. Turning the map by 1 mrad about the start (within L's fit) moves a
+    point's world-frame ψ by as much, computed here from the ledger's detections; a pose
+    object's ψ turns with the robot, so its log φ stays. ``"local"`` keeps L's log φ."""
+    world = generate_scenario(1, 20, 3, 4, steps=30, area=12.0, kind=kind)
+    s = parse_scenario(dump_scenario(world), "w.toml")
+    model = belief_model(s)
+    beliefs = {}
+    for ev in ("fused", "local"):
+        b = HybridBelief(model, {"r1": s.robot("r1").start}, BeliefConfig(slot_evidence=ev))
+        sim, rng = Simulator(s, 3), belief_rng(3, ["r1"])
+        for k in range(1, 31):
+            b.step([sim.frame("r1", k)], rng)
+        beliefs[ev] = b
+    b = beliefs["fused"]
+    cont = b.hypotheses[0].continuous
+    at = _turned(cont.estimate, np.array(s.robot("r1").start[:2]), 1e-3, model.objects.dim)
+    own = summarise(b)
+    moved = summarise(b, at)
+    local = summarise(beliefs["local"], at)
+    assert own is not None and moved is not None and local is not None
+    assert b.slot_fit_refused == 0
+    assert_close(local.per_object.log_phi, own.per_object.log_phi, atol=0)  # type: ignore[union-attr]
+    ledger = cont.ledger
+    assert ledger is not None
+    known = len(ledger.psi)
+    expected = b.log_evidence.copy()
+    for i in range(known):
+        x = at.atPose2(ledger.robot_keys[i])
+        key = object_key(ledger.object_ids[i])
+        o = (
+            POINT.as_pose(at.atPoint2(key))
+            if kind == "point"
+            else np.array([at.atPose2(key).x(), at.atPose2(key).y(), at.atPose2(key).theta()])
+        )
+        psi = viewpoint(np.array([x.x(), x.y(), x.theta()]), o)
+        now = all_log_likelihoods(b.model.classifier, ledger.scores[i][None], np.array([[psi]]))
+        expected[b.object_ids.index(ledger.object_ids[i])] += now[0, 0] - ledger.applied[i]
+    expected -= expected.max(axis=1, keepdims=True)
+    got = moved.per_object.log_phi  # type: ignore[union-attr]
+    assert_close(got, np.maximum(expected, -1000.0), atol=1e-9, what="log φ at the turned map")
+    change = np.abs(got - own.per_object.log_phi).max()  # type: ignore[union-attr]
+    if kind == "point":
+        assert change > 1e-4  # a world-frame viewpoint turns with the map
+    else:
+        assert change < 1e-8  # a pose object's does not

@@ -52,6 +52,7 @@ def run_generate(args: argparse.Namespace, console: Console) -> int:
         steps=args.steps,
         area=args.area,
         comm_range=args.comm_range,
+        kind=args.kind,
     )
     text = dump_scenario(scenario)
     try:  # never write a file that cannot be read back
@@ -122,6 +123,13 @@ def add_parser(sub: Any) -> None:
     gen.add_argument("--steps", type=positive_int, default=60)
     gen.add_argument("--area", type=float, default=None, help="side of the square world [m]")
     gen.add_argument("--comm-range", type=float, default=10.0, help="communication range [m]")
+    gen.add_argument(
+        "--kind",
+        choices=("pose", "point"),
+        default="pose",
+        help="objects with a pose, detected by relative pose (default), or point landmarks "
+        "detected by bearing and range",
+    )
     gen.add_argument("-o", "--output", required=True, help="TOML file to write")
     add_force(gen)
     gen.set_defaults(run=run_generate)

@@ -32,6 +32,7 @@ from deploy.study.runner import DEFAULT_METHODS, METHODS, RECEIVED_NEEDS, run_st
 from deploy.study.shards import Shard, merge_shards, shard_entry, study_key, write_merged_plots
 from estimator.hybrid import (
     POSE_WINDOW,
+    SLOT_EVIDENCES,
     SLOT_LINEARISATIONS,
     SPARSE_XI_ABOVE,
     XI_KINDS,
@@ -101,6 +102,13 @@ def run(args: argparse.Namespace, console: Console, own: dict[str, tuple[str, An
                 "(joint classes take every slot at L's point)"
             )
         changes["slot_linearisation"] = args.slot_lin
+    if args.slot_evidence != "fused":
+        if args.hypotheses != "per_object":
+            raise UsageError(
+                f"--slot-evidence {args.slot_evidence} needs --hypotheses per_object "
+                "(joint classes take every slot at L's point)"
+            )
+        changes["slot_evidence"] = args.slot_evidence
     if args.window is not None:
         window = _window(args.window)
         if window is not None and args.hypotheses != "per_object":
@@ -151,6 +159,7 @@ def run(args: argparse.Namespace, console: Console, own: dict[str, tuple[str, An
         "classes": config.classes,
         "xi": config.xi,
         "slot_linearisation": config.slot_linearisation,
+        "slot_evidence": config.slot_evidence,
         "window": config.window,
         "communication": comm,
         "gossip": args.gossip,
@@ -304,6 +313,15 @@ def add_parser(sub: Any) -> None:
         "slot: fused (default, at its distributed belief's estimate, where its receivers are) "
         "or local (at its local belief's own point, which drifts; the reference; "
         'docs/distributed.md, "Where a slot is linearised")',
+    )
+    p.add_argument(
+        "--slot-evidence",
+        choices=SLOT_EVIDENCES,
+        default="fused",
+        help="with --hypotheses per_object, where a robot reads its detections' viewpoints for "
+        "its slot's class evidence: fused (default, where its slot's ξ is taken) or local (at "
+        "its local belief's estimate; the reference; docs/distributed.md, \"Where a slot is "
+        'linearised")',
     )
     p.add_argument(
         "--window",
