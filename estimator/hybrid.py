@@ -1049,6 +1049,13 @@ class HybridBelief:
                 raise ValueError(
                     f"robot {f.robot!r} is at step {self.step_of[f.robot]}, got frame {f.k}"
                 )
+            for d in f.detections:
+                if np.shape(d.z_geo) != (self._kind.dim,):
+                    raise ValueError(
+                        f"frame {f.k} of {f.robot!r}: object {d.object_id}'s z_geo has "
+                        f"{np.size(d.z_geo)} numbers, this belief's {self._kind.name} objects "
+                        f"{self._kind.dim}"
+                    )
             seen.add(f.robot)
         window = self.config.window
         if window is not None and len(self.robots) > 1:

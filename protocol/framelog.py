@@ -4,6 +4,7 @@ What a robot's logger writes and ``semfleet replay`` publishes on ``frames/<robo
 header line ``{"v": 1, "type": "frame_log"}``, then one frame per line,
 ``{"robot": id, "k": int, "odometry": [dx, dy, dθ],
 "detections": [{"id": int, "z_geo": [x, y, θ], "z_sem": [s₁, …, s_M]}, ...]}``, with k = 1, 2, 3…
+(``z_geo`` of a point object: [bearing, range]).
 A log never holds ground truth: a parsed frame's ``true_pose`` is three NaN.
 
 Sans-I/O: these functions take and return ``str`` lines; the caller opens the file. A line is
@@ -207,8 +208,10 @@ def _frame(doc: Any, lim: FrameLimits) -> SensorFrame:
 def _detection(value: Any, where: str) -> Detection:
     d = as_map(value, where, _DETECTION_KEYS)
     oid = as_int(d["id"], f"{where}.id", 0, MAX_OBJECT_ID)
+    # z_geo: 3 numbers (a pose object) or 2 (a point's bearing and range); encode_frame checks
+    # which, and that a frame's detections agree
     return Detection(
-        oid, _numbers(d["z_geo"], f"{where}.z_geo", 3), _numbers(d["z_sem"], f"{where}.z_sem")
+        oid, _numbers(d["z_geo"], f"{where}.z_geo"), _numbers(d["z_sem"], f"{where}.z_sem")
     )
 
 

@@ -38,6 +38,11 @@ MAX_SCORES = 64  # length of a score vector when FrameLimits.num_classes is not 
 _F64 = np.dtype("<f8")
 _TOP_KEYS = frozenset({"v", "type", "robot", "k", "odo", "truth", "det"})
 _DET_KEYS = frozenset({"id", "geo", "sem"})
+# A detection's geometry: a pose object's relative pose (x, y, θ) or a point's (bearing, range)
+# (estimator.models.objects); every detection of a frame is of one kind.
+GEO_LENGTHS = (3, 2)
+_GEO_RULE = "{} numbers: 3 (x, y, θ of a pose object) or 2 (bearing, range of a point)"
+_GEO_SAME = "a frame's detections are of one kind (every geo of det[0]'s length)"
 
 
 @dataclass(frozen=True, slots=True)
@@ -122,6 +127,7 @@ def _encode_detections(dets: tuple[Detection, ...], lim: FrameLimits) -> list[di
     _local(len(dets) <= lim.max_detections, "det", f"{len(dets)} > {lim.max_detections}")
     seen: set[int] = set()
     first: int | None = None
+    geo_length: int | None = None
     raw = []
     for i, d in enumerate(dets):
         where = f"det[{i}]"
@@ -130,7 +136,10 @@ def _encode_detections(dets: tuple[Detection, ...], lim: FrameLimits) -> list[di
         _local(id_ok, f"{where}.id", f"{oid!r} outside 0..2³²−1")
         _local(int(oid) not in seen, f"{where}.id", f"duplicate object id {oid}")
         seen.add(int(oid))
-        geo = _vector(d.z_geo, f"{where}.geo", 3)
+        geo = _vector(d.z_geo, f"{where}.geo", None)
+        _local(geo.shape[0] in GEO_LENGTHS, f"{where}.geo", _GEO_RULE.format(geo.shape[0]))
+        _local(geo.shape[0] == (geo_length or geo.shape[0]), f"{where}.geo", _GEO_SAME)
+        geo_length = geo.shape[0]
         sem = _vector(d.z_sem, f"{where}.sem", None)
         problem = _scores_problem(sem.shape[0], first, lim)
         _local(problem is None, f"{where}.sem", str(problem))
@@ -188,6 +197,7 @@ def _decode_detections(raw: Any, lim: FrameLimits) -> list[Detection]:
     need(len(raw) <= lim.max_detections, "det", f"{len(raw)} > {lim.max_detections}", LimitExceeded)
     seen: set[int] = set()
     first: int | None = None
+    geo_length: int | None = None
     dets = []
     for i, value in enumerate(raw):
         where = f"det[{i}]"
@@ -195,7 +205,11 @@ def _decode_detections(raw: Any, lim: FrameLimits) -> list[Detection]:
         oid = as_int(d["id"], f"{where}.id", 0, MAX_OBJECT_ID)
         need(oid not in seen, f"{where}.id", f"duplicate object id {oid}", InvalidValue)
         seen.add(oid)
-        geo = _floats(d["geo"], f"{where}.geo", 3)
+        geo = _floats(d["geo"], f"{where}.geo", None)
+        # malformed, as a score vector of the wrong length is: the blob's shape is wrong
+        need(geo.shape[0] in GEO_LENGTHS, f"{where}.geo", _GEO_RULE.format(geo.shape[0]))
+        need(geo.shape[0] == (geo_length or geo.shape[0]), f"{where}.geo", _GEO_SAME)
+        geo_length = geo.shape[0]
         sem = _floats(d["sem"], f"{where}.sem", None)
         problem = _scores_problem(sem.shape[0], first, lim)
         if problem is not None:

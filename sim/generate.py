@@ -135,6 +135,9 @@ def dump_scenario(s: Scenario) -> str:
     if comm.schedule:
         edges = ", ".join(f"[{e.first}, {e.last}, {_q(e.a)}, {_q(e.b)}]" for e in comm.schedule)
         out.append(f"schedule = [{edges}]")
+    if s.recording is not None:
+        out += ["", "[recording]", f"file = {_q(s.recording.file)}"]
+        out += [f"sha256 = {_q(s.recording.sha256)}"]
     for r in s.robots:
         out += ["", "[[robots]]", f"id = {_q(r.id)}", f"start = {_nums(r.start)}"]
         out += _motion_lines(r)

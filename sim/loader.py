@@ -23,11 +23,13 @@ from estimator.models import ROBOT_ID, ROBOT_ID_RULE, GaussianNoise
 from estimator.models.classifier import OBJECT_TO_CAMERA, VIEWPOINTS
 from estimator.models.objects import OBJECT_KINDS, object_kind
 from sim.learned_file import LearnedFileError, load_learned
+from sim.recording import RecordingError, cached_recording, fits
 from sim.scenario import (
     FORMAT_VERSION,
     ClassifierSpec,
     Communication,
     Object,
+    RecordingRef,
     Robot,
     RobotModel,
     Scenario,
@@ -328,7 +330,7 @@ def _build(raw: dict[str, Any], label: str, folder: Path | None) -> Scenario:
     check_format(top)
     top.check_keys(
         {"format", "name", "description", "steps", *MODEL_TABLES}
-        | {"communication", "robots", "objects", "variants"}
+        | {"communication", "robots", "objects", "variants", "recording"}
     )
     name = top.string("name")
     description = top.string("description") if top.has("description") else ""
@@ -339,6 +341,13 @@ def _build(raw: dict[str, Any], label: str, folder: Path | None) -> Scenario:
     objects = _objects(top, model.num_classes, model.sensor.objects)
     robot_ids = [r.id for r in robots]
     communication = _communication(top.table("communication"), steps, robot_ids)
+    recording = None
+    if top.has("recording"):
+        recording = _recording(top.table("recording"), folder, robot_ids, steps, objects)
+        if model.sensor.objects != "point":
+            raise top.fail(
+                "recording", 'a recording holds point landmarks: [sensor] objects = "point"'
+            )
     return Scenario(
         name=name,
         description=description,
@@ -354,7 +363,36 @@ def _build(raw: dict[str, Any], label: str, folder: Path | None) -> Scenario:
         sensor=model.sensor,
         communication=communication,
         estimator_classifier=estimator,
+        recording=recording,
     )
+
+
+def _recording(
+    f: FieldReader,
+    folder: Path | None,
+    robots: list[str],
+    steps: int,
+    objects: tuple[Object, ...],
+) -> RecordingRef:
+    """``[recording]``: ``file`` (relative to the scenario's folder) and its ``sha256``; the
+    file is read now and must fit the scenario's robots, steps and objects."""
+    f.check_keys({"file", "sha256"})
+    name = f.string("file")
+    digest = f.string("sha256")
+    if not name:
+        raise f.fail("file", "must name a recording file (.npz)")
+    if len(digest) != 64 or any(c not in "0123456789abcdef" for c in digest):
+        raise f.fail("sha256", "expected 64 lowercase hexadecimal digits")
+    path = Path(name).expanduser()
+    path = (path if path.is_absolute() else (folder or Path.cwd()) / path).resolve()
+    try:
+        rec = cached_recording(str(path), digest)
+    except RecordingError as exc:
+        raise f.fail("file", str(exc)) from None
+    problem = fits(rec, robots, steps, [o.id for o in objects])
+    if problem is not None:
+        raise f.fail("file", f"{path}: {problem}")
+    return RecordingRef(name, str(path), digest)
 
 
 def robot_model_tables(top: FieldReader, owner: str, folder: Path | None = None) -> RobotModel:

@@ -49,6 +49,16 @@ class Sensor:
 
 
 @dataclass(frozen=True, slots=True)
+class RecordingRef:
+    """A scenario's ``[recording]`` (``sim.recording``): ``file`` as the scenario writes it
+    (relative to its folder, or absolute), ``path`` resolved, and the file's ``sha256``."""
+
+    file: str
+    path: str
+    sha256: str
+
+
+@dataclass(frozen=True, slots=True)
 class Robot:
     """A robot: ``start`` pose (3,) and per-step body-frame actions ``actions`` (steps, 3);
     ``x_k = x_{k−1} ∘ actions[k−1]``."""
@@ -152,6 +162,8 @@ class Scenario:
     applied_variants: tuple[str, ...] = ()
     # [classifier.estimator]: the robots' model when it is not the one generating the scores.
     estimator_classifier: ClassifierSpec | None = None
+    # [recording]: frames recorded by real robots (sim.recording) instead of simulated ones
+    recording: RecordingRef | None = None
 
     @property
     def robot_ids(self) -> tuple[str, ...]:

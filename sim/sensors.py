@@ -16,6 +16,7 @@ from numpy.typing import NDArray
 
 from estimator.models import ClassifierModel, Detection, SensorFrame, se2, viewpoint
 from estimator.models.objects import object_kind
+from sim.recording import Recording
 from sim.scenario import Scenario
 from sim.world import World
 
@@ -70,6 +71,9 @@ class Simulator:
             raise ValueError(f"step {k} out of range 1..{self.scenario.steps}")
         traj = self.world.trajectories[robot]
         x_prev, x_k = traj[k - 1], traj[k]
+        rec = self.world.recording
+        if rec is not None:
+            return self._recorded(rec, robot, k, x_k)
         odo_noise = standard_normals(self.seed, _ODOMETRY, robot, k, 0, 3)
         odometry = self.scenario.odometry_noise.corrupt(se2.between(x_prev, x_k), odo_noise)
         detections = tuple(
@@ -77,19 +81,34 @@ class Simulator:
         )
         return SensorFrame(robot, k, odometry, detections, x_k.copy())
 
+    def _recorded(self, rec: Recording, robot: str, k: int, x_k: Array) -> SensorFrame:
+        """A recorded run's frame (``sim.recording``): its odometry and detections as the robot
+        measured them; only the class scores are drawn, seeded as a simulated frame's, from the
+        classifier model at the true viewpoint."""
+        i = rec.robots.index(robot)
+        ids, zs = rec.detections(i, k)
+        detections = tuple(
+            Detection(int(oid), z.copy(), self._scores(robot, k, x_k, int(oid)))
+            for oid, z in zip(ids.tolist(), zs, strict=True)
+        )
+        return SensorFrame(robot, k, rec.odometry[i, k - 1].copy(), detections, x_k.copy())
+
+    def _scores(self, robot: str, k: int, x_k: Array, oid: int) -> Array:
+        j = self._object_index[oid]
+        obj = self.kind.from_pose(self.world.object_poses[j])
+        c = self.scenario.objects[j].class_index
+        psi = viewpoint(x_k, self.kind.as_pose(obj))
+        sem_noise = standard_normals(self.seed, _SEMANTIC, robot, k, oid, self.classifier.dim)
+        chol = np.linalg.cholesky(self.classifier.cov(c, psi))
+        return np.asarray(self.classifier.mean(c, psi) + chol @ sem_noise)
+
     def _detect(self, robot: str, k: int, x_k: Array, oid: int) -> Detection:
         j = self._object_index[oid]
         # a point object is its position; the classifier sees it at heading 0 (world frame)
         obj = self.kind.from_pose(self.world.object_poses[j])
         geo_noise = standard_normals(self.seed, _GEOMETRIC, robot, k, oid, self.kind.dim)
         z_geo = self.scenario.geometric_noise.corrupt(self.kind.measure(x_k, obj), geo_noise)
-        c = self.scenario.objects[j].class_index
-        psi = viewpoint(x_k, self.kind.as_pose(obj))
-        m = self.classifier.dim
-        sem_noise = standard_normals(self.seed, _SEMANTIC, robot, k, oid, m)
-        chol = np.linalg.cholesky(self.classifier.cov(c, psi))
-        z_sem = self.classifier.mean(c, psi) + chol @ sem_noise
-        return Detection(oid, z_geo, z_sem)
+        return Detection(oid, z_geo, self._scores(robot, k, x_k, oid))
 
     def frames(self, robot: str) -> list[SensorFrame]:
         """All frames of one robot, k = 1..steps."""

@@ -9,6 +9,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from estimator.models import se2
+from sim.recording import Recording, cached_recording
 from sim.scenario import Scenario
 
 Array = NDArray[np.float64]
@@ -38,8 +39,18 @@ class World:
     scenario: Scenario
 
     @cached_property
+    def recording(self) -> Recording | None:
+        """The scenario's recorded run (``[recording]``), or None for a simulated world."""
+        ref = self.scenario.recording
+        return None if ref is None else cached_recording(ref.path, ref.sha256)
+
+    @cached_property
     def trajectories(self) -> dict[str, Array]:
-        """Robot id → true poses (steps + 1, 3), row k = x_k (row 0 = start)."""
+        """Robot id → true poses (steps + 1, 3), row k = x_k (row 0 = start); a recorded
+        run's own ground truth."""
+        rec = self.recording
+        if rec is not None:
+            return {r: rec.truth[i] for i, r in enumerate(rec.robots)}
         return {
             r.id: integrate(np.asarray(r.start, float), np.asarray(r.actions, float).reshape(-1, 3))
             for r in self.scenario.robots
@@ -54,8 +65,20 @@ class World:
     def visibility(self) -> dict[str, NDArray[np.bool_]]:
         """Robot id → (steps + 1, n) booleans; row k says which objects are seen from x_k.
 
-        Row 0 is all False: the first observation is made at k = 1, after the first action.
+        Row 0 is all False: the first observation is made at k = 1, after the first action. A
+        recorded run's rows are what its robots detected.
         """
+        rec = self.recording
+        if rec is not None:
+            column = {oid: j for j, oid in enumerate(self.scenario.object_ids)}
+            seen = {}
+            for i, rid in enumerate(rec.robots):
+                vis = np.zeros((rec.steps + 1, len(column)), dtype=bool)
+                mine = rec.det_robot == i
+                cols = [column[int(o)] for o in rec.det_object[mine]]
+                vis[rec.det_step[mine], cols] = True
+                seen[rid] = vis
+            return seen
         out = {}
         pts = self.object_poses[:, :2]
         for r in self.scenario.robots:

@@ -32,6 +32,7 @@ from deploy.base.output import make_console
 from deploy.cli.commands import (
     agent,
     classifier,
+    dataset,
     demo,
     fleet,
     replay,
@@ -107,6 +108,7 @@ def build_parser() -> argparse.ArgumentParser:
     scenario.add_parser(sub)
     classifier.add_parser(sub)
     study.add_parser(sub)
+    dataset.add_parser(sub)
     export_command.add_parser(sub)
     demo.add_parser(sub)
     ufastslam.add_parser(sub)

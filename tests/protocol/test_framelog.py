@@ -133,7 +133,9 @@ LINE_ERRORS: list[tuple[str, str, str]] = [
     (_with(("odometry", 1), 10**400), "odometry", "number out of range"),
     (_with(("odometry",), [0.0, 1.0]), "odometry", "expected 3 numbers, got 2"),
     (_with(("odometry",), {"x": 1}), "odometry", "expected an array of numbers"),
-    (_with((*DET, "z_geo"), [1, 2, 3, 4]), "detections[0].z_geo", "expected 3 numbers"),
+    (_with((*DET, "z_geo"), [1, 2, 3, 4]), "detections[0].z_geo", "4 numbers: 3 (x, y, θ"),
+    # a point's (bearing, range) first: the next detection, a pose's, is of another kind
+    (_with((*DET, "z_geo"), [1, 2]), "detections[1].z_geo", "detections are of one kind"),
     (_with((*DET, "z_sem"), []), "detections[0].z_sem", "at least one score"),
     (_with((*DET, "z_sem"), [0.5] * 65), "detections[0].z_sem", "65 scores > 64"),
     (_with(("detections", 1, "z_sem"), [0.5, 0.5]), "detections[1].z_sem", "first detection"),

@@ -517,3 +517,24 @@ def test_frames_encode_emits_only_what_decode_accepts(
         assert exc.field
         return
     assert_same_frame(decode_frame(blob), frame)
+
+
+def test_a_frame_of_point_detections_round_trips_and_one_kind_per_frame() -> None:
+    """Point objects (issue 44): a detection's geo is (bearing, range), 16 bytes; every
+    detection of a frame is of one kind; neither 1 nor 4 numbers is a detection."""
+    dets = (
+        Detection(3, np.array([0.2, 1.5]), np.array([0.1, 0.9])),
+        Detection(9, np.array([-1.0, 4.0]), np.array([0.7, 0.3])),
+    )
+    frame = SensorFrame("r1", 4, np.array([0.1, 0.0, 0.01]), dets, np.full(3, np.nan))
+    back = decode_frame(encode_frame(frame))
+    assert [d.z_geo.tolist() for d in back.detections] == [[0.2, 1.5], [-1.0, 4.0]]
+    mixed = (dets[0], Detection(9, np.array([1.0, 0.0, 0.1]), np.array([0.7, 0.3])))
+    with pytest.raises(LocalProtocolError) as caught:
+        encode_frame(SensorFrame("r1", 4, frame.odometry, mixed, frame.true_pose))
+    assert caught.value.field == "det[1].geo"
+    for n in (1, 4):
+        odd = (Detection(3, np.zeros(n), np.array([0.1, 0.9])),)
+        with pytest.raises(LocalProtocolError) as caught:
+            encode_frame(SensorFrame("r1", 4, frame.odometry, odd, frame.true_pose))
+        assert caught.value.field == "det[0].geo"

@@ -1,0 +1,126 @@
+"""`semfleet dataset mrclam DIR -o OUT` as a user runs it (issue 44, item 2): on a synthetic
+five-robot dataset (tests/sim/test_mrclam.py), its folder and its .tar.xz archive; the scenario it
+writes goes through `scenario show`, `study` and `scenario frames` as it is; a folder that is not
+a dataset gets one line naming the file; OUT is not written over without --force."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import tarfile
+from pathlib import Path
+
+import numpy as np
+
+from sim.loader import load_scenario
+from tests.sim.test_mrclam import _rows, _write_noisy
+
+SEMFLEET = Path(sys.executable).parent / "semfleet"
+ARGS = ("--rate", "4", "--calibrate", "2")
+
+
+def semfleet(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [str(SEMFLEET), *args],
+        capture_output=True,
+        text=True,
+        timeout=600,  # a guard against hangs, not a speed check
+        cwd=cwd,
+        env={"COLUMNS": "200", "PATH": "/usr/bin:/bin", "MPLBACKEND": "Agg"},
+    )
+
+
+def _dataset(tmp_path: Path) -> Path:
+    rows = {name: [list(r) for r in table] for name, table in _rows().items()}
+    return _write_noisy(tmp_path / "MRCLAM_Dataset0", rows, np.random.default_rng(3), 0.05, 0.02)
+
+
+def test_a_dataset_becomes_a_scenario_that_study_runs_as_it_is(tmp_path: Path) -> None:
+    folder = _dataset(tmp_path)
+    r = semfleet("dataset", "mrclam", str(folder), "-o", "out", *ARGS, cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert "wrote out/scenario.toml and out/recording.npz" in r.stdout
+    assert "set aside" in r.stdout and "robot sightings" in r.stdout
+    scenario = load_scenario(tmp_path / "out" / "scenario.toml")
+    assert scenario.recording is not None and len(scenario.robots) == 5
+    shown = semfleet("scenario", "show", "out/scenario.toml", cwd=tmp_path)
+    assert shown.returncode == 0, shown.stderr
+    study = semfleet(
+        "study",
+        "--scenario",
+        "out/scenario.toml",
+        "--runs",
+        "2",
+        "--methods",
+        "local,distributed,centralized",
+        "--out",
+        "study",
+        cwd=tmp_path,
+    )
+    assert study.returncode == 0, study.stderr
+    results = json.loads((tmp_path / "study" / "results.json").read_text())
+    assert results
+    frames = tmp_path / "r2.jsonl"
+    f = semfleet(
+        "scenario",
+        "frames",
+        "out/scenario.toml",
+        "--robot",
+        "r2",
+        "--seed",
+        "1",
+        "-o",
+        str(frames),
+        cwd=tmp_path,
+    )
+    assert f.returncode == 0, f.stderr
+    assert frames.read_text().count("\n") == 1 + scenario.steps  # the header, then the frames
+
+
+def test_the_archive_as_shipped_gives_the_same_scenario(tmp_path: Path) -> None:
+    folder = _dataset(tmp_path)
+    archive = tmp_path / "MRCLAM_Dataset0.tar.xz"
+    with tarfile.open(archive, "w:xz") as tar:
+        tar.add(folder, arcname=folder.name)
+    a = semfleet("dataset", "mrclam", str(folder), "-o", "a", *ARGS, cwd=tmp_path)
+    b = semfleet("dataset", "mrclam", str(archive), "-o", "b", *ARGS, cwd=tmp_path)
+    assert a.returncode == 0 and b.returncode == 0, a.stderr + b.stderr
+    assert (tmp_path / "a" / "recording.npz").read_bytes() == (
+        tmp_path / "b" / "recording.npz"
+    ).read_bytes()
+    body = [(tmp_path / d / "scenario.toml").read_text().split("\nformat = 1\n")[1] for d in "ab"]
+    assert body[0] == body[1]
+
+
+def test_what_is_not_a_dataset_gets_one_line_and_out_is_not_written_over(tmp_path: Path) -> None:
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    r = semfleet("dataset", "mrclam", str(empty), "-o", "out", cwd=tmp_path)
+    assert r.returncode == 2
+    assert r.stderr.count("\n") == 1 and "Barcodes.dat" in r.stderr, r.stderr
+    assert not (tmp_path / "out").exists()
+    folder = _dataset(tmp_path)
+    assert (
+        semfleet("dataset", "mrclam", str(folder), "-o", "out", *ARGS, cwd=tmp_path).returncode == 0
+    )
+    again = semfleet("dataset", "mrclam", str(folder), "-o", "out", *ARGS, cwd=tmp_path)
+    assert again.returncode == 2 and "--force" in again.stderr
+    forced = semfleet("dataset", "mrclam", str(folder), "-o", "out", *ARGS, "--force", cwd=tmp_path)
+    assert forced.returncode == 0, forced.stderr
+    bad = semfleet("dataset", "mrclam", str(folder), "-o", "x", "--rate", "0", cwd=tmp_path)
+    assert bad.returncode == 2 and "--rate 0.0" in bad.stderr
+
+
+def test_launch_runs_five_agent_processes_on_the_recorded_run(tmp_path: Path) -> None:
+    """Real OS processes over Zenoh on loopback, each agent fed the recorded frames."""
+    folder = _dataset(tmp_path)
+    assert (
+        semfleet("dataset", "mrclam", str(folder), "-o", "out", *ARGS, cwd=tmp_path).returncode == 0
+    )
+    r = semfleet(
+        "launch", "--scenario", "out/scenario.toml", "--steps", "6", "--out", "run", cwd=tmp_path
+    )
+    assert r.returncode == 0, r.stderr
+    results = json.loads((tmp_path / "run" / "results.json").read_text())
+    assert "launch" in results and set(results["robots"]) == {"r1", "r2", "r3", "r4", "r5"}

@@ -1,0 +1,142 @@
+"""An MRCLAM dataset as a scenario with a recorded run (``sim.mrclam_scenario``,
+``sim.recording``; issue 44 item 2), on the synthetic five-robot dataset of test_mrclam: the
+recording holds what the robots measured and nothing else enters a frame; the ground truth is
+Vicon's at the steps; the scenario file names its recording by digest and reads back."""
+
+from __future__ import annotations
+
+import functools
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from estimator.models import viewpoint
+from estimator.models.objects import POINT
+from sim.generate import dump_scenario
+from sim.loader import load_scenario, parse_scenario
+from sim.mrclam import (
+    MrclamDataset,
+    landmark_steps,
+    odometry_increments,
+    read_mrclam,
+    sightings,
+    step_times,
+    truth_at,
+)
+from sim.mrclam_scenario import mrclam_scenario, with_digest
+from sim.recording import Recording, RecordingError, read_recording, recording_bytes, sha256_of
+from sim.scenario import ScenarioError
+from sim.sensors import Simulator
+from tests.sim.test_mrclam import _rows, _write_noisy
+from tests.tolerance import assert_close
+
+RATE, CALIBRATE = 4.0, 2.0
+
+
+@functools.cache
+def _data(folder: str) -> MrclamDataset:
+    rows = {name: [list(r) for r in table] for name, table in _rows().items()}
+    return read_mrclam(_write_noisy(Path(folder), rows, np.random.default_rng(3), 0.05, 0.02))
+
+
+def _written(tmp_path: Path, **kw: object) -> tuple[Path, MrclamDataset, Recording]:
+    data = _data(str(tmp_path / "data"))
+    out = tmp_path / "out"
+    out.mkdir()
+    scenario, rec, _ = mrclam_scenario(data, out / "recording.npz", RATE, CALIBRATE, **kw)  # type: ignore[arg-type]
+    (out / "recording.npz").write_bytes(recording_bytes(rec))
+    scenario = with_digest(scenario, sha256_of(out / "recording.npz"))
+    (out / "scenario.toml").write_text(dump_scenario(scenario))
+    return out / "scenario.toml", data, rec
+
+
+def test_the_recording_is_the_robots_own_measurements_at_the_steps(tmp_path: Path) -> None:
+    path, data, rec = _written(tmp_path)
+    every = step_times(data, RATE)
+    times = every[every >= every[0] + CALIBRATE]
+    assert rec.steps == len(times) - 1 > 5
+    assert_close(rec.times, times - times[0], atol=1e-9)
+    for i, log in enumerate(data.robots):
+        assert_close(rec.truth[i], truth_at(log, times), atol=1e-12, what="Vicon at the steps")
+        assert_close(rec.odometry[i], odometry_increments(log, times), atol=1e-12)
+        rows = landmark_steps(log, sightings(data, log).landmarks, times)
+        mine = rec.det_robot == i
+        # every kept detection is one of the robot's own sightings at its step, nearest t_k
+        for k, j, (b, r) in zip(
+            rec.det_step[mine], rec.det_object[mine], rec.det_z[mine], strict=True
+        ):
+            same = rows[(rows[:, 0] == k) & (rows[:, 1] == j)]
+            nearest = same[np.argmin(same[:, 4])]
+            assert r == pytest.approx(nearest[2]) and b == pytest.approx(nearest[3])
+        assert len(set(zip(rows[:, 0], rows[:, 1], strict=True))) == mine.sum()
+    s = load_scenario(path)
+    assert s.recording is not None and s.sensor.objects == "point"
+    assert [r.id for r in s.robots] == ["r1", "r2", "r3", "r4", "r5"]
+    assert_close(
+        np.array([o.pose for o in s.objects])[:, :2], [data.landmarks[o.id] for o in s.objects]
+    )
+
+
+def test_frames_carry_the_recording_and_draw_only_the_scores(tmp_path: Path) -> None:
+    path, _, rec = _written(tmp_path)
+    s = load_scenario(path)
+    model = s.classifier.build()
+    truth = {o.id: np.array(o.pose[:2]) for o in s.objects}
+    one, two = Simulator(s, 1), Simulator(s, 2)
+    seen = 0
+    for i, robot in enumerate(rec.robots):
+        for k in range(1, rec.steps + 1):
+            f, g = one.frame(robot, k), two.frame(robot, k)
+            assert_close(f.odometry, rec.odometry[i, k - 1], atol=0)
+            assert_close(f.true_pose, rec.truth[i, k], atol=0)
+            ids, zs = rec.detections(i, k)
+            assert [d.object_id for d in f.detections] == ids.tolist()
+            for d, e, z in zip(f.detections, g.detections, zs, strict=True):
+                seen += 1
+                assert_close(d.z_geo, z, atol=0)
+                assert not np.allclose(d.z_sem, e.z_sem)  # the scores are the run's, per seed
+                c = s.objects[[o.id for o in s.objects].index(d.object_id)].class_index
+                psi = float(viewpoint(f.true_pose, POINT.as_pose(truth[d.object_id])))
+                mean = model.mean(c, psi)
+                white = np.linalg.solve(np.linalg.cholesky(model.cov(c, psi)), d.z_sem - mean)
+                assert np.all(np.abs(white) < 6)
+    assert seen > 20
+
+
+def test_the_scenario_reads_back_and_a_changed_recording_is_refused_by_name(tmp_path: Path) -> None:
+    path, _, _ = _written(tmp_path)
+    s = load_scenario(path)
+    again = parse_scenario(dump_scenario(s), str(path), folder=path.parent)
+    assert again.recording == s.recording
+    blob = path.parent / "recording.npz"
+    blob.write_bytes(blob.read_bytes()[:-3] + b"abc")
+    with pytest.raises(ScenarioError, match=r"recording\.file: .*sha256"):
+        parse_scenario(path.read_text(), "changed.toml", folder=path.parent)
+    with pytest.raises(RecordingError, match="sha256"):
+        read_recording(blob, s.recording.sha256)  # type: ignore[union-attr]
+    (path.parent / "recording.npz").unlink()
+    with pytest.raises(ScenarioError, match=r"recording\.file: .*cannot read"):
+        parse_scenario(path.read_text(), "gone.toml", folder=path.parent)
+
+
+def test_a_recording_whose_arrays_do_not_fit_is_refused_naming_the_array() -> None:
+    r = np.zeros((1, 3, 3))
+    good = dict(
+        robots=("r1",),
+        times=np.arange(3.0),
+        truth=r,
+        odometry=np.zeros((1, 2, 3)),
+        det_robot=np.array([0, 0]),
+        det_step=np.array([1, 1]),
+        det_object=np.array([7, 7]),
+        det_z=np.array([[0.1, 1.0], [0.2, 1.0]]),
+    )
+    with pytest.raises(RecordingError, match="det_object: object 7 twice at step 1"):
+        Recording(**good)  # type: ignore[arg-type]
+    with pytest.raises(RecordingError, match="odometry: shape"):
+        Recording(**{**good, "odometry": np.zeros((1, 3, 3)), "det_object": np.array([7, 8])})  # type: ignore[arg-type]
+    with pytest.raises(RecordingError, match="det_z: a bearing or range"):
+        Recording(
+            **{**good, "det_object": np.array([7, 8]), "det_z": np.array([[0.1, -1.0], [0.2, 1.0]])}
+        )  # type: ignore[arg-type]
