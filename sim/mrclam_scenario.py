@@ -13,10 +13,11 @@
   factors are not part of semfleet's model).
 - **Ground truth** (Vicon, interpolated at the steps) goes into the recording for scoring and the
   link models only; no frame hands it to an estimator.
-- **Noise**: per-step odometry and per-sighting range and bearing variances from the residuals
-  against Vicon over the calibration seconds: the plain variance of all residuals (the robust σ
-  and the share of gross outliers are written next to it as comments), so that the Gaussian
-  model is not narrower than the data it will meet.
+- **Noise**: from the residuals against Vicon over the calibration seconds. Odometry: the
+  variance per step of the motion over 5 s windows (its errors are correlated in time: one
+  step's variance understates how fast they accumulate). Range and bearing: the plain variance
+  of all residuals (the robust σ and the share of gross outliers are written next to it as
+  comments), so that the Gaussian model is not narrower than the data it will meet.
 - **Classes** are semi-synthetic: each landmark gets a class drawn from a uniform prior, and an
   aliased classifier model of ``classes`` classes with random aliases and best views, all from
   ``seed``; each run then draws scores from it at the **real** viewpoint (robot Vicon pose, the
@@ -68,6 +69,9 @@ CALIBRATION_S = 300.0
 COMM_RANGE = 3.0  # m
 CLASSES = 3
 NOISE_STD = 0.35  # the aliased classifier's score noise, as generated worlds'
+# The odometry's variance per step is measured over windows of this many seconds: its errors
+# are correlated in time, and over 5 s they accumulate 3× (x) faster than one step's say.
+ODOMETRY_WINDOW_S = 5.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -103,7 +107,8 @@ def mrclam_scenario(
     if classes < 2:
         raise ValueError(f"classes {classes}: at least 2")
     every = step_times(data, rate)
-    cal = calibrate(data, rate, calibrate_s)
+    # at least four windows of every robot in the calibration seconds
+    cal = calibrate(data, rate, calibrate_s, min(ODOMETRY_WINDOW_S, calibrate_s / 4))
     times = every[every >= every[0] + calibrate_s]
     if seconds is not None:
         times = times[times <= times[0] + seconds]
@@ -180,7 +185,8 @@ def mrclam_scenario(
         class_prior=tuple([1.0 / classes] * classes),
         robots=robots,
         objects=objects,
-        odometry_noise=GaussianNoise(tuple(float(s) ** 2 for s in cal.odometry_std)),
+        # floored: an exact odometry (a synthetic dataset) would give a singular model
+        odometry_noise=GaussianNoise(tuple(max(v, 1e-10) for v in cal.odometry_rate)),
         geometric_noise=GaussianNoise((cal.bearing_std**2, cal.range_std**2)),
         classifier=ClassifierSpec("aliased", tuple(alias), tuple(best), NOISE_STD),
         sensor=sensor,

@@ -338,6 +338,9 @@ def write_study_plots(
     diagram at ``step`` and the first run's hypothesis snapshots of ``robot`` into ``out``; the
     paths written."""
     written = write_curves_and_reliability(out, doc, results, step, paper)
+    trajectories = plot_trajectories(scenario, results[0])
+    if trajectories is not None:
+        written.append(save(trajectories, out / "trajectories.png"))
     world = World(scenario)
     for method, snaps in results[0].snapshots.items():
         if robot not in snaps:
@@ -349,6 +352,38 @@ def write_study_plots(
         fig.suptitle(f"{method}, seed {results[0].seed} (paper Fig. 3b/3c)")
         written.append(save(fig, out / f"hypotheses_{method}_{robot}_k{step}.png"))
     return written
+
+
+def plot_trajectories(scenario: Scenario, run: RunResult) -> Figure | None:
+    """Every robot's estimated trajectory (solid) against the true one (dashed, e.g. Vicon for a
+    recorded run), one panel per method of ``run`` that recorded trajectories, with the true
+    objects; None when no method did."""
+    methods = [
+        m
+        for m, tracks in run.metrics.items()
+        if "robot_pose" in tracks and "true_robot_pose" in tracks
+    ]
+    if not methods:
+        return None
+    fig, axes = plt.subplots(1, len(methods), figsize=(5.2 * len(methods), 4.6), squeeze=False)
+    objects = scenario.object_poses()[:, :2]
+    colours = plt.get_cmap("tab10")
+    for ax, method in zip(axes[0], methods, strict=True):
+        tracks = run.metrics[method]
+        for i, robot in enumerate(run.robots or scenario.robot_ids):
+            colour = colours(i % 10)
+            truth, est = tracks["true_robot_pose"][i], tracks["robot_pose"][i]
+            ax.plot(truth[:, 0], truth[:, 1], "--", color=colour, lw=0.8, alpha=0.7)
+            ax.plot(est[:, 0], est[:, 1], "-", color=colour, lw=1.1, label=robot)
+        ax.plot(*objects.T, "s", ms=4, mfc="none", mec="k", label="objects (true)")
+        ax.set_aspect("equal")
+        ax.grid(True, alpha=0.3)
+        ax.set_xlabel("x [m]")
+        ax.set_ylabel("y [m]")
+        ax.set_title(f"{method}: estimate (solid), truth (dashed)", fontsize=10)
+    axes[0][0].legend(fontsize=7, loc="best")
+    fig.suptitle(f"{scenario.name}, seed {run.seed}: robot trajectories")
+    return fig
 
 
 # ---- the UFastSLAM study (docs/ufastslam.md) ---------------------------------------------------

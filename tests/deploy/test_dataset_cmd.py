@@ -60,7 +60,12 @@ def test_a_dataset_becomes_a_scenario_that_study_runs_as_it_is(tmp_path: Path) -
     )
     assert study.returncode == 0, study.stderr
     results = json.loads((tmp_path / "study" / "results.json").read_text())
-    assert results
+    assert results["steps"] == scenario.steps
+    # the five estimated trajectories against Vicon, one panel per method
+    assert (tmp_path / "study" / "trajectories.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    tum = semfleet("export", "tum", "study", "-o", "tum", cwd=tmp_path)
+    assert tum.returncode == 0, tum.stderr
+    assert (tmp_path / "tum" / "seed-0" / "r5_distributed.tum").exists()
     frames = tmp_path / "r2.jsonl"
     f = semfleet(
         "scenario",

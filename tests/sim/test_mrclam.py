@@ -329,3 +329,36 @@ def test_dataset_7_calibrates_on_its_first_300_s() -> None:
     assert cal.steps == 5 * 600 and cal.sightings > 5000
     assert 0.05 < cal.range < 0.3 and 0.003 < cal.bearing < 0.03
     assert max(cal.odometry[:2]) < 0.02 and cal.odometry[2] < 0.05
+
+
+def test_the_odometry_rate_over_windows_sees_errors_that_accumulate(tmp_path: Path) -> None:
+    """A wheel-scale error (every forward velocity 5 % long) is one error repeated every step:
+    over windows of n steps its residual grows as n, its variance as n², so the variance per
+    step over windows is about n times the one-step one, where white noise would give the
+    same."""
+    rows = {name: [list(r) for r in table] for name, table in _rows().items()}
+    for r in range(1, 6):
+        rows[f"Robot{r}_Odometry.dat"] = [
+            [t, 1.05 * v, w] for t, v, w in rows[f"Robot{r}_Odometry.dat"]
+        ]
+    _write(tmp_path / "scaled", rows)
+    data = read_mrclam(tmp_path / "scaled")
+    cal = calibrate(data, 4.0, 1e6, window=2.5)  # windows of 10 steps
+    assert cal.window == 2.5
+    one_step = cal.odometry_std[0] ** 2
+    assert cal.odometry_rate[0] > 4 * one_step, (cal.odometry_rate, one_step)
+    exact = calibrate(
+        read_mrclam(
+            _write_noisy(
+                tmp_path / "n",
+                {n: [list(r) for r in t] for n, t in _rows().items()},
+                np.random.default_rng(3),
+                0.05,
+                0.02,
+            )
+        ),
+        4.0,
+        1e6,
+        window=2.5,
+    )
+    assert max(exact.odometry_rate) < 1e-8  # exact commands: nothing accumulates
