@@ -67,11 +67,6 @@ def generate_scenario(
     robot_specs = tuple(
         _wandering_robot(f"r{i + 1}", rng, half, steps, sensor) for i in range(robots)
     )
-    alias, best = [], []
-    for c in range(classes):
-        others = [a for a in range(classes) if a != c]
-        alias.append(int(others[rng.integers(len(others))]))
-        best.append(float(rng.uniform(-180.0, 180.0)))
     return Scenario(
         name=f"random-r{robots}-o{objects}-c{classes}-s{seed}",
         description=f"random world, seed {seed}, {side:.1f} m square",
@@ -83,10 +78,23 @@ def generate_scenario(
         objects=object_specs,
         odometry_noise=PAPER_ODOMETRY,
         geometric_noise=PAPER_GEOMETRIC if kind == "pose" else POINT_GEOMETRIC,
-        classifier=ClassifierSpec("aliased", tuple(alias), tuple(best), 0.35),
+        classifier=random_aliased(rng, classes),
         sensor=sensor,
         communication=Communication("range", comm_range, ()),
     )
+
+
+def random_aliased(
+    rng: np.random.Generator, classes: int, noise_std: float = 0.35
+) -> ClassifierSpec:
+    """An aliased classifier of ``classes`` classes, each with a random alias among the others
+    and a random best view (degrees), drawn from ``rng`` in that order, class by class."""
+    alias, best = [], []
+    for c in range(classes):
+        others = [a for a in range(classes) if a != c]
+        alias.append(int(others[rng.integers(len(others))]))
+        best.append(float(rng.uniform(-180.0, 180.0)))
+    return ClassifierSpec("aliased", tuple(alias), tuple(best), noise_std)
 
 
 def _wandering_robot(

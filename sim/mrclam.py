@@ -354,9 +354,9 @@ class Calibration:
     range_bias: float  # the median range residual (measured − Vicon), m
     bearing_bias: float  # rad
     # Per-step variances of the odometry measured over ``window`` seconds: the mean square
-    # residual of the motion over n steps, / n. Odometry errors are correlated in time (wheel scale, slip), so
-    # the one-step variance understates how fast they accumulate (Dataset 7, x: 5.5e-5 per step
-    # from one step, 1.8e-4 from 5 s windows); zeros when ``window`` is 0.
+    # residual of the motion over n steps, / n. Odometry errors are correlated in time (wheel
+    # scale, slip), so the one-step variance understates how fast they accumulate (Dataset 7,
+    # x: 5.5e-5 from one step, 2.75e-4 per step over 5 s windows); zeros when ``window`` is 0.
     odometry_rate: tuple[float, float, float] = (0.0, 0.0, 0.0)
     window: float = 0.0
 

@@ -39,6 +39,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from estimator.models import GaussianNoise
+from sim.generate import random_aliased
 from sim.mrclam import (
     Calibration,
     MrclamDataset,
@@ -52,7 +53,6 @@ from sim.mrclam import (
 )
 from sim.recording import Recording
 from sim.scenario import (
-    ClassifierSpec,
     Communication,
     Object,
     RecordingRef,
@@ -149,11 +149,7 @@ def mrclam_scenario(
     )
     rng = np.random.default_rng(np.random.SeedSequence([seed, 0x3C1A55E5]))
     truth_classes = rng.integers(0, classes, size=len(landmarks))
-    alias, best = [], []
-    for c in range(classes):
-        others = [a for a in range(classes) if a != c]
-        alias.append(int(others[rng.integers(len(others))]))
-        best.append(float(rng.uniform(-180.0, 180.0)))
+    classifier = random_aliased(rng, classes, NOISE_STD)
     far = float(np.max(table[:, 4])) if len(table) else 1.0
     wide = float(np.max(np.abs(table[:, 3]))) if len(table) else math.pi / 4
     sensor = Sensor(min(_up(wide, 1e-3), math.pi), _up(far, 0.1), "point")
@@ -188,7 +184,7 @@ def mrclam_scenario(
         # floored: an exact odometry (a synthetic dataset) would give a singular model
         odometry_noise=GaussianNoise(tuple(max(v, 1e-10) for v in cal.odometry_rate)),
         geometric_noise=GaussianNoise((cal.bearing_std**2, cal.range_std**2)),
-        classifier=ClassifierSpec("aliased", tuple(alias), tuple(best), NOISE_STD),
+        classifier=classifier,
         sensor=sensor,
         communication=comm,
         recording=RecordingRef(recording_file.name, str(recording_file), "0" * 64),

@@ -6,29 +6,16 @@ a dataset gets one line naming the file; OUT is not written over without --force
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 import tarfile
 from pathlib import Path
 
 import numpy as np
 
 from sim.loader import load_scenario
+from tests.deploy.test_cli import semfleet
 from tests.sim.test_mrclam import _rows, _write_noisy
 
-SEMFLEET = Path(sys.executable).parent / "semfleet"
 ARGS = ("--rate", "4", "--calibrate", "2")
-
-
-def semfleet(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [str(SEMFLEET), *args],
-        capture_output=True,
-        text=True,
-        timeout=600,  # a guard against hangs, not a speed check
-        cwd=cwd,
-        env={"COLUMNS": "200", "PATH": "/usr/bin:/bin", "MPLBACKEND": "Agg"},
-    )
 
 
 def _dataset(tmp_path: Path) -> Path:

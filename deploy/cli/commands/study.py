@@ -95,20 +95,18 @@ def run(args: argparse.Namespace, console: Console, own: dict[str, tuple[str, An
     if args.xi == "sparse" and args.hypotheses != "per_object":
         raise UsageError(f"--xi {args.xi} needs --hypotheses per_object (one ξ per slot)")
     changes["xi"] = args.xi
-    if args.slot_lin != "fused":
+    for option, value, field in (
+        ("--slot-lin", args.slot_lin, "slot_linearisation"),
+        ("--slot-evidence", args.slot_evidence, "slot_evidence"),
+    ):
+        if value == "fused":
+            continue
         if args.hypotheses != "per_object":
             raise UsageError(
-                f"--slot-lin {args.slot_lin} needs --hypotheses per_object "
+                f"{option} {value} needs --hypotheses per_object "
                 "(joint classes take every slot at L's point)"
             )
-        changes["slot_linearisation"] = args.slot_lin
-    if args.slot_evidence != "fused":
-        if args.hypotheses != "per_object":
-            raise UsageError(
-                f"--slot-evidence {args.slot_evidence} needs --hypotheses per_object "
-                "(joint classes take every slot at L's point)"
-            )
-        changes["slot_evidence"] = args.slot_evidence
+        changes[field] = value
     if args.window is not None:
         window = _window(args.window)
         if window is not None and args.hypotheses != "per_object":
