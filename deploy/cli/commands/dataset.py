@@ -76,13 +76,12 @@ def _header(args: argparse.Namespace, r: DatasetReport) -> str:
         '# Cooperative Localization and Mapping Dataset", IJRR 30(8):969-974, 2011.',
         f"# Steps every {1 / args.rate:g} s from t0 = {r.start:.3f} (Unix s), {r.steps} steps;",
         f"# noise calibrated against Vicon on the {c.seconds:g} s before t0 ({c.steps} steps,",
-        f"# {c.sightings} landmark sightings): odometry as the variance per step of the motion over"
-        f"# {c.window:g} s windows, range and bearing the variance of all residuals; robust sigmas",
+        f"# {c.sightings} landmark sightings), the variances of all residuals; robust sigmas",
         f"# (1.4826 MAD): odometry {c.odometry[0]:.4g} m, {c.odometry[1]:.4g} m, "
         f"{c.odometry[2]:.4g} rad per step, range {c.range:.4g} m, bearing {c.bearing:.4g} rad;",
         f"# plain, one step: odometry {c.odometry_std[0]:.4g}, {c.odometry_std[1]:.4g}, "
         f"{c.odometry_std[2]:.4g}; range {c.range_std:.4g}, bearing {c.bearing_std:.4g};",
-        "# over the windows, per step: odometry "
+        f"# odometry over {c.window:g} s windows, root mean square per step (not used): "
         + ", ".join(f"{math.sqrt(v):.4g}" for v in c.odometry_rate)
         + ";",
         f"# {100 * c.outliers:.1f} % of residuals beyond 5 robust sigmas; median range residual "
@@ -111,9 +110,8 @@ def _summary(out: Path, name: str, r: DatasetReport) -> str:
         f"(robot sightings {sum(r.robot_sightings.values())}, misreads "
         f"{sum(r.misreads.values())}) and {sum(r.duplicates.values())} second sightings in a "
         f"step; noise from {c.seconds:g} s before the run: range σ {c.range_std:.3g} m, "
-        f"bearing σ {c.bearing_std:.3g} rad, odometry σ {math.sqrt(c.odometry_rate[0]):.3g} m, "
-        f"{math.sqrt(c.odometry_rate[2]):.3g} rad per step (over {c.window:g} s); robot pairs "
-        f"within the link range at "
+        f"bearing σ {c.bearing_std:.3g} rad, odometry σ {c.odometry_std[0]:.3g} m, "
+        f"{c.odometry_std[2]:.3g} rad per step; robot pairs within the link range at "
         f"{100 * r.link_share:.0f} % of the steps"
     )
 
