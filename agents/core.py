@@ -407,6 +407,12 @@ class AgentCore:
             frame = decode_frame(data)
             if frame.robot != self.robot:
                 raise ValueError(f"frame of robot {frame.robot}")
+            kind = self.node.local.model.objects
+            if frame.detections and len(frame.detections[0].z_geo) != kind.dim:
+                raise ValueError(
+                    f"frame {frame.k}: detections of {len(frame.detections[0].z_geo)} numbers, "
+                    f"this robot's {kind.name} objects have {kind.dim}"
+                )
         except (RemoteProtocolError, ValueError) as exc:
             self.counters.invalid_frames += 1
             _log_invalid(self, "frames", exc, "frames_invalid")

@@ -39,7 +39,7 @@ from deploy.launch import conductor as conductor_module
 from deploy.launch.conductor import Conductor, ConductorError
 from deploy.study.fleet import run_fleet
 from estimator.hybrid import BeliefConfig, BeliefSnapshot
-from estimator.models import SensorFrame
+from estimator.models import Detection, SensorFrame
 from protocol.codec import StackMessage, encode
 from protocol.estimate import EstimateMessage, decode_estimate, encode_estimate
 from protocol.frames import encode_frame
@@ -448,13 +448,19 @@ async def test_agent_counts_invalid_stacks_frames_and_control_and_keeps_running(
         world.publish(KEYS.stack("chaos"), b"\x00\x01")
         world.publish(KEYS.frames("r1"), b"not a frame")
         world.publish(KEYS.frames("r1"), encode_frame(frames["r2"][0]))  # another robot's frame
+        # r1's frame with point detections (bearing, range), where its model has pose objects
+        first = frames["r1"][0]
+        points = tuple(Detection(d.object_id, d.z_geo[:2], d.z_sem) for d in first.detections)
+        point_frame = SensorFrame("r1", 1, first.odometry, points, first.true_pose)
+        assert points
+        world.publish(KEYS.frames("r1"), encode_frame(point_frame))
         world.publish(KEYS.ctl("step"), b"\xff\xff")
         world.publish(KEYS.frames("r1"), encode_frame(frames["r1"][0]))
         await _until(lambda: agent.node.k == 1 and len(estimates) > 0)
         counters = agent.counter_values()
         assert counters["stacks_invalid"] == len(garbage) + 2
         assert counters["stacks_misaddressed"] == 1
-        assert counters["frames_invalid"] == 2
+        assert counters["frames_invalid"] == 3
         assert counters["control_invalid"] == 1
         assert counters["frames_processed"] == 1
         world.publish(KEYS.frames("r1"), encode_frame(frames["r1"][1]))
