@@ -77,6 +77,7 @@ from agents.sim_radio import SimRadio
 from agents.transport.base import Keys
 from estimator.gate import Implausible
 from estimator.models import SensorFrame
+from estimator.models.objects import ObjectKind
 from protocol.errors import BadSignature, RemoteProtocolError, SenderMismatch
 from protocol.estimate import EstimateMessage, encode_estimate
 from protocol.frames import decode_frame, encode_frame
@@ -405,14 +406,7 @@ class AgentCore:
     def _on_frame(self, data: bytes) -> list[Action]:
         try:
             frame = decode_frame(data)
-            if frame.robot != self.robot:
-                raise ValueError(f"frame of robot {frame.robot}")
-            kind = self.node.local.model.objects
-            if frame.detections and len(frame.detections[0].z_geo) != kind.dim:
-                raise ValueError(
-                    f"frame {frame.k}: detections of {len(frame.detections[0].z_geo)} numbers, "
-                    f"this robot's {kind.name} objects have {kind.dim}"
-                )
+            _check_frame(frame, self.robot, self.node.local.model.objects)
         except (RemoteProtocolError, ValueError) as exc:
             self.counters.invalid_frames += 1
             _log_invalid(self, "frames", exc, "frames_invalid")
@@ -778,6 +772,18 @@ def _estimate(core: AgentCore) -> bytes:
     if core.settings.publish_local:
         beliefs["local"] = node.local.snapshot(robot)
     return encode_estimate(EstimateMessage(robot, node.k, beliefs, core.counter_values()))
+
+
+def _check_frame(frame: SensorFrame, robot: str, kind: ObjectKind) -> None:
+    """ValueError unless ``frame`` is ``robot``'s and its detections are of the robot's object
+    ``kind`` (a frame holds one kind: ``protocol.frames``)."""
+    if frame.robot != robot:
+        raise ValueError(f"frame of robot {frame.robot}")
+    if frame.detections and len(frame.detections[0].z_geo) != kind.dim:
+        raise ValueError(
+            f"frame {frame.k}: detections of {len(frame.detections[0].z_geo)} numbers, "
+            f"this robot's {kind.name} objects have {kind.dim}"
+        )
 
 
 def _log_invalid(core: AgentCore, source: str, exc: Exception, counter: str = "") -> None:
