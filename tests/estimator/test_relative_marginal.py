@@ -165,3 +165,129 @@ def test_its_pose_arithmetic_is_gtsams() -> None:
         [gtsam.Pose2.LogmapDerivative(v) for v in tangents],
         atol=1e-9,
     )
+
+
+# --------------------------------------------------------------------------- with point objects
+
+
+def _mixed(rng: np.random.Generator, scale: float = 5.0) -> tuple[list[int], gtsam.Values]:
+    """A robot pose, a pose object and two point objects (Point2)."""
+    keys = [object_key(3), pose_key(0, 5), object_key(7), object_key(9)]
+    values = gtsam.Values()
+    values.insert(keys[0], rng.normal(size=2) * scale)
+    values.insert(keys[1], gtsam.Pose2(*rng.normal(size=3) * [scale, scale, 1.0]))
+    values.insert(keys[2], gtsam.Pose2(*rng.normal(size=3) * [scale, scale, 1.0]))
+    values.insert(keys[3], rng.normal(size=2) * scale)
+    return keys, values
+
+
+def _mixed_dense(
+    keys: list[int], values: gtsam.Values, rng: np.random.Generator
+) -> gtsam.JacobianFactor:
+    dims = {k: 2 if k in (keys[0], keys[3]) else 3 for k in keys}
+    graph = gtsam.GaussianFactorGraph()
+    unit = gtsam.noiseModel.Unit.Create(5)
+    for i, a in enumerate(keys):
+        for b in keys[i + 1 :]:
+            ai, bi = rng.normal(size=(5, dims[a])), rng.normal(size=(5, dims[b]))
+            graph.push_back(gtsam.JacobianFactor(a, ai, b, bi, rng.normal(size=5), unit))
+    return gtsam.JacobianFactor(graph)
+
+
+def _moved(
+    values: gtsam.Values, keys: list[int], rng: np.random.Generator, s: float
+) -> gtsam.Values:
+    out = gtsam.Values()
+    for k in keys:
+        if k in (object_key(3), object_key(9)):
+            out.insert(k, values.atPoint2(k) + rng.normal(size=2) * s)
+        else:
+            out.insert(k, values.atPose2(k).retract(rng.normal(size=3) * s))
+    return out
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_with_point_objects_it_is_the_linear_marginal_at_its_linearisation_point(seed: int) -> None:
+    rng = np.random.default_rng(30 + seed)
+    keys, estimate = _mixed(rng)
+    g = _mixed_dense(keys, estimate, rng)
+    factor = relative_marginal(g, estimate)
+    assert factor is not None
+    n = 10
+    want, got = _info(g, keys), _info(factor.linearize(estimate), keys)
+    np.testing.assert_allclose(got[:n, :], want[:n, :], atol=1e-9 * np.abs(want).max())
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_with_point_objects_its_jacobians_are_its_errors_derivatives(seed: int) -> None:
+    rng = np.random.default_rng(40 + seed)
+    keys, estimate = _mixed(rng)
+    factor = relative_marginal(_mixed_dense(keys, estimate, rng), estimate)
+    assert factor is not None
+    order = [int(k) for k in factor.keys()]  # noqa: SIM118 - not iterable
+    moved = _moved(estimate, order, rng, 0.4)
+    jac = factor.linearize(moved).augmentedJacobian()[:, :-1]
+    e0 = factor.unwhitenedError(moved)
+    numeric = []
+    for k in order:
+        point = k in (object_key(3), object_key(9))
+        for d in range(2 if point else 3):
+            v = gtsam.Values(moved)
+            if point:
+                step = np.zeros(2)
+                step[d] = 1e-6
+                v.update(k, moved.atPoint2(k) + step)
+            else:
+                step = np.zeros(3)
+                step[d] = 1e-6
+                v.update(k, moved.atPose2(k).compose(gtsam.Pose2.Expmap(step)))
+            numeric.append((factor.unwhitenedError(v) - e0) / 1e-6)
+    np.testing.assert_allclose(jac, np.array(numeric).T, atol=1e-4 * np.abs(jac).max())
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_with_point_objects_a_rigid_motion_costs_nothing_but_the_bend(seed: int) -> None:
+    """Relative measurements only (robot → pose object, robot → points by bearing and range):
+    turning the whole bent map costs exactly what the bend costs."""
+    rng = np.random.default_rng(50 + seed)
+    keys, estimate = _mixed(rng)
+    robot, thing, a, b = keys[1], keys[2], keys[0], keys[3]
+    graph = gtsam.NonlinearFactorGraph()
+    pose_noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([0.1, 0.2, 0.05]))
+    br_noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([0.05, 0.2]))
+    x = estimate.atPose2(robot)
+    graph.add(
+        gtsam.BetweenFactorPose2(robot, thing, x.between(estimate.atPose2(thing)), pose_noise)
+    )
+    for p in (a, b):
+        graph.add(
+            gtsam.BearingRangeFactor2D(
+                robot,
+                p,
+                x.bearing(estimate.atPoint2(p)),
+                x.range(estimate.atPoint2(p)) + 0.1,
+                br_noise,
+            )
+        )
+        graph.add(
+            gtsam.BearingRangeFactor2D(
+                thing,
+                p,
+                estimate.atPose2(thing).bearing(estimate.atPoint2(p)),
+                estimate.atPose2(thing).range(estimate.atPoint2(p)) - 0.1,
+                br_noise,
+            )
+        )
+    g = gtsam.JacobianFactor(graph.linearize(estimate))
+    factor = relative_marginal(g, estimate)
+    assert factor is not None
+    bent = _moved(estimate, keys, rng, 0.1)
+    turn = gtsam.Pose2(*rng.normal(size=3) * [3.0, 3.0, 0.0] + [0.0, 0.0, 2.0])
+    turned = gtsam.Values()
+    for k in keys:
+        if k in (a, b):
+            turned.insert(k, turn.transformFrom(bent.atPoint2(k)))
+        else:
+            turned.insert(k, turn.compose(bent.atPose2(k)))
+    assert factor.error(bent) > 1.0
+    assert factor.error(turned) == pytest.approx(factor.error(bent), rel=1e-9)
