@@ -6,8 +6,6 @@ them)."""
 
 from __future__ import annotations
 
-import math
-
 import gtsam
 import numpy as np
 
@@ -15,9 +13,8 @@ _POSE = ord("x")  # the character of estimator.factors.pose_key
 
 
 def relative_marginal(g: gtsam.GaussianFactor, estimate: gtsam.Values) -> gtsam.CustomFactor | None:
-    """A linear marginal ``g`` on poses (and point objects), re-expressed in its variables' poses
-    relative to one of them (the root: its first robot pose, else its first pose), as a
-    nonlinear factor.
+    """A linear marginal ``g`` on poses, re-expressed in its variables' poses relative to one of
+    them (the root: its first robot pose, else its first key), as a nonlinear factor.
 
     With δ each variable's tangent at the linearisation point ``estimate``, ``g`` is
     ½‖A δ − b‖². Let r_k = x_root⁻¹ v_k; its tangent is ρ_k = δ_k − Ad(r̂_k⁻¹) δ_root to first
@@ -33,12 +30,7 @@ def relative_marginal(g: gtsam.GaussianFactor, estimate: gtsam.Values) -> gtsam.
     loop correction it pulls the old map towards where it was. This is the root-shifted form of
     the generic linear constraints of Carlevaris-Bianco, Kaess & Eustice (T-RO 2014).
 
-    A point object p (a Point2, whose tangent is its world translation) is read in the root's
-    frame the same way: r_p = R_rootᵀ(p − t_root), ρ_p = R̂_root (r_p − r̂_p), so that
-    δ_p = ρ_p + R̂_root [I | J r̂_p] δ_root to first order (J the quarter turn) and
-    A′_root gathers A_p R̂_root [I | J r̂_p]; a rigid motion leaves ρ_p unchanged too.
-
-    None when ``g`` holds no information. ValueError when ``g`` has no pose to root it on.
+    None when ``g`` holds no information.
     """
     keys = [int(k) for k in g.keys()]  # noqa: SIM118 - not iterable
     info = g.augmentedInformation()
@@ -50,32 +42,20 @@ def relative_marginal(g: gtsam.GaussianFactor, estimate: gtsam.Values) -> gtsam.
         return None
     a = np.sqrt(s[keep])[:, None] * u[:, keep].T
     b = (u[:, keep].T @ eta) / np.sqrt(s[keep])
-    points = [k for k in keys if _is_point(estimate, k)]
-    poses = [k for k in keys if k not in points]
-    if not poses:
-        raise ValueError("a relative marginal needs a pose to root it on")
-    robots = [k for k in poses if k >> 56 == _POSE]
-    root = robots[0] if robots else poses[0]
-    others = [k for k in poses if k != root]
-    order = [root, *others, *points]  # the factor's keys: the root, the poses, the points
-    dims = {k: 2 if k in points else 3 for k in keys}
-    start = dict(zip(keys, np.cumsum([0] + [dims[k] for k in keys[:-1]]).tolist(), strict=True))
-    block = {k: a[:, start[k] : start[k] + dims[k]] for k in keys}
-    rows = a.shape[0]
+    poses = [k for k in keys if k >> 56 == _POSE]
+    root = poses[0] if poses else keys[0]
+    others = [k for k in keys if k != root]
+    order = [root, *others]  # the factor's keys: the root first
+    cols = {k: slice(3 * i, 3 * i + 3) for i, k in enumerate(keys)}
+    a = np.concatenate([a[:, cols[k]] for k in order], axis=1).reshape(a.shape[0], len(order), 3)
     lin_root = estimate.atPose2(root)
     rel = np.array([_xyt(lin_root.between(estimate.atPose2(k))) for k in others]).reshape(-1, 3)
-    rot_lin = _rotation(lin_root.theta())
-    t_lin = np.array([lin_root.x(), lin_root.y()])
-    pts_lin = np.array([estimate.atPoint2(k) for k in points], dtype=float).reshape(-1, 2)
-    r_hat = (pts_lin - t_lin) @ rot_lin  # R̂ᵀ(p̂ − t̂), as rows
-    # A′: the root's columns gather each other variable's through Ad(r̂_k⁻¹) (poses) or
-    # R̂ [I | J r̂_p] (points); kept per key, so that the Jacobians are batched products.
-    a_poses = np.stack([block[k] for k in others]) if others else np.zeros((0, rows, 3))
-    a_points = np.stack([block[k] for k in points]) if points else np.zeros((0, rows, 2))
-    gather = _point_gather(rot_lin, r_hat)  # (m, 2, 3)
-    a_root = block[root] + (a_poses @ _adjoint(_inverse(rel))).sum(axis=0)
-    a_root = a_root + (a_points @ gather).sum(axis=0)
-    flat = np.concatenate([a_root, *a_poses, *a_points], axis=1)
+    # A′: the root's columns gather each other variable's through Ad(r̂_k⁻¹); kept per key,
+    # (K, rows, 3), so that the Jacobians are batched products.
+    ap = a.transpose(1, 0, 2).copy()
+    ap[0] += (a.transpose(1, 0, 2)[1:] @ _adjoint(_inverse(rel))).sum(axis=0)
+    flat = ap.transpose(1, 0, 2).reshape(a.shape[0], -1)
+    rows = a.shape[0]
     lin_root_inv = _inverse(_xyt(lin_root)[None])
     rel_inv = _inverse(rel)
 
@@ -83,54 +63,20 @@ def relative_marginal(g: gtsam.GaussianFactor, estimate: gtsam.Values) -> gtsam.
         x_root = _xyt(values.atPose2(root))[None]
         v = np.array([_xyt(values.atPose2(k)) for k in others]).reshape(-1, 3)
         q = _compose(_inverse(x_root), v)  # x_root⁻¹ v_k
-        rho_root = _logmap(_compose(lin_root_inv, x_root))
-        rho = _logmap(_compose(rel_inv, q))
-        rot = _rotation(float(x_root[0, 2]))
-        p = np.array([values.atPoint2(k) for k in points], dtype=float).reshape(-1, 2)
-        r = (p - x_root[0, :2]) @ rot  # R_rootᵀ(p − t_root), as rows
-        rho_p = (r - r_hat) @ rot_lin.T
+        rho = np.empty((len(order), 3))
+        rho[0] = _logmap(_compose(lin_root_inv, x_root))[0]
+        rho[1:] = _logmap(_compose(rel_inv, q))
         if jac is not None:
-            j_root = _logmap_derivative(rho_root)[0]
-            j = _logmap_derivative(rho)  # d ρ / d e, with d e_k / d v_k = I
-            own = a_poses @ j
+            j = _logmap_derivative(rho)  # d ρ / d e, with d e_root / d x_root = d e_k / d v_k = I
+            own = ap @ j
             # d e_k / d x_root = −Ad(q_k⁻¹)
-            via = -(j @ _adjoint(_inverse(q)))
-            turn = rot_lin @ rot.T  # d ρ_p / d δ_p
-            # d ρ_p / d δ_root = R̂ [−I | −J r_p]
-            root_p = -_point_gather(rot_lin, r)
-            jac[0] = a_root @ j_root + (a_poses @ via).sum(axis=0) + (a_points @ root_p).sum(axis=0)
-            for i in range(len(others)):
-                jac[1 + i] = own[i]
-            for i in range(len(points)):
-                jac[1 + len(others) + i] = a_points[i] @ turn
-        return flat @ np.concatenate([rho_root[0], rho.ravel(), rho_p.ravel()]) - b
+            via = -(j[1:] @ _adjoint(_inverse(q)))
+            jac[0] = own[0] + (ap[1:] @ via).sum(axis=0)
+            for i in range(1, len(order)):
+                jac[i] = own[i]
+        return flat @ rho.ravel() - b
 
     return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(rows), order, error)
-
-
-def _is_point(values: gtsam.Values, key: int) -> bool:
-    """Whether ``key`` holds a point object (a Point2) rather than a pose."""
-    if key >> 56 == _POSE:
-        return False
-    try:
-        values.atPose2(key)
-    except RuntimeError:
-        return True
-    return False
-
-
-def _rotation(theta: float) -> np.ndarray:
-    c, s = math.cos(theta), math.sin(theta)
-    return np.array([[c, -s], [s, c]])
-
-
-def _point_gather(rot: np.ndarray, r: np.ndarray) -> np.ndarray:
-    """R [I | J r_p] for points r (m, 2) in the root's frame: (m, 2, 3), J the quarter turn."""
-    out = np.zeros((len(r), 2, 3))
-    out[:, :, :2] = rot
-    jr = np.stack([-r[:, 1], r[:, 0]], axis=1)  # J r
-    out[:, :, 2] = jr @ rot.T
-    return out
 
 
 def _xyt(p: gtsam.Pose2) -> np.ndarray:

@@ -177,9 +177,9 @@ class WindowedISAM2:
             lin = gtsam.Values()
             for k in g.keys():  # noqa: SIM118 - not iterable
                 lin.insert(int(k), _value(estimate, int(k)))
-            # The root-shifted form needs a pose to root it on (a marginal of points alone keeps
-            # the linear form; the window's marginal always holds its first pose).
-            if self.relative and len(gtsam.utilities.extractPose2(lin)):
+            # The root-shifted form is written for poses; a marginal that holds point objects
+            # keeps the linear form (docs/estimator.md, "A window of poses").
+            if self.relative and len(gtsam.utilities.extractPoint2(lin)) == 0:
                 factor = relative_marginal(g, estimate)
                 if factor is None:
                     continue
