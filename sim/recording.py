@@ -25,6 +25,7 @@ from __future__ import annotations
 import hashlib
 import io
 import math
+import zipfile
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -186,7 +187,7 @@ def _parse(p: Path, raw: bytes) -> Recording:
             arrays = {a: z[a] for a in ARRAYS}
     except RecordingError:
         raise
-    except (OSError, ValueError, EOFError) as exc:
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
         raise RecordingError(f"{p}: not a recording (.npz) ({exc})") from None
     try:
         return Recording(

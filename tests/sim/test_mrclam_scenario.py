@@ -140,3 +140,27 @@ def test_a_recording_whose_arrays_do_not_fit_is_refused_naming_the_array() -> No
         Recording(
             **{**good, "det_object": np.array([7, 8]), "det_z": np.array([[0.1, -1.0], [0.2, 1.0]])}
         )  # type: ignore[arg-type]
+
+
+def test_a_hostile_recording_file_is_refused_naming_it(tmp_path: Path) -> None:
+    """Truncated bytes, a pickled array, NaN odometry, a missing array: each one line naming
+    the file (and the array), never a crash or a pickle loaded."""
+    _, _, rec = _written(tmp_path)
+    good = recording_bytes(rec)
+    bad = tmp_path / "bad.npz"
+    bad.write_bytes(good[: len(good) // 2])
+    with pytest.raises(RecordingError, match=r"bad\.npz: not a recording"):
+        read_recording(bad)
+    arrays = {a: getattr(rec, a) for a in ("times", "truth", "odometry", "det_robot")}
+    arrays |= {"det_step": rec.det_step, "det_object": rec.det_object, "det_z": rec.det_z}
+    np.savez(bad, robots=np.array([object()] * len(rec.robots), dtype=object), **arrays)
+    with pytest.raises(RecordingError, match=r"bad\.npz"):
+        read_recording(bad)
+    nan = rec.odometry.copy()
+    nan[0, 0, 0] = np.nan
+    np.savez(bad, robots=np.array(rec.robots), **{**arrays, "odometry": nan})
+    with pytest.raises(RecordingError, match=r"bad\.npz: odometry: non-finite"):
+        read_recording(bad)
+    np.savez(bad, robots=np.array(rec.robots), **{k: v for k, v in arrays.items() if k != "det_z"})
+    with pytest.raises(RecordingError, match="missing arrays det_z"):
+        read_recording(bad)
