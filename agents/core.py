@@ -446,6 +446,8 @@ class AgentCore:
         self._count(got, sender or key)
         message = got.message
         if message is None:
+            if got.gated_round is not None and self.rounds is not None:
+                self.rounds.gated(*got.gated_round, k, self._now)
             return
         if radio is not None and not heard(message.sender):
             radio.out_of_range()
@@ -505,7 +507,7 @@ class AgentCore:
         if k not in self._frames:
             return None
         if self.rounds is not None:
-            held = self.rounds.ready(k)
+            held = self.rounds.ready(k, self._now)
             if held is None:
                 return None
             for message, data in held:
@@ -620,7 +622,7 @@ class AgentCore:
         # Always, even empty: a lock-step peer ordered to hear us at round 1 needs our round 0.
         data, digest, fresh = self._stack_payload()
         old, k = self._out, self.node.k
-        rounds = None if self.rounds is None else self.rounds.round_missing(k + 1)
+        rounds = None if self.rounds is None else self.rounds.round_missing(k + 1, self._now)
         sent_at = old.digest_sent_at if digest == old.digest else -math.inf
         pull_at = self.gossip.pull_at(self.node.stack.versions())
         missing = self._frames_missing()

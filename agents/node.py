@@ -84,6 +84,9 @@ class Received:
     implausible: int = 0
     error: Exception | None = None
     gated: int = 0
+    # Refused whole by the belief gate (the sender's own slot): the sender and step of the
+    # stack, which a lock-step round still needs to know came (:meth:`Rounds.gated`).
+    gated_round: tuple[str, int] | None = None
 
 
 def _always(sender: str) -> bool:
@@ -430,8 +433,14 @@ class RobotNode:
             self.counters.last_error = str(next(iter(bad.values())))
             if message.sender in bad:
                 # A sender whose own slot contradicts what this robot believes is not heard:
-                # its stack is refused whole, so that it takes no lock-step round of its own.
-                return Received(None, refused=dropped, gated=len(bad), error=bad[message.sender])
+                # its stack is refused whole; a lock-step round learns that it came.
+                return Received(
+                    None,
+                    refused=dropped,
+                    gated=len(bad),
+                    error=bad[message.sender],
+                    gated_round=(message.sender, message.step),
+                )
             message, _ = _without(message, lambda s: s.owner in bad)
             error = next(iter(bad.values()))
         taken: bool = False

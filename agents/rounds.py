@@ -89,6 +89,8 @@ class Rounds:
         self.max_rounds = max(1, max_peers) * (window + 1)
         self.orders: dict[int, StepOrder] = {}
         self.held: dict[tuple[str, int], tuple[StackMessage, bytes]] = {}
+        # Round stacks that came but were refused whole by the belief gate: when first.
+        self.refused: dict[tuple[str, int], float] = {}
         self.orders_ahead = 0
         self.rounds_dropped = 0
         self.round_requests = 0
@@ -123,33 +125,58 @@ class Rounds:
             return
         self.held.setdefault((message.sender, message.step), (message, payload))
 
-    def ready(self, k: int) -> list[tuple[StackMessage, bytes]] | None:
+    def gated(self, sender: str, step: int, k: int, now: float) -> None:
+        """``sender``'s round stack of ``step`` came at ``now`` and the belief gate refused it
+        whole (its own slot contradicts this robot's belief: a drifted peer, or a member that is
+        the attacker). The round must not wait for it forever — one such peer stalled a
+        five-robot lock-step launch on real data — nor take the refusal at once: an attacker's
+        forged copy on the sender's key may come before the honest one. So the round waits a
+        gossip period for an admitted copy (the missing stack is asked for again meanwhile),
+        then counts the sender's stack as come with nothing to merge, as the in-process runner
+        does."""
+        if not k <= step <= k + self.window or (sender, step) in self.refused:
+            return
+        if len(self.refused) >= self.max_rounds:
+            self.rounds_dropped += 1
+            return
+        self.refused[(sender, step)] = now
+
+    def _came(self, sender: str, step: int, now: float) -> bool:
+        if (sender, step) in self.held:
+            return True
+        since = self.refused.get((sender, step))
+        return since is not None and now - since >= self.period
+
+    def ready(self, k: int, now: float = math.inf) -> list[tuple[StackMessage, bytes]] | None:
         """The round stacks step ``k`` merges, in sender order, once its order and every stack
-        of round ``k − 1`` it names are here (None: not yet)."""
+        of round ``k − 1`` it names are here (None: not yet); a stack the gate refused counts
+        as here a gossip period after it came (:meth:`gated`), and merges nothing."""
         order = self.orders.get(k)
         if order is None:
             return None
         senders = order.links.get(self.robot, ())
-        if any((s, k - 1) not in self.held for s in senders):
+        if not all(self._came(s, k - 1, now) for s in senders):
             return None
-        return [self.held[(s, k - 1)] for s in sorted(senders)]
+        return [self.held[(s, k - 1)] for s in sorted(senders) if (s, k - 1) in self.held]
 
     def forget_before(self, k: int) -> None:
         self.orders = {j: o for j, o in self.orders.items() if j > k}
         self.held = {key: v for key, v in self.held.items() if key[1] >= k}
+        self.refused = {key: t for key, t in self.refused.items() if key[1] >= k}
 
     def frames_missing(self, k: int, frames: Container[int]) -> bool:
         """Whether step ``k`` is ordered and its frame has not come."""
         return k in self.orders and k not in frames
 
-    def round_missing(self, k: int) -> tuple[int, tuple[str, ...]] | None:
+    def round_missing(self, k: int, now: float = math.inf) -> tuple[int, tuple[str, ...]] | None:
         """The round whose stacks step ``k`` merges, and the senders its order names whose stack
-        of that round has not come (None: nothing to ask for)."""
+        of that round has not come, or came refused less than a gossip period ago (None:
+        nothing to ask for)."""
         order = self.orders.get(k)
         if order is None:
             return None
         senders = order.links.get(self.robot, ())
-        missing = tuple(sorted(s for s in senders if (s, k - 1) not in self.held))
+        missing = tuple(sorted(s for s in senders if not self._came(s, k - 1, now)))
         return (k - 1, missing) if missing else None
 
     # -- the timer's repairs -----------------------------------------------------------------

@@ -40,10 +40,12 @@ from deploy.base.build import belief_model, make_node
 from estimator.distributed import DistributedBelief
 from estimator.hybrid import BeliefConfig
 from estimator.models import Detection, SensorFrame
+from estimator.summary import LocalSummary, ObjectClasses
+from estimator.xi import Xi
 from protocol.codec import StackMessage, decode, encode
 from protocol.estimate import decode_estimate
 from protocol.frames import encode_frame
-from protocol.stack import Stack
+from protocol.stack import Slot, Stack
 from sim.loader import load_scenario
 from sim.sensors import Simulator
 
@@ -490,6 +492,64 @@ def test_a_lockstep_agent_asks_for_a_round_stack_that_did_not_come_and_gets_it(f
     assert asked(30.0) == [] and asked(31.0) == []  # nothing missing any more
     counts = a.core.counter_values(), b.core.counter_values()
     assert (counts[0]["rounds_resent"], counts[1]["round_requests"]) == (1, 2)
+
+
+def _own_slot_forged(node: RobotNode, info: float, step: int) -> bytes:
+    """``node``'s own slot with information ``info``·I on its objects: within the wire's caps,
+    beyond what ``step`` steps of detections can give (the belief gate's information bound)."""
+    own = next(s for s in node.current_stack() if s.owner == node.robot)
+    po = own.summary.per_object
+    assert po is not None and len(own.summary.object_ids) > 0
+    d = po.xi.dim
+    n = len(own.summary.object_ids)
+    xi = Xi(po.xi.lin, info * np.eye(d * n), np.zeros(d * n))
+    summary = LocalSummary(own.summary.object_ids, (), ObjectClasses(po.log_phi, xi))
+    slot = Slot(node.robot, own.version[1], summary, node.epoch)
+    return encode(StackMessage(node.robot, node.position, Stack((slot,)), step), node.limits)
+
+
+def test_a_lockstep_round_whose_senders_own_slot_is_gated_completes_without_it(frames) -> None:  # type: ignore[no-untyped-def]
+    """r2's round 2 merges r1's round-1 stack, and r2's belief gate refuses r1's own slot in it
+    (a drifted peer on real data, or a member that is the attacker). The round waits a gossip
+    period for an admitted copy — an attacker's forged copy may come before the honest one,
+    which then wins — and otherwise completes without r1: r2 steps, merges nothing of r1 and
+    counts the refusals, as the in-process runner does. (Found on UTIAS Dataset 7: a
+    five-robot lock-step launch stalled at step 32 for good.)"""
+    roster = ["r1", "r2"]
+
+    def drivers() -> tuple[Driver, Driver]:
+        a = Driver("r1", mode="lockstep", roster=roster, gossip_period=0.5)
+        b = Driver("r2", mode="lockstep", roster=roster, gossip_period=0.5)
+        for d in (a, b):
+            d.run(d.core.start(0.0))
+            d.send(KEYS.ctl("step"), encode_control(StepOrder(1, {"r1": (), "r2": ()})))
+            d.frame(frames[d.core.robot][0])
+            assert d.core.node.k == 1
+        b.send(KEYS.ctl("step"), encode_control(StepOrder(2, {"r1": (), "r2": ("r1",)})))
+        b.frame(frames["r2"][1])
+        assert b.core.node.k == 1
+        return a, b
+
+    a, b = drivers()
+    forged = _own_slot_forged(a.core.node, 1e9, 1)
+    for now in (1.0, 1.3):
+        b.run(b.core.on_message(KEYS.stack("r1"), forged, now))
+        assert b.core.node.k == 1  # refused, and less than a period ago
+    need = [
+        x for x in b.core.on_timer(1.4) + b.core.on_timer(2.0) if x.key == KEYS.ctl("need", "r2")
+    ]
+    assert [decode_control(x.payload) for x in need] == [NeedRound("r2", 1, ("r1",))]
+    b.run(b.core.on_message(KEYS.stack("r1"), forged, 1.5))  # sent again on request
+    assert b.core.node.k == 2
+    assert b.core.node.stack.version_of("r1") is None
+    assert b.core.counter_values()["slots_rejected"] == 3
+    # The honest copy within the period wins over the forged one that came first.
+    a, b = drivers()
+    honest = [p.payload for p in a.published if p.key == KEYS.stack("r1")][-1]
+    assert decode(honest).step == 1
+    b.run(b.core.on_message(KEYS.stack("r1"), _own_slot_forged(a.core.node, 1e9, 1), 1.0))
+    b.run(b.core.on_message(KEYS.stack("r1"), honest, 1.2))
+    assert b.core.node.k == 2 and b.core.node.stack.version_of("r1") is not None
 
 
 def test_lockstep_ticks_of_a_large_fleet_back_off_to_two_periods_per_peer() -> None:
