@@ -70,7 +70,7 @@ from agents.control import (
 )
 from agents.gossip import DeltaGossip, Outgoing
 from agents.journal import Record
-from agents.node import Received, RobotNode
+from agents.node import Received, RobotNode, admits_round, refuse_round
 from agents.recovery import FRAME, FRAME_UNFUSED, Ledger, Replayed, apply, restore
 from agents.rounds import Answers, Rounds
 from agents.sim_radio import SimRadio
@@ -78,6 +78,7 @@ from agents.transport.base import Keys
 from estimator.gate import Implausible
 from estimator.models import SensorFrame
 from estimator.models.objects import ObjectKind
+from protocol.codec import StackMessage
 from protocol.errors import BadSignature, RemoteProtocolError, SenderMismatch
 from protocol.estimate import EstimateMessage, encode_estimate
 from protocol.frames import decode_frame, encode_frame
@@ -446,8 +447,6 @@ class AgentCore:
         self._count(got, sender or key)
         message = got.message
         if message is None:
-            if got.gated_round is not None and self.rounds is not None:
-                self.rounds.gated(*got.gated_round, k, self._now)
             return
         if radio is not None and not heard(message.sender):
             radio.out_of_range()
@@ -456,7 +455,7 @@ class AgentCore:
         if message.have is not None:
             self.gossip.note_digest(message.sender, message.have, asked, self._now)
         if self.rounds is not None:
-            self.rounds.hold(message, payload, k)
+            self.rounds.hold(message, payload, k, self._hears)
             return
         self._took(got, payload)
         if message.have is not None:
@@ -464,6 +463,9 @@ class AgentCore:
             # with them: the ticks pull them (send the digest) when the sender could push.
             held = self.node.stack.versions()
             self.gossip.check_wanted(message.sender, message.have, held, self._now)
+
+    def _hears(self, message: StackMessage) -> bool:
+        return admits_round(self.node, message)
 
     def _count(self, got: Received, source: str) -> None:
         self.counters.slots_refused += got.refused
@@ -506,14 +508,8 @@ class AgentCore:
         k = self.node.k + 1
         if k not in self._frames:
             return None
-        if self.rounds is not None:
-            held = self.rounds.ready(k, self._now)
-            if held is None:
-                return None
-            for message, data in held:
-                got = self.node.merge_round(message, self.ledger.refused)
-                self.counters.slots_refused += got.refused
-                self._took(got, data)
+        if self.rounds is not None and not _merge_round(self, self.rounds, k):
+            return None
         frame, data = self._frames.pop(k)
         # The frame is here: the timer must not go on asking for it while the step runs (every
         # request made the conductor send it again, and every copy was answered with an estimate).
@@ -622,7 +618,7 @@ class AgentCore:
         # Always, even empty: a lock-step peer ordered to hear us at round 1 needs our round 0.
         data, digest, fresh = self._stack_payload()
         old, k = self._out, self.node.k
-        rounds = None if self.rounds is None else self.rounds.round_missing(k + 1, self._now)
+        rounds = None if self.rounds is None else self.rounds.round_missing(k + 1, self._hears)
         sent_at = old.digest_sent_at if digest == old.digest else -math.inf
         pull_at = self.gossip.pull_at(self.node.stack.versions())
         missing = self._frames_missing()
@@ -774,6 +770,21 @@ def _estimate(core: AgentCore) -> bytes:
     if core.settings.publish_local:
         beliefs["local"] = node.local.snapshot(robot)
     return encode_estimate(EstimateMessage(robot, node.k, beliefs, core.counter_values()))
+
+
+def _merge_round(core: AgentCore, rounds: Rounds, k: int) -> bool:
+    """Lock-step: merge the round stacks step ``k`` takes (:meth:`Rounds.ready`) after counting
+    what the belief gate refuses of the copies it passes over; False: the round is not ready."""
+    held = rounds.ready(k, core._hears)
+    if held is None:
+        return False
+    for message in rounds.passed_over(k, held):
+        core._count(refuse_round(core.node, message), message.sender)
+    for message, data in held:
+        got = core.node.merge_round(message, core.ledger.refused)
+        core._count(got, message.sender)
+        core._took(got, data)
+    return True
 
 
 def _check_frame(frame: SensorFrame, robot: str, kind: ObjectKind) -> None:

@@ -84,9 +84,6 @@ class Received:
     implausible: int = 0
     error: Exception | None = None
     gated: int = 0
-    # Refused whole by the belief gate (the sender's own slot): the sender and step of the
-    # stack, which a lock-step round still needs to know came (:meth:`Rounds.gated`).
-    gated_round: tuple[str, int] | None = None
 
 
 def _always(sender: str) -> bool:
@@ -426,28 +423,23 @@ class RobotNode:
         error: Exception | None = (
             ValueError("a slot version ahead of its owner's clock") if implausible else None
         )
-        bad = self.gate.refused(message, self.robot, self.stack, self.distributed)
-        if bad:
-            self._forget_parsed(message, bad)
-            self.counters.rejected_slots += len(bad)
-            self.counters.last_error = str(next(iter(bad.values())))
-            if message.sender in bad:
-                # A sender whose own slot contradicts what this robot believes is not heard:
-                # its stack is refused whole; a lock-step round learns that it came.
-                return Received(
-                    None,
-                    refused=dropped,
-                    gated=len(bad),
-                    error=bad[message.sender],
-                    gated_round=(message.sender, message.step),
-                )
-            message, _ = _without(message, lambda s: s.owner in bad)
-            error = next(iter(bad.values()))
         taken: bool = False
         merged: tuple[Version, ...] = ()
-        if merge_if is not None and merge_if(message.sender):
-            taken, merged = self._merged(message)
-        return Received(message, merged, taken, dropped, implausible, error, len(bad))
+        if merge_if is None:
+            # A lock-step round stack: the belief gate judges it at its step (:meth:`merge_round`),
+            # against D as it is then, as the in-process runner does — judged on arrival, it met
+            # whatever step this robot was at, and a refused sender stalled the round for good.
+            return Received(message, refused=dropped, implausible=implausible, error=error)
+        admitted, bad = gated(self, message)
+        if admitted is None:
+            # A sender whose own slot contradicts what this robot believes is not heard: its
+            # stack is refused whole.
+            return Received(None, refused=dropped, gated=len(bad), error=bad[message.sender])
+        if bad:
+            error = next(iter(bad.values()))
+        if merge_if(message.sender):
+            taken, merged = self._merged(admitted)
+        return Received(admitted, merged, taken, dropped, implausible, error, len(bad))
 
     def _changed(self) -> None:
         """D changed: the gate's view of it and its verdicts are made again when next needed."""
@@ -455,10 +447,15 @@ class RobotNode:
 
     def merge_round(self, message: StackMessage, refused: Container[Version] = ()) -> Received:
         """Merge a round stack admitted by :meth:`receive` and held for its step (lock-step),
-        without the versions refused since."""
+        without the versions refused since, and through the belief gate as :meth:`receive`
+        passes a stack in real time (a sender whose own slot it refuses: nothing merged)."""
         message, dropped = _without(message, lambda s: (s.owner, s.version) in refused)
-        taken, merged = self._merged(message)
-        return Received(message, merged, taken, dropped)
+        admitted, bad = gated(self, message)
+        if admitted is None:
+            return Received(None, refused=dropped, gated=len(bad), error=bad[message.sender])
+        taken, merged = self._merged(admitted)
+        error = next(iter(bad.values())) if bad else None
+        return Received(admitted, merged, taken, dropped, error=error, gated=len(bad))
 
     def count_unread(self, payload: bytes) -> None:
         """A stack the shell dropped unread (a simulated radio out of range): counted as
@@ -801,3 +798,35 @@ class RobotNode:
         """Tell the node a stack of ``size`` bytes went out (for its counters)."""
         self.counters.stacks_sent += 1
         self.counters.bytes_sent += size
+
+
+def gated(
+    node: RobotNode, message: StackMessage
+) -> tuple[StackMessage | None, dict[str, Implausible]]:
+    """``message`` without the slots the belief gate refuses (None: the sender's own is
+    among them, and the stack is refused whole), and those refusals, counted."""
+    bad = node.gate.refused(message, node.robot, node.stack, node.distributed)
+    if not bad:
+        return message, bad
+    node._forget_parsed(message, bad)
+    node.counters.rejected_slots += len(bad)
+    node.counters.last_error = str(next(iter(bad.values())))
+    if message.sender in bad:
+        return None, bad
+    return _without(message, lambda s: s.owner in bad)[0], bad
+
+
+def admits_round(node: RobotNode, message: StackMessage) -> bool:
+    """Whether the belief gate hears ``message``'s sender now: its own slot, if new, is
+    plausible against D (counted nowhere: :meth:`RobotNode.merge_round` counts)."""
+    return message.sender not in node.gate.refused(
+        message, node.robot, node.stack, node.distributed
+    )
+
+
+def refuse_round(node: RobotNode, message: StackMessage) -> Received:
+    """A copy of a round stack its step does not merge (another copy of the sender's was
+    merged, or none was heard): what the belief gate refuses of it, counted."""
+    _, bad = gated(node, message)
+    error = bad.get(message.sender) or next(iter(bad.values()), None)
+    return Received(None, gated=len(bad), error=error)

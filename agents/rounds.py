@@ -5,27 +5,44 @@ stacks an agent keeps until its step can run; when a round is complete (:meth:`R
 what is missing (frames of an ordered step, round stacks of the senders an order names); the
 timer's repair of losses — the round's own stacks re-sent with exponential back-off
 (:meth:`Rounds.backoff`), a peer's missing round stack asked for (:meth:`Rounds.ask_for_round`)
-and such an ask answered (:meth:`Rounds.answer_round`). Everything kept is bounded by the
+and such an ask answered (:meth:`Rounds.answer_round`); which copy of a sender's round stack a
+step merges when a member that is the attacker publishes forged ones on its key, and when to go
+on without a sender whose every copy the belief gate refuses. Everything kept is bounded by the
 ``window`` steps ahead and by the roster.
 
 :class:`Answers` (every mode): how often a repeated request — an order of the current round, a
 frame of the current step sent again — is answered with the estimate again.
 
-Each sees orders, stacks' senders and steps, and times; no node, codec or journal.
+Each sees orders, stacks' senders and steps, and times; the belief gate only as a predicate
+given by the shell; no node, codec or journal.
+
+Over 300 lines for a reason: the rounds' bookkeeping, their repair by the timer and the choice
+among forged and honest copies act on the same held stacks and requests, and split apart each
+would need the others' state.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Container
+from collections.abc import Callable, Container, Sequence
 
 from agents.control import NeedRound, StepOrder
 from agents.gossip import Outgoing
 from protocol.codec import StackMessage
 
+COPIES = 3  # distinct copies of one sender's round stack kept (:meth:`Rounds.hold`)
+# A round gives up on a sender whose every copy its belief gate refuses once a copy came after
+# this many requests for it, a gossip period or more apart (:meth:`Rounds.ready`): each request
+# gives the sender's own stack a chance to come (a flooded inbox drops some), and an attacker's
+# forged copy, published ahead of the round on the sender's key, a chance to win no race.
+GIVE_UP_ASKS = 3
 LOCKSTEP_RESEND_MAX = 8  # periods: the longest a lock-step agent waits to re-send a stack
 # ... in a fleet of up to LOCKSTEP_RESEND_MAX / 2 + 1 robots: beyond, 2 (N − 1) periods, so that
 # whatever N an agent receives about one re-sent stack every two periods (N² / (2 (N − 1)) / N).
+
+
+def _anyone(message: StackMessage) -> bool:
+    return True
 
 
 def resend_max(peers: int) -> int:
@@ -88,9 +105,12 @@ class Rounds:
         self.peers = peers
         self.max_rounds = max(1, max_peers) * (window + 1)
         self.orders: dict[int, StepOrder] = {}
-        self.held: dict[tuple[str, int], tuple[StackMessage, bytes]] = {}
-        # Round stacks that came but were refused whole by the belief gate: when first.
-        self.refused: dict[tuple[str, int], float] = {}
+        # (sender, round) → the distinct copies that came, in order.
+        self.held: dict[tuple[str, int], list[tuple[StackMessage, bytes]]] = {}
+        # The round and senders last asked for (:meth:`tick`) and how often that round was
+        # asked for; the (sender, round) whose copy came after the last of GIVE_UP_ASKS asks.
+        self._asked: tuple[int, tuple[str, ...], int] | None = None
+        self.answered: set[tuple[str, int]] = set()
         self.orders_ahead = 0
         self.rounds_dropped = 0
         self.round_requests = 0
@@ -115,68 +135,128 @@ class Rounds:
         elif order.k > k:
             self.orders_ahead += 1
 
-    def hold(self, message: StackMessage, payload: bytes, k: int) -> None:
+    def hold(
+        self,
+        message: StackMessage,
+        payload: bytes,
+        k: int,
+        hears: Callable[[StackMessage], bool] = _anyone,
+    ) -> None:
         """Keep a peer's round stack until the step that merges it (its round within the
-        window; at most ``max_rounds`` held, the first copy of each)."""
+        window; at most ``max_rounds`` rounds held, and as many further copies). Up to
+        ``COPIES`` distinct copies of one sender's round are kept: a member that is the attacker
+        can publish forged ones on the sender's key before the honest one comes, and the step
+        takes the first its belief gate ``hears`` (:meth:`ready`). When they are all there, a
+        copy the gate hears now takes the place of the last one it does not."""
         if not k <= message.step <= k + self.window:
             return
-        if len(self.held) >= self.max_rounds:
+        key = (message.sender, message.step)
+        asked = self._asked
+        if (
+            asked is not None
+            and asked[0] == message.step
+            and message.sender in asked[1]
+            and asked[2] >= GIVE_UP_ASKS
+        ):
+            self.answered.add(key)
+        copies = self.held.get(key)
+        if copies is None:
+            if len(self.held) >= self.max_rounds:
+                self.rounds_dropped += 1
+                return
+            self.held[key] = [(message, payload)]
+            return
+        if any(c[1] == payload for c in copies):
+            return
+        if len(copies) >= COPIES:
+            deaf = [i for i, (m, _) in enumerate(copies) if not hears(m)]
+            if deaf and hears(message):
+                copies[deaf[-1]] = (message, payload)
+            else:
+                self.rounds_dropped += 1
+            return
+        # Further copies have a bound of their own, so that they never crowd out a first one.
+        if sum(len(c) - 1 for c in self.held.values()) >= self.max_rounds:
             self.rounds_dropped += 1
             return
-        self.held.setdefault((message.sender, message.step), (message, payload))
+        copies.append((message, payload))
 
-    def gated(self, sender: str, step: int, k: int, now: float) -> None:
-        """``sender``'s round stack of ``step`` came at ``now`` and the belief gate refused it
-        whole (its own slot contradicts this robot's belief: a drifted peer, or a member that is
-        the attacker). The round must not wait for it forever — one such peer stalled a
-        five-robot lock-step launch on real data — nor take the refusal at once: an attacker's
-        forged copy on the sender's key may come before the honest one. So the round waits a
-        gossip period for an admitted copy (the missing stack is asked for again meanwhile),
-        then counts the sender's stack as come with nothing to merge, as the in-process runner
-        does."""
-        if not k <= step <= k + self.window or (sender, step) in self.refused:
-            return
-        if len(self.refused) >= self.max_rounds:
-            self.rounds_dropped += 1
-            return
-        self.refused[(sender, step)] = now
-
-    def _came(self, sender: str, step: int, now: float) -> bool:
-        if (sender, step) in self.held:
-            return True
-        since = self.refused.get((sender, step))
-        return since is not None and now - since >= self.period
-
-    def ready(self, k: int, now: float = math.inf) -> list[tuple[StackMessage, bytes]] | None:
-        """The round stacks step ``k`` merges, in sender order, once its order and every stack
-        of round ``k − 1`` it names are here (None: not yet); a stack the gate refused counts
-        as here a gossip period after it came (:meth:`gated`), and merges nothing."""
+    def ready(
+        self, k: int, hears: Callable[[StackMessage], bool] = _anyone
+    ) -> list[tuple[StackMessage, bytes]] | None:
+        """The round stacks step ``k`` merges, in sender order, once its order and a stack of
+        round ``k − 1`` from every sender it names are here (None: not yet). Of a sender's
+        copies, the first that ``hears`` (the belief gate, judged now: before step ``k``, as
+        the in-process runner judges). If it hears none of them, the round asks the sender
+        for its stack (:meth:`round_missing`) and takes the first copy once a copy came after
+        the GIVE_UP_ASKS-th request, which the step's merge refuses and counts: one drifted
+        peer, or a member that is the attacker, must not stall the round for good, and a forged
+        copy published ahead of the round must not win the race against the sender's own."""
         order = self.orders.get(k)
         if order is None:
             return None
-        senders = order.links.get(self.robot, ())
-        if not all(self._came(s, k - 1, now) for s in senders):
+        picks = []
+        for s in sorted(order.links.get(self.robot, ())):
+            pick = self._pick(s, k - 1, hears)
+            if pick is None or not (pick[2] or (s, k - 1) in self.answered):
+                return None
+            picks.append(pick)
+        return [(m, data) for m, data, _ in picks]
+
+    def passed_over(
+        self, k: int, merged: Sequence[tuple[StackMessage, bytes]]
+    ) -> list[StackMessage]:
+        """The copies of round ``k − 1`` that step ``k`` does not merge (``merged``: what
+        :meth:`ready` gave): forged ones the belief gate refused, for the shell to count."""
+        taken = {data for _, data in merged}
+        return [
+            m
+            for (_, r), copies in sorted(self.held.items())
+            if r == k - 1
+            for m, data in copies
+            if data not in taken
+        ]
+
+    def _pick(
+        self, sender: str, round_k: int, hears: Callable[[StackMessage], bool]
+    ) -> tuple[StackMessage, bytes, bool] | None:
+        """The copy of ``sender``'s round stack to merge, and whether ``hears`` it (None: no
+        copy came)."""
+        copies = self.held.get((sender, round_k))
+        if not copies:
             return None
-        return [self.held[(s, k - 1)] for s in sorted(senders) if (s, k - 1) in self.held]
+        for message, payload in copies:
+            if hears(message):
+                return message, payload, True
+        return copies[0][0], copies[0][1], False
 
     def forget_before(self, k: int) -> None:
         self.orders = {j: o for j, o in self.orders.items() if j > k}
         self.held = {key: v for key, v in self.held.items() if key[1] >= k}
-        self.refused = {key: t for key, t in self.refused.items() if key[1] >= k}
+        self.answered = {key for key in self.answered if key[1] >= k}
 
     def frames_missing(self, k: int, frames: Container[int]) -> bool:
         """Whether step ``k`` is ordered and its frame has not come."""
         return k in self.orders and k not in frames
 
-    def round_missing(self, k: int, now: float = math.inf) -> tuple[int, tuple[str, ...]] | None:
+    def round_missing(
+        self, k: int, hears: Callable[[StackMessage], bool] = _anyone
+    ) -> tuple[int, tuple[str, ...]] | None:
         """The round whose stacks step ``k`` merges, and the senders its order names whose stack
-        of that round has not come, or came refused less than a gossip period ago (None:
-        nothing to ask for)."""
+        of that round has not come, or came and is not heard yet (:meth:`ready`; None: nothing
+        to ask for)."""
         order = self.orders.get(k)
         if order is None:
             return None
         senders = order.links.get(self.robot, ())
-        missing = tuple(sorted(s for s in senders if not self._came(s, k - 1, now)))
+        missing = tuple(
+            sorted(
+                s
+                for s in senders
+                if not (pick := self._pick(s, k - 1, hears))
+                or not (pick[2] or (s, k - 1) in self.answered)
+            )
+        )
         return (k - 1, missing) if missing else None
 
     # -- the timer's repairs -----------------------------------------------------------------
@@ -190,6 +270,9 @@ class Rounds:
         ask = None
         if (need is not None or self.asking) and self.ask_for_round(need, now) and need is not None:
             ask = NeedRound(self.robot, need[0], need[1])
+            asked = self._asked
+            times = asked[2] + 1 if asked is not None and asked[0] == need[0] else 1
+            self._asked = (need[0], need[1], times)
         return [b for b in sends if b is not None], ask
 
     def backoff(self, round_k: int) -> bool:

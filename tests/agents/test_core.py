@@ -510,11 +510,12 @@ def _own_slot_forged(node: RobotNode, info: float, step: int) -> bytes:
 
 def test_a_lockstep_round_whose_senders_own_slot_is_gated_completes_without_it(frames) -> None:  # type: ignore[no-untyped-def]
     """r2's round 2 merges r1's round-1 stack, and r2's belief gate refuses r1's own slot in it
-    (a drifted peer on real data, or a member that is the attacker). The round waits a gossip
-    period for an admitted copy — an attacker's forged copy may come before the honest one,
-    which then wins — and otherwise completes without r1: r2 steps, merges nothing of r1 and
-    counts the refusals, as the in-process runner does. (Found on UTIAS Dataset 7: a
-    five-robot lock-step launch stalled at step 32 for good.)"""
+    (a drifted peer on real data, or a member that is the attacker). Copies that came before r2
+    asked never complete the round — an attacker's forged copy published ahead of the round
+    must not beat the honest one, which then wins — but once r1 has been asked and a copy comes
+    in answer, the round completes without r1: r2 steps, merges nothing of r1 and counts the
+    refusal, as the in-process runner does. (Found on UTIAS Dataset 7: a five-robot lock-step
+    launch stalled at step 32 for good.)"""
     roster = ["r1", "r2"]
 
     def drivers() -> tuple[Driver, Driver]:
@@ -532,23 +533,31 @@ def test_a_lockstep_round_whose_senders_own_slot_is_gated_completes_without_it(f
 
     a, b = drivers()
     forged = _own_slot_forged(a.core.node, 1e9, 1)
-    for now in (1.0, 1.3):
+    for now in (1.0, 1.3, 9.0):
         b.run(b.core.on_message(KEYS.stack("r1"), forged, now))
-        assert b.core.node.k == 1  # refused, and less than a period ago
-    need = [
-        x for x in b.core.on_timer(1.4) + b.core.on_timer(2.0) if x.key == KEYS.ctl("need", "r2")
-    ]
-    assert [decode_control(x.payload) for x in need] == [NeedRound("r2", 1, ("r1",))]
-    b.run(b.core.on_message(KEYS.stack("r1"), forged, 1.5))  # sent again on request
+        assert b.core.node.k == 1  # refused, and not asked for yet
+
+    def asks(now: float) -> list[NeedRound]:
+        actions = b.core.on_timer(now)
+        return [decode_control(x.payload) for x in actions if x.key == KEYS.ctl("need", "r2")]
+
+    assert asks(9.1) == []  # missing (or not heard) for less than a period
+    for now in (9.7, 10.3):
+        assert asks(now) == [NeedRound("r2", 1, ("r1",))]
+        b.run(b.core.on_message(KEYS.stack("r1"), forged, now + 0.1))
+        assert b.core.node.k == 1  # fewer than GIVE_UP_ASKS requests: the honest copy may come
+    assert asks(10.9) == [NeedRound("r2", 1, ("r1",))]
+    b.run(b.core.on_message(KEYS.stack("r1"), forged, 11.0))  # sent again on the third request
     assert b.core.node.k == 2
     assert b.core.node.stack.version_of("r1") is None
-    assert b.core.counter_values()["slots_rejected"] == 3
-    # The honest copy within the period wins over the forged one that came first.
+    assert b.core.counter_values()["slots_rejected"] == 1  # counted by the merge that refused it
+    # The honest copy wins over the forged ones that came first, however many.
     a, b = drivers()
     honest = [p.payload for p in a.published if p.key == KEYS.stack("r1")][-1]
     assert decode(honest).step == 1
-    b.run(b.core.on_message(KEYS.stack("r1"), _own_slot_forged(a.core.node, 1e9, 1), 1.0))
-    b.run(b.core.on_message(KEYS.stack("r1"), honest, 1.2))
+    for i, info in enumerate((1e9, 1e8, 1e7, 1e6)):  # more distinct forgeries than are kept
+        b.run(b.core.on_message(KEYS.stack("r1"), _own_slot_forged(a.core.node, info, 1), i))
+    b.run(b.core.on_message(KEYS.stack("r1"), honest, 5.0))
     assert b.core.node.k == 2 and b.core.node.stack.version_of("r1") is not None
 
 
