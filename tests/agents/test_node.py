@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from agents.links import Schedule
-from agents.node import RobotNode
+from agents.node import FIT_LOG_STEPS, RobotNode
 from deploy.base.build import belief_model, belief_rng, link_model_for
 from deploy.study.fleet import FleetStats, make_nodes, run_fleet
 from estimator.factors import object_key
@@ -143,6 +143,15 @@ def test_a_fused_estimate_that_l_cannot_fit_leaves_the_own_slot_at_ls_point(
     np.testing.assert_allclose(slot.summary.per_object.xi.lin, at_l, rtol=0, atol=1e-5)
     assert node.local.slot_fit_refused == 1
     assert "r2: own slot at step 12 taken at L's point" in caplog.text
+    # Counted every time, logged at most once per FIT_LOG_STEPS steps.
+    caplog.clear()
+    node._own_slot_stale = True
+    node.current_stack()
+    assert node.local.slot_fit_refused == 2 and "L's point" not in caplog.text
+    node.k += FIT_LOG_STEPS  # (as if that many steps had gone by)
+    node._own_slot_stale = True
+    node.current_stack()
+    assert node.local.slot_fit_refused == 3 and "3 so far" in caplog.text
 
 
 @pytest.mark.parametrize("where", ["fused", "local"])
