@@ -132,6 +132,7 @@ def dump_scenario(s: Scenario) -> str:
         f"name = {_q(s.name)}",
         f"description = {_q(s.description)}",
         f"steps = {s.steps}",
+        *([] if s.class_seed is None else [f"class_seed = {s.class_seed}"]),
         "",
         *model_tables(dataclasses.replace(s.robot_model(), classifier=s.classifier), s),
         "",
@@ -153,7 +154,8 @@ def dump_scenario(s: Scenario) -> str:
             out += ["[robots.sensor]", *_sensor_lines(r.sensor)]
     for o in s.objects:
         out += ["", "[[objects]]", f"id = {o.id}", f"pose = {_nums(o.pose)}"]
-        out.append(f"class = {o.class_index + 1}")
+        if s.class_seed is None:  # else drawn per run
+            out.append(f"class = {o.class_index + 1}")
     for v in s.variants:
         settings = ", ".join(f"{_q(key)} = {_value(value)}" for key, value in v.settings)
         out += ["", f"[variants.{_q(v.name)}]", f"description = {_q(v.description)}"]

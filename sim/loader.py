@@ -37,6 +37,7 @@ from sim.scenario import (
     ScheduleEdge,
     Sensor,
     Variant,
+    draw_classes,
 )
 
 _ID_PATTERN = ROBOT_ID
@@ -330,7 +331,7 @@ def _build(raw: dict[str, Any], label: str, folder: Path | None) -> Scenario:
     check_format(top)
     top.check_keys(
         {"format", "name", "description", "steps", *MODEL_TABLES}
-        | {"communication", "robots", "objects", "variants", "recording"}
+        | {"communication", "robots", "objects", "variants", "recording", "class_seed"}
     )
     name = top.string("name")
     description = top.string("description") if top.has("description") else ""
@@ -338,7 +339,13 @@ def _build(raw: dict[str, Any], label: str, folder: Path | None) -> Scenario:
     model = robot_model_tables(top, "scenario", folder)
     estimator = _estimator_classifier(top.table("classifier"), model.num_classes, folder)
     robots = _robots(top, steps, model.sensor)
-    objects = _objects(top, model.num_classes, model.sensor.objects)
+    class_seed = top.integer("class_seed", minimum=0) if top.has("class_seed") else None
+    objects = _objects(top, model.num_classes, model.sensor.objects, class_seed is not None)
+    if class_seed is not None:
+        drawn = draw_classes(model.class_prior, len(objects), class_seed, 0)
+        objects = tuple(
+            dataclasses.replace(o, class_index=int(c)) for o, c in zip(objects, drawn, strict=True)
+        )
     robot_ids = [r.id for r in robots]
     communication = _communication(top.table("communication"), steps, robot_ids)
     recording = None
@@ -364,6 +371,7 @@ def _build(raw: dict[str, Any], label: str, folder: Path | None) -> Scenario:
         communication=communication,
         estimator_classifier=estimator,
         recording=recording,
+        class_seed=class_seed,
     )
 
 
@@ -570,9 +578,13 @@ def _actions(f: FieldReader, steps: int) -> tuple[tuple[float, float, float], ..
     return tuple((speed, 0.0, omega) for count, omega in parsed for _ in range(count))
 
 
-def _objects(top: FieldReader, m: int, kind: str = "pose") -> tuple[Object, ...]:
+def _objects(
+    top: FieldReader, m: int, kind: str = "pose", drawn: bool = False
+) -> tuple[Object, ...]:
     """``kind`` "point": a point object has no heading (its viewpoint is read in the world
-    frame), so its yaw must be 0 rather than be silently ignored."""
+    frame), so its yaw must be 0 rather than be silently ignored. ``drawn``: the scenario has a
+    ``class_seed``, its classes are drawn per run and an object may not state one (its class
+    here is a placeholder, replaced by run seed 0's draw)."""
     objects: list[Object] = []
     seen: set[int] = set()
     for f in top.tables("objects"):
@@ -584,6 +596,11 @@ def _objects(top: FieldReader, m: int, kind: str = "pose") -> tuple[Object, ...]
         pose = tuple(f.vector("pose", 3))
         if kind == "point" and pose[2] != 0.0:
             raise f.fail("pose", f"a point object has no heading: yaw {pose[2]:g} must be 0")
+        if drawn:
+            if f.has("class"):
+                raise f.fail("class", "the scenario has a class_seed: classes are drawn per run")
+            objects.append(Object(oid, pose, 0))  # type: ignore[arg-type]
+            continue
         cls = f.integer("class")
         if not 1 <= cls <= m:
             raise f.fail("class", f"{cls} is out of range 1..{m}")

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -164,6 +166,23 @@ class Scenario:
     estimator_classifier: ClassifierSpec | None = None
     # [recording]: frames recorded by real robots (sim.recording) instead of simulated ones
     recording: RecordingRef | None = None
+    # ``class_seed``: the objects' classes are drawn per run (:meth:`for_run`); ``objects``
+    # then hold run seed 0's draw. None: the classes are the file's, the same in every run.
+    class_seed: int | None = None
+
+    def for_run(self, seed: int) -> Scenario:
+        """The world of the run with ``seed``: with a ``class_seed``, every object's class drawn
+        from the class prior for this run (:func:`draw_classes`), so that a study's seeds vary
+        the class assignment as well as the scores; without one, this scenario itself. The
+        world returned holds its classes fixed (a second call changes nothing)."""
+        if self.class_seed is None:
+            return self
+        drawn = draw_classes(self.class_prior, len(self.objects), self.class_seed, seed)
+        objects = tuple(
+            dataclasses.replace(o, class_index=int(c))
+            for o, c in zip(self.objects, drawn, strict=True)
+        )
+        return dataclasses.replace(self, objects=objects, class_seed=None)
 
     @property
     def robot_ids(self) -> tuple[str, ...]:
@@ -200,3 +219,15 @@ class Scenario:
     def object_classes(self) -> NDArray[np.int64]:
         """(n,) true class indices 0..M−1 in file order."""
         return np.array([o.class_index for o in self.objects], dtype=np.int64)
+
+
+CLASS_STREAM = 0xC1A55  # keeps the class draw apart from every other stream of a run's seed
+
+
+def draw_classes(
+    prior: Sequence[float], n: int, class_seed: int, run_seed: int
+) -> NDArray[np.int64]:
+    """(n,) class indices 0..M−1 drawn independently from ``prior`` for the run with
+    ``run_seed`` of a world with ``class_seed`` (``Scenario.for_run``)."""
+    rng = np.random.default_rng(np.random.SeedSequence([class_seed, run_seed, CLASS_STREAM]))
+    return rng.choice(len(prior), size=n, p=np.asarray(prior, dtype=float)).astype(np.int64)

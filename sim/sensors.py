@@ -55,8 +55,9 @@ class Simulator:
     def __init__(
         self, scenario: Scenario, seed: int, classifier: ClassifierModel | None = None
     ) -> None:
-        self.scenario = scenario
+        # The world of this run: its own classes when the scenario draws them per run.
         self.seed = check_seed(seed)
+        self.scenario = scenario = scenario.for_run(self.seed)
         self.world = World(scenario)
         self.classifier = classifier if classifier is not None else scenario.classifier.build()
         self.kind = object_kind(scenario.sensor.objects)

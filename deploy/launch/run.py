@@ -111,7 +111,9 @@ class LaunchPlan:
     net: str = "loopback"
 
     def __post_init__(self) -> None:
-        s = self.scenario
+        # The world of the run with this seed (its classes, when they are drawn per run): what
+        # the conductor simulates and scores against. The agents see only the robot model.
+        self.scenario = s = self.scenario.for_run(self.seed)
         if self.mode not in MODES:
             raise PlanError(f"mode {self.mode!r}: expected one of {', '.join(MODES)}")
         unknown = [r for r in self.robots if r not in s.robot_ids]

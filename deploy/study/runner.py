@@ -149,6 +149,7 @@ def run_single(
     if "received" in methods and "distributed" not in methods:
         raise ValueError(RECEIVED_NEEDS)
     sim = Simulator(scenario, seed)
+    scenario = sim.scenario  # this run's world: its classes, when they are drawn per run
     frames = sim.all_frames()
     truth_objects = true_objects(scenario)
     robots = scenario.robot_ids

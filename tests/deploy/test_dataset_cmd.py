@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from deploy.launch.run import LaunchPlan
 from sim.loader import load_scenario
 from tests.deploy.test_cli import semfleet
 from tests.sim.test_mrclam import _rows, _write_noisy
@@ -48,6 +49,13 @@ def test_a_dataset_becomes_a_scenario_that_study_runs_as_it_is(tmp_path: Path) -
     assert study.returncode == 0, study.stderr
     results = json.loads((tmp_path / "study" / "results.json").read_text())
     assert results["steps"] == scenario.steps
+    # Each run draws the classes (class_seed): runs 0 and 1 differ, and each is scored against
+    # its own (against run 0's, run 1's class log-loss would end near the log-loss of a swap).
+    assert scenario.for_run(0).object_classes().tolist() != (
+        scenario.for_run(1).object_classes().tolist()
+    )
+    loss = np.load(tmp_path / "study" / "results.npz")["centralized/class_log_loss"]
+    assert np.all(loss[:, :, -1] < 0.3), loss[:, :, -1]
     # the five estimated trajectories against Vicon, one panel per method
     assert (tmp_path / "study" / "trajectories.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     tum = semfleet("export", "tum", "study", "-o", "tum", cwd=tmp_path)
@@ -116,3 +124,18 @@ def test_launch_runs_five_agent_processes_on_the_recorded_run(tmp_path: Path) ->
     assert r.returncode == 0, r.stderr
     results = json.loads((tmp_path / "run" / "results.json").read_text())
     assert "launch" in results and set(results["robots"]) == {"r1", "r2", "r3", "r4", "r5"}
+
+
+def test_a_launch_simulates_and_scores_the_world_of_its_seed(tmp_path: Path) -> None:
+    """With a class_seed, the conductor's world (frames and scoring) holds the classes of the
+    launch's --seed, as a study's run of that seed does."""
+    folder = _dataset(tmp_path)
+    assert (
+        semfleet("dataset", "mrclam", str(folder), "-o", "out", *ARGS, cwd=tmp_path).returncode == 0
+    )
+    scenario = load_scenario(tmp_path / "out" / "scenario.toml")
+    plan = LaunchPlan(scenario, 3, list(scenario.robot_ids), tmp_path / "run")
+    assert plan.scenario.object_classes().tolist() == (
+        scenario.for_run(3).object_classes().tolist()
+    )
+    assert plan.scenario.object_classes().tolist() != scenario.object_classes().tolist()

@@ -96,7 +96,8 @@ def test_frames_carry_the_recording_and_draw_only_the_scores(tmp_path: Path) -> 
                 seen += 1
                 assert_close(d.z_geo, z, atol=0)
                 assert not np.allclose(d.z_sem, e.z_sem)  # the scores are the run's, per seed
-                c = s.objects[[o.id for o in s.objects].index(d.object_id)].class_index
+                world = one.scenario  # this run's classes (drawn per run)
+                c = world.objects[[o.id for o in world.objects].index(d.object_id)].class_index
                 psi = float(viewpoint(f.true_pose, POINT.as_pose(truth[d.object_id])))
                 mean = model.mean(c, psi)
                 white = np.linalg.solve(np.linalg.cholesky(model.cov(c, psi)), d.z_sem - mean)
@@ -164,3 +165,46 @@ def test_a_hostile_recording_file_is_refused_naming_it(tmp_path: Path) -> None:
     np.savez(bad, robots=np.array(rec.robots), **{k: v for k, v in arrays.items() if k != "det_z"})
     with pytest.raises(RecordingError, match="missing arrays det_z"):
         read_recording(bad)
+
+
+def test_each_run_draws_the_landmarks_classes_from_the_prior(tmp_path: Path) -> None:
+    """``class_seed``: run seed s draws every landmark's class (``Scenario.for_run``), so a
+    study's seeds vary the assignment as well as the scores; the file lists no class, and the
+    scenario as loaded holds run 0's draw. The simulator draws the scores from the run's
+    classes, and the study scores against them."""
+    path, _, _ = _written(tmp_path, seed=5)
+    s = load_scenario(path)
+    assert s.class_seed == 5 and "class =" not in path.read_text()
+    assert s.for_run(0).object_classes().tolist() == s.object_classes().tolist()
+    runs = [s.for_run(seed).object_classes() for seed in range(400)]
+    assert len({tuple(c) for c in runs[:20]}) > 15  # assignments differ from run to run
+    assert s.for_run(3).for_run(7) == s.for_run(3)  # a run's world keeps its classes
+    counts = np.bincount(np.concatenate(runs), minlength=s.num_classes)
+    expected = counts.sum() / s.num_classes  # the uniform prior
+    chi2 = float(((counts - expected) ** 2 / expected).sum())
+    assert chi2 < 13.8, counts  # χ²₂ at 0.001
+    model = s.classifier.build()
+    for seed in (1, 2, 3):
+        sim = Simulator(s, seed)
+        assert sim.scenario.object_classes().tolist() == runs[seed].tolist()
+        truth = {o.id: (np.array(o.pose[:2]), o.class_index) for o in sim.scenario.objects}
+        right = wrong = 0.0
+        for robot in s.robot_ids:
+            for f in sim.frames(robot):
+                for d in f.detections:
+                    xy, c = truth[d.object_id]
+                    psi = float(viewpoint(f.true_pose, POINT.as_pose(xy)))
+                    right += model.log_likelihood(d.z_sem, c, psi)
+                    wrong += model.log_likelihood(d.z_sem, (c + 1) % s.num_classes, psi)
+        assert right > wrong + 50  # the scores come from the run's classes
+
+
+def test_a_class_seed_and_a_stated_class_are_refused_together(tmp_path: Path) -> None:
+    path, _, _ = _written(tmp_path)
+    text = path.read_text()
+    stated = text.replace("pose = [", "class = 1\npose = [", 1)
+    with pytest.raises(ScenarioError, match=r"objects\[0\]\.class: .*class_seed"):
+        parse_scenario(stated, "stated.toml", folder=path.parent)
+    without = "\n".join(line for line in text.splitlines() if not line.startswith("class_seed"))
+    with pytest.raises(ScenarioError, match="class"):
+        parse_scenario(without, "without.toml", folder=path.parent)

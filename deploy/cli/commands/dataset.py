@@ -93,8 +93,10 @@ def _header(args: argparse.Namespace, r: DatasetReport) -> str:
         + "; second sightings of a landmark in one step "
         + ", ".join(f"{k} {v}" for k, v in r.duplicates.items())
         + ".",
-        f"# Classes: semi-synthetic, seed {args.seed}; a point's viewpoint is read in the world "
-        "frame (heading 0).",
+        f"# Classes: semi-synthetic; the classifier model from seed {args.seed}, and each run "
+        "draws every landmark's",
+        f"# class from the prior with its own seed (class_seed = {args.seed}); a point's "
+        "viewpoint is read in the world frame (heading 0).",
         "",
     ]
     return "\n".join(lines) + "\n"
@@ -139,7 +141,12 @@ def add_parser(sub: Any) -> None:
         "--seconds", type=float, default=None, help="run only this long (default: to the end)"
     )
     m.add_argument("--classes", type=class_count, default=CLASSES, help="classes (default 3)")
-    m.add_argument("--seed", type=seed, default=0, help="seed of the classes and classifier")
+    m.add_argument(
+        "--seed",
+        type=seed,
+        default=0,
+        help="seed of the classifier model and of the per-run class draws (class_seed)",
+    )
     m.add_argument(
         "--comm-range",
         type=float,
