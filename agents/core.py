@@ -578,7 +578,7 @@ class AgentCore:
                 self._rollback()
         self.counters.frames_quarantined += 1
         actions: list[Action] = [Quarantine(FRAME, data, reason)]
-        odometry_only = SensorFrame(frame.robot, frame.k, frame.odometry, (), np.full(3, np.nan))
+        odometry_only = dataclasses.replace(frame, detections=(), true_pose=np.full(3, np.nan))
         try:
             self._run(odometry_only, fuse)
         except Exception as last:
