@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 
 from deploy.cli.main import main
+from estimator.models import NO_ID
 from protocol.framelog import read_frame_log
 from sim.loader import load_scenario
-from estimator.models import NO_ID
 from sim.sensors import Detector, Simulator
 from tests.protocol.test_frames import assert_same_frame
 
