@@ -154,8 +154,9 @@ def _encode_detections(
         if ids == NO_IDS:
             # nothing but NO_ID: an id in a frame without ids would be carried nowhere (and a
             # simulator's truth must not ride along unseen)
-            problem = f"{oid!r} in a frame without ids (expected {NO_ID})"
-            _local(oid == NO_ID, f"{where}.id", problem)
+            _local(
+                oid == NO_ID, f"{where}.id", f"{oid!r} in a frame without ids (expected {NO_ID})"
+            )
         else:
             id_ok = _is_int(oid) and 0 <= oid <= MAX_OBJECT_ID
             _local(id_ok, f"{where}.id", f"{oid!r} outside 0..2³²−1")
