@@ -704,6 +704,7 @@ def _counter_values(core: AgentCore) -> dict[str, int]:
         "slots_decoded": c.slots_decoded,
         "slots_skipped": c.slots_skipped,
         "slots_reused": c.slots_reused,
+        "slots_unassociated": c.unassociated_slots,
         "empty_joins": c.empty_joins,
         "rebuilds": c.rebuilds,
         "completed_joins": c.completed_joins,

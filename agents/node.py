@@ -21,6 +21,7 @@ import numpy as np
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
 from numpy.typing import ArrayLike
 
+from estimator.association import Association, Associator, SensorField
 from estimator.distributed import DistributedBelief, FusionStats, SlotError
 from estimator.gate import (
     GateSettings,
@@ -31,7 +32,7 @@ from estimator.gate import (
     held_objects,
 )
 from estimator.hybrid import SPARSE_XI_ABOVE, BeliefConfig, BeliefModel, HybridBelief
-from estimator.models import SensorFrame
+from estimator.models import GLOBAL_IDS, SensorFrame
 from estimator.slots import linearisation_point, summarise
 from estimator.summary import LocalSummary
 from protocol.codec import (
@@ -129,7 +130,9 @@ class NodeCounters:
     slots whose bodies were parsed, ``slots_skipped`` those left unparsed: versions the node
     already held or had passed, ``slots_reused`` those not parsed again because the node had
     parsed the very same bytes before and not merged them yet (a lock-step agent buffers the
-    stacks of later rounds; docs/wire.md, "Decoding only what is new")."""
+    stacks of later rounds; docs/wire.md, "Decoding only what is new"); ``unassociated_slots``
+    peers' slots not held because this robot's objects have robot-local ids (its frames came
+    without global ids)."""
 
     stacks_received: int = 0
     stacks_merged: int = 0
@@ -145,6 +148,7 @@ class NodeCounters:
     slots_decoded: int = 0
     slots_skipped: int = 0
     slots_reused: int = 0
+    unassociated_slots: int = 0
     bytes_received: int = 0
     stacks_sent: int = 0
     bytes_sent: int = 0
@@ -182,14 +186,27 @@ class StepReport:
 class LocalTrack:
     """A robot's LOCAL belief L and its generator: stepped once per frame, summarised at most once
     per step. L depends on the robot's own data only, so nodes of one robot that differ only in
-    how they fuse (a study's consistent and double-counting fleets) may share one track."""
+    how they fuse (a study's consistent and double-counting fleets) may share one track.
 
-    def __init__(self, belief: HybridBelief, rng: np.random.Generator) -> None:
+    ``associator``: data association for frames without global ids (``estimator.association``):
+    such a frame is associated with L's objects first, and L (and the node's D) step on the
+    frame of robot-local ids it gives. Frames of global ids never reach it."""
+
+    def __init__(
+        self,
+        belief: HybridBelief,
+        rng: np.random.Generator,
+        associator: Associator | None = None,
+    ) -> None:
         if len(belief.robots) != 1:
             raise ValueError("a local belief holds exactly one robot")
         self.belief = belief
         self.robot = belief.robots[0]
         self._rng = rng
+        self.associator = associator
+        self.association: Association | None = None  # the last associated frame's
+        self.association_s = 0.0  # its time, by the clock ``advance`` was given
+        self._stepped: SensorFrame | None = None
         self._summary: LocalSummary | None = None
         self._summary_k = -1
 
@@ -197,11 +214,29 @@ class LocalTrack:
     def k(self) -> int:
         return self.belief.step_of[self.robot]
 
-    def advance(self, frame: SensorFrame) -> None:
-        """Step L with ``frame``; a frame it already has is ignored (another sharer stepped it)."""
+    def advance(self, frame: SensorFrame, clock: Callable[[], float] | None = None) -> SensorFrame:
+        """Step L with ``frame`` (associated first when its ids are not global) and return the
+        frame L stepped on; a frame it already has is not stepped again (another sharer stepped
+        it). ``clock`` times the association (``association_s``)."""
+        if frame.k == self.k and self._stepped is not None and self._stepped.k == frame.k:
+            return self._stepped
         if frame.k == self.k:
-            return
+            return frame
+        self.association_s = 0.0
+        if frame.ids != GLOBAL_IDS:
+            if self.associator is None:
+                raise ValueError(
+                    f"frame {frame.k} of {self.robot} has {frame.ids} ids: associating them "
+                    "needs the robot's sensor field (an Associator)"
+                )
+            tick = clock if clock is not None else _no_clock
+            t0 = tick()
+            self.association = self.associator.associate(self.belief, frame)
+            self.association_s = tick() - t0
+            frame = self.association.frame
         self.belief.step([frame], self._rng)
+        self._stepped = frame
+        return frame
 
     def summary(self, at: gtsam.Values | None = None) -> LocalSummary | None:
         """The own slot's content at the current step (None before any object is seen),
@@ -327,6 +362,7 @@ class RobotNode:
         signing: Signing | None = None,
         epoch: int = 0,
         gate: GateSettings | None = None,
+        sensor: SensorField | None = None,
     ) -> None:
         self.robot = robot
         # The own slot's epoch (docs/wire.md, "Versions and epochs"): the shell gives the one of
@@ -336,7 +372,8 @@ class RobotNode:
             raise ValueError(f"{robot}'s signing key is not the one its roster holds for it")
         self.signing = signing
         if local is None:
-            local = LocalTrack(HybridBelief(model, {robot: start}, config), rng_local)
+            associator = None if sensor is None else Associator(model, sensor)
+            local = LocalTrack(HybridBelief(model, {robot: start}, config), rng_local, associator)
         if local.robot != robot:
             raise ValueError(f"node {robot} got the local track of {local.robot}")
         self.track = local
@@ -375,6 +412,10 @@ class RobotNode:
         self._own_slot_stale = False
         self._rebuild_due = False
         self._last_refusal: Exception | None = None  # why the last stack was refused whole
+        # Its frames came without global ids: L's and D's objects have robot-local ids, which
+        # no peer shares (mapping them across the fleet is issue 45, item 3): its slot is not
+        # sent, peers' slots are not held (counted in ``unassociated_slots``).
+        self.local_ids = False
 
     @property
     def local(self) -> HybridBelief:
@@ -539,6 +580,9 @@ class RobotNode:
             if s.owner == self.robot:
                 self._check_own(s)
                 continue
+            if self.local_ids:
+                self.counters.unassociated_slots += 1
+                continue
             if self.roster is not None and s.owner not in self.roster:
                 self.counters.foreign_slots += 1
                 continue
@@ -597,9 +641,16 @@ class RobotNode:
             else FusionStats((), (), 0, len(self.distributed.hypotheses))
         )
         t1 = tick()
-        self.track.advance(frame)
+        stepped = self.track.advance(frame, clock)
+        if stepped.ids != GLOBAL_IDS and not self.local_ids:
+            self.local_ids = True
+            log.warning(
+                "%s: frames without global ids: its objects have robot-local ids, so it neither "
+                "fuses peers' slots nor sends its own (fleet association: issue 45, item 3)",
+                self.robot,
+            )
         t2 = tick()
-        self.distributed.step([frame], self._rng_distributed)
+        self.distributed.step([stepped], self._rng_distributed)
         if self._rebuild_due and fuse:
             rebuilt = self.rebuild()
             fusion = replace(
@@ -699,7 +750,7 @@ class RobotNode:
                     self.local.slot_fit,
                     self.local.slot_fit_refused,
                 )
-            if summary is not None:
+            if summary is not None and not self.local_ids:
                 own = Slot(self.robot, self.k, summary, self.epoch)
                 self.stack = self.stack.with_slot(self._encoded_once(own))
             self._own_slot_stale = False
