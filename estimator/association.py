@@ -295,26 +295,29 @@ class Associator:
         hit: set[int] = set()
         confirmed: list[int] = []
         scores = []
-        for ti, t in enumerate(self.tentative):
-            z_pred = kind.measure(x_k, t.obj)
-            h = _jacobians(kind, x_k, t.obj[None, :])[0]
+        if left and self.tentative:
+            objs = np.array([t.obj for t in self.tentative])
+            z_pred = kind.measure(x_k, objs)  # (T, dim)
+            h = _jacobians(kind, x_k, objs)  # (T, dim, 3 + dim)
+            hx, ho = h[:, :, :3], h[:, :, 3:]
+            drift = np.array([k - t.k for t in self.tentative], dtype=float)
+            cov = np.array([t.cov for t in self.tentative])
             s = (
-                h[:, :3] @ ((k - t.k) * self._q) @ h[:, :3].T
-                + h[:, 3:] @ t.cov @ h[:, 3:].T
+                drift[:, None, None] * (hx @ self._q @ hx.transpose(0, 2, 1))
+                + ho @ cov @ ho.transpose(0, 2, 1)
                 + self._r
             )
             s_inv = np.linalg.inv(s)
-            log_norm = -0.5 * np.linalg.slogdet(2.0 * np.pi * s)[1]
-            for i in left:
-                nu = _residual(kind, z_pred, z[i])
-                d2 = float(nu @ s_inv @ nu)
-                if d2 > self._gate:
-                    continue
-                score = -0.5 * d2 + log_norm - self._log_lambda(z[i])
+            log_norm = -0.5 * np.linalg.slogdet(2.0 * np.pi * s)[1]  # (T,)
+            nu = _residual(kind, z_pred[None, :, :], z[left][:, None, :])  # (L, T, dim)
+            d2 = np.einsum("lti,tij,ltj->lt", nu, s_inv, nu)
+            for li, ti in zip(*np.nonzero(d2 <= self._gate), strict=True):
+                i, t = left[int(li)], self.tentative[int(ti)]
+                score = -0.5 * float(d2[li, ti]) + float(log_norm[ti]) - self._log_lambda(z[i])
                 if self.config.class_evidence:
                     score += self._tentative_llr(t, x_k, dets[i], z[i])
                 if score > 0.0:  # more likely this tentative object than a new one
-                    scores.append((-score, i, ti))
+                    scores.append((-score, i, int(ti)))
         taken: set[int] = set()
         for _, i, ti in sorted(scores):
             if i in taken or ti in hit:
