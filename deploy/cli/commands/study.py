@@ -192,7 +192,7 @@ def run(args: argparse.Namespace, console: Console, own: dict[str, tuple[str, An
             "miss": detector.miss,
         }
     if args.shard is not None:
-        key = study_key(scenario, args.methods, config, args.comm, args.gossip)
+        key = study_key(scenario, args.methods, config, args.comm, args.gossip, detector)
         settings["shard"] = shard_entry(args.shard, seeds, step, robot, key)
     archive = study_archive(scenario.name, results, args.methods, settings)
     write_archive(out, archive)
