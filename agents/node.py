@@ -70,6 +70,15 @@ CLOCK_SKEW_S = 300.0
 STAMP_SLACK = 10_000
 
 
+def _local_ids(robot: str) -> bool:
+    log.warning(
+        "%s: frames without global ids: its objects have robot-local ids, so it neither fuses "
+        "peers' slots nor sends its own (fleet association: issue 45, item 3)",
+        robot,
+    )
+    return True
+
+
 @dataclass(frozen=True, slots=True)
 class Received:
     """What :meth:`RobotNode.receive` made of one stack. ``message``: what was admitted of it
@@ -412,9 +421,8 @@ class RobotNode:
         self._own_slot_stale = False
         self._rebuild_due = False
         self._last_refusal: Exception | None = None  # why the last stack was refused whole
-        # Its frames came without global ids: L's and D's objects have robot-local ids, which
-        # no peer shares (mapping them across the fleet is issue 45, item 3): its slot is not
-        # sent, peers' slots are not held (counted in ``unassociated_slots``).
+        # Frames without global ids: robot-local object ids, which no peer shares (issue 45,
+        # item 3): its slot is not sent, peers' are not held (``unassociated_slots``).
         self.local_ids = False
 
     @property
@@ -643,12 +651,7 @@ class RobotNode:
         t1 = tick()
         stepped = self.track.advance(frame, clock)
         if stepped.ids != GLOBAL_IDS and not self.local_ids:
-            self.local_ids = True
-            log.warning(
-                "%s: frames without global ids: its objects have robot-local ids, so it neither "
-                "fuses peers' slots nor sends its own (fleet association: issue 45, item 3)",
-                self.robot,
-            )
+            self.local_ids = _local_ids(self.robot)
         t2 = tick()
         self.distributed.step([stepped], self._rng_distributed)
         if self._rebuild_due and fuse:
