@@ -576,7 +576,7 @@ class AgentCore:
                 self._rollback()
         self.counters.frames_quarantined += 1
         actions: list[Action] = [Quarantine(FRAME, data, reason)]
-        odometry_only = SensorFrame(frame.robot, frame.k, frame.odometry, (), np.full(3, np.nan))
+        odometry_only = dataclasses.replace(frame, detections=(), true_pose=np.full(3, np.nan))
         try:
             self._run(odometry_only, fuse)
         except Exception as last:
@@ -702,6 +702,7 @@ def _counter_values(core: AgentCore) -> dict[str, int]:
         "slots_decoded": c.slots_decoded,
         "slots_skipped": c.slots_skipped,
         "slots_reused": c.slots_reused,
+        "slots_unassociated": c.unassociated_slots,
         "empty_joins": c.empty_joins,
         "rebuilds": c.rebuilds,
         "completed_joins": c.completed_joins,

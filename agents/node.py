@@ -21,6 +21,7 @@ import numpy as np
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
 from numpy.typing import ArrayLike
 
+from estimator.association import Association, Associator, SensorField
 from estimator.distributed import DistributedBelief, FusionStats, SlotError
 from estimator.gate import (
     GateSettings,
@@ -31,7 +32,7 @@ from estimator.gate import (
     held_objects,
 )
 from estimator.hybrid import SPARSE_XI_ABOVE, BeliefConfig, BeliefModel, HybridBelief
-from estimator.models import SensorFrame
+from estimator.models import GLOBAL_IDS, SensorFrame
 from estimator.slots import linearisation_point, summarise
 from estimator.summary import LocalSummary
 from protocol.codec import (
@@ -71,6 +72,31 @@ STAMP_SLACK = 10_000
 # ``estimator.slots``): on real data it refuses at most steps of a run, and one line per robot
 # and step was 11,500 lines in a four-run study of UTIAS Dataset 7. The counter keeps them all.
 FIT_LOG_STEPS = 100
+
+
+def _log_fit_refused(node: RobotNode) -> None:
+    """The own slot was taken at L's point: one line per FIT_LOG_STEPS steps at most."""
+    if node.k - node._fit_logged_k < FIT_LOG_STEPS:
+        return
+    node._fit_logged_k = node.k
+    log.warning(
+        "%s: own slot at step %d taken at L's point: D's estimate does not fit L's own data "
+        "(excess χ² %.3g per dimension; %d so far; at most one line per %d steps)",
+        node.robot,
+        node.k,
+        node.local.slot_fit,
+        node.local.slot_fit_refused,
+        FIT_LOG_STEPS,
+    )
+
+
+def _local_ids(robot: str) -> bool:
+    log.warning(
+        "%s: frames without global ids: its objects have robot-local ids, so it neither fuses "
+        "peers' slots nor sends its own (fleet association: issue 45, item 3)",
+        robot,
+    )
+    return True
 
 
 @dataclass(frozen=True, slots=True)
@@ -133,7 +159,9 @@ class NodeCounters:
     slots whose bodies were parsed, ``slots_skipped`` those left unparsed: versions the node
     already held or had passed, ``slots_reused`` those not parsed again because the node had
     parsed the very same bytes before and not merged them yet (a lock-step agent buffers the
-    stacks of later rounds; docs/wire.md, "Decoding only what is new")."""
+    stacks of later rounds; docs/wire.md, "Decoding only what is new"); ``unassociated_slots``
+    peers' slots not held because this robot's objects have robot-local ids (its frames came
+    without global ids)."""
 
     stacks_received: int = 0
     stacks_merged: int = 0
@@ -149,6 +177,7 @@ class NodeCounters:
     slots_decoded: int = 0
     slots_skipped: int = 0
     slots_reused: int = 0
+    unassociated_slots: int = 0
     bytes_received: int = 0
     stacks_sent: int = 0
     bytes_sent: int = 0
@@ -186,14 +215,27 @@ class StepReport:
 class LocalTrack:
     """A robot's LOCAL belief L and its generator: stepped once per frame, summarised at most once
     per step. L depends on the robot's own data only, so nodes of one robot that differ only in
-    how they fuse (a study's consistent and double-counting fleets) may share one track."""
+    how they fuse (a study's consistent and double-counting fleets) may share one track.
 
-    def __init__(self, belief: HybridBelief, rng: np.random.Generator) -> None:
+    ``associator``: data association for frames without global ids (``estimator.association``):
+    such a frame is associated with L's objects first, and L (and the node's D) step on the
+    frame of robot-local ids it gives. Frames of global ids never reach it."""
+
+    def __init__(
+        self,
+        belief: HybridBelief,
+        rng: np.random.Generator,
+        associator: Associator | None = None,
+    ) -> None:
         if len(belief.robots) != 1:
             raise ValueError("a local belief holds exactly one robot")
         self.belief = belief
         self.robot = belief.robots[0]
         self._rng = rng
+        self.associator = associator
+        self.association: Association | None = None  # the last associated frame's
+        self.association_s = 0.0  # its time, by the clock ``advance`` was given
+        self._stepped: SensorFrame | None = None
         self._summary: LocalSummary | None = None
         self._summary_k = -1
 
@@ -201,11 +243,29 @@ class LocalTrack:
     def k(self) -> int:
         return self.belief.step_of[self.robot]
 
-    def advance(self, frame: SensorFrame) -> None:
-        """Step L with ``frame``; a frame it already has is ignored (another sharer stepped it)."""
+    def advance(self, frame: SensorFrame, clock: Callable[[], float] | None = None) -> SensorFrame:
+        """Step L with ``frame`` (associated first when its ids are not global) and return the
+        frame L stepped on; a frame it already has is not stepped again (another sharer stepped
+        it). ``clock`` times the association (``association_s``)."""
+        if frame.k == self.k and self._stepped is not None and self._stepped.k == frame.k:
+            return self._stepped
         if frame.k == self.k:
-            return
+            return frame
+        self.association_s = 0.0
+        if frame.ids != GLOBAL_IDS:
+            if self.associator is None:
+                raise ValueError(
+                    f"frame {frame.k} of {self.robot} has {frame.ids} ids: associating them "
+                    "needs the robot's sensor field (an Associator)"
+                )
+            tick = clock if clock is not None else _no_clock
+            t0 = tick()
+            self.association = self.associator.associate(self.belief, frame)
+            self.association_s = tick() - t0
+            frame = self.association.frame
         self.belief.step([frame], self._rng)
+        self._stepped = frame
+        return frame
 
     def summary(self, at: gtsam.Values | None = None) -> LocalSummary | None:
         """The own slot's content at the current step (None before any object is seen),
@@ -331,6 +391,7 @@ class RobotNode:
         signing: Signing | None = None,
         epoch: int = 0,
         gate: GateSettings | None = None,
+        sensor: SensorField | None = None,
     ) -> None:
         self.robot = robot
         # The own slot's epoch (docs/wire.md, "Versions and epochs"): the shell gives the one of
@@ -340,7 +401,8 @@ class RobotNode:
             raise ValueError(f"{robot}'s signing key is not the one its roster holds for it")
         self.signing = signing
         if local is None:
-            local = LocalTrack(HybridBelief(model, {robot: start}, config), rng_local)
+            associator = None if sensor is None else Associator(model, sensor)
+            local = LocalTrack(HybridBelief(model, {robot: start}, config), rng_local, associator)
         if local.robot != robot:
             raise ValueError(f"node {robot} got the local track of {local.robot}")
         self.track = local
@@ -380,6 +442,9 @@ class RobotNode:
         self._fit_logged_k = -FIT_LOG_STEPS  # the step of the last "taken at L's point" line
         self._rebuild_due = False
         self._last_refusal: Exception | None = None  # why the last stack was refused whole
+        # Frames without global ids: robot-local object ids, which no peer shares (issue 45,
+        # item 3): its slot is not sent, peers' are not held (``unassociated_slots``).
+        self.local_ids = False
 
     @property
     def local(self) -> HybridBelief:
@@ -550,6 +615,9 @@ class RobotNode:
             if s.owner == self.robot:
                 self._check_own(s)
                 continue
+            if self.local_ids:
+                self.counters.unassociated_slots += 1
+                continue
             if self.roster is not None and s.owner not in self.roster:
                 self.counters.foreign_slots += 1
                 continue
@@ -608,9 +676,11 @@ class RobotNode:
             else FusionStats((), (), 0, len(self.distributed.hypotheses))
         )
         t1 = tick()
-        self.track.advance(frame)
+        stepped = self.track.advance(frame, clock)
+        if stepped.ids != GLOBAL_IDS and not self.local_ids:
+            self.local_ids = _local_ids(self.robot)
         t2 = tick()
-        self.distributed.step([frame], self._rng_distributed)
+        self.distributed.step([stepped], self._rng_distributed)
         if self._rebuild_due and fuse:
             rebuilt = self.rebuild()
             fusion = replace(
@@ -701,22 +771,9 @@ class RobotNode:
         if self._own_slot_stale:
             refused = self.local.slot_fit_refused
             summary = self.track.summary(linearisation_point(self.distributed))
-            if (
-                self.local.slot_fit_refused > refused
-                and self.k - self._fit_logged_k >= FIT_LOG_STEPS
-            ):
-                self._fit_logged_k = self.k
-                log.warning(
-                    "%s: own slot at step %d taken at L's point: D's estimate does not fit L's "
-                    "own data (excess χ² %.3g per dimension; %d so far; at most one line per "
-                    "%d steps)",
-                    self.robot,
-                    self.k,
-                    self.local.slot_fit,
-                    self.local.slot_fit_refused,
-                    FIT_LOG_STEPS,
-                )
-            if summary is not None:
+            if self.local.slot_fit_refused > refused:
+                _log_fit_refused(self)
+            if summary is not None and not self.local_ids:
                 own = Slot(self.robot, self.k, summary, self.epoch)
                 self.stack = self.stack.with_slot(self._encoded_once(own))
             self._own_slot_stale = False

@@ -33,7 +33,7 @@ import asyncio
 import collections
 import logging
 from collections.abc import AsyncIterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from types import TracebackType
 
 import numpy as np
@@ -134,9 +134,7 @@ class RobotLink:
         last = self._sent[-1][0] if self._sent else 0
         if frame.k < last:
             raise ValueError(f"step {frame.k} after step {last}: steps never go backwards")
-        own = SensorFrame(
-            frame.robot, frame.k, frame.odometry, frame.detections, np.full(3, np.nan)
-        )
+        own = replace(frame, true_pose=np.full(3, np.nan))
         data = encode_frame(own)
         if frame.k == last:
             self._sent.pop()

@@ -4,7 +4,9 @@ What a robot's logger writes and ``semfleet replay`` publishes on ``frames/<robo
 header line ``{"v": 1, "type": "frame_log"}``, then one frame per line,
 ``{"robot": id, "k": int, "odometry": [dx, dy, dθ],
 "detections": [{"id": int, "z_geo": [x, y, θ], "z_sem": [s₁, …, s_M]}, ...]}``, with k = 1, 2, 3…
-(``z_geo`` of a point object: [bearing, range]).
+(``z_geo`` of a point object: [bearing, range]). A frame whose ids are not global object ids says
+so: ``"ids": "local"`` (a robot-local tracker's ids) or ``"ids": "none"`` (then its detections
+have no ``id``); a line without ``ids`` holds global ids, as every log written before.
 A log never holds ground truth: a parsed frame's ``true_pose`` is three NaN.
 
 Sans-I/O: these functions take and return ``str`` lines; the caller opens the file. A line is
@@ -27,7 +29,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from estimator.models import Detection, SensorFrame
+from estimator.models import GLOBAL_IDS, ID_KINDS, NO_ID, NO_IDS, Detection, SensorFrame
 from protocol.errors import (
     InvalidValue,
     LimitExceeded,
@@ -47,7 +49,9 @@ LOG_TYPE = "frame_log"
 CHARS_PER_WIRE_BYTE = 4
 _HEADER_KEYS = frozenset({"v", "type"})
 _FRAME_KEYS = frozenset({"robot", "k", "odometry", "detections"})
+_ID_KEY = "ids"  # optional: absent means global ids
 _DETECTION_KEYS = frozenset({"id", "z_geo", "z_sem"})
+_DETECTION_KEYS_NO_ID = frozenset({"z_geo", "z_sem"})
 # encode_frame's field names → the log's: odo → odometry, det[i].geo → detections[i].z_geo …
 _LOG_NAMES = {
     "odo": "odometry",
@@ -81,15 +85,22 @@ def format_frame_line(frame: SensorFrame, limits: FrameLimits | None = None) -> 
     shortest round-trip form, so ``parse_frame_line`` gives back the same bits."""
     frame = replace(frame, true_pose=np.full(3, np.nan))  # a log never holds ground truth
     encode_frame(frame, limits)
-    doc = {
+    with_id = frame.ids != NO_IDS
+    doc: dict[str, Any] = {
         "robot": frame.robot,
         "k": int(frame.k),
         "odometry": _floats(frame.odometry),
         "detections": [
-            {"id": int(d.object_id), "z_geo": _floats(d.z_geo), "z_sem": _floats(d.z_sem)}
+            {
+                **({"id": int(d.object_id)} if with_id else {}),
+                "z_geo": _floats(d.z_geo),
+                "z_sem": _floats(d.z_sem),
+            }
             for d in frame.detections
         ],
     }
+    if frame.ids != GLOBAL_IDS:  # a log of global ids reads as every log written before
+        doc[_ID_KEY] = frame.ids
     return json.dumps(doc, separators=(",", ":"), allow_nan=False)
 
 
@@ -103,8 +114,9 @@ def parse_frame_line(line: str, lineno: int, limits: FrameLimits | None = None) 
 
 def read_frame_log(lines: Iterable[str], limits: FrameLimits | None = None) -> list[SensorFrame]:
     """Every frame of a log, checked as a whole: an optional header first, then frames of one
-    robot with k = 1, 2, 3… and one score length M throughout. Blank lines are skipped (line
-    numbers still count them). Raises only :class:`FrameLogError`; a log without frames is one."""
+    robot with k = 1, 2, 3…, one id kind and one score length M throughout. Blank lines are
+    skipped (line numbers still count them). Raises only :class:`FrameLogError`; a log without
+    frames is one."""
     frames = list(_frames(lines, limits or FrameLimits()))
     if not frames:
         raise FrameLogError(1, "frames", "the log holds no frame")
@@ -114,6 +126,7 @@ def read_frame_log(lines: Iterable[str], limits: FrameLimits | None = None) -> l
 def _frames(lines: Iterable[str], lim: FrameLimits) -> Iterator[SensorFrame]:
     previous: SensorFrame | None = None
     scores: tuple[int, int] | None = None  # (M, the line that fixed it)
+    id_line = 0  # the line of the first frame, whose id kind the whole log keeps
     first = True
     for lineno, line in enumerate(lines, start=1):
         if isinstance(line, str) and not line.strip():
@@ -128,6 +141,10 @@ def _frames(lines: Iterable[str], lim: FrameLimits) -> Iterator[SensorFrame]:
             first = False
             frame = _frame(doc, lim)
             _follows(frame, previous)
+            if previous is not None and frame.ids != previous.ids:
+                problem = f"{frame.ids!r}, but line {id_line} holds {previous.ids!r} ids"
+                raise MalformedMessage(problem, _ID_KEY)
+            id_line = lineno if previous is None else id_line
             if frame.detections:
                 m = len(frame.detections[0].z_sem)
                 if scores is not None and m != scores[0]:
@@ -189,14 +206,21 @@ def _header(doc: dict[str, Any]) -> None:
 
 
 def _frame(doc: Any, lim: FrameLimits) -> SensorFrame:
+    ids = GLOBAL_IDS
+    if isinstance(doc, dict) and _ID_KEY in doc:
+        ids = doc[_ID_KEY]
+        need(isinstance(ids, str), _ID_KEY, f"expected a string, got {type(ids).__name__}")
+        known = ", ".join(repr(k) for k in ID_KINDS)
+        need(ids in ID_KINDS, _ID_KEY, f"{ids!r}: expected one of {known}", InvalidValue)
+        doc = {key: value for key, value in doc.items() if key != _ID_KEY}
     top = as_map(doc, "frame", _FRAME_KEYS)
     robot = robot_id(top["robot"], "robot")
     k = as_int(top["k"], "k", 1, MAX_STEP)
     odometry = _numbers(top["odometry"], "odometry", 3)
     raw = top["detections"]
     need(isinstance(raw, list), "detections", "expected an array")
-    dets = tuple(_detection(d, f"detections[{i}]") for i, d in enumerate(raw))
-    frame = SensorFrame(robot, k, odometry, dets, np.full(3, np.nan))
+    dets = tuple(_detection(d, f"detections[{i}]", ids) for i, d in enumerate(raw))
+    frame = SensorFrame(robot, k, odometry, dets, np.full(3, np.nan), ids)
     try:
         encode_frame(frame, lim)  # the wire's value rules: finite, ids unique, M, limits
     except LocalProtocolError as exc:
@@ -205,9 +229,13 @@ def _frame(doc: Any, lim: FrameLimits) -> SensorFrame:
     return frame
 
 
-def _detection(value: Any, where: str) -> Detection:
-    d = as_map(value, where, _DETECTION_KEYS)
-    oid = as_int(d["id"], f"{where}.id", 0, MAX_OBJECT_ID)
+def _detection(value: Any, where: str, ids: str) -> Detection:
+    if ids == NO_IDS:
+        d = as_map(value, where, _DETECTION_KEYS_NO_ID)
+        oid = NO_ID
+    else:
+        d = as_map(value, where, _DETECTION_KEYS)
+        oid = as_int(d["id"], f"{where}.id", 0, MAX_OBJECT_ID)
     # z_geo: 3 numbers (a pose object) or 2 (a point's bearing and range); encode_frame checks
     # which, and that a frame's detections agree
     return Detection(

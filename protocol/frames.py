@@ -2,11 +2,13 @@
 
 A frame is a msgpack map ``{"v": 1, "type": "frame", "robot": str, "k": int, "odo": bin,
 "truth": bin | nil, "det": [{"id": int, "geo": bin, "sem": bin}, ...]}``, every float array raw
-little-endian float64. A real robot has no ground truth: it sends ``truth: nil``, which decodes to
-a (3,) array of NaN (the one place a NaN may appear in a decoded frame), and a frame whose
-``true_pose`` is all NaN encodes to nil. As in ``protocol.codec``, ``decode_frame`` raises only
-:class:`RemoteProtocolError` subclasses naming the field, and ``encode_frame`` raises
-:class:`LocalProtocolError` for anything the decoder would reject under the same limits.
+little-endian float64; with ``"ids": "local" | "none"`` when the detections' ids are not global
+object ids (absent: global; a frame without ids has no ``id`` in its detections). A real robot
+has no ground truth: it sends ``truth: nil``, which decodes to a (3,) array of NaN (the one place
+a NaN may appear in a decoded frame), and a frame whose ``true_pose`` is all NaN encodes to nil.
+As in ``protocol.codec``, ``decode_frame`` raises only :class:`RemoteProtocolError` subclasses
+naming the field, and ``encode_frame`` raises :class:`LocalProtocolError` for anything the
+decoder would reject under the same limits.
 """
 
 from __future__ import annotations
@@ -18,7 +20,15 @@ import msgpack
 import numpy as np
 from numpy.typing import NDArray
 
-from estimator.models import MAX_STEP, Detection, SensorFrame
+from estimator.models import (
+    GLOBAL_IDS,
+    ID_KINDS,
+    MAX_STEP,
+    NO_ID,
+    NO_IDS,
+    Detection,
+    SensorFrame,
+)
 from protocol.errors import (
     InvalidValue,
     LimitExceeded,
@@ -37,7 +47,10 @@ MAX_OBJECT_ID = 2**32 - 1
 MAX_SCORES = 64  # length of a score vector when FrameLimits.num_classes is not given
 _F64 = np.dtype("<f8")
 _TOP_KEYS = frozenset({"v", "type", "robot", "k", "odo", "truth", "det"})
+_ID_KEY = "ids"  # optional: absent means global ids
 _DET_KEYS = frozenset({"id", "geo", "sem"})
+_DET_KEYS_NO_ID = frozenset({"geo", "sem"})
+_IDS_RULE = f"expected one of {', '.join(repr(k) for k in ID_KINDS)}"
 # A detection's geometry: a pose object's relative pose (x, y, θ) or a point's (bearing, range)
 # (estimator.models.objects); every detection of a frame is of one kind.
 GEO_LENGTHS = (3, 2)
@@ -104,8 +117,10 @@ def encode_frame(frame: SensorFrame, limits: FrameLimits | None = None) -> bytes
     truth = None
     if not _no_truth(frame.true_pose):
         truth = _vector(frame.true_pose, "truth", 3).tobytes()
-    raw = _encode_detections(frame.detections, lim)
-    doc = {
+    ids = frame.ids
+    _local(isinstance(ids, str) and ids in ID_KINDS, _ID_KEY, f"{ids!r}: {_IDS_RULE}")
+    raw = _encode_detections(frame.detections, lim, ids)
+    doc: dict[str, Any] = {
         "v": VERSION,
         "type": FRAME,
         "robot": frame.robot,
@@ -114,6 +129,8 @@ def encode_frame(frame: SensorFrame, limits: FrameLimits | None = None) -> bytes
         "truth": truth,
         "det": raw,
     }
+    if ids != GLOBAL_IDS:  # a frame of global ids keeps the bytes it always had
+        doc[_ID_KEY] = ids
     blob = bytes(msgpack.packb(doc, use_bin_type=True))
     _local(
         len(blob) <= lim.max_message_bytes,
@@ -123,7 +140,9 @@ def encode_frame(frame: SensorFrame, limits: FrameLimits | None = None) -> bytes
     return blob
 
 
-def _encode_detections(dets: tuple[Detection, ...], lim: FrameLimits) -> list[dict[str, Any]]:
+def _encode_detections(
+    dets: tuple[Detection, ...], lim: FrameLimits, ids: str
+) -> list[dict[str, Any]]:
     _local(len(dets) <= lim.max_detections, "det", f"{len(dets)} > {lim.max_detections}")
     seen: set[int] = set()
     first: int | None = None
@@ -132,10 +151,17 @@ def _encode_detections(dets: tuple[Detection, ...], lim: FrameLimits) -> list[di
     for i, d in enumerate(dets):
         where = f"det[{i}]"
         oid = d.object_id
-        id_ok = _is_int(oid) and 0 <= oid <= MAX_OBJECT_ID
-        _local(id_ok, f"{where}.id", f"{oid!r} outside 0..2³²−1")
-        _local(int(oid) not in seen, f"{where}.id", f"duplicate object id {oid}")
-        seen.add(int(oid))
+        if ids == NO_IDS:
+            # nothing but NO_ID: an id in a frame without ids would be carried nowhere (and a
+            # simulator's truth must not ride along unseen)
+            _local(
+                oid == NO_ID, f"{where}.id", f"{oid!r} in a frame without ids (expected {NO_ID})"
+            )
+        else:
+            id_ok = _is_int(oid) and 0 <= oid <= MAX_OBJECT_ID
+            _local(id_ok, f"{where}.id", f"{oid!r} outside 0..2³²−1")
+            _local(int(oid) not in seen, f"{where}.id", f"duplicate object id {oid}")
+            seen.add(int(oid))
         geo = _vector(d.z_geo, f"{where}.geo", None)
         _local(geo.shape[0] in GEO_LENGTHS, f"{where}.geo", _GEO_RULE.format(geo.shape[0]))
         _local(geo.shape[0] == (geo_length or geo.shape[0]), f"{where}.geo", _GEO_SAME)
@@ -144,7 +170,10 @@ def _encode_detections(dets: tuple[Detection, ...], lim: FrameLimits) -> list[di
         problem = _scores_problem(sem.shape[0], first, lim)
         _local(problem is None, f"{where}.sem", str(problem))
         first = sem.shape[0]
-        raw.append({"id": int(oid), "geo": geo.tobytes(), "sem": sem.tobytes()})
+        det: dict[str, Any] = {"geo": geo.tobytes(), "sem": sem.tobytes()}
+        if ids != NO_IDS:
+            det = {"id": int(oid), **det}
+        raw.append(det)
     return raw
 
 
@@ -181,6 +210,12 @@ def _decode_doc(doc: Any, lim: FrameLimits) -> SensorFrame:
     need(isinstance(doc, dict), "message", f"expected a map, got {type(doc).__name__}")
     if "v" in doc and (type(doc["v"]) is not int or doc["v"] != VERSION):
         raise UnsupportedVersion(f"schema version {doc['v']!r} (this side speaks {VERSION})", "v")
+    ids = GLOBAL_IDS
+    if _ID_KEY in doc:
+        ids = doc[_ID_KEY]
+        need(isinstance(ids, str), _ID_KEY, f"expected a string, got {type(ids).__name__}")
+        need(ids in ID_KINDS, _ID_KEY, f"{ids!r}: {_IDS_RULE}", InvalidValue)
+        doc = {key: value for key, value in doc.items() if key != _ID_KEY}
     top = as_map(doc, "message", _TOP_KEYS)
     if top["type"] != FRAME:
         raise UnsupportedVersion(f"message type {top['type']!r}", "type")
@@ -188,11 +223,11 @@ def _decode_doc(doc: Any, lim: FrameLimits) -> SensorFrame:
     k = as_int(top["k"], "k", 1, MAX_STEP)
     odo = _floats(top["odo"], "odo", 3)
     truth = np.full(3, np.nan) if top["truth"] is None else _floats(top["truth"], "truth", 3)
-    dets = _decode_detections(top["det"], lim)
-    return SensorFrame(robot, k, odo, tuple(dets), truth)
+    dets = _decode_detections(top["det"], lim, ids)
+    return SensorFrame(robot, k, odo, tuple(dets), truth, ids)
 
 
-def _decode_detections(raw: Any, lim: FrameLimits) -> list[Detection]:
+def _decode_detections(raw: Any, lim: FrameLimits, ids: str) -> list[Detection]:
     need(isinstance(raw, list), "det", "expected an array")
     need(len(raw) <= lim.max_detections, "det", f"{len(raw)} > {lim.max_detections}", LimitExceeded)
     seen: set[int] = set()
@@ -201,10 +236,14 @@ def _decode_detections(raw: Any, lim: FrameLimits) -> list[Detection]:
     dets = []
     for i, value in enumerate(raw):
         where = f"det[{i}]"
-        d = as_map(value, where, _DET_KEYS)
-        oid = as_int(d["id"], f"{where}.id", 0, MAX_OBJECT_ID)
-        need(oid not in seen, f"{where}.id", f"duplicate object id {oid}", InvalidValue)
-        seen.add(oid)
+        if ids == NO_IDS:
+            d = as_map(value, where, _DET_KEYS_NO_ID)
+            oid = NO_ID
+        else:
+            d = as_map(value, where, _DET_KEYS)
+            oid = as_int(d["id"], f"{where}.id", 0, MAX_OBJECT_ID)
+            need(oid not in seen, f"{where}.id", f"duplicate object id {oid}", InvalidValue)
+            seen.add(oid)
         geo = _floats(d["geo"], f"{where}.geo", None)
         # malformed, as a score vector of the wrong length is: the blob's shape is wrong
         need(geo.shape[0] in GEO_LENGTHS, f"{where}.geo", _GEO_RULE.format(geo.shape[0]))

@@ -4,17 +4,40 @@ Every noise draw is a pure function of (seed, stream, robot, step, object): each
 object) triple owns its own ``numpy`` generator seeded from a ``SeedSequence`` of those numbers. A
 frame is therefore identical whatever order frames are generated in, and every method of a Monte
 Carlo run sees the very same measurements.
+
+A :class:`Detector` makes the frames a real detector would give (data association issue):
+without global ids (``ids = "none"``, or a robot-local tracker's ``"local"`` ids), with clutter
+(false detections: per frame Poisson with mean ``clutter`` × the true detections, uniform in the
+sensor's field, scores of a random class at a random viewpoint or of no class) and misses (each
+true detection lost with probability ``miss``, independently), from streams of their own so that
+the true detections keep their noise. The default detector (global ids, no clutter, no misses)
+draws nothing more: its frames are those of before, to the bit. What each detection truly is (an
+object id or :data:`CLUTTER`) is returned beside the frame (:meth:`Simulator.labelled_frame`),
+for scoring only: it never enters a frame.
 """
 
 from __future__ import annotations
 
+import math
 import zlib
+from dataclasses import dataclass
 from functools import cached_property
 
 import numpy as np
 from numpy.typing import NDArray
 
-from estimator.models import ClassifierModel, Detection, SensorFrame, se2, viewpoint
+from estimator.models import (
+    GLOBAL_IDS,
+    LOCAL_IDS,
+    NO_ID,
+    NO_IDS,
+    ClassifierModel,
+    Detection,
+    SensorFrame,
+    check_id_kind,
+    se2,
+    viewpoint,
+)
 from estimator.models.objects import object_kind
 from sim.recording import Recording
 from sim.scenario import Scenario
@@ -22,9 +45,43 @@ from sim.world import World
 
 Array = NDArray[np.float64]
 
-# Stream tags keep the odometry, geometric and semantic draws of one (robot, step) independent.
+# Stream tags keep the odometry, geometric and semantic draws of one (robot, step) independent,
+# and the detector's misses, clutter, detection order and tracker ids apart from all three.
 _ODOMETRY, _GEOMETRIC, _SEMANTIC = 1, 2, 3
+_MISS, _CLUTTER, _ORDER, _TRACKER = 4, 5, 6, 7
 _MAX_SEED = 2**63 - 1
+# The truth label of a false detection (``Simulator.labelled_frame``).
+CLUTTER = -1
+# Ids of false detections in a frame of global or tracker ids: above every object id a scenario
+# uses (below 2³¹) and unique per (step, detection), so that each is an object of its own.
+_CLUTTER_ID_BASE = 2**31
+_CLUTTER_PER_FRAME = 64  # at most this many false detections in one frame
+_TRACKER_PRIME = 4_294_967_291  # the largest prime below 2³²: tracker ids stay on the wire
+
+
+@dataclass(frozen=True, slots=True)
+class Detector:
+    """What the simulated detector delivers beyond the true detections' noise: the frames' id
+    kind (``estimator.models.ID_KINDS``), clutter (false detections per true detection, the mean
+    of a per-frame Poisson count) and ``miss`` (the probability that a true detection is lost)."""
+
+    ids: str = GLOBAL_IDS
+    clutter: float = 0.0
+    miss: float = 0.0
+
+    def __post_init__(self) -> None:
+        check_id_kind(self.ids)
+        if not (math.isfinite(self.clutter) and 0.0 <= self.clutter <= 1.0):
+            raise ValueError(
+                f"clutter must be in [0, 1] false detections per true one, got {self.clutter}"
+            )
+        if not (math.isfinite(self.miss) and 0.0 <= self.miss < 1.0):
+            raise ValueError(f"miss must be a probability in [0, 1), got {self.miss}")
+
+    @property
+    def exact(self) -> bool:
+        """Whether the frames are the given-id frames of before (nothing more is drawn)."""
+        return self.ids == GLOBAL_IDS and self.clutter == 0.0 and self.miss == 0.0
 
 
 def robot_key(robot_id: str) -> int:
@@ -36,6 +93,12 @@ def standard_normals(seed: int, stream: int, robot: str, k: int, obj: int, size:
     """``size`` standard normal draws owned by (seed, stream, robot, step k, object id)."""
     seq = np.random.SeedSequence([seed, stream, robot_key(robot), k, obj])
     return np.random.default_rng(seq).standard_normal(size)
+
+
+def _uniform(seed: int, stream: int, robot: str, k: int, obj: int) -> float:
+    """One uniform draw in [0, 1) owned by (seed, stream, robot, step k, object id)."""
+    seq = np.random.SeedSequence([seed, stream, robot_key(robot), k, obj])
+    return float(np.random.default_rng(seq).uniform())
 
 
 def check_seed(seed: int) -> int:
@@ -53,7 +116,11 @@ class Simulator:
     """Produces every robot's :class:`SensorFrame` for steps k = 1..steps of one seeded run."""
 
     def __init__(
-        self, scenario: Scenario, seed: int, classifier: ClassifierModel | None = None
+        self,
+        scenario: Scenario,
+        seed: int,
+        classifier: ClassifierModel | None = None,
+        detector: Detector | None = None,
     ) -> None:
         # The world of this run: its own classes when the scenario draws them per run.
         self.seed = check_seed(seed)
@@ -61,6 +128,7 @@ class Simulator:
         self.world = World(scenario)
         self.classifier = classifier if classifier is not None else scenario.classifier.build()
         self.kind = object_kind(scenario.sensor.objects)
+        self.detector = detector or Detector()
 
     @cached_property
     def _object_index(self) -> dict[int, int]:
@@ -68,19 +136,101 @@ class Simulator:
 
     def frame(self, robot: str, k: int) -> SensorFrame:
         """The frame of ``robot`` at step ``k`` (1 ≤ k ≤ steps)."""
+        return self.labelled_frame(robot, k)[0]
+
+    def labelled_frame(self, robot: str, k: int) -> tuple[SensorFrame, tuple[int, ...]]:
+        """The frame of ``robot`` at step ``k`` and, in the order of its detections, what each
+        truly is: an object id or :data:`CLUTTER` (for scoring an association only)."""
         if not 1 <= k <= self.scenario.steps:
             raise ValueError(f"step {k} out of range 1..{self.scenario.steps}")
         traj = self.world.trajectories[robot]
         x_prev, x_k = traj[k - 1], traj[k]
         rec = self.world.recording
         if rec is not None:
-            return self._recorded(rec, robot, k, x_k)
-        odo_noise = standard_normals(self.seed, _ODOMETRY, robot, k, 0, 3)
-        odometry = self.scenario.odometry_noise.corrupt(se2.between(x_prev, x_k), odo_noise)
-        detections = tuple(
-            self._detect(robot, k, x_k, oid) for oid in self.world.visible_objects(robot, k)
+            frame = self._recorded(rec, robot, k, x_k)
+        else:
+            odo_noise = standard_normals(self.seed, _ODOMETRY, robot, k, 0, 3)
+            odometry = self.scenario.odometry_noise.corrupt(se2.between(x_prev, x_k), odo_noise)
+            detections = tuple(
+                self._detect(robot, k, x_k, oid) for oid in self.world.visible_objects(robot, k)
+            )
+            frame = SensorFrame(robot, k, odometry, detections, x_k.copy())
+        labels = tuple(d.object_id for d in frame.detections)
+        if self.detector.exact:
+            return frame, labels
+        return self._detected(frame, labels)
+
+    def _detected(
+        self, frame: SensorFrame, labels: tuple[int, ...]
+    ) -> tuple[SensorFrame, tuple[int, ...]]:
+        """``frame`` as :attr:`detector` delivers it: misses, clutter, a shuffled order (a
+        detector's order says nothing about what it saw) and the id kind; with the labels."""
+        det, robot, k = self.detector, frame.robot, frame.k
+        kept = [
+            (d, label)
+            for d, label in zip(frame.detections, labels, strict=True)
+            if det.miss == 0.0 or _uniform(self.seed, _MISS, robot, k, label) >= det.miss
+        ]
+        rng = np.random.default_rng(
+            np.random.SeedSequence([self.seed, _CLUTTER, robot_key(robot), k])
         )
-        return SensorFrame(robot, k, odometry, detections, x_k.copy())
+        count = min(int(rng.poisson(det.clutter * len(kept))) if kept else 0, _CLUTTER_PER_FRAME)
+        # unique per robot and step whatever the other robots (rare collisions across robots)
+        slot = robot_key(robot) * 1_000_003 + k
+        for i in range(count):
+            fake = self._clutter(robot, rng)
+            clutter_id = _CLUTTER_ID_BASE + (slot * _CLUTTER_PER_FRAME + i) % _CLUTTER_ID_BASE
+            kept.append((Detection(clutter_id, fake.z_geo, fake.z_sem), CLUTTER))
+        if det.ids != GLOBAL_IDS:
+            order = np.random.default_rng(
+                np.random.SeedSequence([self.seed, _ORDER, robot_key(robot), k])
+            ).permutation(len(kept))
+            kept = [kept[i] for i in order]
+        detections = tuple(
+            Detection(self._id_of(robot, d.object_id), d.z_geo, d.z_sem) for d, _ in kept
+        )
+        out = SensorFrame(robot, k, frame.odometry, detections, frame.true_pose, det.ids)
+        return out, tuple(label for _, label in kept)
+
+    def _id_of(self, robot: str, oid: int) -> int:
+        """What the detector calls object (or false detection) ``oid``."""
+        if self.detector.ids == NO_IDS:
+            return NO_ID
+        if self.detector.ids == LOCAL_IDS:
+            a, b = self._tracker(robot)
+            return (a * oid + b) % _TRACKER_PRIME
+        return oid
+
+    def _tracker(self, robot: str) -> tuple[int, int]:
+        """A robot-local tracker's numbering, ``id = (a · key + b) mod p``: a bijection of the
+        keys (object ids, and clutter's above 2³¹) onto [0, p), its own per robot, under which a
+        false detection's id looks like any object's."""
+        seq = np.random.SeedSequence([self.seed, _TRACKER, robot_key(robot)])
+        a, b = np.random.default_rng(seq).integers(1, _TRACKER_PRIME, size=2).tolist()
+        return int(a), int(b)
+
+    def _clutter(self, robot: str, rng: np.random.Generator) -> Detection:
+        """A false detection uniform in ``robot``'s sensor field (area-uniform range, uniform
+        bearing and heading), with the scores of a random class at a random viewpoint or, half
+        the time, of no class: a uniform point of the simplex plus the classifier's noise."""
+        sensor = self.scenario.robot(robot).sensor
+        r = sensor.range * math.sqrt(rng.uniform())
+        bearing = rng.uniform(-sensor.half_angle, sensor.half_angle)
+        heading = rng.uniform(-math.pi, math.pi)
+        if self.kind.dim == 3:
+            z_geo = np.array([r * math.cos(bearing), r * math.sin(bearing), heading])
+        else:
+            z_geo = np.array([bearing, r])
+        psi = rng.uniform(-math.pi, math.pi)
+        c = int(rng.integers(self.classifier.num_classes))
+        noise = np.linalg.cholesky(self.classifier.cov(c, psi)) @ rng.standard_normal(
+            self.classifier.dim
+        )
+        if rng.uniform() < 0.5:
+            mean = self.classifier.mean(c, psi)
+        else:
+            mean = rng.dirichlet(np.ones(self.classifier.dim))
+        return Detection(NO_ID, z_geo, np.asarray(mean + noise))
 
     def _recorded(self, rec: Recording, robot: str, k: int, x_k: Array) -> SensorFrame:
         """A recorded run's frame (``sim.recording``): its odometry and detections as the robot
@@ -114,6 +264,11 @@ class Simulator:
     def frames(self, robot: str) -> list[SensorFrame]:
         """All frames of one robot, k = 1..steps."""
         return [self.frame(robot, k) for k in range(1, self.scenario.steps + 1)]
+
+    def labels(self, robot: str) -> list[tuple[int, ...]]:
+        """What every detection of ``robot``'s frames k = 1..steps truly is (an object id or
+        :data:`CLUTTER`), in the order of the frames' detections: for scoring only."""
+        return [self.labelled_frame(robot, k)[1] for k in range(1, self.scenario.steps + 1)]
 
     def all_frames(self) -> dict[str, list[SensorFrame]]:
         """Robot id → its frames, k = 1..steps."""

@@ -14,6 +14,7 @@ from numpy.typing import ArrayLike
 
 from agents.links import AllOf, LinkModel, Partition, Proximity, RandomDrop, Schedule
 from agents.node import LocalTrack, RobotNode, Signing
+from estimator.association import SensorField
 from estimator.hybrid import BeliefConfig, BeliefModel
 from estimator.models.objects import object_kind
 from protocol.codec import Limits
@@ -28,6 +29,7 @@ __all__ = [
     "link_model_for",
     "make_node",
     "make_nodes",
+    "sensor_field",
 ]
 
 # Named class representations and hypothesis managements (docs/estimator.md): per-object class
@@ -53,6 +55,16 @@ def belief_model(model: RobotModel | Scenario) -> BeliefModel:
         model.geometric_noise,
         object_kind(model.sensor.objects),
     )
+
+
+def sensor_field(model: RobotModel | Scenario, robot: str | None = None) -> SensorField:
+    """Where a robot's sensor sees (``estimator.association``): a robot model's sensor, or
+    ``robot``'s in a scenario (its default sensor without one)."""
+    if isinstance(model, Scenario):
+        sensor = model.sensor if robot is None else model.robot(robot).sensor
+    else:
+        sensor = model.sensor
+    return SensorField(sensor.range, sensor.half_angle)
 
 
 def belief_rng(seed: int, robots: Sequence[str]) -> np.random.Generator:
@@ -107,12 +119,14 @@ def make_node(
     limits: Limits | None = None,
     signing: Signing | None = None,
     epoch: int = 0,
+    sensor: SensorField | None = None,
 ) -> RobotNode:
     """The node of ``robot`` starting at ``start`` (3,) in run ``seed``, exactly as
     :func:`make_nodes` builds it with ``rng_for = lambda r: belief_rng(seed, [r])``; ``roster``
     limits the slots it holds to those robots' (None: any owner); ``limits`` what it accepts and
     sends (default: the wire defaults with the model's class count); ``epoch`` its own slots'
-    epoch (docs/wire.md, "Versions and epochs")."""
+    epoch (docs/wire.md, "Versions and epochs"); ``sensor``: the robot's sensor field, with
+    which it associates frames without global ids (``estimator.association``)."""
     rng_for = lambda r: belief_rng(seed, [r])  # noqa: E731
     return _node(
         robot,
@@ -126,6 +140,7 @@ def make_node(
         limits=limits,
         signing=signing,
         epoch=epoch,
+        sensor=sensor,
     )
 
 
@@ -168,6 +183,7 @@ def _node(
     limits: Limits | None = None,
     signing: Signing | None = None,
     epoch: int = 0,
+    sensor: SensorField | None = None,
 ) -> RobotNode:
     return RobotNode(
         robot,
@@ -183,4 +199,5 @@ def _node(
         limits=limits,
         signing=signing,
         epoch=epoch,
+        sensor=sensor,
     )

@@ -7,7 +7,9 @@ import ipaddress
 import re
 
 from deploy.base.errors import UsageError
+from estimator.models import GLOBAL_IDS, ID_KINDS
 from sim.loader import MAX_CLASSES
+from sim.sensors import Detector
 
 MAX_SEED = 2**63 - 1
 
@@ -88,3 +90,40 @@ def zenoh_endpoint(text: str, option: str) -> str:
                 f"{option} {text!r}: expected HOST:PORT with a port in 1..65535 after {m['proto']}/"
             )
     return text
+
+
+def fraction(text: str) -> float:
+    """A number in [0, 1)."""
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number in [0, 1), got {text!r}") from None
+    if not 0.0 <= v < 1.0:
+        raise argparse.ArgumentTypeError(f"expected a number in [0, 1), got {text!r}")
+    return v
+
+
+def add_detector_arguments(p: argparse.ArgumentParser) -> None:
+    """``--ids``, ``--clutter``, ``--miss``: what the simulated detector delivers
+    (``sim.sensors.Detector``; the defaults give the frames of before, to the bit)."""
+    p.add_argument(
+        "--ids",
+        choices=ID_KINDS,
+        default=GLOBAL_IDS,
+        help="the frames' detection ids: global object ids (default), a robot-local tracker's, "
+        "or none (then the robot associates them with its map)",
+    )
+    p.add_argument(
+        "--clutter",
+        type=fraction,
+        default=0.0,
+        metavar="R",
+        help="false detections per true detection (per-frame Poisson mean R × true ones)",
+    )
+    p.add_argument(
+        "--miss", type=fraction, default=0.0, metavar="P", help="probability of missing an object"
+    )
+
+
+def detector_from_args(args: argparse.Namespace) -> Detector:
+    return Detector(args.ids, args.clutter, args.miss)

@@ -24,7 +24,7 @@ from agents.ros2.bridge import Ros2Bridge, Ros2Link
 from agents.runtime import Agent, new_agent
 from agents.transport.base import Keys
 from agents.transport.zenoh_transport import ZenohTransport
-from deploy.base.build import belief_model, make_node
+from deploy.base.build import belief_model, make_node, sensor_field
 from deploy.operator.agent_config import AgentConfig
 from estimator.hybrid import BeliefConfig
 from sim.robot_model import dump_robot_model
@@ -48,6 +48,7 @@ def node_factory(config: AgentConfig, epoch: int = 0) -> Callable[[], RobotNode]
         limits=config.limits,
         signing=config.signing,
         epoch=epoch,
+        sensor=sensor_field(config.model),
     )
 
 

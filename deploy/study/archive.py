@@ -30,6 +30,8 @@ from numpy.typing import NDArray
 
 from deploy.base.errors import UsageError
 from deploy.base.files import write_atomically, write_text_atomically
+from deploy.study.association import COUNTS as ASSOCIATION_COUNTS
+from deploy.study.association import summarise as association_summary
 from deploy.study.types import RunResult
 from estimator.metrics import CROSS_METRICS, METRICS, ece_from_stats
 
@@ -188,6 +190,13 @@ def method_summary(
         entry["stack_bytes_mean"] = float(sizes.mean()) if len(sizes) else 0.0
         entry["stack_bytes_max"] = int(sizes.max()) if len(sizes) else 0
         entry["stacks_delivered"] = len(sizes)
+    if all(method in r.association for r in results):
+        counts = {
+            name: sum(r.association[method][name] for r in results) for name in ASSOCIATION_COUNTS
+        }
+        ms = [x for r in results for x in r.association_ms.get(method, [])]
+        figures = association_summary(counts, ms)
+        entry["association"] = {k: None if math.isnan(v) else v for k, v in figures.items()}
     if all(method in r.empty_joins for r in results):
         entry["empty_joins"] = int(sum(sum(r.empty_joins[method]) for r in results))
         entry["rebuilds"] = int(sum(sum(r.rebuilds[method]) for r in results))

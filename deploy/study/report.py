@@ -43,6 +43,27 @@ def _tail_cell(entry: dict[str, Any], name: str) -> str:
     return " / ".join(f"{v:.2f}" for v in figures)
 
 
+def render_association(doc: dict[str, Any], console: Console) -> None:
+    """Frames without global ids: each method's association against the simulator's truth,
+    one line per method."""
+
+    def fig(value: float | None, form: str) -> str:
+        return "—" if value is None else form.format(value)
+
+    for method, entry in doc["methods"].items():
+        a = entry.get("association")
+        if a is None:
+            continue
+        console.print(
+            f"association ({method}, against the simulator's truth): precision "
+            f"{fig(a['precision'], '{:.4f}')}, recall {fig(a['recall'], '{:.4f}')}, wrong merges "
+            f"{a['wrong_merges']:.0f}, splits {a['splits']:.0f}, map objects "
+            f"{a['confirmed']:.0f} ({a['confirmed_clutter']:.0f} of clutter), false detections "
+            f"in the belief {a['clutter_entered']:.0f}, {fig(a['ms_mean'], '{:.1f}')} ms per frame "
+            f"(p99 {fig(a['ms_p99'], '{:.1f}')})"
+        )
+
+
 def render_summary(
     doc: dict[str, Any], console: Console, at_steps: list[int] | None = None
 ) -> None:

@@ -25,9 +25,11 @@ import numpy as np
 from numpy.typing import NDArray
 
 from agents.node import LocalTrack, RobotNode
-from deploy.base.build import belief_model, belief_rng, link_model_for, make_nodes
+from deploy.base.build import belief_model, belief_rng, link_model_for, make_nodes, sensor_field
+from deploy.study.association import COUNTS, AssociationTally
 from deploy.study.fleet import FleetStats, StepCallback, run_fleets
 from deploy.study.types import TRACKS, RunResult, StudyError
+from estimator.association import Associator
 from estimator.hybrid import BeliefConfig, BeliefModel, BeliefSnapshot, HybridBelief
 from estimator.metrics import (
     CROSS_METRICS,
@@ -39,13 +41,24 @@ from estimator.metrics import (
     mixture_moments,
     with_truth,
 )
-from estimator.models import SensorFrame
+from estimator.models import GLOBAL_IDS, SensorFrame
 from sim.scenario import Scenario
-from sim.sensors import Simulator
+from sim.sensors import CLUTTER, Detector, Simulator
 
 Array = NDArray[np.float64]
 
 METHODS = ("local", "distributed", "double_count", "centralized", "received")
+
+
+def without_ids_needs(ids: str) -> str:
+    """Why a study of frames without global ids runs ``local`` alone."""
+    return (
+        f"frames with {ids} ids are associated on each robot, so only the method local runs on "
+        "them: mapping one robot's objects onto another's (distributed, double_count, "
+        "centralized, received) is issue 45, item 3"
+    )
+
+
 RECEIVED_NEEDS = (
     "the method received follows the slots the distributed fleet received: add distributed"
 )
@@ -66,10 +79,11 @@ def run_study(
     cluster: str | None = None,
     scored: Collection[int] | None = None,
     gossip: str = "delta",
+    detector: Detector | None = None,
 ) -> list[RunResult]:
     """Run every seed in its own spawned process, at most ``jobs`` at once, or as tasks of the
     Dask cluster whose scheduler is at ``cluster``; results in seed order. Only the first seed
-    keeps belief snapshots (at ``snapshot_step``). ``scored``, ``gossip``: see
+    keeps belief snapshots (at ``snapshot_step``). ``scored``, ``gossip``, ``detector``: see
     :func:`run_single`."""
     calls = {
         seed: (
@@ -82,6 +96,7 @@ def run_study(
             comm,
             scored,
             gossip,
+            detector,
         )
         for i, seed in enumerate(seeds)
     }
@@ -135,10 +150,15 @@ def run_single(
     comm: str | None = None,
     scored: Collection[int] | None = None,
     gossip: str = "delta",
+    detector: Detector | None = None,
 ) -> RunResult:
     """Run every method on one seeded realisation of ``scenario``; ``comm`` overrides the
     scenario's communication mode for the distributed methods, ``gossip`` says what the fleets'
     stacks carry (``deploy.study.fleet``: the agents' delta gossip, or every held slot).
+    ``detector``: what the simulated detector delivers (``sim.sensors.Detector``; default the
+    given-id frames of before); frames without global ids are associated on each robot, which
+    only ``local`` can do (mapping robots' objects onto each other is issue 45, item 3), and
+    scored against the simulator's truth (``association`` of the result).
     ``scored``: the steps at which the beliefs are scored (default every step; the metrics of the
     others stay NaN). Scoring queries every hypothesis' marginal covariances, about a fifth of a
     run's time: a caller that reads only some steps' metrics saves it; the beliefs themselves do
@@ -148,9 +168,17 @@ def run_single(
         raise ValueError(f"unknown methods {unknown} (known: {', '.join(METHODS)})")
     if "received" in methods and "distributed" not in methods:
         raise ValueError(RECEIVED_NEEDS)
-    sim = Simulator(scenario, seed)
+    detector = detector or Detector()
+    if detector.ids != GLOBAL_IDS and set(methods) - {"local"}:
+        raise ValueError(without_ids_needs(detector.ids))
+    sim = Simulator(scenario, seed, detector=detector)
     scenario = sim.scenario  # this run's world: its classes, when they are drawn per run
-    frames = sim.all_frames()
+    labelled = {
+        r: [sim.labelled_frame(r, k) for k in range(1, scenario.steps + 1)]
+        for r in scenario.robot_ids
+    }
+    frames = {r: [f for f, _ in fl] for r, fl in labelled.items()}
+    labels = {r: [lab for _, lab in fl] for r, fl in labelled.items()}
     truth_objects = true_objects(scenario)
     robots = scenario.robot_ids
     model = belief_model(scenario)
@@ -168,7 +196,7 @@ def run_single(
         )
     if "local" in methods or fleet_methods:
         _run_shared_local(
-            scenario, model, config, seed, comm, frames, recorders, fleet_methods, gossip
+            scenario, model, config, seed, comm, frames, recorders, fleet_methods, gossip, labels
         )
     if "centralized" in methods:
         rec = recorders["centralized"]
@@ -209,6 +237,12 @@ def run_single(
         rebuilds={m: st.rebuilds for m, st in fleet.items()},
         refused={m: st.refused for m, st in fleet.items()},
         robots=tuple(robots),
+        association={m: recorders[m].association_counts() for m in methods if recorders[m].tallies},
+        association_ms={
+            m: [x for t in recorders[m].tallies.values() for x in t.ms]
+            for m in methods
+            if recorders[m].tallies
+        },
     )
 
 
@@ -222,15 +256,20 @@ def _run_shared_local(
     recorders: dict[str, Recorder],
     fleet_methods: Sequence[str],
     gossip: str = "delta",
+    labels: Mapping[str, Sequence[Sequence[int]]] | None = None,
 ) -> None:
     """``local`` and the fleets (``distributed``, ``double_count``) in one lock-step loop over one
     local belief per robot: L depends on the robot's own data only, so every method sees the very
-    same L, stepped once. Metrics of ``local`` come from L, those of the fleets from each D."""
+    same L, stepped once. Metrics of ``local`` come from L, those of the fleets from each D.
+    Frames without global ids are associated on each robot (``LocalTrack``), and the decisions
+    scored against ``labels`` (per robot and step, the truth of each detection)."""
     robots = scenario.robot_ids
     index = {r: i for i, r in enumerate(robots)}
     tracks = {
         r: LocalTrack(
-            HybridBelief(model, {r: scenario.robot(r).start}, config), belief_rng(seed, [r])
+            HybridBelief(model, {r: scenario.robot(r).start}, config),
+            belief_rng(seed, [r]),
+            Associator(model, sensor_field(scenario, r)),
         )
         for r in robots
     }
@@ -251,8 +290,13 @@ def _run_shared_local(
     def step_locals(k: int) -> None:
         for r in robots:
             t = time.perf_counter()
-            tracks[r].advance(frames[r][k - 1])
+            tracks[r].advance(frames[r][k - 1], time.perf_counter)
             ms = 1e3 * (time.perf_counter() - t)
+            association = tracks[r].association
+            if local is not None and association is not None and labels is not None:
+                tally = local.tallies.setdefault(r, AssociationTally())
+                tally.add(association, labels[r][k - 1], 1e3 * tracks[r].association_s)
+                local.truth_of[r] = tally.truth_of(tracks[r].belief.object_ids)
             if local is not None:
                 local.step_ms.append(ms)
                 local.record(tracks[r].belief, index[r], r, k, ms)
@@ -275,6 +319,8 @@ def _run_shared_local(
     )
     for m, st in zip(fleet_methods, stats, strict=True):
         recorders[m].fleet = st
+    if local is not None:
+        local.confirmed = {r: list(tracks[r].belief.object_ids) for r in local.tallies}
 
 
 def _run_received(
@@ -388,6 +434,20 @@ class Recorder:
         # robot → per step, the stamp of every other robot's slot its stack held after the step
         # (the distributed fleet's, for ``received``)
         self.received: dict[str, list[dict[str, int]]] = {r: [] for r in rows}
+        # Frames without global ids (deploy.study.association): per robot, its association's
+        # tally, the true object of each of its map objects (what their estimates are scored
+        # against) and, after the run, its map objects
+        self.tallies: dict[str, AssociationTally] = {}
+        self.truth_of: dict[str, dict[int, int]] = {}
+        self.confirmed: dict[str, list[int]] = {}
+
+    def association_counts(self) -> dict[str, int]:
+        """The association figures (``deploy.study.association.COUNTS``) summed over robots."""
+        total: dict[str, int] = dict.fromkeys(COUNTS, 0)
+        for r, tally in self.tallies.items():
+            for name, value in tally.final(self.confirmed.get(r, ())).items():
+                total[name] += value
+        return total
 
     def record(
         self,
@@ -407,6 +467,12 @@ class Recorder:
             return
         if snap is None:
             snap = belief.snapshot(robot)
+        if robot in self.truth_of:
+            # robot-local ids: each map object is its true object (the one most of its
+            # detections are), one made of false detections none (left out)
+            truth = self.truth_of[robot]
+            ids = tuple(truth.get(j, CLUTTER) for j in snap.object_ids)
+            snap = with_truth(dataclasses.replace(snap, object_ids=ids), self.truth)
         self.score(i, robot, k, snap)
         if k == self.snapshot_step:
             self.snapshots[robot] = snap

@@ -27,6 +27,7 @@ from deploy.study.paper_figures import PaperValue
 from deploy.study.types import RunResult
 from estimator.hybrid import BeliefConfig
 from sim.scenario import Scenario
+from sim.sensors import Detector
 
 SHARD = "shard"  # the results.json key of a shard's entry
 # The keys of a shard's entry that every shard of one study shares (all but ``index``).
@@ -66,16 +67,21 @@ def study_key(
     config: BeliefConfig,
     comm: str | None,
     gossip: str = "delta",
+    detector: Detector | None = None,
 ) -> str:
     """The fingerprint of what decides a study's numbers besides its seeds (hex SHA-256). The
     scenario's ``source`` (the path it was read from) is left out: the same world may live in
-    different folders on different machines."""
+    different folders on different machines. A ``detector`` of given-id frames (the default)
+    leaves the key as it was before detectors existed."""
     try:
         version = importlib.metadata.version("semfleet")
     except importlib.metadata.PackageNotFoundError:
         version = "unknown"
     world = dataclasses.replace(scenario, source="")
-    text = repr((world, tuple(methods), config, comm, gossip, version))
+    parts: tuple[object, ...] = (world, tuple(methods), config, comm, gossip, version)
+    if detector is not None and not detector.exact:
+        parts = (*parts, detector)
+    text = repr(parts)
     return hashlib.sha256(text.encode()).hexdigest()
 
 

@@ -31,7 +31,9 @@ class RunResult:
     (``estimator.metrics.calibration_stats``); the fleets' ``fusion_ms``, ``empty_joins`` and
     ``rebuilds`` have one entry per robot step, in the order of ``step_ms``; ``stack_bytes`` the
     size of every delivered stack. ``robots`` names the robot axis of every array, in order
-    (empty: not recorded)."""
+    (empty: not recorded). ``association[method]``: for frames without global ids, the
+    association's figures against the truth (``deploy.study.association.COUNTS``, summed over
+    robots) and ``association_ms[method]`` its time per frame."""
 
     seed: int
     metrics: dict[str, dict[str, Array]]
@@ -45,6 +47,8 @@ class RunResult:
     rebuilds: dict[str, list[int]] = field(default_factory=dict)
     refused: dict[str, int] = field(default_factory=dict)
     robots: tuple[str, ...] = ()
+    association: dict[str, dict[str, int]] = field(default_factory=dict)
+    association_ms: dict[str, list[float]] = field(default_factory=dict)
 
 
 class StudyError(RunFailure):

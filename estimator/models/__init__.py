@@ -7,12 +7,29 @@ from estimator.models.classifier import (
     paper_classifier,
     viewpoint,
 )
-from estimator.models.frames import MAX_STEP, ROBOT_ID, ROBOT_ID_RULE, Detection, SensorFrame
+from estimator.models.frames import (
+    GLOBAL_IDS,
+    ID_KINDS,
+    LOCAL_IDS,
+    MAX_STEP,
+    NO_ID,
+    NO_IDS,
+    ROBOT_ID,
+    ROBOT_ID_RULE,
+    Detection,
+    SensorFrame,
+    check_id_kind,
+)
 from estimator.models.learned import LearnedClassifier
 from estimator.models.noise import GaussianNoise
 
 __all__ = [
+    "GLOBAL_IDS",
+    "ID_KINDS",
+    "LOCAL_IDS",
     "MAX_STEP",
+    "NO_ID",
+    "NO_IDS",
     "ROBOT_ID",
     "ROBOT_ID_RULE",
     "AliasedClassifier",
@@ -22,6 +39,7 @@ __all__ = [
     "GaussianNoise",
     "LearnedClassifier",
     "SensorFrame",
+    "check_id_kind",
     "paper_classifier",
     "viewpoint",
 ]

@@ -37,7 +37,7 @@ from agents.node import RobotNode
 from agents.rounds import GIVE_UP_ASKS
 from agents.runtime import MemoryLog, execute_journal_actions
 from agents.transport.base import Keys
-from deploy.base.build import belief_model, make_node
+from deploy.base.build import belief_model, make_node, sensor_field
 from estimator.distributed import DistributedBelief
 from estimator.hybrid import BeliefConfig
 from estimator.models import Detection, SensorFrame
@@ -48,7 +48,7 @@ from protocol.estimate import decode_estimate
 from protocol.frames import encode_frame
 from protocol.stack import Slot, Stack
 from sim.loader import load_scenario
-from sim.sensors import Simulator
+from sim.sensors import Detector, Simulator
 
 SCENARIO = load_scenario("paper")
 KEYS = Keys("t")
@@ -904,3 +904,36 @@ def test_a_step_that_fails_after_another_of_the_same_batch_rolls_back_to_that_on
     assert (c["steps_stuck"], d.core.node.k) == (0, 3)
     assert [r.kind for r in d.log.records()] == ["frame"] * 3
     _same_belief(_replayed(d).node, d.core.node)
+
+
+def test_an_agent_associates_frames_without_ids_and_replays_them_to_the_same_belief() -> None:
+    """Id-less frames (with clutter and misses) are associated on the robot before L and D
+    step; the journal's replay associates them again to the very same belief; a frame whose
+    id kind is malformed is counted in frames_invalid and changes nothing."""
+    model = belief_model(SCENARIO)
+    sensor = sensor_field(SCENARIO, "r1")
+
+    def make() -> RobotNode:
+        return make_node(
+            "r1", SCENARIO.robot("r1").start, model, SEED, BeliefConfig(), sensor=sensor
+        )
+
+    log = MemoryLog()
+    core = AgentCore(make, KEYS, CoreSettings(mode="realtime"), log.records)
+    sim = Simulator(SCENARIO, SEED, detector=Detector("none", clutter=0.2, miss=0.1))
+    for k in range(1, 41):
+        execute_journal_actions(
+            log, core.on_message(KEYS.frames("r1"), encode_frame(sim.frame("r1", k)), 0.0)
+        )
+    bad = msgpack.unpackb(encode_frame(sim.frame("r1", 41)), raw=False)
+    execute_journal_actions(
+        log, core.on_message(KEYS.frames("r1"), msgpack.packb({**bad, "ids": "tracker"}), 0.0)
+    )
+    counters = core.counter_values()
+    assert counters["frames_processed"] == 40 and counters["frames_invalid"] == 1
+    node = core.node
+    assert node.k == 40 and node.local_ids and len(node.local.object_ids) >= 3
+    assert node.distributed.object_ids == node.local.object_ids
+    fresh = AgentCore(make, KEYS, core.settings, log.records)
+    assert fresh.replay(log.records()) == []
+    _same_belief(fresh.node, node)

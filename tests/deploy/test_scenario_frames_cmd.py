@@ -12,9 +12,10 @@ import numpy as np
 import pytest
 
 from deploy.cli.main import main
+from estimator.models import NO_ID
 from protocol.framelog import read_frame_log
 from sim.loader import load_scenario
-from sim.sensors import Simulator
+from sim.sensors import Detector, Simulator
 from tests.protocol.test_frames import assert_same_frame
 
 PAPER = load_scenario("paper")
@@ -74,3 +75,25 @@ def test_scenario_frames_refuses_bad_arguments(
     assert _export(out, *args) == 2
     assert says in capsys.readouterr().err
     assert not out.exists()
+
+
+def test_scenario_frames_without_ids_writes_the_detector_frames(tmp_path: Path) -> None:
+    out = tmp_path / "r2.jsonl"
+    assert _export(out, "--ids", "none", "--clutter", "0.2", "--miss", "0.1") == 0
+    with out.open(encoding="utf-8") as f:
+        got = read_frame_log(f)
+    sim = Simulator(PAPER, 3, detector=Detector("none", 0.2, 0.1))
+    for g, want in zip(got, sim.frames("r2"), strict=True):
+        assert g.ids == "none" and all(d.object_id == NO_ID for d in g.detections)
+        assert_same_frame(g, dataclasses.replace(want, true_pose=np.full(3, np.nan)))
+    given = sum(len(f.detections) for f in Simulator(PAPER, 3).frames("r2"))
+    assert sum(len(f.detections) for f in got) != given  # misses and clutter changed them
+
+
+@pytest.mark.parametrize(("option", "value"), [("--ids", "tracker"), ("--miss", "1.5")])
+def test_scenario_frames_refuses_a_bad_detector_option(
+    tmp_path: Path, option: str, value: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    with pytest.raises(SystemExit) as caught:
+        _export(tmp_path / "r2.jsonl", option, value)
+    assert caught.value.code == 2 and option in capsys.readouterr().err

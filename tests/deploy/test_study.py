@@ -22,7 +22,8 @@ from deploy.study.runner import run_single
 from estimator.distributed import FusionStats
 from estimator.hybrid import POSE_WINDOW, BeliefConfig
 from estimator.metrics import CROSS_METRICS, ECE_BINS, METRICS, class_comparison, ece_from_stats
-from sim.loader import parse_scenario
+from sim.loader import load_scenario, parse_scenario
+from sim.sensors import Detector
 from tests.estimator.scenarios import fleet_text
 from tests.tolerance import assert_close
 
@@ -483,6 +484,9 @@ def test_run_single_rejects_unknown_method() -> None:
             "--slot-lin local needs --hypotheses per_object",
         ),
         (["--slot-lin", "D"], "invalid choice: 'D'"),
+        (["--ids", "none", "--methods", "local,distributed"], "only the method local runs"),
+        (["--ids", "tracker"], "invalid choice: 'tracker'"),
+        (["--clutter", "2"], "expected a number in [0, 1), got '2'"),
     ],
 )
 def test_study_user_errors_are_one_clear_line(
@@ -656,3 +660,22 @@ def test_received_is_the_centralized_belief_over_what_each_robot_was_given(
     assert refused.value.code == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "add distributed" in err, err
+
+
+def test_study_without_ids_associates_on_each_robot_and_scores_it() -> None:
+    """``--ids none``: local alone, its association scored against the truth; the map is
+    scored through each map object's true object, close to the same run with given ids."""
+    paper = load_scenario("paper")
+    none = run_single(paper, ["local"], 0, BeliefConfig(), detector=Detector("none"))
+    given = run_single(paper, ["local"], 0, BeliefConfig())
+    a = none.association["local"]
+    assert a["matched"] > 150 and a["right"] >= 0.98 * a["matched"]
+    assert a["right"] >= 0.95 * a["matchable"] and a["confirmed_clutter"] == 0
+    assert not given.association and len(none.association_ms["local"]) == 3 * paper.steps
+    for metric in ("object_error", "robot_error"):
+        ours, theirs = (np.nanmean(r.metrics["local"][metric][:, -1]) for r in (none, given))
+        assert ours < 1.5 * theirs + 0.05, (metric, ours, theirs)
+    with pytest.raises(ValueError, match="only the method local"):
+        run_single(paper, ["local", "centralized"], 0, BeliefConfig(), detector=Detector("local"))
+    doc = study_archive("paper", [none], ["local"]).document()
+    assert doc["methods"]["local"]["association"]["precision"] >= 0.98

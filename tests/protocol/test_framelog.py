@@ -30,7 +30,15 @@ from sim.loader import load_scenario
 from sim.sensors import Simulator
 from tests.protocol import fuzz
 from tests.protocol.fuzz import FUZZ
-from tests.protocol.test_frames import BASE_FRAMES, NO_TRUTH, REF, assert_same_frame, make_frame
+from tests.protocol.test_frames import (
+    BASE_FRAMES,
+    NO_TRUTH,
+    REF,
+    REF_LOCAL,
+    REF_NONE,
+    assert_same_frame,
+    make_frame,
+)
 
 PAPER = load_scenario("paper")
 SEEDS = (0, 1, 5, 11)
@@ -99,6 +107,35 @@ def test_framelog_line_holds_the_documented_keys_and_no_truth() -> None:
     partial = dataclasses.replace(REF, true_pose=np.array([np.nan, 1.0, 2.0]))
     assert format_frame_line(partial) == REF_LINE  # a truth is dropped unread, however odd
     assert json.loads(format_header()) == {"v": 1, "type": "frame_log"}
+
+
+def test_framelog_states_ids_only_when_not_global() -> None:
+    assert "ids" not in REF_DOC  # a log of global ids reads as every log written before
+    local = json.loads(format_frame_line(REF_LOCAL))
+    assert local["ids"] == "local" and [d["id"] for d in local["detections"]] == [4, 2**32 - 1, 0]
+    none = json.loads(format_frame_line(REF_NONE))
+    assert none["ids"] == "none"
+    assert [list(d) for d in none["detections"]] == [["z_geo", "z_sem"]] * 3
+    assert parse_frame_line(_line({**REF_DOC, "ids": "global"}), 1).ids == "global"
+
+
+@pytest.mark.parametrize(
+    ("doc", "field", "says"),
+    [
+        ({**REF_DOC, "ids": "tracker"}, "ids", "'tracker': expected one of 'global', 'local'"),
+        ({**REF_DOC, "ids": 1}, "ids", "expected a string, got int"),
+        ({**REF_DOC, "ids": "none"}, "detections[0]", "unknown keys ['id']"),
+        ({**json.loads(format_frame_line(REF_NONE)), "ids": "local"}, "detections[0]", "missing"),
+    ],
+)
+def test_parse_frame_line_refuses_a_malformed_id_kind(doc: Any, field: str, says: str) -> None:
+    assert_log_error(lambda: parse_frame_line(_line(doc), 3), 3, field, says)
+
+
+def test_read_frame_log_holds_one_id_kind() -> None:
+    frames = _frames()
+    frames[2] = dataclasses.replace(frames[2], ids="local")
+    assert_log_error(lambda: read_frame_log(_log(frames)), 4, "ids", "line 2 holds 'global' ids")
 
 
 def test_framelog_header_is_optional_and_blank_lines_are_skipped() -> None:

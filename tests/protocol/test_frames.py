@@ -19,7 +19,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from estimator.models import MAX_STEP, Detection, SensorFrame
+from estimator.models import LOCAL_IDS, MAX_STEP, NO_ID, NO_IDS, Detection, SensorFrame
 from protocol.errors import (
     InvalidValue,
     LimitExceeded,
@@ -58,7 +58,7 @@ def _bits(a: Any) -> bytes:
 
 def assert_same_frame(got: SensorFrame, want: SensorFrame) -> None:
     """Equal to the bit (−0.0 and subnormals included); a missing truth is NaN on both sides."""
-    assert (got.robot, got.k) == (want.robot, want.k)
+    assert (got.robot, got.k, got.ids) == (want.robot, want.k, want.ids)
     assert _bits(got.odometry) == _bits(want.odometry)
     if np.isnan(want.true_pose).all():
         assert got.true_pose.shape == (3,) and np.isnan(got.true_pose).all()
@@ -83,6 +83,13 @@ REF = SensorFrame(
     ),
     np.array([10.0, -2.5, 1.5]),
 )
+# The same detections under a robot-local tracker's ids, and without ids (docs/wire.md, "ids").
+REF_LOCAL = dataclasses.replace(REF, ids=LOCAL_IDS)
+REF_NONE = dataclasses.replace(
+    REF,
+    ids=NO_IDS,
+    detections=tuple(dataclasses.replace(d, object_id=NO_ID) for d in REF.detections),
+)
 REF_BLOB = encode_frame(REF)
 REF_DOC: dict[str, Any] = msgpack.unpackb(REF_BLOB, raw=False)
 BASE_FRAMES = (
@@ -90,6 +97,8 @@ BASE_FRAMES = (
     dataclasses.replace(REF, true_pose=NO_TRUTH),
     SensorFrame("x" * 32, MAX_STEP, np.zeros(3), (), np.zeros(3)),
     *(make_frame(np.random.default_rng(seed), truth=seed % 2 == 0) for seed in (1, 2, 3)),
+    REF_LOCAL,
+    REF_NONE,
 )
 BASE_BLOBS = tuple(encode_frame(f) for f in BASE_FRAMES)
 BASE_DOCS = tuple(msgpack.unpackb(b, raw=False) for b in BASE_BLOBS)
@@ -101,7 +110,10 @@ def _check_decoded(frame: SensorFrame, lim: FrameLimits) -> None:
     assert np.isfinite(frame.odometry).all()
     assert np.isfinite(frame.true_pose).all() or np.isnan(frame.true_pose).all()
     ids = [d.object_id for d in frame.detections]
-    assert len(set(ids)) == len(ids)
+    if frame.ids == NO_IDS:
+        assert set(ids) <= {NO_ID}
+    else:
+        assert len(set(ids)) == len(ids)
     for d in frame.detections:
         assert np.isfinite(d.z_geo).all() and np.isfinite(d.z_sem).all()
     assert_same_frame(decode_frame(encode_frame(frame, lim), lim), frame)
@@ -130,6 +142,46 @@ def test_frames_wire_layout_matches_docs() -> None:
         assert raw["id"] == d.object_id
         assert raw["geo"] == d.z_geo.astype("<f8").tobytes()
         assert raw["sem"] == d.z_sem.astype("<f8").tobytes()
+
+
+def test_frames_id_kind_travels_only_when_not_global() -> None:
+    assert "ids" not in REF_DOC  # a frame of global ids has the bytes it always had
+    local = msgpack.unpackb(encode_frame(REF_LOCAL), raw=False)
+    assert local["ids"] == "local" and [d["id"] for d in local["det"]] == [4, 2**32 - 1, 0]
+    none = msgpack.unpackb(encode_frame(REF_NONE), raw=False)
+    assert none["ids"] == "none" and all(list(d) == ["geo", "sem"] for d in none["det"])
+    assert decode_frame(pack({**REF_DOC, "ids": "global"})).ids == "global"
+
+
+@pytest.mark.parametrize(
+    ("doc", "error", "field", "says"),
+    [
+        ({**REF_DOC, "ids": "tracker"}, InvalidValue, "ids", "'tracker': expected one of"),
+        ({**REF_DOC, "ids": 2}, MalformedMessage, "ids", "expected a string, got int"),
+        ({**REF_DOC, "ids": None}, MalformedMessage, "ids", "expected a string"),
+        ({**REF_DOC, "ids": "none"}, MalformedMessage, "det[0]", "unknown keys ['id']"),
+        (
+            {**msgpack.unpackb(encode_frame(REF_NONE), raw=False), "ids": "local"},
+            MalformedMessage,
+            "det[0]",
+            "missing keys ['id']",
+        ),
+    ],
+)
+def test_decode_frame_refuses_a_malformed_id_kind(
+    doc: dict[str, Any], error: type[Exception], field: str, says: str
+) -> None:
+    with pytest.raises(error) as caught:
+        decode_frame(pack(doc))
+    assert isinstance(caught.value, RemoteProtocolError)
+    assert caught.value.field == field and says in str(caught.value)
+
+
+def test_encode_frame_refuses_an_id_in_a_frame_without_ids() -> None:
+    with pytest.raises(LocalProtocolError, match=r"det\[0\]\.id: 4 in a frame without ids"):
+        encode_frame(dataclasses.replace(REF, ids=NO_IDS))
+    with pytest.raises(LocalProtocolError, match="ids: 'tracker'"):
+        encode_frame(dataclasses.replace(REF, ids="tracker"))
 
 
 def test_frames_missing_truth_travels_as_nil_and_decodes_to_nan() -> None:

@@ -8,10 +8,10 @@ import random
 import numpy as np
 import pytest
 
-from estimator.models import SensorFrame, se2, viewpoint
+from estimator.models import NO_ID, SensorFrame, se2, viewpoint
 from sim.loader import load_scenario
 from sim.scenario import Scenario
-from sim.sensors import Simulator, check_seed
+from sim.sensors import CLUTTER, Detector, Simulator, check_seed
 from tests.tolerance import assert_close
 
 SEEDS = range(40)
@@ -129,3 +129,98 @@ def test_simulator_rejects_bad_step_and_seed(paper: Scenario) -> None:
     for bad in (-1, 2**63, 1.5, True):
         with pytest.raises(ValueError, match="seed"):
             check_seed(bad)  # type: ignore[arg-type]
+
+
+# --------------------------------------------------------------------------- the detector
+
+
+def test_detector_default_draws_nothing_more(paper: Scenario) -> None:
+    """``--ids global`` without clutter or misses: the frames of before, to the bit."""
+    before = Simulator(paper, 8)
+    after = Simulator(paper, 8, detector=Detector())
+    for rid in paper.robot_ids:
+        for k in (1, 30, 60):
+            frame, labels = after.labelled_frame(rid, k)
+            _assert_identical(frame, before.frame(rid, k))
+            assert frame.ids == "global"
+            assert labels == tuple(d.object_id for d in frame.detections)
+
+
+@pytest.mark.parametrize("ids", ["none", "local"])
+def test_detector_drops_ids_and_keeps_the_truth_beside_the_frame(paper: Scenario, ids: str) -> None:
+    given = Simulator(paper, 4)
+    sim = Simulator(paper, 4, detector=Detector(ids, clutter=0.3, miss=0.2))
+    trackers: dict[str, dict[int, int]] = {r: {} for r in paper.robot_ids}
+    for rid in paper.robot_ids:
+        for k in range(1, paper.steps + 1):
+            frame, labels = sim.labelled_frame(rid, k)
+            truth = {d.object_id: d for d in given.frame(rid, k).detections}
+            assert frame.ids == ids and len(labels) == len(frame.detections)
+            for d, label in zip(frame.detections, labels, strict=True):
+                if ids == "none":
+                    assert d.object_id == NO_ID
+                elif label != CLUTTER:  # one tracker id per object and robot, not its own
+                    assert trackers[rid].setdefault(label, d.object_id) == d.object_id
+                    assert d.object_id != label
+                if label != CLUTTER:  # a true detection keeps its noise, to the bit
+                    assert d.z_geo.tobytes() == truth[label].z_geo.tobytes()
+                    assert d.z_sem.tobytes() == truth[label].z_sem.tobytes()
+    if ids == "local":
+        shared = set(trackers["r1"]) & set(trackers["r2"])
+        assert shared and all(trackers["r1"][j] != trackers["r2"][j] for j in shared)
+
+
+def test_detector_is_seeded_and_order_free(paper: Scenario) -> None:
+    detector = Detector("none", clutter=0.5, miss=0.1)
+    forward = {r: Simulator(paper, 6, detector=detector).labels(r) for r in paper.robot_ids}
+    sim = Simulator(paper, 6, detector=detector)
+    for rid, k in [("r3", 40), ("r1", 12), ("r2", 55), ("r1", 11)]:
+        frame, labels = sim.labelled_frame(rid, k)
+        again, _ = Simulator(paper, 6, detector=detector).labelled_frame(rid, k)
+        _assert_identical(frame, again)
+        assert labels == forward[rid][k - 1]
+    other = Simulator(paper, 7, detector=detector)
+    assert any(other.labels(r) != forward[r] for r in paper.robot_ids)
+
+
+def test_detector_miss_and_clutter_rates_are_as_configured(paper: Scenario) -> None:
+    """Misses: a binomial share P; clutter: a Poisson count with mean R × the kept detections."""
+    miss, clutter = 0.2, 0.4
+    seen = kept = false = 0
+    for seed in range(8):
+        given = Simulator(paper, seed)
+        sim = Simulator(paper, seed, detector=Detector("none", clutter, miss))
+        for rid in paper.robot_ids:
+            for k in range(1, paper.steps + 1):
+                labels = sim.labelled_frame(rid, k)[1]
+                seen += len(given.frame(rid, k).detections)
+                true = sum(label != CLUTTER for label in labels)
+                kept += true
+                false += len(labels) - true
+    share = 1 - kept / seen
+    assert abs(share - miss) < 3.5 * np.sqrt(miss * (1 - miss) / seen), (share, seen)
+    assert abs(false - clutter * kept) < 3.5 * np.sqrt(clutter * kept), (false, kept)
+
+
+def test_detector_clutter_lies_in_the_sensor_field(paper: Scenario) -> None:
+    sim = Simulator(paper, 2, detector=Detector("none", clutter=1.0))
+    count = 0
+    for rid in paper.robot_ids:
+        sensor = paper.robot(rid).sensor
+        for k in range(1, paper.steps + 1):
+            frame, labels = sim.labelled_frame(rid, k)
+            for d, label in zip(frame.detections, labels, strict=True):
+                if label == CLUTTER:
+                    count += 1
+                    assert np.hypot(d.z_geo[0], d.z_geo[1]) <= sensor.range
+                    assert abs(np.arctan2(d.z_geo[1], d.z_geo[0])) <= sensor.half_angle + 1e-12
+    assert count > 50
+
+
+def test_detector_refuses_bad_settings() -> None:
+    with pytest.raises(ValueError, match="id kind 'tracker'"):
+        Detector("tracker")
+    with pytest.raises(ValueError, match="miss must be"):
+        Detector(miss=1.0)
+    with pytest.raises(ValueError, match="clutter must be"):
+        Detector(clutter=-0.1)

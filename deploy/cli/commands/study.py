@@ -21,14 +21,26 @@ from rich.console import Console
 from deploy.base.build import HYPOTHESIS_MANAGEMENT
 from deploy.base.errors import UsageError
 from deploy.base.output import plural, runs_progress
-from deploy.cli.args import MAX_SEED, positive_int, seed
+from deploy.cli.args import (
+    MAX_SEED,
+    add_detector_arguments,
+    detector_from_args,
+    positive_int,
+    seed,
+)
 from deploy.cli.outputs import FORCE_HELP, new_folder
 from deploy.cli.scenario_args import scenario_from_args
 from deploy.study.archive import study_archive, write_archive
 from deploy.study.fleet import COMM_MODES, GOSSIP_MODES
 from deploy.study.paper_figures import PAPER_SOURCE, PaperValue, compare, paper_world_error
-from deploy.study.report import render_paper, render_summary, write_plots
-from deploy.study.runner import DEFAULT_METHODS, METHODS, RECEIVED_NEEDS, run_study
+from deploy.study.report import render_association, render_paper, render_summary, write_plots
+from deploy.study.runner import (
+    DEFAULT_METHODS,
+    METHODS,
+    RECEIVED_NEEDS,
+    run_study,
+    without_ids_needs,
+)
 from deploy.study.shards import Shard, merge_shards, shard_entry, study_key, write_merged_plots
 from estimator.hybrid import (
     POSE_WINDOW,
@@ -38,6 +50,7 @@ from estimator.hybrid import (
     XI_KINDS,
     BeliefConfig,
 )
+from estimator.models import GLOBAL_IDS
 from estimator.weights import WEIGHT_ESTIMATORS
 
 
@@ -123,6 +136,15 @@ def run(args: argparse.Namespace, console: Console, own: dict[str, tuple[str, An
     if not ran:
         raise UsageError(f"--shard {args.shard} of {plural(args.runs, 'run')} has no seeds")
     comm = args.comm or scenario.communication.mode
+    detector = detector_from_args(args)
+    if detector.ids != GLOBAL_IDS:
+        if args.methods == list(DEFAULT_METHODS):
+            args.methods = ["local"]
+            console.print(
+                f"--ids {detector.ids}: the method local alone (no fleet association yet)"
+            )
+        elif set(args.methods) - {"local"}:
+            raise UsageError(f"--ids {detector.ids}: {without_ids_needs(detector.ids)}")
     out = new_folder(Path(args.out), "--out", args.force)  # before any run, not after them
     where = plural(args.jobs, "job") if args.cluster is None else f"Dask cluster {args.cluster}"
     which = f"seeds {seeds[0]}..{seeds[-1]}"
@@ -147,6 +169,7 @@ def run(args: argparse.Namespace, console: Console, own: dict[str, tuple[str, An
             args.comm,
             args.cluster,
             gossip=args.gossip,
+            detector=detector,
         )
     settings = {
         "weight_estimator": args.weights,
@@ -162,13 +185,20 @@ def run(args: argparse.Namespace, console: Console, own: dict[str, tuple[str, An
         "communication": comm,
         "gossip": args.gossip,
     }
+    if not detector.exact:  # a given-id study's settings stay those of before
+        settings["detector"] = {
+            "ids": detector.ids,
+            "clutter": detector.clutter,
+            "miss": detector.miss,
+        }
     if args.shard is not None:
-        key = study_key(scenario, args.methods, config, args.comm, args.gossip)
+        key = study_key(scenario, args.methods, config, args.comm, args.gossip, detector)
         settings["shard"] = shard_entry(args.shard, seeds, step, robot, key)
     archive = study_archive(scenario.name, results, args.methods, settings)
     write_archive(out, archive)
     doc = archive.document()
     render_summary(doc, console)
+    render_association(doc, console)
     paper = _against_paper(out, doc, console) if args.paper else []
     plots = write_plots(out, doc, scenario, results, step, robot, paper)
     console.print(
@@ -242,6 +272,7 @@ def add_parser(sub: Any) -> None:
         f"{','.join(DEFAULT_METHODS)}; received: the centralized belief over what each robot has "
         "received, needs distributed)",
     )
+    add_detector_arguments(p)
     p.add_argument("--runs", type=positive_int, default=10)
     p.add_argument("--jobs", type=positive_int, default=2, help="parallel processes")
     p.add_argument("--seed", type=seed, default=0, help="runs use seeds S, S+1, …")

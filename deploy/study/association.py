@@ -1,0 +1,94 @@
+"""How well a robot associated its frames without global ids (``estimator.association``),
+scored against the simulator's truth of every detection (``sim.sensors.Simulator.labels``): the
+truth stays here, in the study, and never reaches the robot.
+
+Per robot, a detection *matched* an object when it went to a track that existed before its
+frame; the match is *right* when that track's detections so far were mostly of the detection's
+true object. ``precision`` = right / matched; ``recall`` = right / matchable, the detections of
+true objects the robot had detected before. At the end: ``wrong_merges``, the objects (or
+clutter) beyond the first that a map object's detections hold; ``splits``, the map objects
+beyond the first whose detections are mostly one true object; ``confirmed_clutter``, map objects
+made mostly of false detections; ``clutter_entered``, false detections that reached the belief.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from collections.abc import Collection, Mapping, Sequence
+from dataclasses import dataclass, field
+
+from estimator.association import Association
+from sim.sensors import CLUTTER
+
+# What a run records per method (sums over robots), in results.json's order.
+COUNTS = (
+    "frames",
+    "detections",
+    "matched",
+    "right",
+    "matchable",
+    "wrong_merges",
+    "splits",
+    "confirmed",
+    "confirmed_clutter",
+    "clutter_entered",
+)
+
+
+@dataclass(slots=True)
+class AssociationTally:
+    """One robot's association decisions and their truth, frame by frame."""
+
+    counts: dict[int, Counter[int]] = field(default_factory=dict)  # track → true label → n
+    seen: set[int] = field(default_factory=set)  # true objects detected so far
+    figures: Counter[str] = field(default_factory=Counter)
+    ms: list[float] = field(default_factory=list)
+
+    def add(self, a: Association, labels: Sequence[int], ms: float = 0.0) -> None:
+        """One frame's association ``a`` and the truth of its detections, in frame order."""
+        f = self.figures
+        f["frames"] += 1
+        f["detections"] += len(labels)
+        self.ms.append(ms)
+        for track, label, entered in zip(a.tracks, labels, a.entered, strict=True):
+            before = self.counts.get(track)
+            if before:
+                f["matched"] += 1
+                f["right"] += label != CLUTTER and before.most_common(1)[0][0] == label
+            if label != CLUTTER and label in self.seen:
+                f["matchable"] += 1
+            f["clutter_entered"] += label == CLUTTER and entered
+        for track, label in zip(a.tracks, labels, strict=True):
+            self.counts.setdefault(track, Counter())[label] += 1
+            if label != CLUTTER:
+                self.seen.add(label)
+
+    def truth_of(self, tracks: Collection[int]) -> dict[int, int]:
+        """Map object → the true object most of its detections are (``CLUTTER`` for false
+        ones): what its estimate is scored against."""
+        return {t: self.counts[t].most_common(1)[0][0] for t in tracks if t in self.counts}
+
+    def final(self, confirmed: Collection[int]) -> dict[str, int]:
+        """Every figure of :data:`COUNTS`, the map objects being ``confirmed``."""
+        out = {name: int(self.figures[name]) for name in COUNTS}
+        majority = self.truth_of(confirmed)
+        out["confirmed"] = len(majority)
+        out["wrong_merges"] = sum(len(self.counts[t]) - 1 for t in majority)
+        out["confirmed_clutter"] = sum(label == CLUTTER for label in majority.values())
+        per_object = Counter(label for label in majority.values() if label != CLUTTER)
+        out["splits"] = sum(n - 1 for n in per_object.values())
+        return out
+
+
+def summarise(counts: Mapping[str, float], ms: Sequence[float]) -> dict[str, float]:
+    """results.json's ``association`` entry: the counts, precision, recall and the time per
+    frame (mean and 99th percentile, ms)."""
+    out = {name: float(counts.get(name, 0)) for name in COUNTS}
+    out["precision"] = out["right"] / out["matched"] if out["matched"] else float("nan")
+    out["recall"] = out["right"] / out["matchable"] if out["matchable"] else float("nan")
+    ordered = sorted(ms)
+    out["ms_mean"] = sum(ordered) / len(ordered) if ordered else float("nan")
+    out["ms_p99"] = (
+        ordered[min(len(ordered) - 1, int(0.99 * len(ordered)))] if ordered else float("nan")
+    )
+    return out

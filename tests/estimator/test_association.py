@@ -1,0 +1,211 @@
+"""Data association on the robot (estimator.association; design note "data association" §4):
+ids stripped on a sparse world give back the truth, true pairs' NIS is χ²_d (gate calibration),
+class evidence tells apart two objects at one pose, clutter alone confirms nothing and leaves the
+belief as it was, and the result does not depend on the order of a frame's detections."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections import defaultdict
+
+import numpy as np
+import pytest
+from scipy.stats import binom, chi2
+
+from deploy.base.build import belief_model, belief_rng
+from estimator.association import AssociationConfig, Associator, SensorField
+from estimator.hybrid import HybridBelief
+from estimator.models import NO_ID, NO_IDS, Detection, SensorFrame
+from sim.generate import generate_scenario
+from sim.scenario import Scenario
+from sim.sensors import CLUTTER, Detector, Simulator
+from tests.estimator.scenarios import tiny_scenario
+
+
+def _sparse(kind: str, steps: int) -> Scenario:
+    """One robot in a generated world, only objects at least 3 m from every other kept."""
+    s = generate_scenario(1, 40, 3, seed=31, steps=steps, area=24.0, kind=kind)
+    kept: list = []
+    for o in s.objects:
+        if all(math.dist(o.pose[:2], p.pose[:2]) >= 3.0 for p in kept):
+            kept.append(o)
+    return dataclasses.replace(s, objects=tuple(kept))
+
+
+def _associator(s: Scenario, **changes: object) -> Associator:
+    sensor = s.robots[0].sensor
+    config = AssociationConfig(**changes)  # type: ignore[arg-type]
+    return Associator(belief_model(s), SensorField(sensor.range, sensor.half_angle), config)
+
+
+def _run(
+    s: Scenario, detector: Detector, assoc: Associator, seed: int = 0
+) -> tuple[HybridBelief, list[tuple[int, int, float]]]:
+    """The robot's belief stepped on associated frames; (track, true label, NIS) per detection."""
+    robot = s.robot_ids[0]
+    belief = HybridBelief(belief_model(s), {robot: s.robots[0].start})
+    rng = belief_rng(seed, [robot])
+    sim = Simulator(s, seed, detector=detector)
+    out = []
+    for k in range(1, s.steps + 1):
+        frame, labels = sim.labelled_frame(robot, k)
+        a = assoc.associate(belief, frame)
+        out += list(zip(a.tracks, labels, a.nis, strict=True))
+        belief.step([a.frame], rng)
+    return belief, out
+
+
+@pytest.mark.parametrize("kind", ["pose", "point"])
+def test_associate_sparse_world_without_ids_equals_the_truth(kind: str) -> None:
+    s = _sparse(kind, 120)
+    belief, out = _run(s, Detector(NO_IDS), _associator(s))
+    labels_of: dict[int, set[int]] = defaultdict(set)
+    confirmed_of: dict[int, set[int]] = defaultdict(set)
+    for track, label, _ in out:
+        labels_of[track].add(label)
+        if track in belief.object_ids:
+            confirmed_of[label].add(track)
+    # every track (a tentative one dropped out of view too) holds one object, every object
+    # at most one map object
+    assert all(len(v) == 1 for v in labels_of.values()), "a track holds two objects"
+    assert all(len(v) == 1 for v in confirmed_of.values()), "an object split over two tracks"
+    assert len(belief.object_ids) == len(confirmed_of) >= 8
+
+
+@pytest.mark.parametrize("kind", ["pose", "point"])
+def test_associate_true_pairs_innovations_are_chi2(kind: str) -> None:
+    """With the gate opened (α = 1e-12) on a sparse world, every map pairing is a true one: its
+    NIS is χ²_d, and the share above χ²_d(0.999) within a binomial interval of 10⁻³ (a
+    Jacobian, frame or covariance error moves both)."""
+    s = _sparse(kind, 150)
+    nis = np.array(
+        [
+            v
+            for seed in range(7)
+            for _, _, v in _run(s, Detector(NO_IDS), _associator(s, alpha=1e-12), seed)[1]
+            if not math.isnan(v)
+        ]
+    )
+    dim = 3 if kind == "pose" else 2
+    assert len(nis) > 500
+    outside = int(np.sum(nis > chi2.ppf(0.999, dim)))
+    assert outside <= binom.ppf(0.999, len(nis), 1e-3), (outside, len(nis))
+    assert abs(nis.mean() - dim) < 4.0 * math.sqrt(2 * dim / len(nis)) + 0.1 * dim, nis.mean()
+
+
+def _twins() -> Scenario:
+    """Objects 1 (class 1) and 2 (class 2) 5 cm apart with one heading, their best view (the
+    camera on their +y side, ψ = π/2 in the paper's classifier) towards the robot, which drives
+    towards them."""
+    return tiny_scenario([(5.5, -1.0, 0.0, 1), (5.55, -1.0, 0.0, 2)], steps=20, sensing=6.0)
+
+
+def _twin_choices(class_evidence: bool, seeds: range) -> list[bool]:
+    """Per seed and step, whether a lone, id-less detection of one twin (alternating) is given to
+    the right object of a belief that knows both from given ids."""
+    s = dataclasses.replace(_twins(), sensor=dataclasses.replace(_twins().sensor))
+    right = []
+    for seed in seeds:
+        belief = HybridBelief(belief_model(s), {"r1": s.robots[0].start})
+        rng = belief_rng(seed, ["r1"])
+        assoc = _associator(s, class_evidence=class_evidence)
+        sim = Simulator(s, seed)
+        for k in range(1, s.steps + 1):
+            frame = sim.frame("r1", k)
+            if k > 4 and len(frame.detections) == 2:
+                twin = frame.detections[k % 2]
+                lone = SensorFrame(
+                    "r1",
+                    k,
+                    frame.odometry,
+                    (Detection(NO_ID, twin.z_geo, twin.z_sem),),
+                    frame.true_pose,
+                    NO_IDS,
+                )
+                right.append(assoc.associate(belief, lone).tracks == (twin.object_id,))
+            belief.step([frame], rng)
+    return right
+
+
+def test_associate_class_evidence_tells_twins_apart() -> None:
+    with_class = _twin_choices(True, range(6))
+    without = _twin_choices(False, range(6))
+    # one detection's scores (the paper's classifier, noise σ ≈ 0.7 on a one-hot mean) pick
+    # the right twin 8 times in 10; geometry alone flips a coin
+    assert len(with_class) >= 60
+    assert np.mean(with_class) >= 0.75, np.mean(with_class)
+    assert abs(np.mean(without) - 0.5) < 0.15, np.mean(without)
+
+
+def _clutter_frames(s: Scenario, rng: np.random.Generator) -> list[SensorFrame]:
+    """Odometry-only frames of the scenario's robot with 0–3 false detections each, uniform in
+    the sensor's field, scores uniform in [0, 1]."""
+    frames = []
+    sensor = s.robots[0].sensor
+    for f in Simulator(s, 0).frames("r1"):
+        dets = []
+        for _ in range(int(rng.integers(0, 4))):
+            r, b = sensor.range * math.sqrt(rng.uniform()), rng.uniform(-1, 1) * sensor.half_angle
+            z = np.array([r * math.cos(b), r * math.sin(b), rng.uniform(-math.pi, math.pi)])
+            dets.append(Detection(NO_ID, z, rng.uniform(0, 1, 2)))
+        frames.append(SensorFrame("r1", f.k, f.odometry, tuple(dets), f.true_pose, NO_IDS))
+    return frames
+
+
+def test_associate_clutter_alone_confirms_nothing_and_leaves_the_belief() -> None:
+    s = tiny_scenario([(100.0, 100.0, 0.0, 1)], steps=80)  # an object it never sees
+    frames = _clutter_frames(s, np.random.default_rng(5))
+    assert sum(len(f.detections) for f in frames) > 80
+    assoc = _associator(s)
+    belief = HybridBelief(belief_model(s), {"r1": s.robots[0].start})
+    blind = HybridBelief(belief_model(s), {"r1": s.robots[0].start})
+    rng, rng_blind = belief_rng(0, ["r1"]), belief_rng(0, ["r1"])
+    for f in frames:
+        a = assoc.associate(belief, f)
+        assert a.frame.detections == () and not a.confirmed
+        belief.step([a.frame], rng)
+        blind.step([dataclasses.replace(f, detections=())], rng_blind)
+    assert belief.object_ids == []
+    assert all(len(frames) - t.k < assoc.config.forget_after for t in assoc.tentative)
+    got, want = belief.snapshot("r1"), blind.snapshot("r1")
+    assert got.robot_pose.tobytes() == want.robot_pose.tobytes()
+    assert got.robot_cov.tobytes() == want.robot_cov.tobytes()
+
+
+def test_associate_ignores_the_order_of_a_frames_detections() -> None:
+    s = generate_scenario(1, 120, 4, seed=9002, steps=60, area=30.0)
+    sim = Simulator(s, 2, detector=Detector(NO_IDS, clutter=0.1, miss=0.1))
+    order_rng = np.random.default_rng(11)
+    runs = []
+    for shuffle in (False, True):
+        belief = HybridBelief(belief_model(s), {"r1": s.robots[0].start})
+        rng = belief_rng(2, ["r1"])
+        assoc = _associator(s)
+        tracks = []
+        for k in range(1, s.steps + 1):
+            frame = sim.frame("r1", k)
+            perm = order_rng.permutation(len(frame.detections)) if shuffle else None
+            if perm is not None:
+                frame = dataclasses.replace(
+                    frame, detections=tuple(frame.detections[i] for i in perm)
+                )
+            a = assoc.associate(belief, frame)
+            by_detection = dict(
+                zip((d.z_geo.tobytes() for d in frame.detections), a.tracks, strict=True)
+            )
+            tracks.append(by_detection)
+            belief.step([a.frame], rng)
+        runs.append((tracks, belief.snapshot("r1").object_pose.tobytes()))
+    assert sum(len(t) for t in runs[0][0]) > 100
+    assert runs[0] == runs[1]
+
+
+def test_associate_counts_clutter_apart_from_objects() -> None:
+    """On the dense world with 5 % clutter, no false detection ends in a confirmed object and
+    every confirmed object is a true one."""
+    s = generate_scenario(1, 120, 4, seed=9002, steps=80, area=30.0)
+    belief, out = _run(s, Detector(NO_IDS, clutter=0.05, miss=0.1), _associator(s))
+    assert any(label == CLUTTER for _, label, _ in out)
+    confirmed = set(belief.object_ids)
+    assert not any(track in confirmed for track, label, _ in out if label == CLUTTER)
