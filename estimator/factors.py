@@ -15,6 +15,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from estimator.models import MAX_STEP, AliasedClassifier, ClassifierModel, GaussianNoise
+from estimator.models.noise import HUBER_K
 
 Array = NDArray[np.float64]
 _OBJECT = ord("o")  # the character of object_key (gtsam.Symbol: it sits in the top 8 bits)
@@ -78,9 +79,16 @@ def detection_factor(
     )
 
 
-def diagonal_noise(noise: GaussianNoise) -> gtsam.noiseModel.Diagonal:
-    """The GTSAM noise model of a :class:`GaussianNoise`."""
-    return gtsam.noiseModel.Diagonal.Variances(np.asarray(noise.variances, dtype=float))
+def diagonal_noise(noise: GaussianNoise) -> gtsam.noiseModel.Base:
+    """The GTSAM noise model of a :class:`GaussianNoise`: diagonal, inside Huber's robust
+    M-estimator at HUBER_K σ when its kernel says so (iSAM2 then re-weights the factor at every
+    re-linearisation, and the marginals it gives hold the weights)."""
+    diagonal = gtsam.noiseModel.Diagonal.Variances(np.asarray(noise.variances, dtype=float))
+    if noise.kernel == "huber":
+        return gtsam.noiseModel.Robust.Create(
+            gtsam.noiseModel.mEstimator.Huber.Create(HUBER_K), diagonal
+        )
+    return diagonal
 
 
 def viewpoint_with_jacobians(x: Array, o: Array) -> tuple[float, Array, Array]:

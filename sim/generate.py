@@ -173,6 +173,8 @@ def model_tables(model: RobotModel, scenario: Scenario | None = None) -> list[st
         out += ["", "[classifier.estimator]", *_classifier_lines(scenario.estimator_classifier)]
     out += ["", "[noise]", f"odometry_var = {_noise(model.odometry_noise)}"]
     out += [f"geometric_var = {_noise(model.geometric_noise)}"]
+    if model.geometric_noise.kernel != "gaussian":
+        out += [f"geometric_kernel = {_q(model.geometric_noise.kernel)}"]
     return [*out, "", "[sensor]", *_sensor_lines(model.sensor, model=True)]
 
 

@@ -21,6 +21,7 @@ from typing import Any
 
 from estimator.models import ROBOT_ID, ROBOT_ID_RULE, GaussianNoise
 from estimator.models.classifier import OBJECT_TO_CAMERA, VIEWPOINTS
+from estimator.models.noise import KERNELS
 from estimator.models.objects import OBJECT_KINDS, object_kind
 from sim.learned_file import LearnedFileError, load_learned
 from sim.recording import RecordingError, cached_recording, fits
@@ -504,11 +505,17 @@ def _learned(f: FieldReader, m: int, owner: str, folder: Path | None) -> Classif
 
 def _noise(f: FieldReader, detection_dim: int) -> tuple[GaussianNoise, GaussianNoise]:
     """``geometric_var``: (x, y, θ) of a relative pose, or (bearing, range) of a point
-    (``[sensor] objects``)."""
-    f.check_keys({"odometry_var", "geometric_var"})
+    (``[sensor] objects``); ``geometric_kernel``: the loss the estimators put on a detection's
+    residual ("gaussian", the default, or "huber": ``estimator.models.noise``)."""
+    f.check_keys({"odometry_var", "geometric_var", "geometric_kernel"})
     odometry = GaussianNoise(tuple(f.vector("odometry_var", 3, positive=True)))
-    geometric = GaussianNoise(tuple(f.vector("geometric_var", detection_dim, positive=True)))
-    return odometry, geometric
+    kernel = "gaussian"
+    if f.has("geometric_kernel"):
+        kernel = f.string("geometric_kernel")
+        if kernel not in KERNELS:
+            raise f.fail("geometric_kernel", f"{kernel!r}: expected one of {', '.join(KERNELS)}")
+    variances = tuple(f.vector("geometric_var", detection_dim, positive=True))
+    return odometry, GaussianNoise(variances, kernel)
 
 
 def _sensor(f: FieldReader, kinds: bool = False) -> Sensor:

@@ -62,6 +62,7 @@ def render_show(scenario: Scenario, console: Console, overrides: Sequence[str] =
     console.print(
         f"noise variances: odometry {list(s.odometry_noise.variances)}, "
         f"geometric {list(s.geometric_noise.variances)}"
+        + ("" if s.geometric_noise.kernel == "gaussian" else f" ({s.geometric_noise.kernel})")
     )
     console.print(_sensing(s))
     comm = s.communication

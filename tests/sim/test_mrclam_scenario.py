@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from deploy.base.build import belief_model
 from estimator.models import viewpoint
 from estimator.models.objects import POINT
 from sim.generate import dump_scenario
@@ -208,3 +209,17 @@ def test_a_class_seed_and_a_stated_class_are_refused_together(tmp_path: Path) ->
     without = "\n".join(line for line in text.splitlines() if not line.startswith("class_seed"))
     with pytest.raises(ScenarioError, match="class"):
         parse_scenario(without, "without.toml", folder=path.parent)
+
+
+def test_the_scenario_weighs_sightings_by_huber_and_a_wrong_kernel_is_refused(
+    tmp_path: Path,
+) -> None:
+    path, _, _ = _written(tmp_path)
+    s = load_scenario(path)
+    assert s.geometric_noise.kernel == "huber"
+    assert belief_model(s).geometric_noise.kernel == "huber"  # what the estimators get
+    again = parse_scenario(dump_scenario(s), str(path), folder=path.parent)
+    assert again.geometric_noise == s.geometric_noise
+    text = path.read_text().replace('geometric_kernel = "huber"', 'geometric_kernel = "cauchy"')
+    with pytest.raises(ScenarioError, match=r"noise\.geometric_kernel: 'cauchy': expected one of"):
+        parse_scenario(text, "bad.toml", folder=path.parent)
