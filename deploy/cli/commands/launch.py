@@ -22,7 +22,7 @@ from deploy.launch import LAUNCH_METHODS, Faults, LaunchPlan
 from deploy.launch.attack_report import attack_list, run_attacks_command
 from deploy.launch.attacks import ATTACKS
 from deploy.launch.netns import require as require_netns
-from deploy.launch.report import agents, counters_table, write_outputs
+from deploy.launch.report import agents, counters_table, security_line, write_outputs
 from deploy.launch.rerun_view import add_options as add_view_options
 from deploy.launch.rerun_view import launch_recorded
 from deploy.study.fleet import COMM_MODES
@@ -121,6 +121,7 @@ def run_launch(args: argparse.Namespace, console: Console) -> int:
         f"launching {agents(len(plan.robots))} of {scenario.name} ({plan.mode}, seed "
         f"{plan.seed}) {where}"
     )
+    console.print(security_line(plan))
     outcome = launch_recorded(plan, console, args, f"launch {scenario.name} seed {plan.seed}")
     console.print(counters_table(outcome))
     console.print(f"run took {outcome.wall_s:.1f} s")
@@ -165,6 +166,7 @@ def run_chaos(args: argparse.Namespace, console: Console) -> int:
         f"chaos on {scenario.name}, seed {plan.seed}: {faults.describe()} "
         f"(realtime, period {plan.period:g} s{where})"
     )
+    console.print(security_line(plan))
     outcome = launch_recorded(plan, console, args, f"chaos {scenario.name} seed {plan.seed}")
     for e in outcome.events:
         console.print(f"- {e}")
