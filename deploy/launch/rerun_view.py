@@ -213,6 +213,12 @@ class RerunLog:
         self.stream.disconnect()
 
 
+NO_DISPLAY = (
+    "--view: no display here (DISPLAY and WAYLAND_DISPLAY are unset); record with "
+    "--record FILE.rrd and open it with `rerun FILE.rrd` where there is one"
+)
+
+
 def _viewer_on_path() -> None:
     """``rerun`` is the viewer the ``view`` extra installs next to this Python; the SDK looks
     for it on PATH, which a venv's ``semfleet`` run without activating the venv lacks."""
@@ -235,6 +241,15 @@ def add_options(p: argparse.ArgumentParser) -> None:
         metavar="FILE.rrd",
         help="record the run for the Rerun viewer instead (`rerun FILE.rrd` opens it)",
     )
+
+
+def check_view(view: bool, record: Path | None) -> None:
+    """What :func:`open_log` would refuse for lack of a display or of Rerun, checked before a
+    command prints or starts anything (a :class:`UsageError`)."""
+    if view and not has_display(os.environ):
+        raise UsageError(NO_DISPLAY)
+    if view or record is not None:
+        import_rerun()
 
 
 def launch_recorded(
@@ -263,11 +278,7 @@ def open_log(
     cannot be written, :class:`RunFailure` when the viewer does not start."""
     if not view and record is None:
         return None
-    if view and not has_display(os.environ):
-        raise UsageError(
-            "--view: no display here (DISPLAY and WAYLAND_DISPLAY are unset); record with "
-            "--record FILE.rrd and open it with `rerun FILE.rrd` where there is one"
-        )
+    check_view(view, record)
     rr = import_rerun()
     # A file has no one waiting: fewer, larger chunks (measured: 3 steps of 2 robots 396 kB,
     # 622 kB with the default 0.2 s).

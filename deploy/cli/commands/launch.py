@@ -24,7 +24,7 @@ from deploy.launch.attacks import ATTACKS
 from deploy.launch.netns import require as require_netns
 from deploy.launch.report import agents, counters_table, security_line, write_outputs
 from deploy.launch.rerun_view import add_options as add_view_options
-from deploy.launch.rerun_view import launch_recorded
+from deploy.launch.rerun_view import check_view, launch_recorded
 from deploy.study.fleet import COMM_MODES
 from deploy.study.runner import run_single
 from estimator.hybrid import BeliefConfig
@@ -88,10 +88,12 @@ def _stack_gossip(args: argparse.Namespace) -> str:
 
 
 def check_outputs(args: argparse.Namespace) -> None:
-    """``--out`` and ``--record`` of ``demo``, ``launch`` and ``chaos``, before anything starts."""
+    """``--out``, ``--record`` and ``--view`` (a display, Rerun installed) of ``demo``,
+    ``launch`` and ``chaos``, before anything starts or is printed."""
     new_folder(Path(args.out), "--out", args.force)
     if args.record is not None:
         new_file(Path(args.record), "--record", args.force)
+    check_view(args.view, args.record)
 
 
 def run_launch(args: argparse.Namespace, console: Console) -> int:
