@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Iterator, Sequence
+import math
+import time
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 
 from rich import box
@@ -43,6 +45,36 @@ def runs_progress(console: Console, transient: bool = False) -> Progress:
         console=console,
         transient=transient,
     )
+
+
+PIPE_LINE_S = 5.0  # on a pipe, at most one progress line this often (first and last aside)
+
+
+@contextlib.contextmanager
+def runs_done(
+    console: Console, total: int, transient: bool = False
+) -> Iterator[Callable[[], None]]:
+    """``advance()``, to call as each of ``total`` runs completes. On a terminal it moves the
+    :func:`runs_progress` bar; on a pipe, where a bar shows only once it is done, it prints
+    ``runs: 3 of 20 done, 12.4 s`` for the first run, the last, and at most once every
+    :data:`PIPE_LINE_S` seconds between, so that a log shows the command is working."""
+    if console.is_terminal:
+        with runs_progress(console, transient) as progress:
+            task = progress.add_task("runs", total=total)
+            yield lambda: progress.advance(task)
+        return
+    start = time.monotonic()
+    done, said = 0, -math.inf
+
+    def advance() -> None:
+        nonlocal done, said
+        done += 1
+        now = time.monotonic()
+        if done in (1, total) or now - said >= PIPE_LINE_S:
+            console.print(f"runs: {done} of {total} done, {now - start:.1f} s")
+            said = now
+
+    yield advance
 
 
 @dataclass(frozen=True)
