@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import ipaddress
 import re
+from collections.abc import Callable
 
 from deploy.base.errors import UsageError
 from sim.loader import MAX_CLASSES
@@ -88,3 +89,17 @@ def zenoh_endpoint(text: str, option: str) -> str:
                 f"{option} {text!r}: expected HOST:PORT with a port in 1..65535 after {m['proto']}/"
             )
     return text
+
+
+def endpoint_type(option: str) -> Callable[[str], str]:
+    """:func:`zenoh_endpoint` as an argparse ``type``: a bad endpoint is argparse's one-line
+    error (exit 2). A ``UsageError`` raised while the arguments are parsed escaped the launcher
+    as a traceback."""
+
+    def parse(text: str) -> str:
+        try:
+            return zenoh_endpoint(text, option)
+        except UsageError as exc:
+            raise argparse.ArgumentTypeError(str(exc).removeprefix(f"{option} ")) from None
+
+    return parse
