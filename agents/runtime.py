@@ -201,8 +201,10 @@ class Agent:
         self.stop_reason = self.stop_reason or reason
         self._stop.set()
 
-    async def run(self) -> None:
-        """Until :meth:`stop` (or a ``ctl/stop``): always closes the transport and the journal."""
+    async def run(self, on_open: Callable[[], None] = lambda: None) -> None:
+        """Until :meth:`stop` (or a ``ctl/stop``): always closes the transport and the journal.
+        ``on_open`` is called once the transport is open (its endpoints bound), before the
+        first step."""
         t, keys = self.transport, self.keys
         for order in ORDER_KEYS:
             t.subscribe(keys.ctl(order), self.control)
@@ -220,6 +222,7 @@ class Agent:
                 t.declare_alive(token)
         try:
             await t.open()
+            on_open()
             self._carry_out(await self._in_worker(lambda: self.core.start(self.clock())))
             tasks = [
                 asyncio.create_task(self._gossip_timer()),

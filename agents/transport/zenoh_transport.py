@@ -21,7 +21,7 @@ import json
 import logging
 import threading
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -29,6 +29,7 @@ import json5
 import zenoh
 
 from agents.transport.base import Inbox, Kind, Message, TransportError, key_matches
+from agents.transport.zenoh_errors import open_error, without_build_paths
 
 log = logging.getLogger(__name__)
 
@@ -129,7 +130,21 @@ class ZenohSettings:
         try:
             return zenoh.Config.from_json5(json.dumps(self.document()))
         except zenoh.ZError as exc:
-            raise ZenohConfigError(f"{self.config_file or 'zenoh settings'}: {exc}") from None
+            where = self.config_file or "zenoh settings"
+            raise ZenohConfigError(f"{where}: {without_build_paths(str(exc))}") from None
+
+    def endpoints(self) -> tuple[tuple[str, ...], tuple[str, ...]]:
+        """The endpoints listened on and dialled, of the file and the fields merged."""
+        doc = self.document()
+        listen = _get(doc, "listen/endpoints") or []
+        connect = _get(doc, "connect/endpoints") or []
+        return tuple(str(e) for e in listen), tuple(str(e) for e in connect)
+
+    def dialling(self, endpoints: Sequence[str]) -> ZenohSettings:
+        """These settings (the file's TLS identity and access control included) for a session
+        that listens on nothing and dials ``endpoints`` only, whatever the file says."""
+        extra = {**self.extra, "listen/endpoints": [], "connect/endpoints": list(endpoints)}
+        return replace(self, listen=(), connect=(), extra=extra)
 
     def mutual_tls(self) -> bool:
         """Whether every endpoint, listened on or dialled, is TLS with a root CA and client
@@ -232,8 +247,7 @@ class ZenohTransport:
         except ZenohConfigError as exc:
             raise TransportError(str(exc)) from None
         except zenoh.ZError as exc:
-            endpoints = ", ".join((*self.settings.listen, *self.settings.connect)) or "none"
-            raise TransportError(f"Zenoh session (endpoints {endpoints}): {exc}") from None
+            raise TransportError(open_error(str(exc), *self.settings.endpoints())) from None
         for expr, inbox in self._pending_subs:
             self._declare_subscriber(expr, inbox)
         for key in self._pending_tokens:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import ipaddress
 import re
+from collections.abc import Callable
 
 from deploy.base.errors import UsageError
 from estimator.models import GLOBAL_IDS, ID_KINDS
@@ -127,3 +128,17 @@ def add_detector_arguments(p: argparse.ArgumentParser) -> None:
 
 def detector_from_args(args: argparse.Namespace) -> Detector:
     return Detector(args.ids, args.clutter, args.miss)
+
+
+def endpoint_type(option: str) -> Callable[[str], str]:
+    """:func:`zenoh_endpoint` as an argparse ``type``: a bad endpoint is argparse's one-line
+    error (exit 2). A ``UsageError`` raised while the arguments are parsed escaped the launcher
+    as a traceback."""
+
+    def parse(text: str) -> str:
+        try:
+            return zenoh_endpoint(text, option)
+        except UsageError as exc:
+            raise argparse.ArgumentTypeError(str(exc).removeprefix(f"{option} ")) from None
+
+    return parse

@@ -65,14 +65,15 @@ def run_attacks_command(args: argparse.Namespace, console: Console) -> int:
     reports = run_each(plan_for, args.attack)
     for line in sessions_lines(reports):
         console.print(f"- {line}")
-    headings = ["fleet", "attack", "achieved", "agents counted", "same as clean"]
-    console.print(figures_table("what each attack achieved", headings, attack_rows(reports)))
+    headings = ["attack", "achieved", "agents counted", "same as clean"]
+    title = f"what each attack achieved on {fleet}"
+    console.print(figures_table(title, headings, attack_rows(reports), text=(1, 2)))
     return 0
 
 
 def attack_rows(reports: Sequence[AttackReport]) -> list[list[str]]:
-    """One row per attack of each report: fleet, attack, what it achieved, what the agents
-    counted, and whether every estimate equals the clean run's."""
+    """One row per attack of each report (one fleet, named in the title): the attack, what it
+    achieved, what the agents counted, and whether every estimate equals the clean run's."""
     rows = []
     for rep in reports:
         for a in rep.achieved:
@@ -82,7 +83,7 @@ def attack_rows(reports: Sequence[AttackReport]) -> list[list[str]]:
             same = f"{rep.compared - len({(r, k) for r, k, _ in rep.differing})}/{rep.compared}"
             if rep.stopped_early:
                 same += f" (ended at {max(rep.last_step.values(), default=0)})"
-            rows.append([rep.fleet, a.attack, achieved, a.counted, same])
+            rows.append([a.attack, achieved, a.counted, same])
     return rows
 
 

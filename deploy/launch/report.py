@@ -30,6 +30,17 @@ def write_outputs(
     return doc
 
 
+def security_line(plan: LaunchPlan) -> str:
+    """How the launch's agents are linked, said before they start (docs/deploy.md, "Secure
+    simulations")."""
+    if plan.secure:
+        return (
+            "secure fleet: mutual TLS, access control and owner-signed slots (a throwaway CA, "
+            f"certificates and keys in {plan.out / 'fleet'})"
+        )
+    return "insecure fleet: plain Zenoh, no TLS or access control (--secure for mutual TLS)"
+
+
 def agents(n: int) -> str:
     return f"{n} agent" if n == 1 else f"{n} agents"
 

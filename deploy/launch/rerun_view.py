@@ -237,6 +237,17 @@ def add_options(p: argparse.ArgumentParser) -> None:
     )
 
 
+def check_view(view: bool, record: Path | None) -> ModuleType | None:
+    """``rerun`` for ``--view`` or ``--record`` (None for neither); a :class:`UsageError`
+    without a display for ``--view`` or without Rerun. Commands call it before they start."""
+    if view and not has_display(os.environ):
+        raise UsageError(
+            "--view: no display here (DISPLAY and WAYLAND_DISPLAY are unset); record with "
+            "--record FILE.rrd and open it with `rerun FILE.rrd` where there is one"
+        )
+    return import_rerun() if view or record is not None else None
+
+
 def launch_recorded(
     plan: LaunchPlan, console: Console, args: argparse.Namespace, name: str
 ) -> LaunchOutcome:
@@ -261,14 +272,9 @@ def open_log(
     """A recording for ``--view`` (a spawned viewer) or ``--record FILE``; None for neither.
     Raises :class:`UsageError` without Rerun, without a display for ``--view`` or when FILE
     cannot be written, :class:`RunFailure` when the viewer does not start."""
-    if not view and record is None:
+    rr = check_view(view, record)
+    if rr is None:
         return None
-    if view and not has_display(os.environ):
-        raise UsageError(
-            "--view: no display here (DISPLAY and WAYLAND_DISPLAY are unset); record with "
-            "--record FILE.rrd and open it with `rerun FILE.rrd` where there is one"
-        )
-    rr = import_rerun()
     # A file has no one waiting: fewer, larger chunks (measured: 3 steps of 2 robots 396 kB,
     # 622 kB with the default 0.2 s).
     batching = rr.ChunkBatcherConfig(flush_tick=RECORD_FLUSH_S) if record else None

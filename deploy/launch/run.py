@@ -220,7 +220,7 @@ class Launcher:
             elif plan.conductor_only:
                 # Everything the robot's machine needs, in its own folder, paths relative to it.
                 cfg = self._fleet[r] / "agent.toml"
-                agent = self._agent_section(r) | {"journal": f"{r}.journal"}
+                agent = self._agent_section(r)
                 security = {"signing_key": "signing.key", "roster": "roster.toml"}
                 write_agent_config(cfg, agent, {"config_file": "zenoh.json5"}, security)
             else:
@@ -288,7 +288,9 @@ class Launcher:
             "stack_gossip": plan.stack_gossip,
             "catch_up": plan.catch_up,
             "listen_in_range": plan.listen_in_range,
-            "journal": f"../journal/{robot}.log",
+            # A conductor-only agent runs on a machine of its own, from a folder with its config
+            # in it (docs/deploy.md): its journal goes in that folder too.
+            "journal": f"{robot}.journal" if plan.conductor_only else f"../journal/{robot}.log",
             "publish_local": plan.publish_local,
             # Loss, partitions and range are the simulator's: it publishes who hears whom
             # (sim/links), which only a simulated agent obeys; in a netns run they happen to

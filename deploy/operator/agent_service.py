@@ -144,16 +144,21 @@ async def serve(config: AgentConfig) -> int:
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, agent.stop, signal.Signals(sig).name)
-    log.info(
-        "%s: up at step %d (%s mode)",
-        config.robot,
-        agent.node.k,
-        config.runtime.mode,
-        extra={"event": "start", "step": agent.node.k, "mode": config.runtime.mode},
-    )
+    listen = ", ".join(config.zenoh.endpoints()[0]) or "no endpoint"
+
+    def up() -> None:  # only once the session is open: its listen endpoints are bound
+        log.info(
+            "%s: up at step %d (%s mode), listening on %s",
+            config.robot,
+            agent.node.k,
+            config.runtime.mode,
+            listen,
+            extra={"event": "start", "step": agent.node.k, "mode": config.runtime.mode},
+        )
+
     counters = asyncio.create_task(_log_counters(agent, 10.0))
     try:
-        await agent.run()
+        await agent.run(on_open=up)
     finally:
         counters.cancel()
     log.info(

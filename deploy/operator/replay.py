@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import asyncio
 from collections.abc import AsyncIterator, Iterator
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import IO
 
@@ -46,9 +46,21 @@ def _text_lines(f: IO[bytes]) -> Iterator[str]:
 
 
 def replay_settings(agent: ZenohSettings) -> ZenohSettings:
-    """The replay's session: dials the agent's listen and connect endpoints (its TLS and other
-    settings kept) and listens on none, since the agent's ports are taken by the agent."""
-    return replace(agent, listen=(), connect=tuple(dict.fromkeys(agent.listen + agent.connect)))
+    """The replay's session: the agent's own settings, its ``config_file`` too (TLS identity,
+    access control), that listens on nothing, since the agent's ports are the agent's, and
+    dials the agent: where it listens (every interface, ``0.0.0.0`` or ``[::]``, dialled on
+    loopback: a replay runs on the robot), or, for an agent that listens nowhere, where it
+    dials (a router or a conductor that routes for it)."""
+    listen, connect = agent.endpoints()
+    dial = tuple(dict.fromkeys(_on_this_machine(e) for e in listen)) or connect
+    return agent.dialling(dial)
+
+
+def _on_this_machine(endpoint: str) -> str:
+    """A listen endpoint as this machine dials it: a wildcard host becomes loopback."""
+    for wildcard, loopback in (("/0.0.0.0:", "/127.0.0.1:"), ("/[::]:", "/[::1]:")):
+        endpoint = endpoint.replace(wildcard, loopback, 1)
+    return endpoint
 
 
 async def replay(
@@ -68,7 +80,7 @@ async def replay(
             async with asyncio.timeout(timeout):
                 await link.wait_for_agent()
         except TimeoutError:
-            dialled = ", ".join(settings.connect) or "no endpoint"
+            dialled = ", ".join(settings.endpoints()[1]) or "no endpoint"
             raise RunFailure(
                 f"no agent {robot} alive on fleet {fleet} within {timeout:g} s (dialled {dialled})"
             ) from None

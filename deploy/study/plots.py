@@ -254,6 +254,8 @@ def plot_hypotheses(
             covariance_ellipse(ax_map, op[:2], oc, color=colour, lw=0.8)
             ax_map.plot(*op[:2], ".", color=colour, ms=4)
     ax_map.set_aspect("equal")
+    ax_map.set_xlabel("x [m]")
+    ax_map.set_ylabel("y [m]")
     ax_map.set_title(f"{robot} at k = {k}: top {len(order)} of {len(w)} hypotheses (2σ)")
     ax_map.legend(fontsize=7)
     ax_map.grid(True, alpha=0.3)
@@ -266,7 +268,8 @@ def plot_hypotheses(
     )
     ax_class.set_xticks(x, [str(j) for j in ids])
     ax_class.set_ylim(0, 1.05)
-    ax_class.set_xlabel("object")
+    ax_class.set_xlabel("object id")
+    ax_class.set_ylabel("P(c = 1)")
     ax_class.set_title("class 1 probability per object")
     ax_class.legend(fontsize=7)
 
@@ -535,6 +538,8 @@ def plot_robot_map(
         ax.plot(x, y, marker=marker, color=colour, ms=10 if other == robot else 6, ls="none")
         ax.annotate(other, (x, y), textcoords="offset points", xytext=(6, -10), color=colour)
     ax.set_aspect("equal")
+    ax.set_xlabel("x [m] (fleet frame)")
+    ax.set_ylabel("y [m] (fleet frame)")
     ax.set_title(f"{robot} at k = {entry['k']}: {belief}, {b['hypotheses']} hypotheses (2σ)")
     ax.grid(True, alpha=0.3)
     if drawn:

@@ -7,6 +7,7 @@ processes, real Zenoh over mutual TLS on loopback, real attacker sessions.
 from __future__ import annotations
 
 import dataclasses
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -19,6 +20,7 @@ from deploy.launch.attacks import ATTACKS, parse_attacks, roles
 from deploy.launch.run import LaunchPlan
 from estimator.snapshot import BeliefSnapshot
 from sim.loader import load_scenario
+from tests.deploy.tables import table_cells
 
 PAPER = load_scenario("paper")
 STEPS = 8  # r2 and r3 hear each other from step 2 on: relayed forgeries can reach someone
@@ -129,22 +131,52 @@ def test_chaos_attack_command_prints_the_table_and_refuses_other_faults(tmp_path
         capture_output=True,
         text=True,
         timeout=300,
+        env={**os.environ, "COLUMNS": "80"},  # a pipe of 80 columns, every terminal's default
     )
     assert run.returncode == 0, run.stderr
     assert "uncertified (the fleet's CA, no certificate): saw 0 of 3" in run.stdout
-    row = next(line for line in run.stdout.splitlines() if line.split()[:2] == ["secure", "stop"])
+    # One table at 80 columns (it was split in two, the second repeating the fleet, not the
+    # attack): one heading, each attack's row readable, wrapped cells under their column.
+    lines = run.stdout.splitlines()
+    assert max(len(line) for line in lines) <= 80, run.stdout
+    title = [line.strip() for line in lines].index("what each attack achieved on a secure fleet")
+    assert lines[title + 1].split() == ["attack", "achieved", "agents", "counted", "same", "as",
+                                        "clean"], run.stdout  # fmt: skip
+    assert [i for i, line in enumerate(lines) if set(line.strip()) == {"─"}] == [title + 2]
+    rows = {row[0]: row[1:] for row in table_cells(lines[title + 3 :])}
+    assert sorted(rows) == ["bloat", "epoch", "stop"], run.stdout
     # The member's Stop on its own ctl/need key reached every agent, which refused it.
-    assert row.split()[2:] == ["nothing", "control_invalid", "3", "18/18"]
+    assert rows["stop"] == ["nothing", "control_invalid 3", "18/18"]
     # Finding 8: a genuine slot under another epoch, relayed by a member, is counted as badly
     # signed (it was counted invalid only, while the log said its signature did not verify).
-    row = next(line for line in run.stdout.splitlines() if line.split()[:2] == ["secure", "epoch"])
-    assert row.split()[2:4] == ["nothing", "stacks_badly_signed"] and row.split()[-1] == "18/18"
-    assert int(row.split()[4]) > 0
+    achieved, counted, same = rows["epoch"]
+    assert achieved == "nothing" and same == "18/18" and counted.startswith("stacks_badly_signed")
+    assert int(counted.split()[1].rstrip(",")) > 0
     # Finding 4: the member's signed 9.4 MB slot is refused unread, by its size, never decoded
     # (it would then count in slots_rejected: its Λ is beyond what its steps can give).
-    row = next(line for line in run.stdout.splitlines() if line.split()[:2] == ["secure", "bloat"])
-    assert row.split()[2:4] == ["nothing", "stacks_invalid"] and row.split()[-1] == "18/18"
-    assert "slots_rejected" not in row
+    achieved, counted, same = rows["bloat"]
+    assert achieved == "nothing" and same == "18/18" and counted.startswith("stacks_invalid")
+    assert "slots_rejected" not in counted
+    # On an insecure fleet what the attacks achieved is longer: it wraps in its column.
+    run = subprocess.run(
+        [*cmd, "--attack", "stop,flood", "--out", str(tmp_path / "insecure")],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env={**os.environ, "COLUMNS": "80"},
+    )
+    assert run.returncode == 0, run.stderr
+    lines = run.stdout.splitlines()
+    assert max(len(line) for line in lines) <= 80, run.stdout
+    title = [line.strip() for line in lines].index(
+        "what each attack achieved on an insecure fleet (no --secure)"
+    )
+    assert [i for i, line in enumerate(lines) if set(line.strip()) == {"─"}] == [title + 2]
+    rows = {row[0]: row[1:] for row in table_cells(lines[title + 3 :])}
+    assert rows["stop"][0].startswith("stopped r1, r2, r3 before step "), run.stdout
+    counted = rows["flood"][1]
+    assert counted.startswith("status_requests ") and ", inbox_dropped " in counted, run.stdout
+    assert len(lines) - title - 3 > len(rows), run.stdout  # some cell did wrap
     bad = subprocess.run(
         [*cmd, "--attack", "stop", "--drop", "0.2"], capture_output=True, text=True, timeout=60
     )

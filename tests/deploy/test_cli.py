@@ -215,6 +215,9 @@ def test_demo_launches_three_agents_over_zenoh_and_prints_the_final_table(tmp_pa
         assert (demo / png).read_bytes()[:8] == PNG_MAGIC, png
     doc = json.loads((demo / "results.json").read_text())
     assert set(doc["methods"]) == {"local", "distributed"}
+    assert doc["demo"] is True and doc["launch"]["mode"] == "lockstep", doc["launch"]
+    assert 0 < doc["launch"]["wall_s"] < 600  # docs/results.md: a launch's settings
+    assert "insecure fleet: plain Zenoh, no TLS or access control" in r.stdout
     final = {m: doc["methods"][m]["mean"]["msde"][-1] for m in ("local", "distributed")}
     assert final["distributed"] < final["local"]  # the paper's result, seed 0
     for robot in ("r1", "r2", "r3"):  # every agent really ran as its own process, with a log

@@ -43,6 +43,7 @@ from protocol.frames import encode_frame
 from sim.loader import parse_scenario
 from sim.robot_model import dump_robot_model
 from sim.sensors import Simulator
+from tests.deploy.tables import table_cells
 from tests.estimator.scenarios import fleet_text, objects_ahead
 from tests.tolerance import assert_angles_close, assert_close
 
@@ -58,8 +59,8 @@ WORLD = parse_scenario(
 OBJECTS = {o.id: np.array(o.pose) for o in WORLD.objects}
 
 
-def semfleet(*args: str) -> subprocess.CompletedProcess[str]:
-    env = {"COLUMNS": "200", "PATH": "/usr/bin:/bin", "MPLBACKEND": "Agg"}
+def semfleet(*args: str, columns: int = 200) -> subprocess.CompletedProcess[str]:
+    env = {"COLUMNS": str(columns), "PATH": "/usr/bin:/bin", "MPLBACKEND": "Agg"}
     return subprocess.run(
         [str(SEMFLEET), *args], capture_output=True, text=True, timeout=120, env=env
     )
@@ -199,13 +200,13 @@ def test_status_sees_both_agents_alive_at_their_last_step(tmp_path: Path) -> Non
     at their last step; the status shows them, their steps and their counters."""
     with running_fleet(tmp_path, "opstatus") as fleet:
         assert asyncio.run(feed(fleet, period=0.05)) == {"r1": STEPS, "r2": STEPS}
-        r = semfleet("fleet", "status", "--connect", fleet.endpoints["r1"], "--fleet", "opstatus")
+        args = ["fleet", "status", "--connect", fleet.endpoints["r1"], "--fleet", "opstatus"]
+        r = semfleet(*args, columns=80)  # a pipe of 80 columns, as most terminals
         assert r.returncode == 0, r.stderr
         print(r.stdout)
-        lines = r.stdout.splitlines()
-        for robot in ("r1", "r2"):
-            row = next(line for line in lines if line.split()[:1] == [robot])
-            assert "yes" in row and f" {STEPS} " in row, row
+        rows = one_table_at_80_columns(r.stdout)
+        assert [row[:3] for row in rows] == [["r1", "yes", str(STEPS)], ["r2", "yes", str(STEPS)]]
+        assert "0 on every robot: invalid, slots rej., quarantined" in r.stdout
         assert "2 alive, 2 answered" in r.stdout
         r = semfleet(
             "fleet", "status", "--connect", fleet.endpoints["r1"], "--fleet", "opstatus", "--json"
@@ -222,6 +223,19 @@ def test_status_sees_both_agents_alive_at_their_last_step(tmp_path: Path) -> Non
             assert row["hypotheses"]["distributed"] == c["hypotheses_distributed"] >= 1, row
             assert row["objects"]["distributed"] == 4, row
             assert c["status_requests"] >= 1, c
+
+
+def one_table_at_80_columns(stdout: str) -> list[list[str]]:
+    """The cells of the one fleet table in ``stdout``, checked whole at 80 columns: one
+    heading (not split into tables stacked below each other), every row on one line."""
+    lines = stdout.splitlines()
+    (rule,) = [i for i, line in enumerate(lines) if set(line.strip()) == {"─"}]
+    assert lines[rule - 1].split()[:3] == ["robot", "alive", "step"], stdout
+    end = next(i for i in range(rule + 1, len(lines)) if not lines[i].startswith("r"))
+    assert max(len(line) for line in lines[: end + 1]) <= 80, stdout  # title to caption
+    rows = table_cells(lines[rule + 1 : end])
+    assert len(rows) == end - rule - 1, stdout  # no row wrapped
+    return rows
 
 
 def test_watch_writes_estimates_and_map_of_both_agents(tmp_path: Path) -> None:
@@ -243,7 +257,7 @@ def test_watch_writes_estimates_and_map_of_both_agents(tmp_path: Path) -> None:
             str(out),
             stdout=asyncio.subprocess.PIPE,
             stderr=asyncio.subprocess.PIPE,
-            env={"COLUMNS": "200", "PATH": "/usr/bin:/bin", "MPLBACKEND": "Agg"},
+            env={"COLUMNS": "80", "PATH": "/usr/bin:/bin", "MPLBACKEND": "Agg"},
         )
         await feeding
         stdout, stderr = await asyncio.wait_for(watch.communicate(), 60)
@@ -252,7 +266,9 @@ def test_watch_writes_estimates_and_map_of_both_agents(tmp_path: Path) -> None:
     with running_fleet(tmp_path, "opwatch") as fleet:
         code, stdout, stderr = asyncio.run(scenario(fleet))
     assert code == 0, stderr.decode()
-    assert f"wrote {out / 'estimates.json'}, {out / 'map.png'}" in stdout.decode()
+    assert f"wrote {out / 'estimates.json'}, {out / 'map.png'}\n" in stdout.decode()
+    rows = one_table_at_80_columns(stdout.decode())  # the live table's last frame, on a pipe
+    assert [row[:3] for row in rows] == [["r1", "yes", str(STEPS)], ["r2", "yes", str(STEPS)]]
     doc = json.loads((out / "estimates.json").read_text())
     assert doc["format"] == 1 and doc["fleet"] == "opwatch" and doc["classes_seen"] == 2
     assert set(doc["robots"]) == {"r1", "r2"}

@@ -124,3 +124,7 @@ def test_two_agents_linked_only_through_a_router_fuse_each_others_slots(tmp_path
         assert set(final[other].beliefs["local"].object_ids) <= held, r
         assert len(held) > len(final[r].beliefs["local"].object_ids), r
     assert procs[2].returncode == procs[3].returncode == 0
+    for hub, proc in zip(hubs, procs[:2], strict=True):  # SIGTERM is a router's normal stop
+        said = (tmp_path / f"{hub}.log").read_text(errors="replace")
+        assert proc.returncode == 0 and "error" not in said, said
+        assert said.endswith("router stopped (SIGTERM), its session closed\n"), said

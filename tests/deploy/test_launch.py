@@ -595,11 +595,19 @@ def test_launch_conductor_only_drives_agents_started_elsewhere(
         c.exists() and "simulation" in c.read_text() for c in configs
     ):
         time.sleep(0.1)
-    if secure:  # the robot's folder, alone on "its machine"
+    # What docs/deploy.md says to copy onto each robot's machine, alone in a folder there.
+    if secure:  # the robot's folder
         for r, c in zip(ROBOTS, list(configs), strict=True):
             shutil.copytree(c.parent, tmp_path / "elsewhere" / r)
         configs = [tmp_path / "elsewhere" / r / "agent.toml" for r in ROBOTS]
         shutil.rmtree(tmp_path / "run" / "fleet" / "robots")
+    else:  # the robot's config and the model
+        for r, c in zip(ROBOTS, list(configs), strict=True):
+            (tmp_path / "elsewhere" / r).mkdir(parents=True)
+            for name in (c.name, "model.toml"):
+                shutil.copy(c.parent / name, tmp_path / "elsewhere" / r / name)
+        configs = [tmp_path / "elsewhere" / r / f"{r}.toml" for r in ROBOTS]
+        shutil.rmtree(tmp_path / "run" / "agents")
     procs = [
         subprocess.Popen(
             [sys.executable, "-m", "deploy.cli", "agent", "--robot", r, "--config", c.name],
@@ -628,6 +636,10 @@ def test_launch_conductor_only_drives_agents_started_elsewhere(
             if p.poll() is None:
                 p.kill()
                 p.wait()
+    # Everything an agent wrote stays in the folder it was started in (its journal too).
+    assert sorted(p.name for p in (tmp_path / "elsewhere").iterdir()) == list(ROBOTS)
+    for r in ROBOTS:
+        assert (tmp_path / "elsewhere" / r / f"{r}.journal").stat().st_size > 0, r
     if secure:
         config = configs[0].read_text()
         assert "[security]" in config and "/" not in config.split("[security]")[1]  # relative

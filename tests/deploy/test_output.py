@@ -17,6 +17,7 @@ from deploy.launch.report import COUNTERS, counters_table
 from deploy.launch.table import PROGRESS, progress_table
 from deploy.operator.fleet_view import FleetView
 from protocol.estimate import EstimateMessage, encode_estimate
+from tests.deploy.tables import table_cells
 from tests.deploy.test_fleet_cmd import HYP
 
 ROBOTS = [f"robot-{i}" for i in range(1, 11)]  # ids longer than the usual r1
@@ -105,3 +106,44 @@ def test_live_display_on_a_pipe_ends_its_last_frame_with_a_newline(ending: str) 
     console.print("next")
     lines = out.getvalue().splitlines()
     assert lines[-1] == "next" and lines[-2].startswith("r1 "), out.getvalue()
+
+
+def test_a_healthy_fleet_is_one_table_at_80_columns_its_zero_troubles_in_the_caption() -> None:
+    """Invalid stacks, rejected slots and quarantined frames take a column only when some robot
+    has one: a healthy fleet's table is whole at 80 columns (it was split in two)."""
+    keys = Keys("f")
+    view = FleetView(keys)
+    counters = {key: BIG for key, _ in COUNTER_COLUMNS} | {"step": 60}
+    counters |= {"stacks_invalid": 0, "slots_rejected": 0, "frames_quarantined": 0}
+    for r in ("r1", "r2", "r3"):
+        view.on_message(Message(keys.alive(r), b"", "alive"), 0.0)
+        est = EstimateMessage(r, 60, {"distributed": HYP, "local": HYP}, counters)
+        view.on_message(Message(keys.estimate(r), encode_estimate(est)), 1.0)
+    lines = render(fleet_table(view, "fleet f", now=12.5))
+    rule = [i for i, line in enumerate(lines) if set(line.strip()) == {"─"}]
+    assert len(rule) == 1, "\n".join(lines)
+    rows = table_cells(lines[rule[0] + 1 : rule[0] + 4])
+    assert rows == [
+        [r, "yes", "60", "3/3", "2/2", *[str(BIG)] * 3, "11.5"] for r in ("r1", "r2", "r3")
+    ]
+    assert lines[-1].strip() == "0 on every robot: invalid, slots rej., quarantined"
+    view.on_message(  # one robot with an invalid stack: the column is back
+        Message(keys.estimate("r2"), encode_estimate(
+            EstimateMessage("r2", 60, {"distributed": HYP}, counters | {"stacks_invalid": 2})
+        )), 2.0,
+    )  # fmt: skip
+    lines = render(fleet_table(view, "fleet f", now=12.5))
+    assert "invalid" in lines[1] + lines[2] and "invalid" not in lines[-1], "\n".join(lines)
+
+
+def test_text_columns_wrap_at_their_spaces_and_the_table_stays_whole() -> None:
+    rows = [
+        ["stop", "stopped r1, r2, r3 before step 4", "—", "7/7 (ended at 3)"],
+        ["flood", "nothing", "status_requests 2700, inbox_dropped 79", "12/12"],
+    ]
+    headings = ["attack", "achieved", "agents counted", "same as clean"]
+    lines = render(figures_table("t", headings, rows, text=(1, 2)))
+    assert max(len(line) for line in lines) <= 80 and "…" not in "\n".join(lines)
+    rule = [i for i, line in enumerate(lines) if set(line.strip()) == {"─"}]
+    assert len(rule) == 1 and len(lines) > rule[0] + 1 + len(rows), "\n".join(lines)  # wrapped
+    assert table_cells(lines[rule[0] + 1 :]) == rows

@@ -9,18 +9,23 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
+from agents.transport.base import Keys, Message
+from deploy.operator.fleet_view import FleetView, estimates_doc
 from deploy.study.plots import (
     plot_error_curves,
     plot_hypotheses,
     plot_paths,
     plot_per_run,
     plot_reliability,
+    plot_robot_map,
 )
 from deploy.study.ufastslam import MethodRun
 from estimator.metrics import ECE_BINS, calibration_stats
 from estimator.snapshot import BeliefSnapshot
+from protocol.estimate import EstimateMessage, encode_estimate
 from sim.loader import load_scenario
 from sim.world import World
+from tests.deploy.test_fleet_cmd import HYP
 from tests.tolerance import assert_close
 
 
@@ -110,5 +115,20 @@ def test_plot_hypotheses_draws_per_object_class_marginals() -> None:
         plot_hypotheses(ax_map, ax_class, snap, world, "r1", 5)
         heights = [bar.get_height() for bar in ax_class.patches]
         assert_close(heights, [0.3, 0.8])
+        assert (ax_map.get_xlabel(), ax_map.get_ylabel()) == ("x [m]", "y [m]")
+        assert (ax_class.get_xlabel(), ax_class.get_ylabel()) == ("object id", "P(c = 1)")
+    finally:
+        plt.close(fig)
+
+
+def test_fleet_map_panels_say_their_axes_and_units() -> None:
+    """`fleet watch`'s map.png: each robot's panel in metres of the fleet's frame."""
+    view = FleetView(Keys("f"))
+    est = EstimateMessage("r1", 4, {"distributed": HYP}, {"step": 4})
+    view.on_message(Message("semfleet/f/estimate/r1", encode_estimate(est)), now=1.0)
+    fig, ax = plt.subplots()
+    try:
+        plot_robot_map(ax, "r1", estimates_doc(view, watched_s=2.0), "distributed", {"r1": "k"})
+        assert ax.get_xlabel() == "x [m] (fleet frame)" and ax.get_ylabel() == "y [m] (fleet frame)"
     finally:
         plt.close(fig)

@@ -139,11 +139,18 @@ def test_chaos_records_its_realtime_run(site: Path) -> None:
         assert len(scored) and set(rec[f"world/robots/{robot}/distributed"]) == set(scored)
 
 
-def test_view_without_a_display_is_one_line_before_any_agent_starts(site: Path) -> None:
-    r = semfleet("launch", "--scenario", "pair.toml", "--out", "view", "--view", cwd=site)
+@pytest.mark.parametrize(
+    "command",
+    [["launch", "--scenario", "pair.toml"], ["demo"], ["chaos", "--scenario", "pair.toml"]],
+)
+def test_view_without_a_display_is_one_line_before_anything_starts(
+    site: Path, command: list[str]
+) -> None:
+    """One line and nothing else: demo printed its 60 lines of scenario before it (issue 46)."""
+    r = semfleet(*command, "--out", "view", "--view", cwd=site)
     assert r.returncode == 2
     assert r.stderr.strip().count("\n") == 0 and "--view: no display here" in r.stderr, r.stderr
-    assert not (site / "view" / "logs").exists()
+    assert r.stdout == "" and not (site / "view").exists(), r.stdout
 
 
 def test_view_and_record_together_are_a_usage_error(capsys: pytest.CaptureFixture[str]) -> None:

@@ -7,6 +7,7 @@ the agent's estimates through :class:`agents.perception.RobotLink`, as an integr
 from __future__ import annotations
 
 import asyncio
+import json
 import signal
 import subprocess
 import sys
@@ -239,3 +240,71 @@ async def test_replay_wait_resends_the_last_frame_until_the_agent_answers() -> N
         link.publish_frame(frame)
         with pytest.raises(RunFailure, match=r"r1's agent did not reach step 5 within 0\.2 s of "):
             await wait_until_step(link, link.estimates(), frame, timeout=0.2)
+
+
+SECURE_STEPS = 12
+
+
+def test_replay_feeds_a_secure_fleet_from_each_robots_fleet_init_folder(tmp_path: Path) -> None:
+    """docs/robots.md and docs/deploy.md as a user follows them: `fleet init` (mutual TLS,
+    access control, gossip off), each agent started in its robot's folder from its own
+    `agent.toml`, and each robot's frames replayed with that same `agent.toml`. Each replay
+    dials its own agent only (never listens: the agents' ports are taken), both agents reach the
+    last step, and the operator's status, over mutual TLS, shows them there."""
+    robots = ("r1", "r2")
+    ports = dict(zip(robots, free_ports(len(robots)), strict=True))
+    listen = {r: f"tls/127.0.0.1:{p}" for r, p in ports.items()}
+    init = ["fleet", "init", "--fleet", "lab", "--robots", ",".join(robots), "--scenario", "paper"]
+    for r in robots:
+        init += ["--listen", f"{r}={listen[r]}"]
+    assert main([*init, "-o", str(tmp_path / "lab-fleet")]) == 0
+    folders = {r: tmp_path / "lab-fleet" / "robots" / r for r in robots}
+    for r in robots:
+        export = ["scenario", "frames", "paper", "--seed", "0", "--robot", r, "-o"]
+        assert main([*export, str(tmp_path / f"{r}.jsonl"), "--steps", str(SECURE_STEPS)]) == 0
+    agents: dict[str, subprocess.Popen[bytes]] = {}
+    try:
+        for r in robots:
+            with open(tmp_path / f"agent-{r}.out", "wb") as f:
+                agents[r] = subprocess.Popen(
+                    _command("agent", "--robot", r, "--config", "agent.toml"),
+                    cwd=folders[r],
+                    stdout=f,
+                    stderr=subprocess.STDOUT,
+                )
+        replays = {
+            r: subprocess.Popen(
+                _command(
+                    "replay", "--robot", r, "--frames", str(tmp_path / f"{r}.jsonl"),
+                    "--config", str(folders[r] / "agent.toml"),
+                    "--period", "0.1", "--wait", "--timeout", str(TIMEOUT_S / 2),
+                ),
+                stdout=subprocess.PIPE,
+                stderr=subprocess.STDOUT,
+            )
+            for r in robots
+        }  # fmt: skip
+        outputs = {r: p.communicate(timeout=TIMEOUT_S)[0].decode() for r, p in replays.items()}
+        operator = tmp_path / "lab-fleet" / "operator" / "zenoh.json5"
+        status = subprocess.run(
+            _command(
+                "fleet", "status", "--fleet", "lab", "--mode", "peer", "--zenoh-config",
+                str(operator), *(a for r in robots for a in ("--connect", listen[r])), "--json",
+            ),
+            capture_output=True,
+            timeout=TIMEOUT_S,
+        )  # fmt: skip
+    finally:
+        codes = {r: _stop(a) for r, a in agents.items()}
+    for r in robots:
+        said = " ".join(outputs[r].split())
+        assert replays[r].returncode == 0, said
+        assert f"replaying {SECURE_STEPS} frames of {r} on fleet lab" in said, said
+        assert f"dialling {listen[r]} " in said, said  # its own agent, not the other robot
+        assert f"the agent reached step {SECURE_STEPS}" in said, said
+        agent_log = (tmp_path / f"agent-{r}.out").read_text(errors="replace")
+        assert codes[r] == 0 and "Traceback" not in agent_log, agent_log
+        assert f"listening on {listen[r]}" in agent_log, agent_log
+    assert status.returncode == 0, status.stderr
+    doc = json.loads(status.stdout)
+    assert {r["robot"]: r["k"] for r in doc["robots"]} == dict.fromkeys(robots, SECURE_STEPS), doc

@@ -147,6 +147,12 @@ def test_command_prints_the_table(two_runs: tuple[subprocess.CompletedProcess[st
         "pose NEES (3 dof",
     ):
         assert text in out, text
+    # Progress on a pipe, as each run ends (it printed nothing for 17 s of 20 runs), before the
+    # table.
+    lines = out.splitlines()
+    said = [i for i, line in enumerate(lines) if line.startswith("runs: ")]
+    assert [lines[i].split(",")[0] for i in said] == ["runs: 1 of 2 done", "runs: 2 of 2 done"]
+    assert said[-1] < next(i for i, line in enumerate(lines) if "dead reckoning" in line)
 
 
 def test_results_json_schema(two_runs: tuple[subprocess.CompletedProcess[str], Path]) -> None:

@@ -9,7 +9,7 @@ from typing import Any
 from rich.console import Console
 
 from deploy.base.errors import UsageError
-from deploy.cli.args import host_name, positive_float, zenoh_endpoint
+from deploy.cli.args import endpoint_type, host_name, positive_float
 from deploy.launch import LaunchPlan
 
 
@@ -21,13 +21,13 @@ def add_options(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--conductor-listen",
-        type=lambda e: zenoh_endpoint(e, "--conductor-listen"),
+        type=endpoint_type("--conductor-listen"),
         help="with --conductor-only: where the conductor listens (default tcp/0.0.0.0:7447, "
         "tls/0.0.0.0:7447 with --secure)",
     )
     p.add_argument(
         "--advertise",
-        type=lambda e: zenoh_endpoint(e, "--advertise"),
+        type=endpoint_type("--advertise"),
         help="with --conductor-only: the endpoint the agents dial, e.g. tcp/192.168.1.10:7447",
     )
     p.add_argument(

@@ -19,7 +19,7 @@ from deploy.cli.args import seed
 from deploy.cli.commands.launch import SECURE_HELP, check_outputs
 from deploy.cli.outputs import add_force
 from deploy.launch import LaunchPlan
-from deploy.launch.report import counters_table, write_outputs
+from deploy.launch.report import counters_table, security_line, write_outputs
 from deploy.launch.rerun_view import add_options as add_view_options
 from deploy.launch.rerun_view import launch_recorded
 from deploy.study.scenario_show import render_show, save_ground_truth_plot
@@ -67,9 +67,11 @@ def run(args: argparse.Namespace, console: Console) -> int:
         f"launching {len(plan.robots)} agent processes (Zenoh on loopback, lock-step, seed "
         f"{plan.seed}); logs in {out / 'logs'}"
     )
+    console.print(security_line(plan))
     outcome = launch_recorded(plan, console, args, f"demo seed {plan.seed}")
     console.print(counters_table(outcome))
-    doc = write_outputs(plan, outcome, console, {"demo": True})
+    launched = {"mode": plan.mode, "wall_s": outcome.wall_s}
+    doc = write_outputs(plan, outcome, console, {"demo": True, "launch": launched})
     console.print(final_table(doc, scenario.steps))
     console.print(
         f"demo took {time.perf_counter() - start:.1f} s (agents ran {outcome.wall_s:.1f} s); "

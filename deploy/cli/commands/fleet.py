@@ -47,6 +47,9 @@ COUNTER_COLUMNS = (
     ("frames_processed", "frames"),
     ("frames_quarantined", "quarantined"),
 )
+# What goes wrong, shown only when it did on some robot (the caption says so otherwise): a healthy
+# fleet's table then fits 80 columns in one piece.
+TROUBLE = frozenset({"stacks_invalid", "slots_rejected", "frames_quarantined"})
 
 
 def connection(args: argparse.Namespace) -> tuple[ZenohSettings, Keys]:
@@ -66,9 +69,14 @@ def connection(args: argparse.Namespace) -> tuple[ZenohSettings, Keys]:
 
 def fleet_table(view: FleetView, title: str, now: float | None = None) -> FiguresTable:
     """Robot, token, step, hypotheses and objects of D / L, the :data:`COUNTER_COLUMNS` some
-    robot reports and, given ``now``, the age of the latest estimate."""
+    robot reports (those of :data:`TROUBLE` only when not 0 on some robot: the caption names the
+    others) and, given ``now``, the age of the latest estimate."""
     estimates = [s.estimate for s in view.robots.values() if s.estimate is not None]
-    shown = [(k, h) for k, h in COUNTER_COLUMNS if any(k in e.counters for e in estimates)]
+    reported = [(k, h) for k, h in COUNTER_COLUMNS if any(k in e.counters for e in estimates)]
+    zero = [
+        h for k, h in reported if k in TROUBLE and all(not e.counters.get(k) for e in estimates)
+    ]
+    shown = [(k, h) for k, h in reported if h not in zero]
     headings = ["robot", "alive", "step", "hyp. D/L", "objects D/L", *(h for _, h in shown)]
     if now is not None:
         headings.append("age (s)")
@@ -88,7 +96,8 @@ def fleet_table(view: FleetView, title: str, now: float | None = None) -> Figure
         if now is not None:
             ages = [f"{now - state.received:.1f}"]
         rows.append([robot, alive, str(est.k), hyp, objects, *counters, *ages])
-    return figures_table(title, headings, rows)
+    caption = f"0 on every robot: {', '.join(zero)}" if zero else ""
+    return figures_table(title, headings, rows, caption=caption)
 
 
 def run_status(args: argparse.Namespace, console: Console) -> int:
@@ -128,7 +137,7 @@ def run_watch(args: argparse.Namespace, console: Console) -> int:
         )
     if args.out is not None:
         paths = write_watch_results(Path(args.out), view, watched)
-        console.print("wrote " + ", ".join(str(p) for p in paths))
+        console.print("wrote " + ", ".join(str(p) for p in paths), soft_wrap=True)  # paths whole
     return 0
 
 

@@ -22,9 +22,9 @@ from deploy.launch import LAUNCH_METHODS, Faults, LaunchPlan
 from deploy.launch.attack_report import attack_list, run_attacks_command
 from deploy.launch.attacks import ATTACKS
 from deploy.launch.netns import require as require_netns
-from deploy.launch.report import agents, counters_table, write_outputs
+from deploy.launch.report import agents, counters_table, security_line, write_outputs
 from deploy.launch.rerun_view import add_options as add_view_options
-from deploy.launch.rerun_view import launch_recorded
+from deploy.launch.rerun_view import check_view, launch_recorded
 from deploy.study.fleet import COMM_MODES
 from deploy.study.runner import run_single
 from estimator.hybrid import BeliefConfig
@@ -88,10 +88,12 @@ def _stack_gossip(args: argparse.Namespace) -> str:
 
 
 def check_outputs(args: argparse.Namespace) -> None:
-    """``--out`` and ``--record`` of ``demo``, ``launch`` and ``chaos``, before anything starts."""
+    """``--out``, ``--record`` and ``--view`` (a display, Rerun installed) of ``demo``,
+    ``launch`` and ``chaos``, before anything starts or is printed."""
     new_folder(Path(args.out), "--out", args.force)
     if args.record is not None:
         new_file(Path(args.record), "--record", args.force)
+    check_view(args.view, args.record)
 
 
 def run_launch(args: argparse.Namespace, console: Console) -> int:
@@ -121,6 +123,7 @@ def run_launch(args: argparse.Namespace, console: Console) -> int:
         f"launching {agents(len(plan.robots))} of {scenario.name} ({plan.mode}, seed "
         f"{plan.seed}) {where}"
     )
+    console.print(security_line(plan))
     outcome = launch_recorded(plan, console, args, f"launch {scenario.name} seed {plan.seed}")
     console.print(counters_table(outcome))
     console.print(f"run took {outcome.wall_s:.1f} s")
@@ -165,6 +168,7 @@ def run_chaos(args: argparse.Namespace, console: Console) -> int:
         f"chaos on {scenario.name}, seed {plan.seed}: {faults.describe()} "
         f"(realtime, period {plan.period:g} s{where})"
     )
+    console.print(security_line(plan))
     outcome = launch_recorded(plan, console, args, f"chaos {scenario.name} seed {plan.seed}")
     for e in outcome.events:
         console.print(f"- {e}")

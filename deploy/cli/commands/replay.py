@@ -35,7 +35,7 @@ def run(args: argparse.Namespace, console: Console) -> int:
     settings = replay_settings(config.zenoh)
     console.print(
         f"replaying {len(frames)} frames of {args.robot} on fleet {config.fleet} every "
-        f"{args.period:g} s, dialling {', '.join(settings.connect) or 'no endpoint'}"
+        f"{args.period:g} s, dialling {', '.join(settings.endpoints()[1]) or 'no endpoint'}"
     )
     report = asyncio.run(
         replay(frames, config.fleet, settings, args.period, args.wait, args.timeout)

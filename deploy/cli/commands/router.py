@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import signal
 from pathlib import Path
 from typing import Any
 
@@ -45,14 +46,26 @@ def router_settings(args: argparse.Namespace) -> ZenohSettings:
 
 
 async def serve(settings: ZenohSettings, console: Console) -> None:
+    """Until SIGINT or SIGTERM, the router's normal stop: it closes its session and says so."""
     transport = ZenohTransport(settings)
+    stopped_by: list[str] = []
+    stop = asyncio.Event()
+
+    def on_signal(sig: signal.Signals) -> None:
+        stopped_by.append(sig.name)
+        stop.set()
+
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, on_signal, sig)
     await transport.open()
-    endpoints = settings.document()["listen"]["endpoints"]
+    endpoints = settings.endpoints()[0]
     console.print(f"router up, listening on {', '.join(endpoints)} (Ctrl-C or SIGTERM stops it)")
     try:
-        await asyncio.Event().wait()
+        await stop.wait()
     finally:
         await transport.close()
+    console.print(f"router stopped ({stopped_by[0]}), its session closed")
 
 
 def run(args: argparse.Namespace, console: Console) -> int:

@@ -11,7 +11,7 @@ from rich.console import Console
 from rich.table import Table
 
 from deploy.base.errors import UsageError
-from deploy.base.output import runs_progress
+from deploy.base.output import runs_done
 from deploy.cli.args import MAX_SEED, positive_int, seed
 from deploy.cli.outputs import add_force, new_folder
 from deploy.study.archive import write_archive
@@ -75,9 +75,8 @@ def run(args: argparse.Namespace, console: Console) -> int:
         f"{args.particles} particles, {args.runs} runs (seeds {seeds[0]}..{seeds[-1]}), "
         f"{args.jobs} jobs, relations {args.relations}"
     )
-    with runs_progress(console, transient=True) as progress:
-        task = progress.add_task("runs", total=len(seeds))
-        runs = run_all(world, seeds, args.particles, args.jobs, lambda: progress.advance(task))
+    with runs_done(console, len(seeds), transient=True) as advance:
+        runs = run_all(world, seeds, args.particles, args.jobs, advance)
     archive = ufastslam_archive(world, runs, args.particles, args.relations)
     write_archive(out, archive)
     render(archive.document(), console)
