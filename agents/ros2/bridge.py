@@ -28,6 +28,7 @@ from agents.ros2.wire import (
     topic_key,
     topic_key_any_hash,
 )
+from agents.transport.base import Transport
 from estimator.models import SensorFrame
 from estimator.models.se2 import between
 from protocol.errors import LocalProtocolError, ProtocolError
@@ -39,6 +40,8 @@ log = logging.getLogger(__name__)
 MAX_PENDING = 64  # detections messages waiting for odometry
 MAX_ODOMETRY = 1024  # odometry readings held
 MAX_STAMPS = 256  # steps whose detections stamp is remembered (to stamp their estimate)
+# Where a ROS 2 node with rmw_zenoh finds its router (rmw_zenoh's default session config).
+ROS2_ROUTER = "tcp/localhost:7447"
 
 
 @dataclass(frozen=True, slots=True)
@@ -46,7 +49,9 @@ class Ros2Settings:
     """The ``[ros2]`` section of an agent config (docs/agents.md). Relative topic names resolve
     under ``namespace``; an empty ``odometry_in`` or ``detections_in`` turns frames from ROS 2
     off. ``class_names``: the M names detections use as ``class_id`` and markers show (default
-    ``"0"`` … ``"M-1"``)."""
+    ``"0"`` … ``"M-1"``). ``connect``: the robot's router (``rmw_zenohd``) that the ROS 2 side
+    dials as a Zenoh client, in a session of its own; empty: the ROS 2 side shares the agent's
+    session (a ROS graph that session reaches directly)."""
 
     namespace: str
     node: str
@@ -60,6 +65,7 @@ class Ros2Settings:
     odometry_in: str = "odom"
     detections_in: str = "detections"
     class_names: tuple[str, ...] = ()
+    connect: tuple[str, ...] = (ROS2_ROUTER,)
 
     def __post_init__(self) -> None:
         if self.distro not in DISTROS:
@@ -109,10 +115,15 @@ class _Inbound:
 
 @dataclass(frozen=True, slots=True)
 class Ros2Link:
-    """A bridge and how its samples are put on Zenoh (``publish(key, payload, attachment)``)."""
+    """A bridge, how its samples are put on Zenoh (``publish(key, payload, attachment)``) and the
+    transport its tokens and subscriptions go on; ``own_session``: that transport is the ROS 2
+    side's own (``Ros2Settings.connect``), which the runtime opens — retrying until the robot's
+    router answers — and closes, rather than the agent's."""
 
     bridge: Ros2Bridge
     publish: Callable[[str, bytes, bytes], None]
+    transport: Transport
+    own_session: bool = False
 
 
 class Ros2Bridge:

@@ -50,7 +50,8 @@ def _config(tmp: Path, port: int) -> Path:
             "gossip_period": 0.2,
         },
         "zenoh": {"listen": [loopback_endpoint(port)], "gossip": False},
-        "ros2": {"enable": True, "domain_id": DOMAIN, "distro": "jazzy"},
+        # On the agent's own session (no router): the listener below dials the agent.
+        "ros2": {"enable": True, "domain_id": DOMAIN, "distro": "jazzy", "connect": []},
     }
     path = tmp / "r1.toml"
     path.write_text(tomli_w.dumps(doc), "utf-8")

@@ -30,8 +30,8 @@ from protocol.errors import (
     UnsupportedVersion,
 )
 from protocol.estimate import (
-    EstimateLimits,
     MAX_COUNTERS,
+    EstimateLimits,
     EstimateMessage,
     decode_estimate,
     decode_estimate_head,
