@@ -11,7 +11,8 @@ from agents.transport.zenoh_transport import ZenohSettings
 from sim.loader import FieldReader
 
 _ROS2_TOPICS = (
-    "odometry_topic", "pose_topic", "markers_topic", "odometry_in", "detections_in",
+    "odometry_topic", "pose_topic", "markers_topic", "path_topic", "objects_topic", "tf_topic",
+    "odometry_in", "detections_in",
 )  # fmt: skip
 _ROS2_KEYS = {
     "enable", "domain_id", "distro", "namespace", "node", "frame_id", "child_frame_id",

@@ -7,6 +7,7 @@ import pytest
 import zenoh.ext
 
 from agents.ros2.messages import DETECTIONS, MARKERS, ODOMETRY, POSE, types_for
+from agents.ros2.outputs import TF
 from agents.ros2.wire import (
     DEFAULT_QOS,
     KEEP_ALL,
@@ -65,6 +66,11 @@ def test_ros2_jazzy_hashes_are_rihs01_of_each_type() -> None:
         assert h.startswith("RIHS01_") and len(h) == 7 + 64
         int(h[7:], 16)
     assert len(set(hashes.values())) == 4
+    # tf2_msgs/msg/TFMessage as a Jazzy /tf publisher's token carries it (a third-party
+    # rmw_zenoh client's test, from the public code index).
+    assert types.type_hash(TF) == (
+        "RIHS01_e369d0f05a23ae52508854b66f6aa0437f3449d652e8cbf22d5abe85d020f087"
+    )
     # nav_msgs/msg/Odometry as ROS 2 Jazzy computes it (its type description is unchanged).
     assert hashes[ODOMETRY] == (
         "RIHS01_3cc97dc7fb7502f8714462c526d369e35b603cfc34d946e3f2eda2766dfec6e0"

@@ -21,12 +21,14 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
 import zenoh
 
 from agents.ros2.messages import DETECTIONS, MARKERS, ODOMETRY, types_for
+from agents.ros2.outputs import OBJECTS, PATH, TF
 from agents.ros2.readings import detections_message, odometry_reading_message
 from agents.ros2.wire import DEFAULT_QOS, decode_attachment, encode_attachment, topic_key
 from agents.transport.zenoh_transport import ZenohSettings
@@ -45,6 +47,12 @@ DOMAIN = 7
 STEPS = 6
 S = 10**9
 WAIT_S = 60.0
+TOPICS = {
+    MARKERS: "/r1/semfleet/objects",
+    PATH: "/r1/semfleet/path",
+    OBJECTS: "/r1/semfleet/detections",
+    TF: "/tf",
+}
 # rmw_zenoh's DEFAULT_RMW_ZENOH_SESSION_CONFIG.json5 (ros2/rmw_zenoh, rolling): its scouting.
 RMW_ZENOH_GOSSIP = {
     "enabled": True,
@@ -116,10 +124,14 @@ def _exercise(session: zenoh.Session, tmp: Path) -> None:
         att = sample.attachment.to_bytes() if sample.attachment is not None else None
         out.put((str(sample.key_expr), sample.payload.to_bytes(), att))
 
-    _sub = session.declare_subscriber(f"{DOMAIN}/r1/semfleet/**", on_ros)
+    _subs = [
+        session.declare_subscriber(f"{DOMAIN}/r1/semfleet/**", on_ros),
+        session.declare_subscriber(f"{DOMAIN}/tf/**", on_ros),
+    ]
     tokens = _wait_for_tokens(session, tmp)
-    assert sorted(t.split("/")[5] for t in tokens) == ["MP", "MP", "MP", "MS", "MS", "NN"]
-    assert all(t.endswith("/" + DEFAULT_QOS) for t in tokens if t.split("/")[5] != "NN")
+    assert sorted(t.split("/")[5] for t in tokens) == ["MP"] * 6 + ["MS", "MS", "NN"]
+    qos = sorted(t.rsplit("/", 1)[1] for t in tokens if t.split("/")[5] != "NN")
+    assert qos == sorted([DEFAULT_QOS] * 7 + ["::,100:,:,:,,"])  # /tf: as tf2_ros declares it
 
     frames = Simulator(SCENARIO, 3).all_frames()["r1"][:STEPS]
     odom_pub = session.declare_publisher(
@@ -142,20 +154,34 @@ def _exercise(session: zenoh.Session, tmp: Path) -> None:
         dets = detections_message(types, stamp, "camera", f.detections, ("0", "1"))
         det_pub.put(dets, attachment=encode_attachment(f.k, stamp, gid))
 
-    markers_key = topic_key(DOMAIN, "/r1/semfleet/objects", MARKERS, types.type_hash(MARKERS))
+    wanted = {t: topic_key(DOMAIN, topic, t, types.type_hash(t)) for t, topic in TOPICS.items()}
+    last: dict[str, object] = {}
     deadline = time.monotonic() + WAIT_S
-    while time.monotonic() < deadline:
+    while time.monotonic() < deadline and len(last) < len(wanted):
         try:
             key, payload, att = out.get(timeout=0.5)
         except queue.Empty:
             continue
-        if key != markers_key:
-            continue
-        assert att is not None and decode_attachment(att)[0] >= 1
-        msg = types.store.deserialize_cdr(payload, MARKERS)
-        if msg.markers and msg.markers[0].header.stamp.sec == STEPS:
-            return  # the agent stepped on the ROS 2 frames and answered on ROS 2, via the router
-    raise AssertionError(f"no markers of step {STEPS}: {_logs(tmp)}")
+        assert att is not None and decode_attachment(att)[0] >= 1, key
+        for t, k in wanted.items():
+            msg = types.store.deserialize_cdr(payload, t) if key == k else None
+            if msg is not None and _stamp_of(t, msg) == STEPS:
+                last[t] = msg  # the agent stepped on the ROS 2 frames and answered, via the router
+    assert len(last) == len(wanted), f"not every topic of step {STEPS}: {_logs(tmp)}"
+    (tf,) = last[TF].transforms  # type: ignore[attr-defined]
+    assert (tf.header.frame_id, tf.child_frame_id) == ("map", "odom")  # the robot's odom frame
+    # One pose per estimate heard (a realtime agent catching up publishes fewer), in order.
+    stamps = [p.header.stamp.sec for p in last[PATH].poses]  # type: ignore[attr-defined]
+    assert stamps[-1] == STEPS and stamps == sorted(set(stamps)), stamps
+    assert len(last[OBJECTS].detections) > 0  # type: ignore[attr-defined]
+
+
+def _stamp_of(type_name: str, msg: Any) -> int:
+    if type_name == TF:
+        return int(msg.transforms[0].header.stamp.sec)
+    if type_name == MARKERS:
+        return int(msg.markers[0].header.stamp.sec) if msg.markers else -1
+    return int(msg.header.stamp.sec)
 
 
 def _wait_for_tokens(session: zenoh.Session, tmp: Path) -> list[str]:
@@ -163,7 +189,7 @@ def _wait_for_tokens(session: zenoh.Session, tmp: Path) -> list[str]:
     while time.monotonic() < deadline:
         replies = session.liveliness().get(f"@ros2_lv/{DOMAIN}/**", timeout=1.0)
         tokens = [str(r.ok.key_expr) for r in replies if r.ok is not None]
-        if len(tokens) >= 6:
+        if len(tokens) >= 9:
             return tokens
         time.sleep(0.2)
     raise AssertionError(f"no ROS 2 graph tokens through the router: {_logs(tmp)}")
