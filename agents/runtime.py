@@ -57,7 +57,7 @@ from agents.core import (
 )
 from agents.journal import Journal, MemoryLog, Record
 from agents.node import RobotNode
-from agents.transport.base import Inbox, Keys, Message, Transport
+from agents.transport.base import Inbox, Keys, Message, Transport, TransportError
 from agents.transport.subscriptions import StackSubscriptions
 
 if TYPE_CHECKING:
@@ -73,6 +73,7 @@ ORDER_KEYS = ("stop", "step", "status")  # ctl/<key>: the operator's and the con
 SHUTDOWN_STEP_WAIT_S = 1.0
 LISTEN_ECHO_S = 0.05  # after subscribing to new peers' stacks (a declaration takes ~3 ms here)
 LINKS_SAMPLE_S = 1.0  # how often the gossip timer counts the session's links (a call into Zenoh)
+ROS2_RETRY_S = 2.0  # between attempts to reach the robot's ROS 2 router
 
 
 def execute_journal_actions(log: Journal | MemoryLog, actions: Sequence[Action]) -> list[Action]:
@@ -217,9 +218,9 @@ class Agent:
         if self.ros2 is not None:
             self.ros2.bridge.next_step = self.node.k + 1  # after a replay: the journal's next step
             for expr in self.ros2.bridge.inputs:
-                t.subscribe(expr, self.ros2_in)
+                self.ros2.transport.subscribe(expr, self.ros2_in)
             for token in self.ros2.bridge.tokens():
-                t.declare_alive(token)
+                self.ros2.transport.declare_alive(token)
         try:
             await t.open()
             on_open()
@@ -229,6 +230,8 @@ class Agent:
                 asyncio.create_task(self._main()),
                 asyncio.create_task(self._watch_loop()),
             ]
+            if self.ros2 is not None and self.ros2.own_session:
+                tasks.append(asyncio.create_task(self._open_ros2(self.ros2.transport)))
             stop_wait = asyncio.create_task(self._stop.wait())
             done, _ = await asyncio.wait([stop_wait, *tasks], return_when=asyncio.FIRST_COMPLETED)
             for task in [stop_wait, *tasks]:
@@ -238,6 +241,8 @@ class Agent:
                     raise task.exception()  # type: ignore[misc]
         finally:
             try:
+                if self.ros2 is not None and self.ros2.own_session:
+                    await self.ros2.transport.close()
                 await t.close()
             finally:
                 # A step still running in the worker is waited for up to SHUTDOWN_STEP_WAIT_S,
@@ -255,6 +260,28 @@ class Agent:
                     self.log.close()
 
     # -- loops -------------------------------------------------------------------------------
+
+    async def _open_ros2(self, session: Transport) -> None:
+        """The ROS 2 side's own session (a client of the robot's router), tried every
+        ``ROS2_RETRY_S`` until the router answers, so that the agent runs whether rmw_zenohd
+        starts before it or after; once open, Zenoh itself reconnects it to a restarted router.
+        Then the task ends (the other loops go on)."""
+        tries = 0
+        while True:
+            try:
+                await session.open()
+            except TransportError as exc:
+                if tries == 0:
+                    log.warning(
+                        "%s: ROS 2 router not reachable, retrying every %.0f s: %s",
+                        self.robot, ROS2_RETRY_S, exc, extra={"event": "ros2_waiting"},
+                    )  # fmt: skip
+                tries += 1
+                await asyncio.sleep(ROS2_RETRY_S)
+            else:
+                log.info("%s: ROS 2 session open", self.robot, extra={"event": "ros2_open"})
+                await self._stop.wait()
+                return
 
     async def _gossip_timer(self) -> None:
         """On the loop, whatever the worker is doing; ticks on a fixed grid (no drift): a late

@@ -11,6 +11,7 @@ took to that one (step 1: from the first odometry pose heard, the robot's config
 from __future__ import annotations
 
 import collections
+import dataclasses
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -18,16 +19,19 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from agents.ros2 import messages as msgs
-from agents.ros2 import readings
+from agents.ros2 import outputs, readings
 from agents.ros2.wire import (
+    DEFAULT_QOS,
     DISTROS,
     GraphNode,
     encode_attachment,
     endpoint_gid,
+    qos_chunk,
     resolve_topic,
     topic_key,
     topic_key_any_hash,
 )
+from agents.transport.base import Transport
 from estimator.models import SensorFrame
 from estimator.models.se2 import between
 from protocol.errors import LocalProtocolError, ProtocolError
@@ -39,6 +43,10 @@ log = logging.getLogger(__name__)
 MAX_PENDING = 64  # detections messages waiting for odometry
 MAX_ODOMETRY = 1024  # odometry readings held
 MAX_STAMPS = 256  # steps whose detections stamp is remembered (to stamp their estimate)
+MAX_PATH = 1000  # steps of the estimated trajectory in each Path message
+TF_QOS = qos_chunk(depth=100)  # tf2_ros' TransformBroadcaster: reliable, volatile, depth 100
+# Where a ROS 2 node with rmw_zenoh finds its router (rmw_zenoh's default session config).
+ROS2_ROUTER = "tcp/localhost:7447"
 
 
 @dataclass(frozen=True, slots=True)
@@ -46,7 +54,9 @@ class Ros2Settings:
     """The ``[ros2]`` section of an agent config (docs/agents.md). Relative topic names resolve
     under ``namespace``; an empty ``odometry_in`` or ``detections_in`` turns frames from ROS 2
     off. ``class_names``: the M names detections use as ``class_id`` and markers show (default
-    ``"0"`` … ``"M-1"``)."""
+    ``"0"`` … ``"M-1"``). ``connect``: the robot's router (``rmw_zenohd``) that the ROS 2 side
+    dials as a Zenoh client, in a session of its own; empty: the ROS 2 side shares the agent's
+    session (a ROS graph that session reaches directly)."""
 
     namespace: str
     node: str
@@ -57,9 +67,13 @@ class Ros2Settings:
     odometry_topic: str = "semfleet/odometry"
     pose_topic: str = "semfleet/pose"
     markers_topic: str = "semfleet/objects"
+    path_topic: str = "semfleet/path"
+    objects_topic: str = "semfleet/detections"
+    tf_topic: str = "/tf"
     odometry_in: str = "odom"
     detections_in: str = "detections"
     class_names: tuple[str, ...] = ()
+    connect: tuple[str, ...] = (ROS2_ROUTER,)
 
     def __post_init__(self) -> None:
         if self.distro not in DISTROS:
@@ -109,10 +123,15 @@ class _Inbound:
 
 @dataclass(frozen=True, slots=True)
 class Ros2Link:
-    """A bridge and how its samples are put on Zenoh (``publish(key, payload, attachment)``)."""
+    """A bridge, how its samples are put on Zenoh (``publish(key, payload, attachment)``) and the
+    transport its tokens and subscriptions go on; ``own_session``: that transport is the ROS 2
+    side's own (``Ros2Settings.connect``), which the runtime opens — retrying until the robot's
+    router answers — and closes, rather than the agent's."""
 
     bridge: Ros2Bridge
     publish: Callable[[str, bytes, bytes], None]
+    transport: Transport
+    own_session: bool = False
 
 
 class Ros2Bridge:
@@ -132,19 +151,24 @@ class Ros2Bridge:
         self.next_step = 1
         self._inbound = _Inbound()
         self._stamps: dict[int, int] = {}
+        self._odometry_at: dict[int, readings.OdometryReading] = {}  # the pose each step took
+        self._path: dict[int, tuple[int, np.ndarray]] = {}  # step → (stamp, estimated pose)
         s = settings
         self.graph = GraphNode(s.domain_id, zid, 0, s.namespace, s.node)
         self._tokens = [self.graph.node_token()]
         self.publications: dict[str, _Publication] = {}
         eid = 1
-        for name, topic, type_name in (
-            ("odometry", s.odometry_topic, msgs.ODOMETRY),
-            ("pose", s.pose_topic, msgs.POSE),
-            ("markers", s.markers_topic, msgs.MARKERS),
+        for name, topic, type_name, qos in (
+            ("odometry", s.odometry_topic, msgs.ODOMETRY, DEFAULT_QOS),
+            ("pose", s.pose_topic, msgs.POSE, DEFAULT_QOS),
+            ("markers", s.markers_topic, msgs.MARKERS, DEFAULT_QOS),
+            ("path", s.path_topic, outputs.PATH, DEFAULT_QOS),
+            ("objects", s.objects_topic, outputs.OBJECTS, DEFAULT_QOS),
+            ("tf", s.tf_topic, outputs.TF, TF_QOS),
         ):
             full = resolve_topic(s.namespace, topic)
             th = self.types.type_hash(type_name)
-            token = self.graph.endpoint_token(eid, "MP", full, type_name, th)
+            token = self.graph.endpoint_token(eid, "MP", full, type_name, th, qos)
             key = topic_key(s.domain_id, full, type_name, th)
             self.publications[name] = _Publication(type_name, key, token, endpoint_gid(token))
             self._tokens.append(token)
@@ -166,19 +190,15 @@ class Ros2Bridge:
         return list(self._tokens)
 
     def counter_values(self) -> dict[str, int]:
-        c = self.counters
-        return {
-            "ros_samples_sent": c.samples_sent,
-            "ros_frames_built": c.frames_built,
-            "ros_malformed": c.malformed,
-            "ros_detections_dropped": c.detections_dropped,
-        }
+        return {f"ros_{name}": n for name, n in dataclasses.asdict(self.counters).items()}
 
     # -- out --------------------------------------------------------------------------------
 
     def on_estimate(self, payload: bytes, now_ns: int) -> list[Sample]:
         """The samples of an estimate's distributed belief, stamped with the detections stamp of
-        its step when that step came from ROS 2, else ``now_ns``."""
+        its step when that step came from ROS 2, else ``now_ns``. ``/tf`` (map → the robot's
+        odom frame) only for a step built from the robot's ROS 2 odometry, which owns
+        odom → base_link; the path holds the last ``MAX_PATH`` steps' estimated poses."""
         try:
             estimate = decode_estimate(payload)
         except ProtocolError as exc:  # our own bytes: a bug, not an input
@@ -186,13 +206,24 @@ class Ros2Bridge:
         snap = estimate.beliefs["distributed"]
         stamp = self._stamps.get(estimate.k, now_ns)
         s, t = self.settings, self.types
+        pose = snap.robot_pose[msgs.best_hypothesis(snap)]
+        self._path[estimate.k] = (stamp, pose)
+        while len(self._path) > MAX_PATH:
+            del self._path[min(self._path)]
+        path = [self._path[k] for k in sorted(self._path)]
         payloads = {
             "odometry": msgs.odometry_message(t, snap, stamp, s.frame_id, s.child_frame_id),
             "pose": msgs.pose_message(t, snap, stamp, s.frame_id),
             "markers": msgs.markers_message(
                 t, snap, stamp, s.frame_id, f"semfleet/{self.robot}", self.class_names
             ),
+            "path": outputs.path_message(t, path, stamp, s.frame_id),
+            "objects": outputs.objects_message(t, snap, stamp, s.frame_id, self.class_names),
         }
+        odom = self._odometry_at.get(estimate.k)
+        if odom is not None:
+            correction = outputs.map_to_odom(pose, odom.pose)
+            payloads["tf"] = outputs.tf_message(t, stamp, s.frame_id, odom.frame_id, correction)
         out = []
         for name, data in payloads.items():
             pub = self.publications[name]
@@ -256,6 +287,8 @@ class Ros2Bridge:
             self.next_step += 1
             self._stamps[k] = det.stamp_ns
             self._stamps.pop(k - MAX_STAMPS, None)
+            self._odometry_at[k] = odo
+            self._odometry_at.pop(k - MAX_STAMPS, None)
             motion = between(previous, odo.pose)
             # A robot knows no true pose: all NaN, which the frame codec sends as nil.
             frames.append(SensorFrame(self.robot, k, motion, det.detections, np.full(3, np.nan)))

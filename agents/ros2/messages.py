@@ -51,6 +51,14 @@ VISION_MSGS = {
     "vision_msgs/msg/Detection2DArray": (
         "std_msgs/Header header\nvision_msgs/Detection2D[] detections\n"
     ),
+    "vision_msgs/msg/BoundingBox3D": "geometry_msgs/Pose center\ngeometry_msgs/Vector3 size\n",
+    "vision_msgs/msg/Detection3D": (
+        "std_msgs/Header header\nvision_msgs/ObjectHypothesisWithPose[] results\n"
+        "vision_msgs/BoundingBox3D bbox\nstring id\n"
+    ),
+    "vision_msgs/msg/Detection3DArray": (
+        "std_msgs/Header header\nvision_msgs/Detection3D[] detections\n"
+    ),
 }
 _DTYPES = {
     "bool": np.bool_, "byte": np.uint8, "char": np.uint8, "int8": np.int8, "uint8": np.uint8,
@@ -165,7 +173,7 @@ def covariance_6x6(pose: Array, cov: Array) -> Array:
     return out.reshape(36)
 
 
-def _best(snapshot: BeliefSnapshot) -> int:
+def best_hypothesis(snapshot: BeliefSnapshot) -> int:
     return int(np.argmax(snapshot.weights))
 
 
@@ -174,7 +182,7 @@ def odometry_message(
 ) -> bytes:
     """The robot's pose in the most probable hypothesis, its covariance, zero twist of unknown
     (:data:`UNUSED_VARIANCE`) covariance."""
-    h = _best(snapshot)
+    h = best_hypothesis(snapshot)
     pose = snapshot.robot_pose[h]
     pwc = types.build(
         "geometry_msgs/msg/PoseWithCovariance",
@@ -195,7 +203,7 @@ def odometry_message(
 
 
 def pose_message(types: Ros2Types, snapshot: BeliefSnapshot, stamp_ns: int, frame_id: str) -> bytes:
-    h = _best(snapshot)
+    h = best_hypothesis(snapshot)
     pose = snapshot.robot_pose[h]
     pwc = types.build(
         "geometry_msgs/msg/PoseWithCovariance",
@@ -233,7 +241,7 @@ def markers_message(
     a TEXT_VIEW_FACING marker ``"<class> <p>"`` with the most likely class by the marginal over
     every hypothesis, both with the object's id in namespaces ``<namespace>/ellipse`` and
     ``<namespace>/class``."""
-    h = _best(snapshot)
+    h = best_hypothesis(snapshot)
     marginals = class_marginals(snapshot, len(class_names))
     head = header(types, stamp_ns, frame_id)
     markers = []

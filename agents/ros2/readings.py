@@ -43,15 +43,17 @@ def _planar(pose: Any, field: str) -> Array:
 
 @dataclass(frozen=True, slots=True)
 class OdometryReading:
-    """A robot's odometry pose (3,) in its odom frame at ``stamp_ns``."""
+    """A robot's odometry pose (3,) in its odom frame ``frame_id`` at ``stamp_ns``."""
 
     stamp_ns: int
     pose: Array
+    frame_id: str = "odom"
 
 
 def read_odometry(types: Ros2Types, data: bytes) -> OdometryReading:
     msg = types.deserialize(data, ODOMETRY)
-    return OdometryReading(_stamp_ns(msg.header), _planar(msg.pose.pose, "pose.pose"))
+    pose = _planar(msg.pose.pose, "pose.pose")
+    return OdometryReading(_stamp_ns(msg.header), pose, msg.header.frame_id)
 
 
 @dataclass(frozen=True, slots=True)

@@ -14,21 +14,72 @@ DISTROS = ("humble", "jazzy")
 NO_TYPE_HASH = "TypeHashNotSupported"  # Humble's type-hash chunk (no RIHS01 before Iron)
 ADMIN_SPACE = "@ros2_lv"
 GID_BYTES = 16
-# reliability RELIABLE (1), durability VOLATILE (2), history KEEP_LAST (1) with depth 10; deadline,
-# lifespan and liveliness left empty (the defaults) — every rmw_zenoh release parses this form.
-DEFAULT_QOS = "1:2:1,10:,:,:,,"
+# rmw_zenoh's default QoS (rmw_zenoh_cpp/src/detail/qos.cpp): a token leaves out every value equal
+# to it. rmw's enums: reliability RELIABLE 1, BEST_EFFORT 2; durability TRANSIENT_LOCAL 1,
+# VOLATILE 2; history KEEP_LAST 1, KEEP_ALL 2; liveliness AUTOMATIC 1, MANUAL_BY_TOPIC 3.
+RELIABLE, BEST_EFFORT = 1, 2
+TRANSIENT_LOCAL, VOLATILE = 1, 2
+KEEP_LAST, KEEP_ALL = 1, 2
+RMW_ZENOH_DEFAULT_DEPTH = 42
+MAX_TOPIC_LENGTH = 255 - 8  # RMW_TOPIC_MAX_NAME_LENGTH: DDS's limit less 8 reserved for prefixes
 _ATTACHMENT = struct.Struct("<qqB16s")  # int64, int64, then the gid as a sequence: VLE length 16
 _TYPE_NAME = re.compile(r"^([A-Za-z][A-Za-z0-9_]*)/msg/([A-Za-z][A-Za-z0-9_]*)$")
-_ROS_NAME = re.compile(r"^/?[A-Za-z_][A-Za-z0-9_]*(/[A-Za-z_][A-Za-z0-9_]*)*$")
+_NAME_CHARS = re.compile(r"^[A-Za-z0-9_/]*$")
 
 
 class AttachmentError(ValueError):
     """An attachment that is not rmw_zenoh's 33 bytes."""
 
 
+def ros_name_problem(name: str) -> str | None:
+    """Why ``name`` is not a ROS 2 topic, namespace or node name, or None if it is one. The rules
+    of ROS 2's naming design (ros2/design, "Topic and Service name mapping to DDS") that rcl and
+    rmw check, and repeated underscores, which the design forbids in a name token; ``~`` and
+    ``{}`` substitutions are not taken."""
+    if not name:
+        return "is empty"
+    if not _NAME_CHARS.match(name):
+        return "has characters other than letters, digits, '_' and '/'"
+    if "//" in name:
+        return "has repeated '/'"
+    if name.endswith("/"):
+        return "ends with '/'"
+    if "__" in name:
+        return "has repeated underscores ('__' is reserved by ROS 2)"
+    if any(token[:1].isdigit() for token in name.lstrip("/").split("/")):
+        return "has a token that starts with a digit"
+    if len(name) > MAX_TOPIC_LENGTH:
+        return f"is longer than {MAX_TOPIC_LENGTH} characters"
+    return None
+
+
 def valid_ros_name(name: str) -> bool:
-    """A ROS 2 topic, namespace or node name (no ``~``, no substitutions)."""
-    return bool(_ROS_NAME.match(name))
+    """A ROS 2 topic, namespace or node name (:func:`ros_name_problem`)."""
+    return ros_name_problem(name) is None
+
+
+def qos_chunk(
+    reliability: int = RELIABLE,
+    durability: int = VOLATILE,
+    history: int = KEEP_LAST,
+    depth: int = RMW_ZENOH_DEFAULT_DEPTH,
+) -> str:
+    """A token's QoS chunk as rmw_zenoh's ``qos_to_keyexpr`` writes it: ``reliability:durability:
+    history,depth:deadline s,ns:lifespan s,ns:liveliness,lease s,lease ns``, every value equal
+    to rmw_zenoh's default left out (deadline, lifespan and lease infinite, liveliness automatic:
+    the defaults, always left out here)."""
+
+    def chunk(value: int, default: int) -> str:
+        return "" if value == default else str(value)
+
+    return (
+        f"{chunk(reliability, RELIABLE)}:{chunk(durability, VOLATILE)}:"
+        f"{chunk(history, KEEP_LAST)},{chunk(depth, RMW_ZENOH_DEFAULT_DEPTH)}:,:,:,,"
+    )
+
+
+# rclcpp's and rclpy's default publisher and subscription QoS (a depth of 10, reliable, volatile).
+DEFAULT_QOS = qos_chunk(depth=10)
 
 
 def resolve_topic(namespace: str, topic: str) -> str:

@@ -15,9 +15,8 @@ from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey,
 from agents.core import CATCH_UP_STEPS, GOSSIP_PERIOD_S, STACK_GOSSIP, WINDOW_STEPS, CoreSettings
 from agents.node import Signing
 from agents.ros2.bridge import Ros2Settings
-from agents.ros2.messages import Ros2Unavailable, types_for
-from agents.ros2.wire import DISTROS, valid_ros_name
 from agents.transport.zenoh_transport import ZenohConfigError, ZenohSettings
+from deploy.operator.ros2_config import read_ros2
 from estimator.hybrid import CLASS_KINDS, POSE_WINDOW, BeliefConfig
 from protocol.codec import Limits
 from protocol.signing import admitted
@@ -67,14 +66,6 @@ _AGENT_KEYS = {
 _ZENOH_KEYS = {
     "listen", "connect", "gossip", "shared_memory", "lease_ms", "config_file", "insecure",
 }  # fmt: skip
-_ROS2_TOPICS = (
-    "odometry_topic", "pose_topic", "markers_topic", "odometry_in", "detections_in",
-)  # fmt: skip
-_ROS2_KEYS = {
-    "enable", "domain_id", "distro", "namespace", "node", "frame_id", "child_frame_id",
-    "class_names", *_ROS2_TOPICS,
-}  # fmt: skip
-MAX_DOMAIN_ID = 232  # the highest ROS 2 domain id
 MAX_EXTENT = 1e7  # metres: a UTM-like frame; beyond, float64 poses lose millimetres
 
 
@@ -142,50 +133,6 @@ def _read_signing(sec: FieldReader, base: Path, robot: str, roster: list[str]) -
     if keys[robot].public_bytes_raw() != key.public_key().public_bytes_raw():
         raise sec.fail("signing_key", f"not the key {roster_path} holds for {robot}")
     return Signing(key, keys)
-
-
-def _read_ros2(r: FieldReader, robot: str, num_classes: int) -> Ros2Settings | None:
-    """``[ros2]`` (docs/ros2.md): None unless ``enable = true``; the ``rosbags`` extra must then
-    be installed."""
-    r.check_keys(_ROS2_KEYS)
-    if not (r.boolean("enable") if r.has("enable") else False):
-        return None
-    distro = r.string("distro") if r.has("distro") else "jazzy"
-    if distro not in DISTROS:
-        raise r.fail("distro", f"{distro!r} (known: {', '.join(DISTROS)})")
-    names: dict[str, str] = {}
-    for name in ("namespace", "node", *_ROS2_TOPICS):
-        if r.has(name):
-            value = r.string(name)
-            empty_ok = name in ("odometry_in", "detections_in")
-            root = name == "namespace" and value == "/"
-            if not (valid_ros_name(value) or (empty_ok and value == "") or root):
-                raise r.fail(name, f"{value!r} is not a ROS 2 name")
-            names[name] = value
-    if names.get("node", "").count("/"):
-        raise r.fail("node", "a node name has no '/'")
-    classes: tuple[str, ...] = ()
-    if r.has("class_names"):
-        field = r.array("class_names")
-        classes = tuple(field.string(i) for i in range(len(field.raw)))
-        if len(classes) != num_classes or len(set(classes)) != num_classes:
-            raise r.fail(
-                "class_names", f"expected {num_classes} distinct names (the model's classes)"
-            )
-    try:
-        types_for(distro)
-    except Ros2Unavailable as exc:
-        raise r.fail("enable", str(exc)) from None
-    return Ros2Settings(
-        namespace=names.pop("namespace", f"/{robot}"),
-        node=names.pop("node", f"semfleet_{robot}"),
-        domain_id=r.integer("domain_id", 0, MAX_DOMAIN_ID) if r.has("domain_id") else 0,
-        distro=distro,
-        frame_id=r.string("frame_id") if r.has("frame_id") else "map",
-        child_frame_id=r.string("child_frame_id") if r.has("child_frame_id") else "base_link",
-        class_names=classes,
-        **names,
-    )
 
 
 def _pose_window(a: FieldReader, classes: str) -> int | None:
@@ -274,13 +221,14 @@ def _read_agent_config(path: Path, robot: str) -> AgentConfig:
         lease_ms=z.integer("lease_ms", 100, 3_600_000) if z.has("lease_ms") else None,
         config_file=base / z.string("config_file") if z.has("config_file") else None,
     )
-    _check_security(z, zenoh_settings, z.boolean("insecure") if z.has("insecure") else False)
+    insecure = z.boolean("insecure") if z.has("insecure") else False
+    _check_security(z, zenoh_settings, insecure)
     signing = None
     if top.has("security"):
         signing = _read_signing(top.table("security"), base, robot, roster)
     ros2 = None
     if top.has("ros2"):
-        ros2 = _read_ros2(top.table("ros2"), robot, model.num_classes)
+        ros2 = read_ros2(top.table("ros2"), robot, model.num_classes, insecure)
     return AgentConfig(
         ros2=ros2,
         signing=signing,

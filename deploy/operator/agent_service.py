@@ -23,7 +23,7 @@ from agents.node import RobotNode
 from agents.ros2.bridge import Ros2Bridge, Ros2Link
 from agents.runtime import Agent, new_agent
 from agents.transport.base import Keys
-from agents.transport.zenoh_transport import ZenohTransport
+from agents.transport.zenoh_transport import ZenohSettings, ZenohTransport
 from deploy.base.build import belief_model, make_node, sensor_field
 from deploy.operator.agent_config import AgentConfig
 from estimator.hybrid import BeliefConfig
@@ -97,16 +97,18 @@ def build_agent(config: AgentConfig, transport: ZenohTransport) -> Agent:
 
 
 def ros2_link(config: AgentConfig, transport: ZenohTransport) -> Ros2Link | None:
-    """The agent's ROS 2 side (docs/ros2.md) if its config has ``[ros2] enable = true``. The ROS
-    graph's session id is a fresh random one: rmw_zenoh reads it as an opaque id."""
+    """The agent's ROS 2 side (docs/ros2.md) if its config has ``[ros2] enable = true``: a Zenoh
+    session of its own, a client of the robot's router (``[ros2] connect``), which forwards for
+    its clients whatever the fleet session's gossip (a router never forwards between two of its
+    peers); with ``connect = []``, the agent's own session. The ROS graph's session id is a
+    fresh random one: rmw_zenoh reads it as an opaque id."""
     if config.ros2 is None:
         return None
     bridge = Ros2Bridge(config.ros2, config.robot, config.model.num_classes, secrets.token_hex(16))
-
-    def publish(key: str, payload: bytes, attachment: bytes) -> None:
-        transport.publish(key, payload, attachment)
-
-    return Ros2Link(bridge, publish)
+    session = transport
+    if config.ros2.connect:
+        session = ZenohTransport(ZenohSettings(connect=config.ros2.connect, mode="client"))
+    return Ros2Link(bridge, session.publish, session, own_session=session is not transport)
 
 
 class JsonLines(logging.Formatter):

@@ -11,10 +11,11 @@ import pytest
 
 from agents.ros2.bridge import Ros2Bridge, Ros2Settings
 from agents.ros2.messages import MARKERS, ODOMETRY, POSE
+from agents.ros2.outputs import OBJECTS, PATH, TF
 from agents.ros2.readings import detections_message, odometry_reading_message
-from agents.ros2.wire import dds_type_name, decode_attachment
+from agents.ros2.wire import DEFAULT_QOS, dds_type_name, decode_attachment
 from estimator.models import Detection
-from estimator.models.se2 import between
+from estimator.models.se2 import between, compose
 from estimator.snapshot import BeliefSnapshot
 from protocol.estimate import EstimateMessage, encode_estimate
 from protocol.frames import decode_frame
@@ -46,15 +47,19 @@ def test_ros2_bridge_tokens_and_inputs_follow_the_settings() -> None:
     tokens = b.tokens()
     assert tokens[0] == "@ros2_lv/0/00ff/0/0/NN/%/%r1/semfleet_r1"
     kinds = [t.split("/")[5] for t in tokens]
-    assert kinds == ["NN", "MP", "MP", "MP", "MS", "MS"]
+    assert kinds == ["NN", "MP", "MP", "MP", "MP", "MP", "MP", "MS", "MS"]
     assert [t.split("/")[9] for t in tokens[1:]] == [
         "%r1%semfleet%odometry", "%r1%semfleet%pose", "%r1%semfleet%objects",
-        "%r1%odom", "%r1%detections",
+        "%r1%semfleet%path", "%r1%semfleet%detections", "%tf", "%r1%odom", "%r1%detections",
     ]  # fmt: skip
+    # /tf as tf2_ros' broadcaster declares it (depth 100), the others as rclcpp's QoS(10).
+    assert [t.rsplit("/", 1)[1] for t in tokens[1:]] == [DEFAULT_QOS] * 5 + ["::,100:,:,:,,"] + [
+        DEFAULT_QOS
+    ] * 2
     assert b.input_type(ODOM_KEY) == ODOMETRY
     assert b.input_type("0/r1/odom/std_msgs::msg::dds_::String_/x") is None
     off = _bridge(detections_in="")
-    assert off.inputs == {} and len(off.tokens()) == 4
+    assert off.inputs == {} and len(off.tokens()) == 7
 
 
 def test_ros2_bridge_refuses_class_names_of_another_length() -> None:
@@ -93,12 +98,12 @@ def test_ros2_bridge_counts_and_drops_malformed_samples() -> None:
     assert b.counter_values()["ros_malformed"] == 2
 
 
-def _estimate(k: int) -> bytes:
+def _estimate(k: int, pose: tuple[float, float, float] = (1.0, 2.0, 0.3)) -> bytes:
     snap = BeliefSnapshot(
         object_ids=(2,),
         weights=np.array([1.0]),
         classes=np.array([[1]], dtype=np.int64),
-        robot_pose=np.array([[1.0, 2.0, 0.3]]),
+        robot_pose=np.array([pose]),
         robot_cov=np.eye(3)[None] * 0.01,
         object_pose=np.array([[[2.0, 2.0, 0.0]]]),
         object_cov=np.eye(3)[None, None] * 0.02,
@@ -111,19 +116,21 @@ def test_ros2_bridge_publishes_each_estimate_with_attachments(distro: str) -> No
     b = _bridge(distro)
     first = b.on_estimate(_estimate(0), 77)
     second = b.on_estimate(_estimate(0), 78)
-    hashes = {t: b.types.type_hash(t) for t in (ODOMETRY, POSE, MARKERS)}
+    hashes = {t: b.types.type_hash(t) for t in (ODOMETRY, POSE, MARKERS, PATH, OBJECTS)}
     assert [s.key for s in first] == [
         f"0/r1/semfleet/odometry/{dds_type_name(ODOMETRY)}/{hashes[ODOMETRY]}",
         f"0/r1/semfleet/pose/{dds_type_name(POSE)}/{hashes[POSE]}",
         f"0/r1/semfleet/objects/{dds_type_name(MARKERS)}/{hashes[MARKERS]}",
-    ]
+        f"0/r1/semfleet/path/{dds_type_name(PATH)}/{hashes[PATH]}",
+        f"0/r1/semfleet/detections/{dds_type_name(OBJECTS)}/{hashes[OBJECTS]}",
+    ]  # no /tf: these steps did not come from the robot's odometry
     gids = set()
     for s1, s2 in zip(first, second, strict=True):
         seq1, t1, gid1 = decode_attachment(s1.attachment)
         seq2, t2, gid2 = decode_attachment(s2.attachment)
         assert (seq1, seq2, t1, t2) == (1, 2, 77, 78) and gid1 == gid2
         gids.add(gid1)
-    assert len(gids) == 3  # one gid per publisher
+    assert len(gids) == 5  # one gid per publisher
     msg = b.types.store.deserialize_cdr(first[0].payload, ODOMETRY)
     assert (msg.header.stamp.sec, msg.header.stamp.nanosec) == (0, 77)
 
@@ -136,3 +143,57 @@ def test_ros2_bridge_stamps_an_estimate_with_its_steps_detections() -> None:
     (odom, *_) = b.on_estimate(_estimate(1), 99 * S)
     msg = b.types.store.deserialize_cdr(odom.payload, ODOMETRY)
     assert (msg.header.stamp.sec, msg.header.stamp.nanosec) == (10, S // 2)
+
+
+def _by_type(samples: list[Any], b: Ros2Bridge) -> dict[str, Any]:
+    types = {}
+    for t in (ODOMETRY, POSE, MARKERS, PATH, OBJECTS, TF):
+        types[dds_type_name(t)] = t
+    out = {}
+    for sample in samples:
+        t = types[sample.key.split("/")[-2]]
+        out[t] = b.types.store.deserialize_cdr(sample.payload, t)
+    return out
+
+
+def test_ros2_bridge_tf_is_the_map_to_odom_correction_of_ros2_steps() -> None:
+    b = _bridge()
+    odom_pose = np.array([0.7, -0.2, 0.4])
+    data = odometry_reading_message(b.types, 10 * S, "r1/odom", "r1/base_link", odom_pose)
+    assert b.on_input(ODOM_KEY, data) == []
+    data = odometry_reading_message(b.types, 11 * S, "r1/odom", "r1/base_link", odom_pose)
+    b.on_input(ODOM_KEY, data)
+    assert len(_dets(b, 10.5)) == 1  # step 1 takes the odometry pose stamped 10 s
+    estimated = (3.0, 1.0, 1.2)
+    msgs = _by_type(b.on_estimate(_estimate(1, estimated), 99 * S), b)
+    (tf,) = msgs[TF].transforms
+    assert (tf.header.frame_id, tf.child_frame_id) == ("map", "r1/odom")  # the robot's odom frame
+    assert (tf.header.stamp.sec, tf.header.stamp.nanosec) == (10, S // 2)
+    t, q = tf.transform.translation, tf.transform.rotation
+    correction = np.array([t.x, t.y, 2 * np.arctan2(q.z, q.w)])
+    # map → odom → base_link is where the belief has the robot (REP 105).
+    assert_close(compose(correction, odom_pose), estimated, atol=1e-12)
+    assert t.z == 0.0 and q.x == q.y == 0.0
+
+
+def test_ros2_bridge_path_holds_every_steps_estimate_once() -> None:
+    b = _bridge()
+    for k, x in ((0, 0.0), (1, 1.0), (1, 1.5), (2, 2.0)):  # step 1 re-published: replaced
+        msgs = _by_type(b.on_estimate(_estimate(k, (x, 0.0, 0.0)), (10 + k) * S), b)
+    poses = msgs[PATH].poses
+    assert [p.pose.position.x for p in poses] == [0.0, 1.5, 2.0]
+    assert [p.header.stamp.sec for p in poses] == [10, 11, 12]
+    assert msgs[PATH].header.frame_id == "map" and poses[0].header.frame_id == "map"
+
+
+def test_ros2_bridge_detections_carry_every_class_and_the_covariance() -> None:
+    b = _bridge(class_names=("chair", "table"))
+    msgs = _by_type(b.on_estimate(_estimate(0), 5), b)
+    (det,) = msgs[OBJECTS].detections
+    assert det.id == "2"
+    assert [r.hypothesis.class_id for r in det.results] == ["chair", "table"]
+    scores = [r.hypothesis.score for r in det.results]
+    assert_close(scores, [0.0, 1.0])  # the one hypothesis holds class 1
+    cov = det.results[0].pose.covariance.reshape(6, 6)
+    assert_close(cov[:2, :2], np.eye(2) * 0.02, atol=1e-15)
+    assert cov[2, 2] == 1e6 and det.bbox.center.position.x == 2.0

@@ -1,6 +1,7 @@
 """CDR round trips through rosbags, byte for byte: the belief out (Odometry,
-PoseWithCovarianceStamped, MarkerArray) and a robot's readings in (Odometry,
-Detection2DArray), per distro; malformed CDR is one Ros2MessageError, never another exception."""
+PoseWithCovarianceStamped, MarkerArray, Path, Detection3DArray, TFMessage) and a robot's
+readings in (Odometry, Detection2DArray), per distro; malformed CDR is one Ros2MessageError,
+never another exception."""
 
 from __future__ import annotations
 
@@ -23,6 +24,14 @@ from agents.ros2.messages import (
     odometry_message,
     pose_message,
     types_for,
+)
+from agents.ros2.outputs import (
+    OBJECTS,
+    PATH,
+    TF,
+    objects_message,
+    path_message,
+    tf_message,
 )
 from agents.ros2.readings import (
     detections_message,
@@ -85,6 +94,12 @@ def test_ros2_belief_messages_round_trip_byte_for_byte(distro: str) -> None:
         (ODOMETRY, odometry_message(types, snap, stamp, "map", "r1/base_link")),
         (POSE, pose_message(types, snap, stamp, "map")),
         (MARKERS, markers_message(types, snap, stamp, "map", "semfleet/r1", ("chair", "table"))),
+        (
+            PATH,
+            path_message(types, [(stamp - 10, snap.robot_pose[0]), (stamp, [1, 2, 3])], 7, "map"),
+        ),
+        (OBJECTS, objects_message(types, snap, stamp, "map", ("chair", "table"))),
+        (TF, tf_message(types, stamp, "map", "r1/odom", np.array([0.5, -1.0, 2.5]))),
     ):
         assert data[:4] == CDR_LE
         msg = types.store.deserialize_cdr(data, type_name)
@@ -206,3 +221,20 @@ def _flip(data: bytes, rng: np.random.Generator) -> bytes:
     for i in rng.integers(0, len(out), 4):
         out[i] = int(rng.integers(0, 256))
     return bytes(out)
+
+
+def test_ros2_objects_score_every_class_by_its_marginal() -> None:
+    types, snap = types_for("jazzy"), _snapshot()
+    msg = types.store.deserialize_cdr(
+        objects_message(types, snap, 3, "map", ("chair", "table")), OBJECTS
+    )
+    marginals = class_marginals(snap, 2)
+    assert [d.id for d in msg.detections] == ["4", "9"]
+    for j, det in enumerate(msg.detections):
+        assert_close([r.hypothesis.score for r in det.results], marginals[j])
+        pose = snap.object_pose[0, j]  # the most probable hypothesis
+        wanted = covariance_6x6(pose, snap.object_cov[0, j])
+        for r in det.results:
+            assert_close(r.pose.covariance, wanted)
+            assert_close([r.pose.pose.position.x, r.pose.pose.position.y], pose[:2])
+    assert_close(marginals[1], [0.75, 0.25])  # not a one-hot: the hypotheses disagree

@@ -4,8 +4,8 @@ runs), through tests/agents/ros2_reference.py. rmw_zenoh sends the same CDR byte
 its own transport is not among those wheels and is not exercised here.
 
 - ROS 2 reads each of semfleet's belief messages (Odometry, PoseWithCovarianceStamped,
-  MarkerArray) to the same fields as semfleet's own decoder, and re-serialises it to the bytes
-  semfleet sent;
+  MarkerArray, Path; tf2_msgs and vision_msgs are not among the wheels) to the same fields as
+  semfleet's own decoder, and re-serialises it to the bytes semfleet sent;
 - the type hashes semfleet puts in its keys are the ones the message packages install;
 - an Odometry built and serialised by ROS 2 is read by semfleet to the pose it holds, and is the
   bytes semfleet's own builder makes of it.
@@ -37,6 +37,7 @@ from agents.ros2.messages import (
     pose_message,
     types_for,
 )
+from agents.ros2.outputs import PATH, path_message
 from agents.ros2.readings import odometry_reading_message, read_odometry
 from tests.agents.test_ros2_messages import _snapshot
 from tests.tolerance import assert_angles_close, assert_close
@@ -105,7 +106,9 @@ def exchange() -> tuple[dict[str, bytes], dict[str, Any]]:
         ODOMETRY: odometry_message(types, snap, stamp, "map", "r1/base_link"),
         POSE: pose_message(types, snap, stamp, "map"),
         MARKERS: markers_message(types, snap, stamp, "map", "semfleet/r1", ("chair", "table")),
-    }
+        PATH: path_message(types, [(stamp - 5, snap.robot_pose[1]), (stamp, snap.robot_pose[0])],
+                           stamp, "map"),
+    }  # fmt: skip
     theta = 2.5  # beyond ±π/2: the quaternion's sign conventions matter
     request = {
         "read": [{"type": t, "hex": data.hex()} for t, data in ours.items()],

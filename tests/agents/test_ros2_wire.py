@@ -7,15 +7,20 @@ import pytest
 import zenoh.ext
 
 from agents.ros2.messages import DETECTIONS, MARKERS, ODOMETRY, POSE, types_for
+from agents.ros2.outputs import TF
 from agents.ros2.wire import (
     DEFAULT_QOS,
+    KEEP_ALL,
+    TRANSIENT_LOCAL,
     AttachmentError,
     GraphNode,
     dds_type_name,
     decode_attachment,
     encode_attachment,
     mangle,
+    qos_chunk,
     resolve_topic,
+    ros_name_problem,
     topic_key,
     topic_key_any_hash,
 )
@@ -61,6 +66,11 @@ def test_ros2_jazzy_hashes_are_rihs01_of_each_type() -> None:
         assert h.startswith("RIHS01_") and len(h) == 7 + 64
         int(h[7:], 16)
     assert len(set(hashes.values())) == 4
+    # tf2_msgs/msg/TFMessage as a Jazzy /tf publisher's token carries it (a third-party
+    # rmw_zenoh client's test, from the public code index).
+    assert types.type_hash(TF) == (
+        "RIHS01_e369d0f05a23ae52508854b66f6aa0437f3449d652e8cbf22d5abe85d020f087"
+    )
     # nav_msgs/msg/Odometry as ROS 2 Jazzy computes it (its type description is unchanged).
     assert hashes[ODOMETRY] == (
         "RIHS01_3cc97dc7fb7502f8714462c526d369e35b603cfc34d946e3f2eda2766dfec6e0"
@@ -85,6 +95,45 @@ def test_ros2_publisher_token_is_byte_for_byte_rmw_zenohs() -> None:
     h = types_for("jazzy").type_hash("std_msgs/msg/String")
     token = node.endpoint_token(11, "MP", "/chatter", "std_msgs/msg/String", h, "::,7:,:,:,,")
     assert token == TALKER_TOKEN
+
+
+# robot_state_publisher's /robot_description publisher (transient local, depth 1), as another
+# project that reads rmw_zenoh's graph records it from a live Jazzy system (a Rust token parser's
+# test, found in the public code index; type hash shortened there).
+ROBOT_DESCRIPTION_QOS = ":1:,1:,:,:,,"
+
+
+def test_ros2_qos_chunk_leaves_rmw_zenohs_defaults_out() -> None:
+    assert qos_chunk(depth=7) == TALKER_TOKEN.rsplit("/", 1)[1]
+    assert DEFAULT_QOS == "::,10:,:,:,,"  # rclcpp's QoS(10): only the depth differs from 42
+    assert qos_chunk(durability=TRANSIENT_LOCAL, depth=1) == ROBOT_DESCRIPTION_QOS
+    assert qos_chunk() == "::,:,:,:,,"  # every value rmw_zenoh's default
+    assert qos_chunk(2, 1, KEEP_ALL, 5) == "2:1:2,5:,:,:,,"
+
+
+@pytest.mark.parametrize(
+    ("name", "problem"),
+    [
+        ("/r1/semfleet__odometry", "repeated underscores"),
+        ("/r1/__objects", "repeated underscores"),
+        ("r1//odom", "repeated '/'"),
+        ("/r1/odom/", "ends with '/'"),
+        ("/r1/2d", "starts with a digit"),
+        ("3d", "starts with a digit"),
+        ("/r-1/odom", "characters other than"),
+        ("~/odom", "characters other than"),
+        ("", "is empty"),
+        ("/" + "a" * 247, "longer than 247"),
+    ],
+)
+def test_ros2_names_the_ros2_rules_forbid_are_refused(name: str, problem: str) -> None:
+    found = ros_name_problem(name)
+    assert found is not None and problem in found
+
+
+@pytest.mark.parametrize("name", ["/r1/odom", "odom", "_hidden/x", "/a" * 10, "a_b/c_d", "A9"])
+def test_ros2_names_the_ros2_rules_allow_are_taken(name: str) -> None:
+    assert ros_name_problem(name) is None
 
 
 def test_ros2_tokens_have_rmw_zenohs_13_non_empty_chunks() -> None:

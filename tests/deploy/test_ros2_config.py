@@ -41,6 +41,7 @@ def test_ros2_config_defaults(tmp_path: Path) -> None:
     assert s is not None
     assert (s.namespace, s.node, s.domain_id, s.distro) == ("/r1", "semfleet_r1", 0, "jazzy")
     assert (s.odometry_in, s.detections_in, s.class_names) == ("odom", "detections", ())
+    assert s.connect == ("tcp/localhost:7447",)  # the robot's rmw_zenohd, as rmw_zenoh's nodes
 
 
 def test_ros2_config_every_field(tmp_path: Path) -> None:
@@ -67,9 +68,52 @@ def test_ros2_config_every_field(tmp_path: Path) -> None:
         ('enable = true\nclass_names = ["only one"]\n', "ros2.class_names"),
         ('enable = true\nclass_names = ["a", "a"]\n', "ros2.class_names"),
         ("enable = true\ntopic = 1\n", "ros2"),
+        ('enable = true\nmarkers_topic = "semfleet__objects"\n', "ros2.markers_topic"),
+        ('enable = true\nnamespace = "/fleet/"\n', "ros2.namespace"),
+        ('enable = true\npose_topic = "2d/pose"\n', "ros2.pose_topic"),
+        ('enable = true\nnamespace = "/a__b"\n', "ros2.namespace"),
+        ('enable = true\nconnect = ["tcp/10.0.0.5:7447"]\n', "ros2.connect"),
+        ('enable = true\nconnect = ["localhost"]\n', "ros2.connect"),
     ],
 )
 def test_ros2_config_mistakes_name_the_field(tmp_path: Path, text: str, field: str) -> None:
     with pytest.raises(AgentConfigError) as err:
         _load(tmp_path, text)
     assert err.value.field.startswith(field), str(err.value)
+
+
+def test_ros2_config_names_the_rule_a_name_breaks(tmp_path: Path) -> None:
+    with pytest.raises(AgentConfigError, match="repeated underscores"):
+        _load(tmp_path, 'enable = true\nmarkers_topic = "semfleet__objects"\n')
+    with pytest.raises(AgentConfigError, match="longer than 247"):
+        long = "n" * 240  # a valid namespace, whose topics are too long
+        _load(tmp_path, f'enable = true\nnamespace = "/{long}"\n')
+
+
+def test_ros2_config_default_names_from_a_robot_id_ros_refuses(tmp_path: Path) -> None:
+    (tmp_path / "model.toml").write_text(
+        dump_robot_model(load_scenario("paper").robot_model()), encoding="utf-8"
+    )
+    path = tmp_path / "agent.toml"
+    path.write_text(BASE.replace('"r2"', '"r-2"') + "enable = true\n", encoding="utf-8")
+    with pytest.raises(AgentConfigError, match=r"ros2.namespace: '/r-2' \(the default"):
+        load_agent_config(path, "r-2")
+    path.write_text(
+        BASE.replace('"r2"', '"r-2"') + 'enable = true\nnamespace = "/r2"\n', encoding="utf-8"
+    )
+    with pytest.raises(AgentConfigError, match=r"ros2.node: .semfleet_r-2. \(the default"):
+        load_agent_config(path, "r-2")
+
+
+def test_ros2_config_connect_off_loopback_needs_insecure(tmp_path: Path) -> None:
+    text = 'enable = true\nconnect = ["tcp/10.0.0.5:7447"]\n'
+    (tmp_path / "model.toml").write_text(
+        dump_robot_model(load_scenario("paper").robot_model()), encoding="utf-8"
+    )
+    path = tmp_path / "agent.toml"
+    path.write_text(BASE.replace("[ros2]", "[zenoh]\ninsecure = true\n\n[ros2]") + text, "utf-8")
+    s = load_agent_config(path, "r1").ros2
+    assert s is not None and s.connect == ("tcp/10.0.0.5:7447",)
+    path.write_text(BASE + "enable = true\nconnect = []\n", "utf-8")
+    s = load_agent_config(path, "r1").ros2
+    assert s is not None and s.connect == ()  # the agent's own session

@@ -30,6 +30,7 @@ from protocol.errors import (
     UnsupportedVersion,
 )
 from protocol.estimate import (
+    MAX_COUNTERS,
     EstimateLimits,
     EstimateMessage,
     decode_estimate,
@@ -473,7 +474,7 @@ def test_estimate_too_many_beliefs_or_counters_exceed_limits() -> None:
     local = REF_DOC["beliefs"]["local"]
     beliefs = {"b" + "_" * i: local for i in range(9)}
     WIRE.assert_rejected(WIRE.with_(("beliefs",), beliefs), LimitExceeded, "beliefs")
-    counters = {"c" + "_" * i: i for i in range(65)}
+    counters = {"c" + "_" * i: i for i in range(MAX_COUNTERS + 1)}
     WIRE.assert_rejected(WIRE.with_(("counters",), counters), LimitExceeded, "counters")
     assert (
         len(decode_estimate(WIRE.with_(("beliefs",), dict(list(beliefs.items())[:8]))).beliefs) == 8
@@ -740,8 +741,8 @@ ENCODE_REJECTS = [
     ("beliefs-list", _message(beliefs=[L0]), "beliefs"),
     ("counter-name", _message(counters={"Sent": 1}), "counters"),
     (
-        "counters-65",
-        _message(counters={"c" + "_" * i: 1 for i in range(65)}),
+        "counters-129",
+        _message(counters={"c" + "_" * i: 1 for i in range(MAX_COUNTERS + 1)}),
         "counters",
     ),
     ("counter-negative", _message(counters={"sent": -1}), "counters.sent"),
