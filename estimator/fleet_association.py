@@ -33,8 +33,9 @@ without it).
 
 A mapping change is undone by the ordinary down-date: D integrates the owner's next version under
 the new mapping, which removes the old version's ξ factors (on the old ids) and replaces its log φ
-rows. :meth:`DistributedBelief.integrate` calls :meth:`FleetAssociation.associate` on every batch,
-so the in-process study and the agents share this code. Pure: no clock, no randomness.
+rows. ``DistributedBelief.integrate`` (``estimator.distributed``) calls
+:meth:`FleetAssociation.associate` on every batch, so the in-process study and the agents share
+this code. Pure: no clock, no randomness.
 
 Over 300 lines for a reason: the two sides' Gaussians and class beliefs, the gated assignment, the
 consistency check and the mapping's life are one decision per slot version over one set of
@@ -45,7 +46,7 @@ from __future__ import annotations
 
 from collections.abc import Collection, Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import gtsam
 import numpy as np
@@ -55,20 +56,31 @@ from scipy.optimize import linear_sum_assignment
 from scipy.stats import chi2
 
 from estimator.factors import object_key
+from estimator.hybrid import Hypothesis
 from estimator.logsumexp import logsumexp
 from estimator.models import se2
 from estimator.smoother import WindowedISAM2
 from estimator.sparse_xi import SparseXi
 from estimator.summary import LocalSummary, Slot
 
-if TYPE_CHECKING:
-    from estimator.distributed import DistributedBelief
-
 Array = NDArray[np.float64]
 
 FRESH_TOP = 2**32 - 1  # fresh ids count down from here: the wire's largest object id
 _BIG = 1e12  # an assignment cost that is never taken (outside the gate)
 _PSD = 1e-9  # relative eigenvalue floor of a divided-out Gaussian
+
+
+class FusedBelief(Protocol):
+    """What the matching reads of a distributed belief (``estimator.distributed``, which
+    imports this module): its objects, its class posterior and, per owner, the rows and class
+    log φ it holds of that owner's slot."""
+
+    object_ids: list[int]
+    object_phi: dict[str, tuple[NDArray[np.int64], Array]]
+
+    def map_hypothesis(self) -> Hypothesis: ...
+
+    def class_log_posterior(self) -> Array: ...
 
 
 @dataclass(frozen=True, slots=True)
@@ -158,7 +170,7 @@ def slot_objects(summary: LocalSummary, log_prior: Array) -> Objects:
     return Objects(tuple(summary.object_ids), mean, _to_world(mean, cov), log_p)
 
 
-def belief_objects(belief: DistributedBelief) -> Objects:
+def belief_objects(belief: FusedBelief) -> Objects:
     """D's side: its most probable hypothesis' object estimates, their joint marginal covariance
     (one query of the smoother) and D's class posterior."""
     cont = belief.map_hypothesis().continuous
@@ -350,7 +362,7 @@ class FleetAssociation:
             out.add("")
         return out
 
-    def associate(self, belief: DistributedBelief, slots: Sequence[Slot]) -> list[Slot]:
+    def associate(self, belief: FusedBelief, slots: Sequence[Slot]) -> list[Slot]:
         """Match every slot of a batch against ``belief`` as it is before the batch, update the
         owners' mappings and return the slots with D's ids."""
         fresh = [s for s in slots if not self._mapped(s)]
