@@ -23,6 +23,7 @@ from numpy.typing import ArrayLike
 
 from estimator.association import Association, Associator, SensorField
 from estimator.distributed import DistributedBelief, FusionStats, SlotError
+from estimator.fleet_association import FleetAssociation
 from estimator.gate import (
     GateSettings,
     Held,
@@ -90,11 +91,19 @@ def _log_fit_refused(node: RobotNode) -> None:
     )
 
 
-def _local_ids(robot: str) -> bool:
+def _local_ids(node: RobotNode) -> bool:
+    """Frames without global ids: with per-object classes D matches every peer's objects onto
+    its own (``estimator.fleet_association``); a table of joint classes cannot, and the node
+    neither fuses peers' slots nor sends its own."""
+    d = node.distributed
+    if d.per_object:
+        d.association = FleetAssociation(np.log(np.asarray(d.model.class_prior, dtype=float)))
+        return True
     log.warning(
-        "%s: frames without global ids: its objects have robot-local ids, so it neither fuses "
-        "peers' slots nor sends its own (fleet association: issue 45, item 3)",
-        robot,
+        "%s: frames without global ids and joint class tables: its objects have robot-local "
+        "ids, so it neither fuses peers' slots nor sends its own (fleet association needs "
+        "per-object classes)",
+        node.robot,
     )
     return True
 
@@ -341,14 +350,17 @@ class BeliefGate:
             belief.check(slot)
         except SlotError:
             return None  # not this gate's to judge: the model fit refuses it at the merge
-        if self._held is None and self.settings.false_alarm and len(belief.object_ids):
+        # Robot-local ids: a slot's ids are not D's, and which D object each is comes from the
+        # matching (``estimator.fleet_association``), itself gated: no test by id here.
+        by_id = belief.association is None
+        if self._held is None and self.settings.false_alarm and len(belief.object_ids) and by_id:
             self._held = held_objects(belief)
         try:
             check_summary(
                 slot.owner,
                 slot.summary,
                 slot.stamp,
-                self._held,
+                self._held if by_id else None,
                 self.geometric_info,
                 self.settings,
                 self.per_detection,
@@ -442,8 +454,8 @@ class RobotNode:
         self._fit_logged_k = -FIT_LOG_STEPS  # the step of the last "taken at L's point" line
         self._rebuild_due = False
         self._last_refusal: Exception | None = None  # why the last stack was refused whole
-        # Frames without global ids: robot-local object ids, which no peer shares (issue 45,
-        # item 3): its slot is not sent, peers' are not held (``unassociated_slots``).
+        # Frames without global ids: robot-local object ids, which no peer shares: D matches
+        # peers' objects onto its own (``_local_ids``; issue 45, item 3).
         self.local_ids = False
 
     @property
@@ -615,7 +627,7 @@ class RobotNode:
             if s.owner == self.robot:
                 self._check_own(s)
                 continue
-            if self.local_ids:
+            if self.local_ids and self.distributed.association is None:
                 self.counters.unassociated_slots += 1
                 continue
             if self.roster is not None and s.owner not in self.roster:
@@ -669,6 +681,8 @@ class RobotNode:
         if frame.robot != self.robot:
             raise ValueError(f"node {self.robot} got a frame of {frame.robot}")
         tick = clock if clock is not None else _no_clock
+        if frame.ids != GLOBAL_IDS and not self.local_ids:
+            self.local_ids = _local_ids(self)
         t0 = tick()
         fusion = (
             self.integrate_pending()
@@ -677,8 +691,6 @@ class RobotNode:
         )
         t1 = tick()
         stepped = self.track.advance(frame, clock)
-        if stepped.ids != GLOBAL_IDS and not self.local_ids:
-            self.local_ids = _local_ids(self.robot)
         t2 = tick()
         self.distributed.step([stepped], self._rng_distributed)
         if self._rebuild_due and fuse:
@@ -718,7 +730,8 @@ class RobotNode:
         # D is stepped right after (on_frame), which updates iSAM2 again: no settling here.
         stats = self.distributed.integrate(incoming, settle=False)
         self._changed()
-        if stats.empty_joins and self.distributed.fusion == "consistent":
+        d = self.distributed
+        if (stats.empty_joins and d.fusion == "consistent") or d.orphans():  # rebuilt later
             self._rebuild_due = True
         self.counters.empty_joins += stats.empty_joins
         self.counters.completed_joins += stats.completed
@@ -773,7 +786,7 @@ class RobotNode:
             summary = self.track.summary(linearisation_point(self.distributed))
             if self.local.slot_fit_refused > refused:
                 _log_fit_refused(self)
-            if summary is not None and not self.local_ids:
+            if summary is not None and not (self.local_ids and not self.distributed.association):
                 own = Slot(self.robot, self.k, summary, self.epoch)
                 self.stack = self.stack.with_slot(self._encoded_once(own))
             self._own_slot_stale = False

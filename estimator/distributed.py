@@ -23,6 +23,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from estimator.factors import object_key, object_prior, object_value
+from estimator.fleet_association import FleetAssociation
 from estimator.hybrid import (
     BeliefConfig,
     BeliefModel,
@@ -406,6 +407,9 @@ class DistributedBelief(HybridBelief):
         # version's (double counting).
         self.object_phi: dict[str, tuple[IntArray, Array]] = {}
         self._completed = 0  # rows of the join being built that were completed (_nearest)
+        # Slots of robot-local ids (frames without global ids): every batch is matched onto
+        # D's objects and integrated under D's ids (estimator.fleet_association).
+        self.association: FleetAssociation | None = None
 
     @property
     def stamps(self) -> dict[str, int]:
@@ -422,6 +426,14 @@ class DistributedBelief(HybridBelief):
         for rows, phi in self.object_phi.values():
             out[rows] += phi
         return out
+
+    def orphans(self) -> list[int]:
+        """Objects that entered from a slot under a fresh id and that no slot maps to any more
+        (a changed mapping, ``estimator.fleet_association``): D holds only their weak prior, and
+        a rebuild leaves them out. None under double counting, which keeps old ξ factors."""
+        if self.association is None or self.fusion != "consistent":
+            return []
+        return self.association.orphans(self.object_ids)
 
     def wants(self, owner: str, version: tuple[int, int]) -> bool:
         """Whether a slot version (epoch, stamp) is new to this belief (never its own slot)."""
@@ -443,6 +455,8 @@ class DistributedBelief(HybridBelief):
             self.check(s)
         if not batch:
             return FusionStats((), (), 0, len(self.hypotheses))
+        if self.association is not None:
+            batch = self.association.associate(self, batch)
         self._incoming = set(owners)
         try:
             if self.per_object:

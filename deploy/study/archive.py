@@ -31,6 +31,7 @@ from numpy.typing import NDArray
 from deploy.base.errors import UsageError
 from deploy.base.files import write_atomically, write_text_atomically
 from deploy.study.association import COUNTS as ASSOCIATION_COUNTS
+from deploy.study.association import FLEET_COUNTS, fleet_summary
 from deploy.study.association import summarise as association_summary
 from deploy.study.types import RunResult
 from estimator.metrics import CROSS_METRICS, METRICS, ece_from_stats
@@ -197,6 +198,13 @@ def method_summary(
         ms = [x for r in results for x in r.association_ms.get(method, [])]
         figures = association_summary(counts, ms)
         entry["association"] = {k: None if math.isnan(v) else v for k, v in figures.items()}
+    if all(method in r.fleet_association for r in results):
+        fleet = {
+            name: sum(r.fleet_association[method][name] for r in results) for name in FLEET_COUNTS
+        }
+        entry["fleet_association"] = {
+            k: None if math.isnan(v) else v for k, v in fleet_summary(fleet).items()
+        }
     if all(method in r.empty_joins for r in results):
         entry["empty_joins"] = int(sum(sum(r.empty_joins[method]) for r in results))
         entry["rebuilds"] = int(sum(sum(r.rebuilds[method]) for r in results))

@@ -62,6 +62,17 @@ def render_association(doc: dict[str, Any], console: Console) -> None:
             f"in the belief {a['clutter_entered']:.0f}, {fig(a['ms_mean'], '{:.1f}')} ms per frame "
             f"(p99 {fig(a['ms_p99'], '{:.1f}')})"
         )
+    for method, entry in doc["methods"].items():
+        f = entry.get("fleet_association")
+        if f is None:
+            continue
+        console.print(
+            f"fleet association ({method}, peers' objects in each D, at the end): precision "
+            f"{fig(f['precision'], '{:.4f}')}, recall {fig(f['recall'], '{:.4f}')}, wrong "
+            f"matches {f['wrong']:.0f} ({fig(f['wrong_per_1000_pairs'], '{:.3f}')} per 1,000 "
+            f"pairs), {f['matched']:.0f} matched of {f['owner_objects']:.0f}, mapping changes "
+            f"{f['changes']:.0f}"
+        )
 
 
 def render_summary(

@@ -26,7 +26,7 @@ from numpy.typing import NDArray
 
 from agents.node import LocalTrack, RobotNode
 from deploy.base.build import belief_model, belief_rng, link_model_for, make_nodes, sensor_field
-from deploy.study.association import COUNTS, AssociationTally
+from deploy.study.association import COUNTS, AssociationTally, d_truth, fleet_counts
 from deploy.study.fleet import FleetStats, StepCallback, run_fleets
 from deploy.study.types import TRACKS, RunResult, StudyError
 from estimator.association import Associator
@@ -51,11 +51,11 @@ METHODS = ("local", "distributed", "double_count", "centralized", "received")
 
 
 def without_ids_needs(ids: str) -> str:
-    """Why a study of frames without global ids runs ``local`` alone."""
+    """Why a study of frames without global ids runs no centralized belief."""
     return (
-        f"frames with {ids} ids are associated on each robot, so only the method local runs on "
-        "them: mapping one robot's objects onto another's (distributed, double_count, "
-        "centralized, received) is issue 45, item 3"
+        f"frames with {ids} ids are associated on each robot and across the fleet by each "
+        "robot's D, so local, distributed and double_count run on them: a centralized belief "
+        "(centralized, received) would need an association of its own across robots"
     )
 
 
@@ -169,8 +169,13 @@ def run_single(
     if "received" in methods and "distributed" not in methods:
         raise ValueError(RECEIVED_NEEDS)
     detector = detector or Detector()
-    if detector.ids != GLOBAL_IDS and set(methods) - {"local"}:
+    if detector.ids != GLOBAL_IDS and {"centralized", "received"} & set(methods):
         raise ValueError(without_ids_needs(detector.ids))
+    if detector.ids != GLOBAL_IDS and set(methods) - {"local"} and config.classes != "per_object":
+        raise ValueError(
+            f"frames with {detector.ids} ids: fleet association needs per-object classes "
+            "(--hypotheses per_object)"
+        )
     sim = Simulator(scenario, seed, detector=detector)
     scenario = sim.scenario  # this run's world: its classes, when they are drawn per run
     labelled = {
@@ -238,6 +243,9 @@ def run_single(
         refused={m: st.refused for m, st in fleet.items()},
         robots=tuple(robots),
         association={m: recorders[m].association_counts() for m in methods if recorders[m].tallies},
+        fleet_association={
+            m: recorders[m].fleet_counts for m in methods if recorders[m].fleet_counts
+        },
         association_ms={
             m: [x for t in recorders[m].tallies.values() for x in t.ms]
             for m in methods
@@ -286,6 +294,8 @@ def _run_shared_local(
     ]
     local = recorders.get("local")
     received_by = recorders["distributed"] if "received" in recorders else None
+    # per robot, its association's decisions against the truth (frames without global ids)
+    tallies: dict[str, AssociationTally] = local.tallies if local is not None else {}
 
     def step_locals(k: int) -> None:
         for r in robots:
@@ -293,10 +303,11 @@ def _run_shared_local(
             tracks[r].advance(frames[r][k - 1], time.perf_counter)
             ms = 1e3 * (time.perf_counter() - t)
             association = tracks[r].association
-            if local is not None and association is not None and labels is not None:
-                tally = local.tallies.setdefault(r, AssociationTally())
+            if association is not None and labels is not None:
+                tally = tallies.setdefault(r, AssociationTally())
                 tally.add(association, labels[r][k - 1], 1e3 * tracks[r].association_s)
-                local.truth_of[r] = tally.truth_of(tracks[r].belief.object_ids)
+                if local is not None:
+                    local.truth_of[r] = tally.truth_of(tracks[r].belief.object_ids)
             if local is not None:
                 local.step_ms.append(ms)
                 local.record(tracks[r].belief, index[r], r, k, ms)
@@ -305,6 +316,8 @@ def _run_shared_local(
         def on_step(robot: str, k: int, node: RobotNode, fused_ms: float, ms: float) -> None:
             rec.step_ms.append(ms)
             rec.fusion_ms.append(fused_ms)
+            if robot in tallies and rec.scores(k):
+                rec.truth_of[robot] = d_truth(node, tallies)
             rec.record(node.distributed, index[robot], robot, k, ms)
             if rec is received_by:
                 versions = {o: node.stack.version_of(o) for o in robots if o != robot}
@@ -317,8 +330,10 @@ def _run_shared_local(
     stats = run_fleets(
         fleets, frames, links, scenario.steps, callbacks, before_step=step_locals, gossip=gossip
     )
-    for m, st in zip(fleet_methods, stats, strict=True):
+    for m, st, nodes in zip(fleet_methods, stats, fleets, strict=True):
         recorders[m].fleet = st
+        if tallies:
+            recorders[m].fleet_counts = fleet_counts(nodes, tallies)
     if local is not None:
         local.confirmed = {r: list(tracks[r].belief.object_ids) for r in local.tallies}
 
@@ -440,6 +455,9 @@ class Recorder:
         self.tallies: dict[str, AssociationTally] = {}
         self.truth_of: dict[str, dict[int, int]] = {}
         self.confirmed: dict[str, list[int]] = {}
+        # a fleet of robot-local ids: its mappings against the truth at the end
+        # (``deploy.study.association.fleet_counts``)
+        self.fleet_counts: dict[str, int] = {}
 
     def association_counts(self) -> dict[str, int]:
         """The association figures (``deploy.study.association.COUNTS``) summed over robots."""

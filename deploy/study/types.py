@@ -33,7 +33,9 @@ class RunResult:
     size of every delivered stack. ``robots`` names the robot axis of every array, in order
     (empty: not recorded). ``association[method]``: for frames without global ids, the
     association's figures against the truth (``deploy.study.association.COUNTS``, summed over
-    robots) and ``association_ms[method]`` its time per frame."""
+    robots) and ``association_ms[method]`` its time per frame; ``fleet_association[method]``
+    a fleet's mappings of peers' objects against the truth
+    (``deploy.study.association.FLEET_COUNTS``)."""
 
     seed: int
     metrics: dict[str, dict[str, Array]]
@@ -49,6 +51,7 @@ class RunResult:
     robots: tuple[str, ...] = ()
     association: dict[str, dict[str, int]] = field(default_factory=dict)
     association_ms: dict[str, list[float]] = field(default_factory=dict)
+    fleet_association: dict[str, dict[str, int]] = field(default_factory=dict)
 
 
 class StudyError(RunFailure):

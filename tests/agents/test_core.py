@@ -908,8 +908,9 @@ def test_a_step_that_fails_after_another_of_the_same_batch_rolls_back_to_that_on
 
 def test_an_agent_associates_frames_without_ids_and_replays_them_to_the_same_belief() -> None:
     """Id-less frames (with clutter and misses) are associated on the robot before L and D
-    step; the journal's replay associates them again to the very same belief; a frame whose
-    id kind is malformed is counted in frames_invalid and changes nothing."""
+    step, and an id-less peer's slots are mapped onto D; the journal's replay associates and
+    maps them again to the very same belief; a frame whose id kind is malformed is counted in
+    frames_invalid and changes nothing."""
     model = belief_model(SCENARIO)
     sensor = sensor_field(SCENARIO, "r1")
 
@@ -921,10 +922,21 @@ def test_an_agent_associates_frames_without_ids_and_replays_them_to_the_same_bel
     log = MemoryLog()
     core = AgentCore(make, KEYS, CoreSettings(mode="realtime"), log.records)
     sim = Simulator(SCENARIO, SEED, detector=Detector("none", clutter=0.2, miss=0.1))
+    peer = make_node(  # an id-less peer whose stacks reach r1 (fleet association)
+        "r2",
+        SCENARIO.robot("r2").start,
+        model,
+        SEED,
+        BeliefConfig(),
+        sensor=sensor_field(SCENARIO, "r2"),
+    )
     for k in range(1, 41):
         execute_journal_actions(
             log, core.on_message(KEYS.frames("r1"), encode_frame(sim.frame("r1", k)), 0.0)
         )
+        peer.on_frame(sim.frame("r2", k))
+        if k % 5 == 0 and (stack := peer.outgoing()) is not None:
+            execute_journal_actions(log, core.on_message(KEYS.stack("r2"), stack, 0.0))
     bad = msgpack.unpackb(encode_frame(sim.frame("r1", 41)), raw=False)
     execute_journal_actions(
         log, core.on_message(KEYS.frames("r1"), msgpack.packb({**bad, "ids": "tracker"}), 0.0)
@@ -933,7 +945,11 @@ def test_an_agent_associates_frames_without_ids_and_replays_them_to_the_same_bel
     assert counters["frames_processed"] == 40 and counters["frames_invalid"] == 1
     node = core.node
     assert node.k == 40 and node.local_ids and len(node.local.object_ids) >= 3
-    assert node.distributed.object_ids == node.local.object_ids
+    fleet = node.distributed.association
+    assert fleet is not None and fleet.mapping("r2") and not node.counters.unassociated_slots
+    assert set(node.distributed.object_ids) == set(node.local.object_ids) | set(
+        fleet.mapping("r2").values()
+    )
     fresh = AgentCore(make, KEYS, core.settings, log.records)
     assert fresh.replay(log.records()) == []
     _same_belief(fresh.node, node)

@@ -821,20 +821,23 @@ def test_a_refused_large_slot_leaves_no_bytes_behind(frames: dict[str, list[Sens
     assert r2.stack.version_of("r1") == (0, 3) and r1.k == 4
 
 
-def test_a_node_with_robot_local_ids_neither_sends_nor_holds_slots(frames) -> None:  # type: ignore[no-untyped-def]
-    """Frames without global ids: the node associates them (L and D on the same local ids),
-    and until fleet association exists (issue 45, item 3) its slot, whose ids no peer shares,
-    stays home, and a peer's slot is counted and not held."""
+def test_a_node_with_robot_local_ids_and_joint_classes_neither_sends_nor_holds_slots(
+    frames,
+) -> None:  # type: ignore[no-untyped-def]
+    """Frames without global ids under a table of joint classes: the node associates them (L
+    and D on the same local ids), but fleet association needs per-object classes, so its slot,
+    whose ids no peer shares, stays home, and a peer's slot is counted and not held."""
     model = belief_model(SCENARIO)
     sensor = sensor_field(SCENARIO, "r1")
-    r1 = make_node("r1", SCENARIO.robot("r1").start, model, SEED, BeliefConfig(), sensor=sensor)
-    r2 = _node("r2")  # a peer under given ids, which sends its slot
+    joint = BeliefConfig.joint()
+    r1 = make_node("r1", SCENARIO.robot("r1").start, model, SEED, joint, sensor=sensor)
+    r2 = make_node("r2", SCENARIO.robot("r2").start, model, SEED, joint)
     id_less = Simulator(SCENARIO, SEED, detector=Detector("none")).frames("r1")
     for k in range(1, STEPS + 1):
         r1.on_frame(id_less[k - 1])
         r2.on_frame(frames["r2"][k - 1])
     assert r1.local_ids and r1.local.object_ids and r1.distributed.object_ids == r1.local.object_ids
-    assert r1.outgoing() is None
+    assert r1.distributed.association is None and r1.outgoing() is None
     peer = r2.outgoing()
     assert peer is not None
     got = r1.receive(encode(StackMessage("r2", None, decode(peer).stack, STEPS)))

@@ -484,7 +484,11 @@ def test_run_single_rejects_unknown_method() -> None:
             "--slot-lin local needs --hypotheses per_object",
         ),
         (["--slot-lin", "D"], "invalid choice: 'D'"),
-        (["--ids", "none", "--methods", "local,distributed"], "only the method local runs"),
+        (["--ids", "none", "--methods", "local,centralized"], "would need an association of its"),
+        (
+            ["--ids", "none", "--methods", "local,distributed", "--hypotheses", "marginal"],
+            "fleet association needs --hypotheses per_object",
+        ),
         (["--ids", "tracker"], "invalid choice: 'tracker'"),
         (["--clutter", "2"], "expected a number in [0, 1), got '2'"),
     ],
@@ -662,20 +666,27 @@ def test_received_is_the_centralized_belief_over_what_each_robot_was_given(
     assert err.count("\n") == 1 and "add distributed" in err, err
 
 
-def test_study_without_ids_associates_on_each_robot_and_scores_it() -> None:
-    """``--ids none``: local alone, its association scored against the truth; the map is
-    scored through each map object's true object, close to the same run with given ids."""
+def test_study_without_ids_associates_on_each_robot_and_across_the_fleet() -> None:
+    """``--ids none``: each robot's association and each D's mapping of peers' objects scored
+    against the truth; the maps scored through each map object's true object, close to the same
+    run with given ids; a centralized belief is refused in one line."""
     paper = load_scenario("paper")
-    none = run_single(paper, ["local"], 0, BeliefConfig(), detector=Detector("none"))
-    given = run_single(paper, ["local"], 0, BeliefConfig())
+    methods = ["local", "distributed"]
+    none = run_single(paper, methods, 0, BeliefConfig(), detector=Detector("none"))
+    given = run_single(paper, methods, 0, BeliefConfig())
     a = none.association["local"]
     assert a["matched"] > 150 and a["right"] >= 0.98 * a["matched"]
     assert a["right"] >= 0.95 * a["matchable"] and a["confirmed_clutter"] == 0
     assert not given.association and len(none.association_ms["local"]) == 3 * paper.steps
-    for metric in ("object_error", "robot_error"):
-        ours, theirs = (np.nanmean(r.metrics["local"][metric][:, -1]) for r in (none, given))
-        assert ours < 1.5 * theirs + 0.05, (metric, ours, theirs)
-    with pytest.raises(ValueError, match="only the method local"):
+    f = none.fleet_association["distributed"]
+    assert f["matched"] >= 30 and f["right"] == f["matched"] and f["right"] >= 0.9 * f["matchable"]
+    assert not given.fleet_association
+    for method in methods:
+        for metric in ("object_error", "robot_error"):
+            ours, theirs = (np.nanmean(r.metrics[method][metric][:, -1]) for r in (none, given))
+            assert ours < 1.5 * theirs + 0.05, (method, metric, ours, theirs)
+    with pytest.raises(ValueError, match="would need an association of its own"):
         run_single(paper, ["local", "centralized"], 0, BeliefConfig(), detector=Detector("local"))
-    doc = study_archive("paper", [none], ["local"]).document()
+    doc = study_archive("paper", [none], methods).document()
     assert doc["methods"]["local"]["association"]["precision"] >= 0.98
+    assert doc["methods"]["distributed"]["fleet_association"]["precision"] == 1.0

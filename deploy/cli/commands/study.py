@@ -139,12 +139,17 @@ def run(args: argparse.Namespace, console: Console, own: dict[str, tuple[str, An
     detector = detector_from_args(args)
     if detector.ids != GLOBAL_IDS:
         if args.methods == list(DEFAULT_METHODS):
-            args.methods = ["local"]
+            args.methods = ["local", "distributed"]
             console.print(
-                f"--ids {detector.ids}: the method local alone (no fleet association yet)"
+                f"--ids {detector.ids}: the methods local and distributed (no centralized belief "
+                "without its own association)"
             )
-        elif set(args.methods) - {"local"}:
+        elif {"centralized", "received"} & set(args.methods):
             raise UsageError(f"--ids {detector.ids}: {without_ids_needs(detector.ids)}")
+        elif set(args.methods) - {"local"} and args.hypotheses != "per_object":
+            raise UsageError(
+                f"--ids {detector.ids}: fleet association needs --hypotheses per_object"
+            )
     out = new_folder(Path(args.out), "--out", args.force)  # before any run, not after them
     where = plural(args.jobs, "job") if args.cluster is None else f"Dask cluster {args.cluster}"
     which = f"seeds {seeds[0]}..{seeds[-1]}"
