@@ -54,7 +54,12 @@ def _semfleet(args: list[str], log: Path) -> subprocess.Popen[bytes]:
     )
 
 
-def test_launch_ros2_publishes_every_agents_belief_through_the_router(tmp_path: Path) -> None:
+@pytest.mark.parametrize("secure", [False, True], ids=["plain", "secure"])
+def test_launch_ros2_publishes_every_agents_belief_through_the_router(
+    tmp_path: Path, secure: bool
+) -> None:
+    """Plain, with the bag; a throwaway secure fleet (mutual TLS among the agents, the ROS 2
+    client session beside it), without."""
     (port,) = free_ports(1)
     router_at = f"tcp/127.0.0.1:{port}"
     router = _semfleet(["router", "--listen", router_at], tmp_path / "router.log")
@@ -68,7 +73,7 @@ def test_launch_ros2_publishes_every_agents_belief_through_the_router(tmp_path: 
             [
                 "launch", "--scenario", "paper", "--steps", str(STEPS), "--out", str(out),
                 "--ros2", "--ros2-domain", str(DOMAIN), "--ros2-router", router_at,
-                "--ros2-bag", str(tmp_path / "bag"),
+                *(["--secure"] if secure else ["--ros2-bag", str(tmp_path / "bag")]),
             ],
             tmp_path / "launch.log",
         )  # fmt: skip
@@ -76,7 +81,10 @@ def test_launch_ros2_publishes_every_agents_belief_through_the_router(tmp_path: 
         printed = (tmp_path / "launch.log").read_text()
         assert rc == 0, printed[-3000:]
         _check(out, printed, samples, tokens)
-        _check_bag(tmp_path / "bag", printed, samples)
+        if not secure:
+            _check_bag(tmp_path / "bag", printed, samples)
+        else:
+            assert "secure fleet: mutual TLS" in printed and "ROS 2 bag" not in printed
     finally:
         if session is not None:
             session.close()
