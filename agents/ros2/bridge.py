@@ -35,7 +35,7 @@ from agents.transport.base import Transport
 from estimator.models import SensorFrame
 from estimator.models.se2 import between
 from protocol.errors import LocalProtocolError, ProtocolError
-from protocol.estimate import decode_estimate
+from protocol.estimate import EstimateMessage, decode_estimate
 from protocol.frames import FrameLimits, encode_frame
 
 log = logging.getLogger(__name__)
@@ -203,6 +203,10 @@ class Ros2Bridge:
             estimate = decode_estimate(payload)
         except ProtocolError as exc:  # our own bytes: a bug, not an input
             raise AssertionError(f"own estimate does not decode: {exc}") from exc
+        return self.samples_of(estimate, now_ns)
+
+    def samples_of(self, estimate: EstimateMessage, now_ns: int) -> list[Sample]:
+        """:meth:`on_estimate` of an estimate already decoded (a recording of a run)."""
         snap = estimate.beliefs["distributed"]
         stamp = self._stamps.get(estimate.k, now_ns)
         s, t = self.settings, self.types

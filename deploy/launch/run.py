@@ -109,6 +109,8 @@ class LaunchPlan:
     # "loopback": every process on 127.0.0.1, links simulated (sim/links); "netns": one network
     # namespace per agent, loss, partitions and range applied to real packets (root only).
     net: str = "loopback"
+    # Every agent config's ``[ros2]`` table (docs/ros2.md), None: ROS 2 off.
+    ros2: Mapping[str, Any] | None = None
 
     def __post_init__(self) -> None:
         # The world of the run with this seed (its classes, when they are drawn per run): what
@@ -153,6 +155,8 @@ class LaunchPlan:
                 raise PlanError("--net netns: realtime runs only (the agents obey real packets)")
             if self.conductor_only or self.zenoh_neighbours is not None:
                 raise PlanError("--net netns: not with --conductor-only or a Zenoh topology")
+            if self.ros2 is not None:  # each agent's localhost is its own namespace's
+                raise PlanError("--net netns: not with ROS 2 (no rmw_zenohd in the namespaces)")
 
     @property
     def run_steps(self) -> int:
@@ -216,19 +220,20 @@ class Launcher:
             cfg = plan.out / "agents" / f"{r}.toml"
             if self._fleet is None:
                 zenoh = self._zenoh_section(r, agent_ports, conductor_port)
-                write_agent_config(cfg, self._agent_section(r), zenoh)
+                write_agent_config(cfg, self._agent_section(r), zenoh, ros2=plan.ros2)
             elif plan.conductor_only:
                 # Everything the robot's machine needs, in its own folder, paths relative to it.
                 cfg = self._fleet[r] / "agent.toml"
                 agent = self._agent_section(r)
                 security = {"signing_key": "signing.key", "roster": "roster.toml"}
-                write_agent_config(cfg, agent, {"config_file": "zenoh.json5"}, security)
+                zenoh = {"config_file": "zenoh.json5"}
+                write_agent_config(cfg, agent, zenoh, security, plan.ros2)
             else:
                 folder = self._fleet[r].resolve()
                 security = {"signing_key": str(folder / "signing.key")}
                 security["roster"] = str(folder / "roster.toml")
                 zenoh = {"config_file": str(folder / "zenoh.json5")}
-                write_agent_config(cfg, self._agent_section(r), zenoh, security)
+                write_agent_config(cfg, self._agent_section(r), zenoh, security, plan.ros2)
             log = plan.out / "logs" / f"{r}.log"
             prefix = () if self.network is None else self.network.exec_prefix(r)
             self.supervisor.add(AgentProcess(r, cfg, log, agent_ports[r], prefix=prefix))

@@ -82,15 +82,18 @@ def write_agent_config(
     agent: Mapping[str, Any],
     zenoh: Mapping[str, Any],
     security: Mapping[str, Any] | None = None,
+    ros2: Mapping[str, Any] | None = None,
 ) -> None:
-    """An agent config file (docs/agents.md): ``[agent]``, ``[zenoh]`` and, given, ``[security]``;
-    None values left out."""
+    """An agent config file (docs/agents.md): ``[agent]``, ``[zenoh]`` and, given, ``[security]``
+    and ``[ros2]`` (docs/ros2.md); None values left out."""
     doc = {
         "agent": {k: v for k, v in agent.items() if v is not None},
         "zenoh": {k: v for k, v in zenoh.items() if v is not None},
     }
     if security is not None:
         doc["security"] = dict(security)
+    if ros2 is not None:
+        doc["ros2"] = dict(ros2)
     path.parent.mkdir(parents=True, exist_ok=True)
     # Whole or not at all: an agent started elsewhere may read it while the launch goes on.
     part = path.with_name(f".{path.name}.part")

@@ -4,6 +4,9 @@ reader, which names the file and the field."""
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+from typing import Any
+
 from agents.ros2.bridge import ROS2_ROUTER, Ros2Settings
 from agents.ros2.messages import Ros2Unavailable, types_for
 from agents.ros2.wire import DISTROS, resolve_topic, ros_name_problem
@@ -89,4 +92,27 @@ def read_ros2(r: FieldReader, robot: str, num_classes: int, insecure: bool) -> R
         problem = ros_name_problem(full) if getattr(settings, name) else None
         if problem is not None:
             raise r.fail(name, f"{full!r} is not a ROS 2 topic name: it {problem}")
+    return settings
+
+
+def simulation_table(domain_id: int, distro: str, connect: str) -> dict[str, Any]:
+    """The ``[ros2]`` table ``launch --ros2`` writes into every agent config: the belief out on
+    ``domain_id`` through the router ``connect``; frames from ROS 2 off (``odometry_in`` and
+    ``detections_in`` empty), since a simulation's frames come from its conductor."""
+    return {
+        "enable": True,
+        "domain_id": domain_id,
+        "distro": distro,
+        "connect": [connect],
+        "odometry_in": "",
+        "detections_in": "",
+    }
+
+
+def check_table(table: Mapping[str, Any], label: str, robot: str, num_classes: int) -> Ros2Settings:
+    """``table`` read as ``robot``'s agent will read it (:func:`read_ros2`, its loopback rule
+    included): a :class:`~sim.scenario.ScenarioError` naming ``label`` and the field, before any
+    agent starts."""
+    settings = read_ros2(FieldReader(label, dict(table), "ros2"), robot, num_classes, False)
+    assert settings is not None  # enable = true
     return settings

@@ -16,6 +16,7 @@ from rich.console import Console
 from rich.table import Table
 
 from deploy.cli.args import seed
+from deploy.cli.commands import ros2_options
 from deploy.cli.commands.launch import SECURE_HELP, check_outputs
 from deploy.cli.outputs import add_force
 from deploy.launch import LaunchPlan
@@ -48,9 +49,11 @@ def final_table(doc: dict[str, Any], steps: int) -> Table:
 
 def run(args: argparse.Namespace, console: Console) -> int:
     start = time.perf_counter()
-    check_outputs(args)
-    console.rule("semfleet demo")
     scenario = load_scenario("paper")
+    ros2 = ros2_options.ros2_table(args, scenario, list(scenario.robot_ids))
+    check_outputs(args)
+    bag = ros2_options.bag_settings(args, scenario, list(scenario.robot_ids), ros2)
+    console.rule("semfleet demo")
     render_show(scenario, console)
     out = Path(args.out)
     png = save_ground_truth_plot(scenario, out / "paper-ground-truth.png", [20, 40, 60])
@@ -61,15 +64,21 @@ def run(args: argparse.Namespace, console: Console) -> int:
         out,
         mode="lockstep",
         secure=args.secure,
-        keep_estimates=bool(args.view or args.record),
+        keep_estimates=bool(args.view or args.record or args.ros2_bag),
+        ros2=ros2,
     )
     console.print(
         f"launching {len(plan.robots)} agent processes (Zenoh on loopback, lock-step, seed "
         f"{plan.seed}); logs in {out / 'logs'}"
     )
     console.print(security_line(plan))
+    if ros2 is not None:
+        console.print(ros2_options.describe(ros2, plan.robots))
+    start_ns = time.time_ns()
     outcome = launch_recorded(plan, console, args, f"demo seed {plan.seed}")
     console.print(counters_table(outcome))
+    if bag is not None:
+        ros2_options.write_recording(args, bag, plan, outcome, start_ns, console)
     launched = {"mode": plan.mode, "wall_s": outcome.wall_s}
     doc = write_outputs(plan, outcome, console, {"demo": True, "launch": launched})
     console.print(final_table(doc, scenario.steps))
@@ -86,5 +95,6 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--out", default="out/demo", help="folder for outputs (default out/demo)")
     p.add_argument("--secure", action="store_true", help=SECURE_HELP)
     add_view_options(p)
+    ros2_options.add_options(p)
     add_force(p)
     p.set_defaults(run=run)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import re
+import time
 from pathlib import Path
 from typing import Any
 
@@ -16,7 +17,7 @@ from agents.core import STACK_GOSSIP
 from agents.links import Partition
 from deploy.base.errors import UsageError
 from deploy.cli.args import positive_float, positive_int, seed
-from deploy.cli.commands import conductor_only
+from deploy.cli.commands import conductor_only, ros2_options
 from deploy.cli.outputs import add_force, new_file, new_folder
 from deploy.launch import LAUNCH_METHODS, Faults, LaunchPlan
 from deploy.launch.attack_report import attack_list, run_attacks_command
@@ -98,21 +99,25 @@ def check_outputs(args: argparse.Namespace) -> None:
 
 def run_launch(args: argparse.Namespace, console: Console) -> int:
     scenario = load_scenario(args.scenario)
+    robots = _robots(scenario, args.robots)
+    ros2 = ros2_options.ros2_table(args, scenario, robots)
     plan = LaunchPlan(
         scenario,
         args.seed,
-        _robots(scenario, args.robots),
+        robots,
         Path(args.out),
         mode=args.mode,
         period=args.period,
         comm=args.comm,
         steps=_steps(scenario, args.steps),
         secure=args.secure,
-        keep_estimates=bool(args.view or args.record),
+        keep_estimates=bool(args.view or args.record or args.ros2_bag),
         stack_gossip=_stack_gossip(args),
+        ros2=ros2,
         **conductor_only.plan_fields(args),
     )
     check_outputs(args)
+    bag = ros2_options.bag_settings(args, scenario, robots, ros2)
     conductor_only.announce(plan, console)
     where = (
         "started elsewhere"
@@ -124,9 +129,14 @@ def run_launch(args: argparse.Namespace, console: Console) -> int:
         f"{plan.seed}) {where}"
     )
     console.print(security_line(plan))
+    if plan.ros2 is not None:
+        console.print(ros2_options.describe(plan.ros2, plan.robots))
+    start_ns = time.time_ns()
     outcome = launch_recorded(plan, console, args, f"launch {scenario.name} seed {plan.seed}")
     console.print(counters_table(outcome))
     console.print(f"run took {outcome.wall_s:.1f} s")
+    if bag is not None:
+        ros2_options.write_recording(args, bag, plan, outcome, start_ns, console)
     write_outputs(plan, outcome, console, {"launch": {"mode": plan.mode, "wall_s": outcome.wall_s}})
     return 0
 
@@ -244,6 +254,7 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--robots", default="all", help="'all' or comma-separated robot ids")
     p.add_argument("--out", default="out/launch", help="folder for results, logs, journals")
     conductor_only.add_options(p)
+    ros2_options.add_options(p)
     p.set_defaults(run=run_launch)
 
     c = sub.add_parser("chaos", help="a realtime launch with loss, partitions, kills and garbage")
