@@ -458,11 +458,9 @@ def test_a_frame_of_the_current_step_sent_again_is_answered_at_most_once_a_perio
     assert [t for t in times if answered(t)] == [1.0, 1.5, 2.1, 5.0]
 
 
-def test_a_lockstep_agent_asks_for_a_round_stack_that_did_not_come_and_gets_it(frames) -> None:  # type: ignore[no-untyped-def]
-    """r2's round 2 merges r1's stack of round 1, which was lost: a gossip period after the
-    order and frame are there, r2 asks r1 for it (``NeedRound`` on its own ``ctl/need`` key),
-    at most once a period; r1 sends it again at once — at most once a period however many ask,
-    and never for a request on another robot's key — and r2 steps."""
+def _round_2_waiting_for_r1(frames) -> tuple[Driver, Driver]:  # type: ignore[no-untyped-def]
+    """Lock-step r1 and r2 after step 1; r2 has the order and frame of step 2, whose round merges
+    r1's round-1 stack, which has not come."""
     roster = ["r1", "r2"]
     a = Driver("r1", mode="lockstep", roster=roster, gossip_period=0.5)
     b = Driver("r2", mode="lockstep", roster=roster, gossip_period=0.5)
@@ -473,7 +471,16 @@ def test_a_lockstep_agent_asks_for_a_round_stack_that_did_not_come_and_gets_it(f
         assert d.core.node.k == 1
     b.send(KEYS.ctl("step"), encode_control(StepOrder(2, {"r1": (), "r2": ("r1",)})))
     b.frame(frames["r2"][1])
-    assert b.core.node.k == 1  # r1's round-1 stack never came
+    assert b.core.node.k == 1
+    return a, b
+
+
+def test_a_lockstep_agent_asks_for_a_round_stack_that_did_not_come_and_gets_it(frames) -> None:  # type: ignore[no-untyped-def]
+    """r2's round 2 merges r1's stack of round 1, which was lost: a gossip period after the
+    order and frame are there, r2 asks r1 for it (``NeedRound`` on its own ``ctl/need`` key),
+    at most once a period; r1 sends it again at once — at most once a period however many ask,
+    and never for a request on another robot's key — and r2 steps."""
+    a, b = _round_2_waiting_for_r1(frames)  # r1's round-1 stack never came
 
     def asked(now: float) -> list[Publish]:
         actions = b.core.on_timer(now)
@@ -517,22 +524,7 @@ def test_a_lockstep_round_whose_senders_own_slot_is_gated_completes_without_it(f
     in answer, the round completes without r1: r2 steps, merges nothing of r1 and counts the
     refusal, as the in-process runner does. (Found on UTIAS Dataset 7: a five-robot lock-step
     launch stalled at step 32 for good.)"""
-    roster = ["r1", "r2"]
-
-    def drivers() -> tuple[Driver, Driver]:
-        a = Driver("r1", mode="lockstep", roster=roster, gossip_period=0.5)
-        b = Driver("r2", mode="lockstep", roster=roster, gossip_period=0.5)
-        for d in (a, b):
-            d.run(d.core.start(0.0))
-            d.send(KEYS.ctl("step"), encode_control(StepOrder(1, {"r1": (), "r2": ()})))
-            d.frame(frames[d.core.robot][0])
-            assert d.core.node.k == 1
-        b.send(KEYS.ctl("step"), encode_control(StepOrder(2, {"r1": (), "r2": ("r1",)})))
-        b.frame(frames["r2"][1])
-        assert b.core.node.k == 1
-        return a, b
-
-    a, b = drivers()
+    a, b = _round_2_waiting_for_r1(frames)
     forged = _own_slot_forged(a.core.node, 1e9, 1)
     for now in (1.0, 1.3, 9.0):
         b.run(b.core.on_message(KEYS.stack("r1"), forged, now))
@@ -554,7 +546,7 @@ def test_a_lockstep_round_whose_senders_own_slot_is_gated_completes_without_it(f
     assert b.core.node.stack.version_of("r1") is None
     assert b.core.counter_values()["slots_rejected"] == 1  # counted by the merge that refused it
     # The honest copy wins over the forged ones that came first, however many.
-    a, b = drivers()
+    a, b = _round_2_waiting_for_r1(frames)
     honest = [p.payload for p in a.published if p.key == KEYS.stack("r1")][-1]
     assert decode(honest).step == 1
     for i, info in enumerate((1e9, 1e8, 1e7, 1e6)):  # more distinct forgeries than are kept
