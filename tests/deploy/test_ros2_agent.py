@@ -23,6 +23,7 @@ from agents.ros2.readings import detections_message, odometry_reading_message
 from agents.ros2.wire import decode_attachment, encode_attachment, topic_key
 from agents.transport.zenoh_transport import ZenohSettings, loopback_endpoint
 from deploy.launch import free_ports
+from estimator.models import SensorFrame
 from estimator.models.se2 import compose
 from protocol.estimate import EstimateMessage, decode_estimate
 from sim.loader import load_scenario
@@ -107,18 +108,7 @@ def _run(session: zenoh.Session, tmp: Path) -> None:
     odom_pub = session.declare_publisher(odom_key)
     det_pub = session.declare_publisher(det_key)
     gid = bytes(16)
-    pose = np.asarray(SCENARIO.robot("r1").start, dtype=float)
-    odom_pub.put(
-        odometry_reading_message(types, 0, "odom", "base_link", pose),
-        attachment=encode_attachment(1, 0, gid),
-    )
-    for f in frames:
-        pose = compose(pose, f.odometry)
-        stamp = f.k * S
-        odom = odometry_reading_message(types, stamp, "odom", "base_link", pose)
-        odom_pub.put(odom, attachment=encode_attachment(f.k + 1, stamp, gid))
-        dets = detections_message(types, stamp, "camera", f.detections, ("0", "1"))
-        det_pub.put(dets, attachment=encode_attachment(f.k, stamp, gid))
+    feed_ros2(types, odom_pub, det_pub, SCENARIO.robot("r1").start, frames, gid)
 
     last = _wait_for_step(estimates, STEPS, tmp)
     assert last.counters["ros_frames_built"] == STEPS
@@ -152,6 +142,26 @@ def _run(session: zenoh.Session, tmp: Path) -> None:
     texts = [m.text for m in markers if m.type == 9]
     assert len(texts) == len(snap.object_ids) > 0
     assert all(t.split()[0] in ("0", "1") for t in texts)
+
+
+def feed_ros2(  # type: ignore[no-untyped-def]
+    types: Ros2Types, odom_pub, det_pub, start, frames: list[SensorFrame], gid: bytes
+) -> None:
+    """Publish what a ROS 2 robot would: its odometry (integrated from ``start``, one reading
+    ahead of each frame's detections) and each frame's detections, stamped k s, with rmw_zenoh's
+    attachments."""
+    pose = np.asarray(start, dtype=float)
+    odom_pub.put(
+        odometry_reading_message(types, 0, "odom", "base_link", pose),
+        attachment=encode_attachment(1, 0, gid),
+    )
+    for f in frames:
+        pose = compose(pose, f.odometry)
+        stamp = f.k * S
+        odom = odometry_reading_message(types, stamp, "odom", "base_link", pose)
+        odom_pub.put(odom, attachment=encode_attachment(f.k + 1, stamp, gid))
+        dets = detections_message(types, stamp, "camera", f.detections, ("0", "1"))
+        det_pub.put(dets, attachment=encode_attachment(f.k, stamp, gid))
 
 
 def _collect(

@@ -23,21 +23,19 @@ import time
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import pytest
 import zenoh
 
 from agents.ros2.messages import DETECTIONS, MARKERS, ODOMETRY, types_for
 from agents.ros2.outputs import OBJECTS, PATH, TF
-from agents.ros2.readings import detections_message, odometry_reading_message
-from agents.ros2.wire import DEFAULT_QOS, decode_attachment, encode_attachment, topic_key
+from agents.ros2.wire import DEFAULT_QOS, decode_attachment, topic_key
 from agents.transport.zenoh_transport import ZenohSettings
 from deploy.cli.commands.scenario import model_text
 from deploy.launch import free_ports
 from deploy.operator.fleet_init import init_fleet, loopback_spec
-from estimator.models.se2 import compose
 from sim.loader import load_scenario
 from sim.sensors import Simulator
+from tests.deploy.test_ros2_agent import feed_ros2
 
 pytestmark = pytest.mark.slow
 
@@ -141,18 +139,7 @@ def _exercise(session: zenoh.Session, tmp: Path) -> None:
         topic_key(DOMAIN, "/r1/detections", DETECTIONS, types.type_hash(DETECTIONS))
     )
     gid = bytes(range(16))
-    pose = np.asarray(SCENARIO.robot("r1").start, dtype=float)
-    odom_pub.put(
-        odometry_reading_message(types, 0, "odom", "base_link", pose),
-        attachment=encode_attachment(1, 0, gid),
-    )
-    for f in frames:
-        pose = compose(pose, f.odometry)
-        stamp = f.k * S
-        odom = odometry_reading_message(types, stamp, "odom", "base_link", pose)
-        odom_pub.put(odom, attachment=encode_attachment(f.k + 1, stamp, gid))
-        dets = detections_message(types, stamp, "camera", f.detections, ("0", "1"))
-        det_pub.put(dets, attachment=encode_attachment(f.k, stamp, gid))
+    feed_ros2(types, odom_pub, det_pub, SCENARIO.robot("r1").start, frames, gid)
 
     wanted = {t: topic_key(DOMAIN, topic, t, types.type_hash(t)) for t, topic in TOPICS.items()}
     last: dict[str, object] = {}
