@@ -68,7 +68,7 @@ from agents.control import (
     encode_control,
     fits_key,
 )
-from agents.gossip import DeltaGossip, Outgoing
+from agents.gossip import RELAYS, DeltaGossip, Outgoing
 from agents.journal import Record
 from agents.node import Received, RobotNode, admits_round, refuse_round
 from agents.recovery import FRAME, FRAME_UNFUSED, Ledger, Replayed, apply, restore
@@ -118,6 +118,9 @@ class CoreSettings:
     # each owner it does not hear, each with the relay's next gossip tick; "full": every held
     # slot, every time (docs/wire.md, "Delta gossip" and "Asks").
     stack_gossip: str = "ask"
+    # When a slot a peer asked for goes: "event" (the default), on arrival, at most one stack a
+    # push window; "tick", with the next gossip tick (before issue 47; agents.gossip).
+    relay: str = "event"
     catch_up: int = CATCH_UP_STEPS
     # A simulated real time agent subscribes to the stacks of the peers in range only, from the
     # links the simulator sends a step ahead (``sim/listen``; docs/agents.md): the stacks of the
@@ -130,6 +133,8 @@ class CoreSettings:
         if self.stack_gossip not in STACK_GOSSIP:
             known = ", ".join(STACK_GOSSIP)
             raise ValueError(f"stack gossip {self.stack_gossip!r} (known: {known})")
+        if self.relay not in RELAYS:
+            raise ValueError(f"relay {self.relay!r} (known: {', '.join(RELAYS)})")
         if not (self.gossip_period > 0 and self.retry_period > 0):
             raise ValueError("gossip and retry periods must be positive")
         if self.window < 1 or self.max_control_bytes < 64:
@@ -204,7 +209,15 @@ class Hear:
     keys: frozenset[str] | None
 
 
-Action = Publish | Append | Commit | Quarantine | CutJournal | Halt | Listen | Hear
+@dataclass(frozen=True, slots=True)
+class Flush:
+    """Call :meth:`AgentCore.on_flush` at ``at`` (the core's clock): event-driven relay held a
+    stack back for the push window (``agents.gossip.PUSH_WINDOW_S``)."""
+
+    at: float
+
+
+Action = Publish | Append | Commit | Quarantine | CutJournal | Halt | Listen | Hear | Flush
 
 
 @dataclass(slots=True)
@@ -272,7 +285,7 @@ class AgentCore:
         self._step_us = (0, 0)
         self._out = Outgoing()
         self._now = 0.0
-        self.tick_bytes = 0  # bytes of stacks and digests the timer sent (timer thread only)
+        self.tick_bytes = 0  # bytes of stacks and digests the timer or a flush sent (loop only)
 
     # -- lifecycle ---------------------------------------------------------------------------
 
@@ -352,7 +365,17 @@ class AgentCore:
         if data is not None:
             self.node.mark_sent(len(data))
             actions.append(Publish(self.keys.stack(self.robot), data))
+        elif self._out.flush_at < math.inf:
+            actions.append(Flush(self._out.flush_at))
         return actions
+
+    def on_flush(self, now: float) -> list[Action]:
+        """Event-driven relay, on the shell's loop at a :class:`Flush`: the stack held back."""
+        data = self.gossip.flush(self._out, now)
+        if data is None:
+            return []
+        self.tick_bytes += len(data)
+        return [Publish(self.keys.stack(self.robot), data)]
 
     def on_timer(self, now: float, announce: bool = False) -> list[Action]:
         """The gossip tick: re-send the stack (and, in lock-step, the previous round's, which a
@@ -616,7 +639,7 @@ class AgentCore:
     def _refresh(self) -> None:
         """Publish, whole, what the timer may read."""
         # Always, even empty: a lock-step peer ordered to hear us at round 1 needs our round 0.
-        data, digest, fresh = self._stack_payload()
+        data, digest, fresh = _stack_payload(self)
         old, k = self._out, self.node.k
         rounds = None if self.rounds is None else self.rounds.round_missing(k + 1, self._hears)
         sent_at = old.digest_sent_at if digest == old.digest else -math.inf
@@ -625,22 +648,6 @@ class AgentCore:
         self._out = Outgoing(
             data, old.previous, missing, digest, fresh, k, rounds, pull_at, sent_at
         )
-
-    def _stack_payload(self) -> tuple[bytes, bytes | None, bool]:
-        """The stack to gossip now, its digest alone (delta gossip in real time) and whether the
-        stack holds a slot not sent before: every held slot (``stack_gossip = "full"``), else
-        those :meth:`DeltaGossip.select` picks, with the asks in force (real time)."""
-        node = self.node
-        if self.settings.stack_gossip == "full":
-            return node.encoded_stack(), None, True
-        held = node.current_stack().versions()
-        unsent = self._out.fresh and self.gossip.tick_last is not self._out.stack
-        include = self.gossip.select(held, self._now, unsent)
-        if self.rounds is not None:
-            return node.encoded_delta(include), None, bool(include)
-        asks = self.gossip.current_asks(held, self._now)
-        data = node.encoded_delta(include, asks)
-        return data, node.encoded_delta((), asks), bool(include)
 
     def _need(self, k: int, now: float, force: bool = False) -> list[Action]:
         if not force and now - self._last_need < self.settings.retry_period:
@@ -651,7 +658,7 @@ class AgentCore:
         return [Publish(self.keys.ctl("need", self.robot), payload)]
 
     def _publish_stack(self, previous: bytes | None = None) -> list[Action]:
-        data, digest, _ = self._stack_payload()
+        data, digest, _ = _stack_payload(self)
         pull_at, need, k = (
             self.gossip.pull_at(self.node.stack.versions()),
             self._out.need_from,
@@ -713,6 +720,7 @@ def _counter_values(core: AgentCore) -> dict[str, int]:
         "digests_skipped": g.digests_skipped,
         "relays_asked": g.relays_asked,
         "asks_answered": g.asks_answered,
+        "relay_pushes": g.pushes,
         "bytes_received": c.bytes_received,
         "frames_processed": a.frames_processed,
         "fusions_deferred": a.fusions_deferred,
@@ -757,11 +765,29 @@ def _policies(
     )
     peers = 0 if roster is None else len(roster) - 1
     lockstep = s.mode == "lockstep"
-    gossip = DeltaGossip(robot, period, lockstep, s.stack_gossip == "ask", roster, max_slots)
+    asks = s.stack_gossip == "ask"
+    gossip = DeltaGossip(robot, period, lockstep, asks, roster, max_slots, s.relay)
     max_peers = len(roster) if roster is not None else max_slots
     rounds = Rounds(robot, period, s.window, peers, max_peers) if lockstep else None
     radio = SimRadio(robot, s.window, s.max_control_bytes) if s.simulation else None
     return gossip, Answers(robot, period, peers), rounds, radio
+
+
+def _stack_payload(core: AgentCore) -> tuple[bytes, bytes | None, bool]:
+    """The stack to gossip now, its digest alone (delta gossip in real time) and whether the
+    stack holds a slot not sent before: every held slot (``stack_gossip = "full"``), else
+    those :meth:`DeltaGossip.select` picks, with the asks in force (real time)."""
+    node = core.node
+    if core.settings.stack_gossip == "full":
+        return node.encoded_stack(), None, True
+    held = node.current_stack().versions()
+    unsent = core._out.fresh and core.gossip.tick_last is not core._out.stack
+    include = core.gossip.select(held, core._now, unsent)
+    if core.rounds is not None:
+        return node.encoded_delta(include), None, bool(include)
+    asks = core.gossip.current_asks(held, core._now)
+    data = node.encoded_delta(include, asks)
+    return data, node.encoded_delta((), asks), bool(include)
 
 
 def _estimate(core: AgentCore) -> bytes:

@@ -6,7 +6,8 @@ real time run ``stack/<peer>`` of the peers in range), run control (``ctl/stop``
 simulation, the simulator's links (``sim/links``) — into bounded inboxes, holds a liveliness
 token (``alive/<robot>``), and carries out the core's actions: publish, journal (append, commit,
 quarantine, cut), listen (whose stacks to subscribe to: the core's first ``Listen``), hear
-(whose stacks wake the loop: the others wait in the inbox for the next batch), halt.
+(whose stacks wake the loop: the others wait in the inbox for the next batch), flush (send the
+stack event-driven relay held back, when its push window ends), halt.
 
 The estimator never runs on the event loop. Every message goes to the core in one worker thread
 (decoding, merging and stepping take as long as they take there), while the loop goes on with the
@@ -49,6 +50,7 @@ from agents.core import (
     CoreCounters,
     CoreSettings,
     CutJournal,
+    Flush,
     Halt,
     Hear,
     Listen,
@@ -360,6 +362,9 @@ class Agent:
                 self.stop(a.reason)
             elif isinstance(a, Hear):
                 self.stacks.wake_for(a.keys)
+            elif isinstance(a, Flush):
+                delay = max(0.0, a.at - self.clock())
+                asyncio.get_running_loop().call_later(delay, self._flush)
             elif isinstance(a, Listen) and self.stack_subscriptions.follow(a.peers):
                 # What a new peer published while the subscription was being declared is lost:
                 # gossip once more when the declaration is through, so that it learns now what
@@ -367,6 +372,10 @@ class Agent:
                 asyncio.get_running_loop().call_later(LISTEN_ECHO_S, self._echo)
             else:
                 execute_journal_actions(self.log, [a])
+
+    def _flush(self) -> None:
+        if not self._stop.is_set():
+            self._carry_out(self.core.on_flush(self.clock()))
 
     def _echo(self) -> None:
         if not self._stop.is_set():

@@ -8,14 +8,15 @@ one 2-core machine runs in realtime mode, with CPU and memory per agent.
   slot of the stack is a version the receiver lacks, so each is decoded and validated once, as a
   relay's peer must). A fifth row times the floor of any validating receiver: the decode on
   Zenoh's own thread, before any hand-off.
-- Relay per hop: 4 agent processes on a line whose Zenoh links only join neighbours (gossip
-  scouting off), realtime; the time from a new version of r1's slot in r1's stack to the same
-  version in r4's stack, over 3 hops; with delta gossip against full gossip, in the same run. With
-  full gossip a hop costs on average half a gossip period plus the transit; delta gossip first
-  gives a peer a period to get the version from its owner (docs/wire.md, "Delta gossip"), unless
-  the peer asked for it (the default, ``stack_gossip = "ask"``): a robot asks a neighbour to push
-  the slots of the robots it does not hear, and the neighbour sends each new version with its
-  next tick (docs/wire.md, "Asks").
+- Relay per hop (issue 47): 8 agent processes on a line whose Zenoh links only join neighbours
+  (gossip scouting off), realtime; every hop a slot version crossed: the time from one robot's
+  first stack carrying it to its neighbour's (away from the owner), as the conductor got both
+  stacks. Event-driven relay (``relay = "event"``, the default: a robot pushes a slot a
+  neighbour asked for as soon as it merged it, at most one stack a push window) against the tick
+  relay (``"tick"``: with the next gossip tick, half a period a hop on average) and full gossip,
+  each launch in turn in the same run, with the bytes each agent sent. Targets: p50 ≤ 10 ms, p99
+  ≤ 30 ms, bytes ≤ 1.2× the tick relay's. The row of before, r1's versions held by r4 of a
+  4-robot line (by r4's digest, which goes with its next tick or stack), stays with them.
 - Capacity: bench/bench_capacity.py.
 """
 
@@ -26,11 +27,15 @@ import os
 import statistics
 import tempfile
 import time
+from collections.abc import Mapping, Sequence
 from pathlib import Path
+
+import numpy as np
 
 from bench import Result
 from bench.gossip_paths import gossip_rows
 from deploy.launch import Launcher, LaunchOutcome, LaunchPlan
+from deploy.launch.conductor import Collected
 from sim.generate import line_world
 from sim.loader import parse_scenario
 
@@ -73,38 +78,134 @@ def _proc_usage(pid: int) -> tuple[float, float]:
     return cpu, rss_pages * os.sysconf("SC_PAGE_SIZE") / 1e6
 
 
+CHAIN = 8  # robots on the line of the relay rows (issue 47: the 8-robot chain)
+RELAY_STEPS = 24
+# Issue 47's targets for a relayed version on loopback, per hop, and for the bytes it may cost.
+HOP_P50_MS, HOP_P99_MS, BYTES_RATIO = 10.0, 30.0, 1.2
+
+
 def _relay_rows(tmp: Path) -> list[Result]:
-    """Relay per hop with the default (delta gossip with asks) and with ``"delta"`` (no asks),
-    against full gossip, the same line run with each in turn."""
-    full = _relay_per_hop(tmp, "full")
-    delta = _relay_per_hop(tmp, "delta")
-    ask = _relay_per_hop(tmp, "ask")
-    if not full or not delta or not ask:
-        _notes.append("relay: r4 never held a version of r1's slot (no figure)")
+    """Relay per hop on an 8-robot line, event-driven (the default) against the tick relay
+    (before issue 47) and against full gossip, each launch in turn in the same run; the figure
+    of the older 4-robot row (a version of r1 held by r4, by r4's digest) with them."""
+    hops, meet, sent = {}, {}, {}
+    for relay, gossip in (("event", "ask"), ("tick", "ask"), ("tick", "full")):
+        hops[relay, gossip], meet[relay, gossip], sent[relay, gossip] = _relay_hops(
+            tmp, relay, gossip
+        )
+    event, tick, full = hops["event", "ask"], hops["tick", "ask"], hops["tick", "full"]
+    if not event or not tick or not full:
+        _notes.append("relay: no version crossed a hop of the line (no figure)")
         return []
-    return [
+    p50, p99 = float(np.percentile(event, 50)), float(np.percentile(event, 99))
+    ratio = sent["event", "ask"] / max(sent["tick", "ask"], 1e-9)
+    met = p50 <= HOP_P50_MS and p99 <= HOP_P99_MS and ratio <= BYTES_RATIO
+    base = f"{CHAIN} agents on a line, {RELAY_STEPS} steps at {PERIOD_S:g} s, gossip every "
+    base += f"{GOSSIP_S * 1e3:.0f} ms"
+    four = _relay_per_hop(tmp, "ask")
+    rows = [
         Result(
-            "relay latency per hop (4 agents on a line)",
-            len(ask),
-            statistics.median(ask),
-            baseline_ms=statistics.median(full),
-            note=f"median over {len(ask)} versions of r1's slot reaching r4 over 3 hops, the "
-            f"default (each robot asks a neighbour to push it the slots of the robots it does not "
-            f"hear, and the neighbour sends each new version with its next tick); gossip period "
-            f"{GOSSIP_S * 1e3:.0f} ms; baseline = full gossip, the same launch ({len(full)} "
-            f"versions): every tick re-sends every slot, so a hop waits for the next tick "
-            f'(≈ {GOSSIP_S * 500:.0f} ms + transit) (docs/wire.md, "Asks")',
+            f"relay per hop, event-driven ({CHAIN} agents on a line)",
+            len(event),
+            p50,
+            baseline_ms=float(np.percentile(tick, 50)),
+            note=f"p50 {p50:.1f} / p99 {p99:.1f} / max {max(event):.1f} ms over {len(event)} "
+            f"hops (a version forwarded by one robot, then by the next: both stacks as the "
+            f"conductor got them) of the versions after the first, {base}; the first versions "
+            f"(the robots meet: asks wait for digests) p50 {_pct(meet['event', 'ask'], 50)} / "
+            f"max {_pct(meet['event', 'ask'], 100)} ms; baseline = the tick relay "
+            f'(relay = "tick"), same '
+            f"run: p50 {np.percentile(tick, 50):.1f} / p99 {np.percentile(tick, 99):.1f} ms; "
+            f"bytes per agent per step {sent['event', 'ask']:.2f} kB vs {sent['tick', 'ask']:.2f} "
+            f"kB ({ratio:.2f}×); targets p50 ≤ {HOP_P50_MS:g} ms, p99 ≤ {HOP_P99_MS:g} ms, bytes "
+            f"≤ {BYTES_RATIO:g}×: {'met' if met else 'NOT met'}",
         ),
         Result(
-            'relay latency per hop, stack_gossip = "delta" (4 agents on a line)',
-            len(delta),
-            statistics.median(delta),
-            baseline_ms=statistics.median(full),
-            note=f"median over {len(delta)} versions, as above, without asks: a version goes to a "
-            f"peer whose digest lacks it once that peer could have had it from its owner, a "
-            f'gossip period after it came (docs/wire.md, "Delta gossip")',
+            f"relay per hop, full gossip ({CHAIN} agents on a line)",
+            len(full),
+            float(np.percentile(full, 50)),
+            baseline_ms=float(np.percentile(tick, 50)),
+            note=f"p50 / p99 {np.percentile(full, 50):.1f} / {np.percentile(full, 99):.1f} ms, "
+            f"{sent['tick', 'full']:.2f} kB per agent per step: every tick re-sends every slot "
+            f"(≈ half a period a hop); baseline the tick relay with asks, same run",
         ),
     ]
+    if four:
+        rows.append(
+            Result(
+                "relay latency per hop (4 agents on a line, held by r4's digest)",
+                len(four),
+                statistics.median(four),
+                note=f"median over {len(four)} versions of r1's slot reaching r4 over 3 hops, "
+                "by the first digest of r4 that holds it (the row before issue 47): r4 has no "
+                "one to forward to, so its digest goes with its next tick or stack",
+            )
+        )
+    return rows
+
+
+def _relay_hops(tmp: Path, relay: str, gossip: str) -> tuple[list[float], list[float], float]:
+    """Every hop (ms) a version crossed on an 8-robot line whose Zenoh links join neighbours
+    only — the time from one robot's first stack carrying the version to its neighbour's (away
+    from the owner) — of the versions after the first, and of the first alone (the robots meet:
+    a robot asks its neighbour to push an owner only once the neighbour's digest showed that
+    owner, so the first versions wait for digests), and the kB each agent sent per step, with
+    ``relay`` and ``gossip``."""
+    robots = [f"r{i}" for i in range(1, CHAIN + 1)]
+    text = line_world(CHAIN, steps=RELAY_STEPS)
+    path = tmp / f"chain{CHAIN}.toml"
+    path.write_text(text, encoding="utf-8")
+    s = parse_scenario(text, str(path))
+    neighbours = {
+        r: [robots[j] for j in (i - 1, i + 1) if 0 <= j < len(robots)] for i, r in enumerate(robots)
+    }
+    plan = LaunchPlan(
+        s, 0, robots, tmp / f"hops-{relay}-{gossip}", mode="realtime", period=PERIOD_S,
+        gossip_period=GOSSIP_S, fleet="hops", zenoh_neighbours=neighbours, observe_stacks=True,
+        publish_local=False, stack_gossip=gossip, relay=relay,
+    )  # fmt: skip
+    outcome, _ = _run_launch(plan)
+    collected = outcome.collected
+    hops = forward_hops(collected.slot_log, robots)
+    later, first = [ms for k, ms in hops if k > 1], [ms for k, ms in hops if k <= 1]
+    return later, first, sent_kb(collected, len(robots), RELAY_STEPS)
+
+
+def forward_hops(
+    slot_log: Sequence[tuple[float, str, Mapping[str, int]]], line: Sequence[str]
+) -> list[tuple[int, float]]:
+    """The hops versions crossed on ``line``, as (the version's stamp, ms): for every version
+    and every two neighbours on its way from its owner, the time from the first stack of the
+    nearer one that carries it to the first of the farther one (each robot's first forwarding;
+    a robot that never forwarded it gives no hop)."""
+    first: dict[tuple[str, int], dict[str, float]] = {}
+    for t, robot, stamps in slot_log:
+        for owner, stamp in stamps.items():
+            seen = first.setdefault((owner, stamp), {})
+            seen[robot] = min(t, seen.get(robot, t))
+    index = {r: i for i, r in enumerate(line)}
+    hops = []
+    for (owner, stamp), seen in first.items():
+        o = index[owner]
+        for direction in (-1, 1):
+            i = o
+            while 0 <= i + direction < len(line):
+                near, far = line[i], line[i + direction]
+                if near in seen and far in seen and seen[far] >= seen[near]:
+                    hops.append((stamp, 1e3 * (seen[far] - seen[near])))
+                i += direction
+    return hops
+
+
+def _pct(values: Sequence[float], q: float) -> str:
+    return f"{np.percentile(values, q):.1f}" if values else "-"
+
+
+def sent_kb(collected: Collected, agents: int, steps: int) -> float:
+    """kB every agent sent per step (stacks after steps, at once, by ticks and flushes)."""
+    counters = collected.counters.values()
+    sent = sum(c.get("bytes_sent", 0) + c.get("bytes_sent_ticks", 0) for c in counters)
+    return sent / (agents * steps) / 1e3
 
 
 def _relay_per_hop(tmp: Path, gossip: str) -> list[float]:

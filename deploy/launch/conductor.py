@@ -81,6 +81,9 @@ class Collected:
     estimates: dict[tuple[str, int], EstimateMessage] = field(default_factory=dict)
     # observe_stacks: (arrival time, robot, {owner: stamp}) of every stack a robot published.
     stack_log: list[tuple[float, str, dict[str, int]]] = field(default_factory=list)
+    # observe_stacks: (arrival time, robot, {owner: stamp}) of the slots each stack carried (a
+    # delta stack's slots are what the robot forwarded; ``stack_log`` has what it held).
+    slot_log: list[tuple[float, str, dict[str, int]]] = field(default_factory=list)
     # Real time: when the links of each step were published (time.monotonic(), as stack_log).
     links_published: dict[int, float] = field(default_factory=dict)
     # Real time: seconds from the publication of a step (its links, then its frames) to the
@@ -250,10 +253,13 @@ class Conductor:
                 continue
             if message.sender == robot:
                 # What the robot holds: a delta stack's digest, or a full stack's slots.
-                held = message.stack.stamps()
+                held = carried = message.stack.stamps()
                 if message.have is not None:
                     held = {owner: stamp for owner, (_, stamp) in message.have.items()}
-                self.collected.stack_log.append((getattr(m, "at", now), robot, held))
+                at = getattr(m, "at", now)
+                self.collected.stack_log.append((at, robot, held))
+                if carried:
+                    self.collected.slot_log.append((at, robot, carried))
 
     def _on_estimate(self, data: bytes, key: str | None = None, at: float | None = None) -> None:
         """An estimate as it comes: its robot, step and counters are read and checked at once;

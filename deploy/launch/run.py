@@ -79,6 +79,7 @@ class LaunchPlan:
     period: float = 0.5
     gossip_period: float = GOSSIP_PERIOD_S
     stack_gossip: str = "ask"  # or "delta", "full" (docs/wire.md, "Delta gossip", "Asks")
+    relay: str = "event"  # or "tick": when asked slots go (agents.gossip; docs/wire.md, "Asks")
     catch_up: int = CATCH_UP_STEPS  # realtime: steps in a row that may defer fusion (agents.core)
     listen_in_range: bool = True  # realtime simulation: subscribe to the peers in range only
     comm: str | None = None
@@ -291,6 +292,7 @@ class Launcher:
             "mode": plan.mode,
             "gossip_period": plan.gossip_period,
             "stack_gossip": plan.stack_gossip,
+            "relay": plan.relay,
             "catch_up": plan.catch_up,
             "listen_in_range": plan.listen_in_range,
             # A conductor-only agent runs on a machine of its own, from a folder with its config

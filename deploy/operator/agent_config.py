@@ -13,6 +13,7 @@ from cryptography.hazmat.primitives import serialization
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey, Ed25519PublicKey
 
 from agents.core import CATCH_UP_STEPS, GOSSIP_PERIOD_S, STACK_GOSSIP, WINDOW_STEPS, CoreSettings
+from agents.gossip import RELAYS
 from agents.node import Signing
 from agents.ros2.bridge import Ros2Settings
 from agents.transport.zenoh_transport import ZenohConfigError, ZenohSettings
@@ -60,7 +61,7 @@ class AgentConfig:
 
 _AGENT_KEYS = {
     "fleet", "model", "start", "roster", "seed", "mode", "gossip_period", "journal",
-    "publish_local", "simulation", "window", "world_extent", "stack_gossip", "catch_up",
+    "publish_local", "simulation", "window", "world_extent", "stack_gossip", "relay", "catch_up",
     "listen_in_range", "classes", "pose_window",
 }  # fmt: skip
 _ZENOH_KEYS = {
@@ -191,6 +192,9 @@ def _read_agent_config(path: Path, robot: str) -> AgentConfig:
     stack_gossip = a.string("stack_gossip") if a.has("stack_gossip") else "ask"
     if stack_gossip not in STACK_GOSSIP:
         raise a.fail("stack_gossip", f"{stack_gossip!r} (known: {', '.join(STACK_GOSSIP)})")
+    relay = a.string("relay") if a.has("relay") else "event"
+    if relay not in RELAYS:
+        raise a.fail("relay", f"{relay!r} (known: {', '.join(RELAYS)})")
     classes = a.string("classes") if a.has("classes") else DEFAULT_CLASSES
     if classes not in CLASS_KINDS:
         raise a.fail("classes", f"{classes!r} (known: {', '.join(CLASS_KINDS)})")
@@ -198,6 +202,7 @@ def _read_agent_config(path: Path, robot: str) -> AgentConfig:
     runtime = CoreSettings(
         mode=mode,
         stack_gossip=stack_gossip,
+        relay=relay,
         gossip_period=period,
         window=a.integer("window", 1, 100_000) if a.has("window") else WINDOW_STEPS,
         publish_local=a.boolean("publish_local") if a.has("publish_local") else True,

@@ -105,6 +105,12 @@ def test_agent_config_stack_gossip_is_one_of_the_known_ways_ask_by_default(tmp_p
     assert load_agent_config(_write(tmp_path, MINIMAL), "r2").runtime.stack_gossip == "ask"
 
 
+def test_agent_config_relay_is_event_by_default_or_tick(tmp_path: Path) -> None:
+    text = _set("agent.relay", '"tick"')
+    assert load_agent_config(_write(tmp_path, text), "r1").runtime.relay == "tick"
+    assert load_agent_config(_write(tmp_path, MINIMAL), "r2").runtime.relay == "event"
+
+
 def test_agent_config_classes_reach_the_beliefs_of_the_agents_node(tmp_path: Path) -> None:
     from deploy.operator.agent_config import DEFAULT_CLASSES
     from deploy.operator.agent_service import node_factory
@@ -199,6 +205,7 @@ BAD = [
     (_set("agent.window", "0"), "agent.window"),
     (_set("agent.window", '"8"'), "agent.window"),
     (_set("agent.stack_gossip", '"rumour"'), "agent.stack_gossip"),
+    (_set("agent.relay", '"gossip"'), "agent.relay"),
     (_set("agent.catch_up", "-1"), "agent.catch_up"),
     (_set("agent.catch_up", "1001"), "agent.catch_up"),
     (_set("agent.simulation", '"yes"'), "agent.simulation"),

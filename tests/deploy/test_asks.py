@@ -1,14 +1,15 @@
 """Standing asks (``stack_gossip = "ask"``, the default; docs/wire.md, "Asks"): a robot that does
 not hear an owner asks one relay to push that owner's versions; the relay pushes each new
-version with its next gossip tick, not a gossip period after the version came; a forged or
-repeated ask sends nothing more than a lacking digest would. Real cores and codecs, simulated
-time."""
+version on arrival (``relay = "event"``, the default: at once, at most one stack a push window)
+or with its next gossip tick (``relay = "tick"``), not a gossip period after the version came; a
+forged or repeated ask sends nothing more than a lacking digest would. Real cores and codecs,
+simulated time."""
 
 from __future__ import annotations
 
-from agents.core import AgentCore, CoreSettings, Publish
-from agents.gossip import DIGEST_LIFE
-from agents.runtime import MemoryLog
+from agents.core import AgentCore, CoreSettings, Flush, Publish
+from agents.gossip import DIGEST_LIFE, PUSH_WINDOW_S
+from agents.runtime import MemoryLog, execute_journal_actions
 from deploy.base.build import belief_model, make_node
 from estimator.hybrid import BeliefConfig
 from protocol.codec import StackMessage, decode, encode
@@ -45,7 +46,7 @@ def _slots_of(payloads: list[bytes], owner: str) -> list[tuple[int, int] | None]
 
 
 def test_a_robot_asks_one_relay_for_an_owner_it_does_not_hear_and_it_pushes_at_its_tick() -> None:
-    r1, log1, r2, log2, frames, now = _hearing_pair(2)
+    _, _, r2, _, _, now = _hearing_pair(2, relay="tick")
     r3, log3 = _asker()
     _stacks(r3.start(now), log3, "r3")
     held = r2.node.current_stack().versions()
@@ -200,3 +201,51 @@ def test_what_an_asker_keeps_is_bounded_by_the_slot_limit() -> None:
     assert len(r3.gossip.asks) == limit and len(r3.gossip.behind) <= limit
     tick = [decode(a.payload) for a in r3.on_timer(4.5) if isinstance(a, Publish)]
     assert len(tick) == 1 and len(tick[0].ask or {}) == limit
+
+
+def test_event_relay_pushes_an_asked_slot_on_arrival_and_coalesces_a_burst_in_one_window() -> None:
+    r1, log1, r2, log2, frames, now = _hearing_pair(2)
+    r3, log3 = _asker()
+    _stacks(r3.start(now), log3, "r3")
+    held = r2.node.current_stack().versions()
+    sent = _stacks(r3.on_message(KEYS.stack("r2"), r2.node.encoded_delta(()), now), log3, "r3")
+    assert [decode(p).ask for p in sent] == [{"r1": "r2"}]
+    # The ask itself is answered at once, not with r2's next tick.
+    answer = _stacks(r2.on_message(KEYS.stack("r3"), sent[0], now + 0.01), log2, "r2")
+    assert [v for v in _slots_of(answer, "r1") if v] == [held["r1"]]
+    assert r2.counter_values()["relay_pushes"] == 1
+    # r1's next version goes on as soon as r2 merged it: no tick in between.
+    now += 1.0
+    versions = []
+    for k in (2, 3):
+        s1 = _stacks(
+            r1.on_message(KEYS.frames("r1"), encode_frame(frames["r1"][k]), now), log1, "r1"
+        )
+        versions.append((s1[-1], r1.node.stack.versions()["r1"]))
+    first = r2.on_message(KEYS.stack("r1"), versions[0][0], now)
+    assert [v for v in _slots_of(_stacks(first, log2, "r2"), "r1") if v] == [versions[0][1]]
+    # The next version, within the push window: held back, and a Flush asked for at its end.
+    second = execute_journal_actions(
+        log2, r2.on_message(KEYS.stack("r1"), versions[1][0], now + 0.001)
+    )
+    assert [a for a in second if isinstance(a, Publish)] == []
+    assert [a.at for a in second if isinstance(a, Flush)] == [now + PUSH_WINDOW_S]
+    flushed = [a.payload for a in r2.on_flush(now + PUSH_WINDOW_S) if isinstance(a, Publish)]
+    assert [v for v in _slots_of(flushed, "r1") if v] == [versions[1][1]]
+    assert r2.counter_values()["relay_pushes"] == 3
+    # Flushed is sent: a second flush and the next tick carry no slot of r1.
+    assert r2.on_flush(now + 2 * PUSH_WINDOW_S) == []
+    assert all(v is None for v in _slots_of(_tick(r2, now + 0.1), "r1"))
+    # r3 takes both pushes as they come.
+    _stacks(r3.on_message(KEYS.stack("r2"), flushed[0], now + 0.01), log3, "r3")
+    assert r3.node.stack.versions()["r1"] == versions[1][1]
+
+
+def test_tick_relay_never_asks_for_a_flush() -> None:
+    _, _, r2, _, _, now = _hearing_pair(2, relay="tick")
+    r3, log3 = _asker()
+    _stacks(r3.start(now), log3, "r3")
+    sent = _stacks(r3.on_message(KEYS.stack("r2"), r2.node.encoded_delta(()), now), log3, "r3")
+    actions = r2.on_message(KEYS.stack("r3"), sent[0], now + 0.01)
+    assert not [a for a in actions if isinstance(a, (Publish, Flush))]
+    assert r2.counter_values()["relay_pushes"] == 0

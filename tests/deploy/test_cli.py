@@ -227,14 +227,16 @@ def test_demo_launches_three_agents_over_zenoh_and_prints_the_final_table(tmp_pa
 def test_launch_stack_gossip_reaches_every_agents_config(tmp_path: Path) -> None:
     r = semfleet(
         "launch", "--scenario", "paper", "--mode", "realtime", "--steps", "3",
-        "--stack-gossip", "delta", "--out", "out", cwd=tmp_path,
+        "--stack-gossip", "delta", "--relay", "tick", "--out", "out", cwd=tmp_path,
     )  # fmt: skip
     assert r.returncode == 0, r.stderr
-    for robot in ("r1", "r2", "r3"):  # not the default ("ask")
+    for robot in ("r1", "r2", "r3"):  # not the defaults ("ask", "event")
         text = (tmp_path / "out" / "agents" / f"{robot}.toml").read_text()
-        assert 'stack_gossip = "delta"' in text
+        assert 'stack_gossip = "delta"' in text and 'relay = "tick"' in text
     bad = semfleet("launch", "--scenario", "paper", "--stack-gossip", "rumour", cwd=tmp_path)
     assert bad.returncode == 2 and "--stack-gossip: invalid choice: 'rumour'" in bad.stderr
+    bad = semfleet("launch", "--scenario", "paper", "--relay", "rumour", cwd=tmp_path)
+    assert bad.returncode == 2 and "--relay: invalid choice: 'rumour'" in bad.stderr
 
 
 # --------------------------------------------------------------------------- errors → exit codes
@@ -259,6 +261,14 @@ GENERATE = ["scenario", "generate", "--robots", "1", "--objects", "2", "--classe
         (
             ["launch", "--scenario", "paper", "--conductor-only", "--stack-gossip", "full"],
             "--stack-gossip: not with --conductor-only",
+        ),
+        (
+            ["chaos", "--scenario", "paper", "--attack", "all", "--relay", "tick"],
+            "--relay: not with",
+        ),
+        (
+            ["launch", "--scenario", "paper", "--conductor-only", "--relay", "tick"],
+            "--relay: not with --conductor-only",
         ),
         (
             ["launch", "--scenario", "paper", "--advertise", "tcp/10.0.0.1:7447"],

@@ -63,7 +63,7 @@ def test_delta_and_full_gossip_give_the_same_beliefs_in_lockstep_on_a_chain(
     assert sent["delta"] <= sent["full"], sent
 
 
-def _core(robot: str, epoch: int = 1) -> tuple[AgentCore, MemoryLog]:
+def _core(robot: str, epoch: int = 1, relay: str = "event") -> tuple[AgentCore, MemoryLog]:
     s = load_scenario("paper")
     model = belief_model(s)
     start = s.robot(robot).start
@@ -72,7 +72,8 @@ def _core(robot: str, epoch: int = 1) -> tuple[AgentCore, MemoryLog]:
         return make_node(robot, start, model, 4, BeliefConfig(), epoch=epoch)
 
     log = MemoryLog()
-    return AgentCore(make, KEYS, CoreSettings(gossip_period=0.5), log.records), log
+    settings = CoreSettings(gossip_period=0.5, relay=relay)
+    return AgentCore(make, KEYS, settings, log.records), log
 
 
 def _stacks(actions: list[object], log: MemoryLog, robot: str) -> list[bytes]:
@@ -88,12 +89,13 @@ def _tick(core: AgentCore, t: float) -> list[bytes]:
     return [a.payload for a in core.on_timer(t) if isinstance(a, Publish)]
 
 
-def _hearing_pair(steps: int) -> _Pair:
+def _hearing_pair(steps: int, relay: str = "event") -> _Pair:
     """r1 and r2 of the paper scenario after ``steps`` steps, one a second, each hearing the
-    other's stack: (r1, its log, r2, its log, the frames, the time of the last step)."""
+    other's stack: (r1, its log, r2, its log, the frames, the time of the last step); both
+    relay asked slots as ``relay`` says."""
     frames = Simulator(load_scenario("paper"), 4).all_frames()
-    r1, log1 = _core("r1")
-    r2, log2 = _core("r2")
+    r1, log1 = _core("r1", relay=relay)
+    r2, log2 = _core("r2", relay=relay)
     now = 0.0
     for k in range(steps):
         now += 1.0

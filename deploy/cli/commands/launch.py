@@ -14,6 +14,7 @@ from rich.console import Console
 from rich.table import Table
 
 from agents.core import STACK_GOSSIP
+from agents.gossip import RELAYS
 from agents.links import Partition
 from deploy.base.errors import UsageError
 from deploy.cli.args import positive_float, positive_int, seed
@@ -82,10 +83,14 @@ def _steps(scenario: Scenario, steps: int | None) -> int | None:
     return steps
 
 
-def _stack_gossip(args: argparse.Namespace) -> str:
-    if args.stack_gossip is not None and getattr(args, "conductor_only", False):
-        raise UsageError("--stack-gossip: not with --conductor-only (the agents' configs decide)")
-    return str(args.stack_gossip or "ask")
+def _agents_setting(args: argparse.Namespace, name: str, default: str) -> str:
+    """``--stack-gossip`` or ``--relay``: written into the agents' configs, so never with
+    ``--conductor-only`` (the agents' own configs decide)."""
+    value = getattr(args, name)
+    if value is not None and getattr(args, "conductor_only", False):
+        flag = "--" + name.replace("_", "-")
+        raise UsageError(f"{flag}: not with --conductor-only (the agents' configs decide)")
+    return str(value or default)
 
 
 def check_outputs(args: argparse.Namespace) -> None:
@@ -112,7 +117,8 @@ def run_launch(args: argparse.Namespace, console: Console) -> int:
         steps=_steps(scenario, args.steps),
         secure=args.secure,
         keep_estimates=bool(args.view or args.record or args.ros2_bag),
-        stack_gossip=_stack_gossip(args),
+        stack_gossip=_agents_setting(args, "stack_gossip", "ask"),
+        relay=_agents_setting(args, "relay", "event"),
         ros2=ros2,
         **conductor_only.plan_fields(args),
     )
@@ -145,8 +151,9 @@ def run_chaos(args: argparse.Namespace, console: Console) -> int:
     if args.attack is not None:
         if args.view or args.record:
             raise UsageError("--view/--record: not with --attack (one run per attack)")
-        if args.stack_gossip is not None:
-            raise UsageError("--stack-gossip: not with --attack (each attack sets up its fleet)")
+        for flag, value in (("--stack-gossip", args.stack_gossip), ("--relay", args.relay)):
+            if value is not None:
+                raise UsageError(f"{flag}: not with --attack (each attack sets up its fleet)")
         check_outputs(args)
         return run_attacks_command(args, console)
     scenario = load_scenario(args.scenario)
@@ -168,7 +175,8 @@ def run_chaos(args: argparse.Namespace, console: Console) -> int:
         secure=args.secure,
         net=args.net,
         keep_estimates=bool(args.view or args.record),
-        stack_gossip=_stack_gossip(args),
+        stack_gossip=_agents_setting(args, "stack_gossip", "ask"),
+        relay=_agents_setting(args, "relay", "event"),
     )
     if plan.net == "netns":
         require_netns()
@@ -227,12 +235,7 @@ def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--period", type=positive_float, default=0.5, help="realtime step period in s (default 0.5)"
     )
-    p.add_argument(
-        "--comm",
-        choices=COMM_MODES,
-        default=None,
-        help="override the scenario's communication mode",
-    )
+    p.add_argument("--comm", choices=COMM_MODES, help="override the scenario's communication mode")
     p.add_argument("--steps", type=positive_int, default=None, help="run only the first N steps")
     p.add_argument("--secure", action="store_true", help=SECURE_HELP)
     p.add_argument(
@@ -242,6 +245,13 @@ def _common(p: argparse.ArgumentParser) -> None:
         help='what stacks carry: "ask" (default) what peers lack, and a robot asks a neighbour '
         'for the slots of robots out of its range; "delta" without asks; "full" every held '
         "slot (docs/wire.md)",
+    )
+    p.add_argument(
+        "--relay",
+        choices=RELAYS,
+        default=None,
+        help='when a slot a neighbour asked for goes: "event" (default) on arrival, "tick" with '
+        "the next gossip tick (docs/wire.md)",
     )
     add_view_options(p)
     add_force(p)
