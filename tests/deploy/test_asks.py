@@ -46,7 +46,7 @@ def _slots_of(payloads: list[bytes], owner: str) -> list[tuple[int, int] | None]
 
 
 def test_a_robot_asks_one_relay_for_an_owner_it_does_not_hear_and_it_pushes_at_its_tick() -> None:
-    _, _, r2, _, _, now = _hearing_pair(2, relay="tick")
+    r1, log1, r2, log2, frames, now = _hearing_pair(2, relay="tick")
     r3, log3 = _asker()
     _stacks(r3.start(now), log3, "r3")
     held = r2.node.current_stack().versions()
