@@ -43,8 +43,8 @@ from dataclasses import dataclass, field
 import gtsam
 import numpy as np
 from numpy.typing import NDArray
-from scipy.stats import chi2
 
+from estimator.chi2 import chi2_ppf
 from estimator.factors import object_key
 from estimator.hybrid import BeliefModel, Continuous, HybridBelief
 from estimator.logsumexp import logsumexp
@@ -149,7 +149,7 @@ class Associator:
         self._q = np.asarray(model.odometry_noise.cov, dtype=float)
         self._r = np.asarray(model.geometric_noise.cov, dtype=float)
         self._log_prior = np.log(np.asarray(model.class_prior, dtype=float))
-        self._gate = float(chi2.ppf(1.0 - self.config.alpha, self.kind.dim))
+        self._gate = chi2_ppf(1.0 - self.config.alpha, self.kind.dim)
         self.tentative: list[_Tentative] = []
         self.next_track = 0
 
@@ -492,7 +492,7 @@ def _chi2(dof: int, alpha: float) -> float:
     """χ²_dof(1 − α), remembered."""
     key = (dof, alpha)
     if key not in _CHI2:
-        _CHI2[key] = float(chi2.ppf(1.0 - alpha, dof))
+        _CHI2[key] = chi2_ppf(1.0 - alpha, dof)
     return _CHI2[key]
 
 

@@ -52,9 +52,8 @@ import gtsam
 import numpy as np
 import scipy.linalg
 from numpy.typing import NDArray
-from scipy.optimize import linear_sum_assignment
-from scipy.stats import chi2
 
+from estimator.chi2 import chi2_ppf
 from estimator.factors import object_key
 from estimator.hybrid import Hypothesis
 from estimator.logsumexp import logsumexp
@@ -250,7 +249,7 @@ def match(
     cols = np.flatnonzero(candidates)
     if n == 0 or len(cols) == 0:
         return {}
-    gate = float(chi2.ppf(1.0 - config.alpha, dim))
+    gate = chi2_ppf(1.0 - config.alpha, dim)
     o_cov = np.array([owner.block(i) for i in range(n)])
     d_cov = np.array([d.block(int(j)) for j in cols])
     diff = _wrapped(owner.mean[:, None, :] - d.mean[cols][None, :, :])  # (n, c, d)
@@ -262,6 +261,8 @@ def match(
         cost = np.where(d2 <= gate, d2 - 2.0 * same, _BIG)
     dummy = np.full((n, n), _BIG)
     np.fill_diagonal(dummy, gate)
+    from scipy.optimize import linear_sum_assignment  # here: scipy.optimize's import is 0.4 s
+
     rows, picked = linear_sum_assignment(np.concatenate([cost, dummy], axis=1))
     pairs = [(int(r), int(cols[c])) for r, c in zip(rows, picked, strict=True) if c < len(cols)]
     pairs = [(r, c) for r, c in pairs if d2[r, np.searchsorted(cols, c)] <= gate]
@@ -293,7 +294,7 @@ def _consistent(
     p, dim = len(pairs), owner.dim
     cov = cov + np.eye(dim)[None, None] * np.eye(p)[:, :, None, None]  # the diagonal: unused
     d2 = np.einsum("abi,abi->ab", e, np.linalg.solve(cov, e[..., None])[..., 0])
-    bad = ~(d2 <= float(chi2.ppf(1.0 - config.alpha, dim)))
+    bad = ~(d2 <= chi2_ppf(1.0 - config.alpha, dim))
     np.fill_diagonal(bad, False)
     drop = _vertex_cover(bad, config.max_cover)
     return [a for a in range(p) if a not in drop]

@@ -61,8 +61,8 @@ import scipy.linalg
 import scipy.sparse
 import scipy.sparse.linalg
 from numpy.typing import NDArray
-from scipy.stats import chi2
 
+from estimator.chi2 import chi2_isf
 from estimator.factors import object_key
 from estimator.models import ClassifierModel, se2
 from estimator.smoother import marginal_covariances
@@ -93,7 +93,7 @@ class GateSettings:
 def gate_threshold(false_alarm: float, dim: int = 3) -> float:
     """χ²'s quantile at 1 − ``false_alarm`` with an object's ``dim`` degrees of freedom (3 for
     a pose, 2 for a point)."""
-    return float(chi2.isf(false_alarm, dim))
+    return chi2_isf(false_alarm, dim)
 
 
 class Implausible(ValueError):
@@ -164,7 +164,7 @@ def per_detection_bound(classifier: ClassifierModel, false_alarm: float) -> floa
         raise ValueError("classifier model: means not finite or a covariance not positive")
     points = means.reshape(-1, dim)
     radius = float(np.linalg.norm(points - points.mean(axis=0), axis=1).max())
-    reach = 2.0 * radius + math.sqrt(float(chi2.isf(false_alarm, dim)) * float(eig[..., -1].max()))
+    reach = 2.0 * radius + math.sqrt(chi2_isf(false_alarm, dim) * float(eig[..., -1].max()))
     logdet = np.log(eig).sum(axis=-1)
     return 0.5 * reach**2 / float(eig[..., 0].min()) + 0.5 * float(logdet.max() - logdet.min())
 

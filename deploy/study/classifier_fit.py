@@ -20,10 +20,10 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 from scipy.special import digamma
-from scipy.stats import chi2
 
 from deploy.base.errors import UsageError
 from deploy.study.classifier_samples import ScoreSamples
+from estimator.chi2 import chi2_ppf
 from estimator.models import ClassifierModel
 from estimator.models.learned import LearnedClassifier, PeriodicGP, periodic_kernel
 
@@ -227,7 +227,7 @@ def _quality(g: _ClassGP, log_scale: PeriodicGP, cov: Array) -> ClassFit:
         comps,
         (float(over_psi.min()), float(over_psi.max())),
         float(np.mean(log_lik)),
-        float(np.mean(maha <= chi2.ppf(0.95, dim))),
+        float(np.mean(maha <= chi2_ppf(0.95, dim))),
     )
 
 
