@@ -720,7 +720,7 @@ def _counter_values(core: AgentCore) -> dict[str, int]:
         "digests_skipped": g.digests_skipped,
         "relays_asked": g.relays_asked,
         "asks_answered": g.asks_answered,
-        "relay_pushes": g.pushes,
+        "relay_pushes": g.pushes + g.flushes,
         "bytes_received": c.bytes_received,
         "frames_processed": a.frames_processed,
         "fusions_deferred": a.fusions_deferred,

@@ -25,8 +25,9 @@ version crosses each hop in the time of a transit and a merge, not of a gossip p
 ``relay = "tick"`` (before issue 47) it waits for the next tick. The ticks stay, as the
 anti-entropy repair: they re-send what a digest shows a peer still lacks.
 
-Threading: :meth:`tick` and :meth:`digest_due` run on the shell's timer thread and touch only
-``tick_last``, ``digest_sent`` and ``digests_skipped``; everything else runs on the worker.
+Threading: :meth:`tick`, :meth:`digest_due` and :meth:`flush` run on the shell's loop and touch
+only ``tick_last``, ``digest_sent``, ``digests_skipped``, ``flushes`` and ``pushed_at`` (the one
+field both sides write: a lost race sends one stack more); everything else runs on the worker.
 
 Over 300 lines for a reason: the selection, the asks, the pulls and the ticks read and bound the
 same per-peer and per-owner tables; split, each table's bound would be kept in two places.
@@ -124,9 +125,11 @@ class DeltaGossip:
         self.asked_only = False  # whether it holds slots only a peer's ask sends
         # Event-driven relay: when a stack last went at once or by a flush (written by the
         # worker and by the shell's flush: a lost race costs one stack more, never one less),
-        # and the stacks pushed for asked slots (at once or flushed).
+        # and the stacks pushed for asked slots at once (the worker's) and by flushes (the
+        # shell's: each counter has one writer).
         self.pushed_at = -math.inf
         self.pushes = 0
+        self.flushes = 0
         # Versions peers' digests hold that this robot lacks: owner → (version, first seen).
         self.wanted: dict[str, tuple[Version, float]] = {}
         # Standing asks: owner → (the relay asked to push its new versions, when); since when a
@@ -311,7 +314,7 @@ class DeltaGossip:
             return None
         self.tick_last = out.stack
         self.pushed_at = now
-        self.pushes += 1
+        self.flushes += 1
         if out.digest is not None:
             self.digest_sent = (out.digest, now)
         return out.stack
