@@ -59,6 +59,7 @@ from sim.sensors import Simulator
 LAUNCH_METHODS = ("local", "distributed")
 MODES = ("lockstep", "realtime")
 NETS = ("loopback", "netns")
+TOPOLOGIES = ("mesh", "router")
 CONDUCTOR = "conductor"  # the operator identity of a secure launch's conductor
 STOP_SETTLE_S = 0.2  # after ctl/stop, before SIGTERM: agents that heard it exit on their own
 NETNS_LEASE_MS = 10_000  # Zenoh's own default: a session outlives a cut of up to 10 s
@@ -112,6 +113,10 @@ class LaunchPlan:
     net: str = "loopback"
     # Every agent config's ``[ros2]`` table (docs/ros2.md), None: ROS 2 off.
     ros2: Mapping[str, Any] | None = None
+    # "mesh": every agent a Zenoh peer, linked to the others (gossip scouting); "router": the
+    # conductor's session is a Zenoh router and every agent its client (one link each; the
+    # router forwards), as Zenoh recommends beyond a few dozen peers (issue 47).
+    topology: str = "mesh"
 
     def __post_init__(self) -> None:
         # The world of the run with this seed (its classes, when they are drawn per run): what
@@ -145,6 +150,14 @@ class LaunchPlan:
             ):
                 if self.secure and not e.startswith("tls/"):
                     raise PlanError(f"conductor {name} {e}: a secure fleet's endpoints are tls/…")
+        if self.topology not in TOPOLOGIES:
+            raise PlanError(f"topology {self.topology!r}: expected one of {', '.join(TOPOLOGIES)}")
+        if self.topology == "router" and (
+            self.secure or self.conductor_only or self.zenoh_neighbours is not None
+            or self.net != "loopback" or self.ros2 is not None
+        ):  # fmt: skip
+            raise PlanError("topology router: a plain loopback launch only (not secure, "
+                            "conductor-only, netns, ROS 2 or with a Zenoh topology)")  # fmt: skip
         if not 1.0 <= self.wait_agents <= 86_400:
             raise PlanError(f"wait for agents {self.wait_agents}: must be in 1..86400 s")
         if self.net not in NETS:
@@ -337,6 +350,8 @@ class Launcher:
             advertise = self.plan.conductor_advertise
             exposed = bool(ZenohSettings(connect=(str(advertise),)).off_loopback())
             return {"connect": [advertise], "gossip": True, "insecure": exposed or None}
+        if self.plan.topology == "router":
+            return {"mode": "client", "connect": [loopback_endpoint(conductor_port)]}
         listen = [loopback_endpoint(ports[robot])]
         if neighbours is None:
             return {
@@ -361,7 +376,8 @@ class Launcher:
             listen = (plan.conductor_listen,)
         if self.network is not None:
             listen = (f"tcp/{self.network.layout.host}:{conductor_port}",)
-        settings = ZenohSettings(listen=listen, connect=dial, gossip=neighbours is None)
+        mode = "router" if plan.topology == "router" else "peer"
+        settings = ZenohSettings(listen=listen, connect=dial, gossip=neighbours is None, mode=mode)
         if self._fleet is not None and plan.conductor_only:
             settings = ZenohSettings(
                 listen=listen, config_file=self._fleet[CONDUCTOR] / "zenoh.json5"

@@ -65,8 +65,11 @@ _AGENT_KEYS = {
     "listen_in_range", "classes", "pose_window",
 }  # fmt: skip
 _ZENOH_KEYS = {
-    "listen", "connect", "gossip", "shared_memory", "lease_ms", "config_file", "insecure",
+    "listen", "connect", "gossip", "shared_memory", "lease_ms", "config_file", "insecure", "mode",
 }  # fmt: skip
+# A robot's session is a peer (links to its peers, the default) or a client of a router that
+# forwards for it (docs/deploy.md, "Routers"); never a router itself (`semfleet router` is one).
+ZENOH_MODES = ("peer", "client")
 MAX_EXTENT = 1e7  # metres: a UTM-like frame; beyond, float64 poses lose millimetres
 
 
@@ -218,7 +221,13 @@ def _read_agent_config(path: Path, robot: str) -> AgentConfig:
             if "/" not in e:
                 raise z.fail(name, f"bad endpoint {e!r} (e.g. tcp/127.0.0.1:7447)")
         endpoints[name] = tuple(values)
+    mode = z.string("mode") if z.has("mode") else "peer"
+    if mode not in ZENOH_MODES:
+        raise z.fail("mode", f"{mode!r} (known: {', '.join(ZENOH_MODES)})")
+    if mode == "client" and (endpoints["listen"] or not endpoints["connect"]):
+        raise z.fail("mode", "a client listens on nothing and connects to its router (connect)")
     zenoh_settings = ZenohSettings(
+        mode=mode,
         listen=endpoints["listen"],
         connect=endpoints["connect"],
         gossip=z.boolean("gossip") if z.has("gossip") else None,

@@ -105,6 +105,15 @@ def test_agent_config_stack_gossip_is_one_of_the_known_ways_ask_by_default(tmp_p
     assert load_agent_config(_write(tmp_path, MINIMAL), "r2").runtime.stack_gossip == "ask"
 
 
+def test_agent_config_zenoh_mode_is_peer_by_default_or_a_routers_client(tmp_path: Path) -> None:
+    assert load_agent_config(_write(tmp_path, VALID), "r1").zenoh.mode == "peer"
+    text = _set("zenoh.listen", "[]", _set("zenoh.mode", '"client"'))
+    assert load_agent_config(_write(tmp_path, text), "r1").zenoh.mode == "client"
+    for bad in (_set("zenoh.mode", '"client"'), _set("zenoh.mode", '"router"')):
+        with pytest.raises(AgentConfigError, match=r"zenoh\.mode"):
+            load_agent_config(_write(tmp_path, bad), "r1")
+
+
 def test_agent_config_relay_is_event_by_default_or_tick(tmp_path: Path) -> None:
     text = _set("agent.relay", '"tick"')
     assert load_agent_config(_write(tmp_path, text), "r1").runtime.relay == "tick"

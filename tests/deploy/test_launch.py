@@ -144,17 +144,22 @@ def _plan(out: Path, **kwargs: Any) -> LaunchPlan:
 @pytest.mark.lockstep
 @pytest.mark.slow
 @pytest.mark.parametrize(
-    ("secure", "gossip"),
-    [(False, "delta"), (True, "delta"), (False, "full")],
-    ids=["plain", "secure", "full-stacks"],
-)
+    ("secure", "gossip", "topology"),
+    [(False, "delta", "mesh"), (True, "delta", "mesh"), (False, "full", "mesh"),
+     (False, "delta", "router")],
+    ids=["plain", "secure", "full-stacks", "router"],
+)  # fmt: skip
 def test_launch_lockstep_paper_equals_the_in_process_runner(
-    tmp_path: Path, reference: Reference, secure: bool, gossip: str
+    tmp_path: Path, reference: Reference, secure: bool, gossip: str, topology: str
 ) -> None:
     # secure: mutual TLS, access control and owner-signed slots (issue 13) change nothing of
     # the beliefs; every slot that was fused was verified (an unsigned one would be refused).
-    # Delta gossip (the default) and full stacks: the same beliefs, round by round.
-    plan = _plan(tmp_path, steps=STEPS, keep_estimates=True, secure=secure, stack_gossip=gossip)
+    # Delta gossip (the default) and full stacks: the same beliefs, round by round. Through a
+    # router (the conductor's session; every agent its client): the same (issue 47).
+    plan = _plan(
+        tmp_path, steps=STEPS, keep_estimates=True, secure=secure, stack_gossip=gossip,
+        topology=topology,
+    )  # fmt: skip
     outcome = launch(plan)
     assert_estimates_match(outcome, reference, STEPS)
     for b in BELIEFS:
@@ -166,9 +171,10 @@ def test_launch_lockstep_paper_equals_the_in_process_runner(
     for r, c in outcome.collected.counters.items():
         assert c["frames_processed"] == STEPS and c["stacks_invalid"] == 0, (r, c)
         assert c["empty_joins"] == c["rebuilds"] == 0, (r, c)
+    config = (tmp_path / "agents" / "r1.toml").read_text()
     if secure:
-        config = (tmp_path / "agents" / "r1.toml").read_text()
         assert "[security]" in config and "zenoh.json5" in config
+    assert ('mode = "client"' in config) == (topology == "router")
     # The run exercised fusion: by the end D holds more objects than L for every robot.
     for r in ROBOTS:
         final = outcome.collected.estimates[(r, STEPS)].beliefs

@@ -135,3 +135,13 @@ def test_launch_and_chaos_mistakes_are_one_line_before_any_work(
     assert fragment in captured.err, captured.err
     assert captured.out == ""  # not even the launch's header
     assert not out.exists()
+
+
+def test_launch_plan_topology_is_mesh_or_a_plain_loopback_router(tmp_path: Path) -> None:
+    assert LaunchPlan(PAPER, 0, list(ROBOTS), tmp_path).topology == "mesh"
+    LaunchPlan(PAPER, 0, list(ROBOTS), tmp_path, topology="router")
+    with pytest.raises(PlanError, match="topology 'star'"):
+        LaunchPlan(PAPER, 0, list(ROBOTS), tmp_path, topology="star")
+    for kwargs in ({"secure": True}, {"zenoh_neighbours": {"r1": ["r2"]}}):
+        with pytest.raises(PlanError, match="topology router: a plain loopback launch only"):
+            LaunchPlan(PAPER, 0, list(ROBOTS), tmp_path, topology="router", **kwargs)  # type: ignore[arg-type]
