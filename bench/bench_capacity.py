@@ -8,6 +8,9 @@ The target size runs on three generated worlds (seeds 11, 12, 13, or from
 ``SEMFLEET_BENCH_WORLD_SEED``), the other sizes on the first. ``SEMFLEET_BENCH_AGENTS`` (sizes,
 "5,10,20,30"), ``SEMFLEET_BENCH_CAPACITY_REPEATS`` (worlds at the target size, 3) and
 ``SEMFLEET_BENCH_LOCKSTEP_AGENTS`` (50; 0: no lock-step launch) choose what runs.
+Issue 47 adds 50 agents in real time (``SEMFLEET_BENCH_SCALE_AGENTS``) on a world seed the rows
+above never use (``SEMFLEET_BENCH_SCALE_SEED``, 31), once as a mesh of Zenoh peers and once
+through a router (the conductor's session; every agent its client), with the CPU per agent-step.
 
 The agents gossip at the default gossip period (``agents.core.GOSSIP_PERIOD_S``, 0.5 s: what a
 launch or an agent config gets unless it says otherwise). At the target size the runs alternate
@@ -41,6 +44,15 @@ AGENT_COUNTS = tuple(
     int(n) for n in os.environ.get("SEMFLEET_BENCH_AGENTS", "5,10,20,30").split(",")
 )
 LOCKSTEP_AGENTS = int(os.environ.get("SEMFLEET_BENCH_LOCKSTEP_AGENTS", "50"))
+# Issue 47: fleets beyond 20 in real time, as a mesh of peers and through a router, on a world
+# seed none of the rows above uses (``SEMFLEET_BENCH_SCALE_AGENTS``, "50"; empty: none;
+# ``SEMFLEET_BENCH_SCALE_SEED``, 31). Target: 50 agents keep up (every agent ≤ 1 step behind).
+SCALE_AGENTS = tuple(
+    int(n) for n in os.environ.get("SEMFLEET_BENCH_SCALE_AGENTS", "50").split(",") if n
+)
+SCALE_SEED = int(os.environ.get("SEMFLEET_BENCH_SCALE_SEED", "31"))
+SCALE_TARGET = 50
+TOPOLOGIES = ("mesh", "router")
 Usage = dict[str, dict[str, float]]  # per agent: CPU seconds and times sampled, peak RSS
 STEPS = 20
 
@@ -111,7 +123,35 @@ def _world(tmp: Path, n: int, seed: int) -> Scenario:
     return parse_scenario(path.read_text(encoding="utf-8"), str(path))
 
 
-def _capacity_row(n: int, steps: int, runs: list[Run], catch_up: int, gossip: float) -> Result:
+def _scale_rows(tmp: Path) -> list[Result]:
+    """Realtime launches of ``SCALE_AGENTS`` agents on the world of ``SCALE_SEED``, as a mesh
+    and through a router, one after the other (issue 47)."""
+    rows = []
+    for n in SCALE_AGENTS:
+        s = _world(tmp, n, SCALE_SEED)
+        for topology in TOPOLOGIES:
+            name = f"scale{n}-{topology}"
+            plan = LaunchPlan(
+                s, 0, list(s.robot_ids), tmp / name, mode="realtime", period=PERIOD_S,
+                fleet=name, publish_local=False, topology=topology, wait_agents=600.0,
+            )  # fmt: skip
+            start = time.perf_counter()
+            try:
+                outcome, usage = _run_launch(plan, sample=True)
+            except Exception as exc:
+                note = f"failed: {exc}"
+                rows.append(
+                    Result(f"realtime capacity: {n} agents, {topology}", n, np.nan, note=note)
+                )
+                continue
+            run = Run(SCALE_SEED, time.perf_counter() - start, outcome.collected, usage)
+            rows.append(_capacity_row(n, STEPS, [run], *DEFAULT, topology=topology))
+    return rows
+
+
+def _capacity_row(
+    n: int, steps: int, runs: list[Run], catch_up: int, gossip: float, topology: str = ""
+) -> Result:
     """Steps behind one period after the last frame (when every robot should have taken it),
     per run (and its world): mean and worst agent; the last step 10 s later; CPU and peak RSS per
     agent; the stacks each agent received and the fusions it deferred; D's errors at the last
@@ -148,7 +188,9 @@ def _capacity_row(n: int, steps: int, runs: list[Run], catch_up: int, gossip: fl
         for run, b in zip(runs, behind, strict=True)
     )
     target = (
-        f" (target for {TARGET_AGENTS}: every agent ≤ 1 behind) {met}" if n == TARGET_AGENTS else ""
+        f" (target for {n}: every agent ≤ 1 behind) {met}"
+        if n in (TARGET_AGENTS, SCALE_TARGET)
+        else ""
     )
     counters = [run.collected.counters[r] for run in runs for r in run.collected.counters]
     received = np.mean([x.get("stacks_received", 0) for x in counters])
@@ -167,6 +209,7 @@ def _capacity_row(n: int, steps: int, runs: list[Run], catch_up: int, gossip: fl
         + f" ({reached} of {len(last['robot_error'])} robot runs reached it)"
     )
     label = "" if catch_up == CATCH_UP_STEPS else f", catch_up {catch_up} (baseline)"
+    label += f", {topology}" if topology else ""
     return Result(
         f"realtime capacity: {n} agents, period {PERIOD_S:g} s, gossip {gossip:g} s{label}",
         n,
@@ -231,5 +274,5 @@ def _lockstep_rows(tmp: Path) -> list[Result]:
 
 def run() -> list[Result]:
     with tempfile.TemporaryDirectory() as d:
-        rows = _capacity_rows(Path(d))
+        rows = _capacity_rows(Path(d)) + _scale_rows(Path(d))
         return rows + (_lockstep_rows(Path(d)) if LOCKSTEP_AGENTS > 0 else [])
