@@ -30,6 +30,11 @@ def write_outputs(
     return doc
 
 
+def aoi_entry(outcome: LaunchOutcome) -> dict[str, Any]:
+    """``{"aoi": …}``, the run's age of information (docs/results.md), or nothing."""
+    return {} if outcome.aoi is None else {"aoi": outcome.aoi.document()}
+
+
 def security_line(plan: LaunchPlan) -> str:
     """How the launch's agents are linked, said before they start (docs/deploy.md, "Secure
     simulations")."""
