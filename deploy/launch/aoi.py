@@ -56,6 +56,19 @@ class AgeOfInformation:
         }
         return {**_figures(self.age_s), "unreached": self.unreached, "by_hops": by_hops}
 
+    def arrays(self, robots: Sequence[str]) -> dict[str, NDArray[Any]]:
+        """The samples as results.npz arrays (docs/results.md): ``aoi/age_ms`` float64,
+        ``aoi/hops``, ``aoi/owner`` and ``aoi/receiver`` (indices into ``robots``) and
+        ``aoi/step``, int64, all (n,)."""
+        index = {r: i for i, r in enumerate(robots)}
+        return {
+            "aoi/age_ms": 1e3 * self.age_s,
+            "aoi/hops": self.hops,
+            "aoi/owner": np.array([index[r] for r in self.owner], dtype=np.int64),
+            "aoi/receiver": np.array([index[r] for r in self.receiver], dtype=np.int64),
+            "aoi/step": self.step,
+        }
+
     def line(self) -> str:
         """One line for a summary: the overall figures and the p99 per hop count."""
         if not self.age_s.size:

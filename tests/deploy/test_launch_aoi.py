@@ -93,6 +93,20 @@ def test_age_document_gives_figures_overall_and_per_hop_count() -> None:
     json.dumps(doc, allow_nan=False)  # strict JSON, as results.json
 
 
+def test_age_arrays_index_the_robots_of_the_run() -> None:
+    ended = {("c", 4): 1.0}
+    got = age_of_information(LINE, ended, [(1.25, "a", 4, {"c": 4})], _line_hops)
+    arrays = got.arrays(LINE)
+    assert_close(arrays["aoi/age_ms"], np.array([250.0]))
+    assert [arrays[k].tolist() for k in ("aoi/hops", "aoi/owner", "aoi/receiver", "aoi/step")] == [
+        [2],
+        [2],
+        [0],
+        [4],
+    ]
+    assert {a.dtype.kind for k, a in arrays.items() if k != "aoi/age_ms"} == {"i"}
+
+
 def test_age_without_samples_has_null_figures_and_says_so() -> None:
     got = age_of_information(LINE, {("a", 1): 1.0}, [], _line_hops)
     doc = got.document()
@@ -159,3 +173,10 @@ def test_launch_archives_the_age_of_information_of_its_agents(tmp_path: Path) ->
     # Every estimate of every step that reached the conductor is either timed at both peers
     # or counted as never fused: at most 8 steps × 3 robots × 2 peers.
     assert aoi["samples"] + aoi["unreached"] <= 8 * 3 * 2
+    with np.load(tmp_path / "run" / "results.npz") as npz:
+        age, hops = npz["aoi/age_ms"], npz["aoi/hops"]
+        owner, receiver, step = npz["aoi/owner"], npz["aoi/receiver"], npz["aoi/step"]
+    assert age.shape == hops.shape == step.shape == (aoi["samples"],)
+    assert round(float(age.max()), 3) == aoi["max_ms"]  # results.json: to the µs
+    assert np.array_equal(hops, np.abs(owner - receiver))  # the line: |i − j| hops
+    assert ((step >= 1) & (step <= 8)).all()
