@@ -791,12 +791,15 @@ def _stack_payload(core: AgentCore) -> tuple[bytes, bytes | None, bool]:
 
 
 def _estimate(core: AgentCore) -> bytes:
-    """The estimate of ``core``'s current step: D (and L, with ``publish_local``), counters."""
+    """The estimate of ``core``'s current step: D (and L, with ``publish_local``), counters and
+    the version of each peer's slot D has integrated (what a launch times the age of
+    information by)."""
     node, robot = core.node, core.robot
     beliefs = {"distributed": node.distributed.snapshot(robot)}
     if core.settings.publish_local:
         beliefs["local"] = node.local.snapshot(robot)
-    return encode_estimate(EstimateMessage(robot, node.k, beliefs, core.counter_values()))
+    fused = node.distributed.stamps
+    return encode_estimate(EstimateMessage(robot, node.k, beliefs, core.counter_values(), fused))
 
 
 def _merge_round(core: AgentCore, rounds: Rounds, k: int) -> bool:

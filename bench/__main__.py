@@ -11,6 +11,7 @@ import time
 
 from bench import (
     bench_agents,
+    bench_aoi,
     bench_belief,
     bench_capacity,
     bench_crowd,
@@ -34,6 +35,7 @@ MODULES = (
     bench_crowd,
     bench_ufastslam,
     bench_agents,
+    bench_aoi,
     bench_gossip,
     bench_capacity,
     bench_secure,

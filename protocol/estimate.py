@@ -9,8 +9,12 @@ for weights, poses and covariances; classes one unsigned byte each (version 3), 
 adds two keys, ``num_classes`` (M) and ``class_probs`` (float64, C order), written only then: a
 message without them is byte for byte what it was, and the version is unchanged (an older
 decoder refuses a snapshot with them as unknown keys, but its ``decode_estimate_head`` still
-reads the message). As in ``protocol.codec``, ``decode_estimate`` raises only
-:class:`RemoteProtocolError` subclasses naming the field, and ``encode_estimate`` raises
+reads the message). A message may also say which version of each peer's slot its robot's fusion
+has integrated, ``fused`` (owner → stamp, what the launcher measures the age of information
+with): a top-level key written only when :attr:`EstimateMessage.fused` is set, again without a
+new version, but an older decoder refuses such a message as unknown keys, its
+``decode_estimate_head`` too (field ``message``). As in ``protocol.codec``, ``decode_estimate``
+raises only :class:`RemoteProtocolError` subclasses naming the field, and ``encode_estimate`` raises
 :class:`LocalProtocolError` for exactly what the decoder would reject under the same limits (the
 value checks are one function shared by both).
 
@@ -54,6 +58,9 @@ MAX_COUNTERS = 128
 BELIEF_NAME = re.compile(r"^[a-z_]{1,32}$")
 COUNTER_NAME = re.compile(r"^[a-z_]{1,48}$")
 _TOP_KEYS = frozenset({"v", "type", "robot", "k", "beliefs", "counters"})
+# Optional: owner → stamp of the slot versions the robot's fusion has integrated.
+_FUSED = "fused"
+_FUSED_TOP_KEYS = _TOP_KEYS | {_FUSED}
 # Wire dtype and per-hypothesis shape of every array of a snapshot but the object ids (n objects).
 _LAYOUT: dict[str, tuple[str, tuple[str | int, ...]]] = {
     "weights": ("<f8", ()),
@@ -83,6 +90,7 @@ class EstimateLimits:
     max_hypotheses: int = 5000
     max_objects: int = 1024
     max_message_bytes: int = 32 * 1024 * 1024
+    max_fused: int = 1024
     weight_tol: float = 1e-6
     symmetry_tol: float = 1e-9
 
@@ -90,12 +98,15 @@ class EstimateLimits:
 @dataclass(frozen=True, slots=True, eq=False)
 class EstimateMessage:
     """Robot ``robot``'s beliefs after its step ``k`` (0 before the first frame), by name
-    (``"local"``, ``"distributed"``), and optionally its counters (name → count ≥ 0)."""
+    (``"local"``, ``"distributed"``), and optionally its counters (name → count ≥ 0) and
+    ``fused``: owner → stamp of the version of each peer's slot its distributed belief has
+    integrated by the end of step ``k`` (None: not said; empty: none yet)."""
 
     robot: str
     k: int
     beliefs: dict[str, BeliefSnapshot]
     counters: dict[str, int] = field(default_factory=dict)
+    fused: dict[str, int] | None = None
 
 
 def _shape(h: int, n: int, per: tuple[str | int, ...]) -> tuple[int, ...]:
@@ -169,6 +180,8 @@ def encode_estimate(msg: EstimateMessage, limits: EstimateLimits | None = None) 
     for name, count in msg.counters.items():
         ok = _is_int(count) and 0 <= count <= MAX_COUNT
         _local(ok, f"counters.{name}", f"{count!r} outside 0..{MAX_COUNT}")
+    if msg.fused is not None:
+        _fused_local(msg.fused, lim)
     beliefs = {
         name: _encode_snapshot(msg.beliefs[name], f"beliefs.{name}", lim)
         for name in sorted(msg.beliefs)
@@ -185,10 +198,22 @@ def encode_estimate(msg: EstimateMessage, limits: EstimateLimits | None = None) 
         "beliefs": beliefs,
         "counters": {name: int(msg.counters[name]) for name in sorted(msg.counters)},
     }
+    if msg.fused is not None:
+        doc[_FUSED] = {owner: int(msg.fused[owner]) for owner in sorted(msg.fused)}
     blob = bytes(msgpack.packb(doc, use_bin_type=True))
     size_ok = len(blob) <= lim.max_message_bytes
     _local(size_ok, "message", f"{len(blob)} bytes > {lim.max_message_bytes}")
     return blob
+
+
+def _fused_local(fused: Any, lim: EstimateLimits) -> None:
+    _local(isinstance(fused, Mapping), _FUSED, "expected a mapping")
+    _local(len(fused) <= lim.max_fused, _FUSED, f"{len(fused)} entries > {lim.max_fused}")
+    bad = [o for o in fused if not valid_id(o)]
+    _local(not bad, _FUSED, f"invalid robot ids {bad!r}")
+    for owner, stamp in fused.items():
+        ok = _is_int(stamp) and 0 <= stamp <= MAX_STEP
+        _local(ok, f"{_FUSED}.{owner}", f"{stamp!r} outside 0..{MAX_STEP}")
 
 
 def _encode_snapshot(snap: BeliefSnapshot, where: str, lim: EstimateLimits) -> dict[str, Any]:
@@ -293,28 +318,30 @@ def decode_estimate_head(data: bytes, limits: EstimateLimits | None = None) -> E
     lim = limits or EstimateLimits()
 
     def head(doc: Any) -> EstimateMessage:
-        robot, k, _, counters, _ = _decode_head(doc, lim)
-        return EstimateMessage(robot, k, {}, counters)
+        robot, k, _, counters, _, fused = _decode_head(doc, lim)
+        return EstimateMessage(robot, k, {}, counters, fused)
 
     return decode_document(data, lim.max_message_bytes, head)
 
 
 def _decode_doc(doc: Any, lim: EstimateLimits) -> EstimateMessage:
-    robot, k, raw, counters, v = _decode_head(doc, lim)
+    robot, k, raw, counters, v, fused = _decode_head(doc, lim)
     beliefs = {name: _decode_snapshot(b, f"beliefs.{name}", lim, v) for name, b in raw.items()}
-    return EstimateMessage(robot, k, beliefs, counters)
+    return EstimateMessage(robot, k, beliefs, counters, fused)
 
 
 def _decode_head(
     doc: Any, lim: EstimateLimits
-) -> tuple[str, int, dict[str, Any], dict[str, int], int]:
-    """The robot, the step, the beliefs still as received, the counters and the version."""
+) -> tuple[str, int, dict[str, Any], dict[str, int], int, dict[str, int] | None]:
+    """The robot, the step, the beliefs still as received, the counters, the version and the
+    fused versions (None: not said)."""
     need(isinstance(doc, dict), "message", f"expected a map, got {type(doc).__name__}")
     version = doc.get("v")
     if "v" in doc and (type(version) is not int or version not in VERSIONS):
         speaks = ", ".join(map(str, VERSIONS))
         raise UnsupportedVersion(f"schema version {doc['v']!r} (this side speaks {speaks})", "v")
-    top = as_map(doc, "message", _TOP_KEYS)
+    fused_said = isinstance(doc, dict) and _FUSED in doc
+    top = as_map(doc, "message", _FUSED_TOP_KEYS if fused_said else _TOP_KEYS)
     if top["type"] != ESTIMATE:
         raise UnsupportedVersion(f"message type {top['type']!r}", "type")
     robot = robot_id(top["robot"], "robot")
@@ -325,7 +352,19 @@ def _decode_head(
     counters = _named(top["counters"], "counters", COUNTER_NAME, MAX_COUNTERS)
     for name, count in counters.items():
         as_int(count, f"counters.{name}", 0, MAX_COUNT)
-    return robot, k, raw, counters, v
+    fused = _decode_fused(top[_FUSED], lim) if fused_said else None
+    return robot, k, raw, counters, v, fused
+
+
+def _decode_fused(value: Any, lim: EstimateLimits) -> dict[str, int]:
+    """``fused``: a map of at most ``max_fused`` robot ids → stamps 0 … MAX_STEP."""
+    need(isinstance(value, dict), _FUSED, f"expected a map, got {type(value).__name__}")
+    most = lim.max_fused
+    need(len(value) <= most, _FUSED, f"{len(value)} entries > {most}", LimitExceeded)
+    need(all(isinstance(o, str) for o in value), _FUSED, "expected string robot ids")
+    bad = [o for o in value if not valid_id(o)]
+    need(not bad, _FUSED, f"invalid robot ids {bad!r}", InvalidValue)
+    return {o: as_int(stamp, f"{_FUSED}.{o}", 0, MAX_STEP) for o, stamp in value.items()}
 
 
 def _decode_snapshot(

@@ -34,6 +34,7 @@ SERIAL_MODULES = {
     "deploy/test_fleet_cmd.py",
     "deploy/test_fleet_from_logs.py",
     "deploy/test_launch.py",
+    "deploy/test_launch_aoi.py",
     "deploy/test_launch_cmd.py",
     "deploy/test_launch_supervisor.py",
     "deploy/test_launch_table.py",

@@ -90,6 +90,12 @@ class Collected:
     # arrival of a robot's first estimate of it, per (robot, step): how close to the next frame
     # each step ended (a robot that skipped a step's estimate while catching up has none).
     answered_s: dict[tuple[str, int], float] = field(default_factory=dict)
+    # When each robot's first estimate of each step arrived (time.monotonic(), as stack_log):
+    # the end of its step k, for the age of information (deploy.launch.aoi).
+    ended: dict[tuple[str, int], float] = field(default_factory=dict)
+    # (arrival, robot, step, {owner: stamp}) of every first estimate of a step that said which
+    # peer versions its fusion had integrated (``EstimateMessage.fused``).
+    fused_log: list[tuple[float, str, int, dict[str, int]]] = field(default_factory=list)
 
 
 @dataclass(frozen=True, slots=True)
@@ -296,6 +302,10 @@ class Conductor:
         self._scored.add((est.robot, est.k))
         if at is not None and est.k in c.links_published:
             c.answered_s[(est.robot, est.k)] = at - c.links_published[est.k]
+        if at is not None:
+            c.ended[(est.robot, est.k)] = at
+            if est.fused is not None:
+                c.fused_log.append((at, est.robot, est.k, est.fused))
         self._unscored.append(data)
         self._unscored_bytes += len(data)
         for belief, key in (("local", "step_us_local"), ("distributed", "step_us_distributed")):

@@ -3,6 +3,7 @@ table, the plots and the agents' counters."""
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any
 
 from rich.console import Console
@@ -21,6 +22,9 @@ def write_outputs(
     methods = list(LAUNCH_METHODS)
     settings = {"communication": plan.comm or s.communication.mode, **extra}
     archive = study_archive(s.name, [outcome.result], methods, settings)
+    if outcome.aoi is not None:
+        arrays = {**archive.arrays, **outcome.aoi.arrays(plan.robots)}
+        archive = dataclasses.replace(archive, arrays=arrays)
     write_archive(plan.out, archive)
     doc = archive.document()
     steps = plan.run_steps
@@ -28,6 +32,11 @@ def write_outputs(
     plots = write_plots(plan.out, doc, s, [outcome.result], steps, plan.robots[0])
     console.print(f"wrote {plan.out / 'results.json'} and {len(plots)} plots in {plan.out}")
     return doc
+
+
+def aoi_entry(outcome: LaunchOutcome) -> dict[str, Any]:
+    """``{"aoi": …}``, the run's age of information (docs/results.md), or nothing."""
+    return {} if outcome.aoi is None else {"aoi": outcome.aoi.document()}
 
 
 def security_line(plan: LaunchPlan) -> str:

@@ -36,8 +36,9 @@ from agents.links import LinkModel
 from agents.transport.base import Keys
 from agents.transport.zenoh_transport import ZenohSettings, ZenohTransport, loopback_endpoint
 from deploy.base.output import live_display
+from deploy.launch.aoi import AgeOfInformation, age_of_information, link_hops
 from deploy.launch.chaos import KILL, Faults, Garbage
-from deploy.launch.conductor import Collected, Conductor, ConductorError
+from deploy.launch.conductor import Collected, Conductor, ConductorError, links_at
 from deploy.launch.errors import LaunchError, PlanError
 from deploy.launch.netns import Network
 from deploy.launch.packet_faults import describe_cuts
@@ -192,6 +193,8 @@ class LaunchOutcome:
     garbage_sent: int
     # A netns run: packets each robot's namespace dropped, {robot: {"lost": n, "cut": n}}.
     dropped: dict[str, dict[str, int]] = field(default_factory=dict)
+    # How long each robot's steps took to reach the others' fusion (deploy.launch.aoi).
+    aoi: AgeOfInformation | None = None
 
 
 class Launcher:
@@ -510,8 +513,13 @@ class Launcher:
             calibration={m: c.calibration[m][:, :steps] for m in LAUNCH_METHODS},
             robots=tuple(self.plan.robots),  # the conductor's robot axis
         )
+        robots, frames = self.plan.robots, conductor.frames
+        hops = link_hops(
+            lambda k: links_at(self.links, frames, robots, k), robots, self.plan.zenoh_neighbours
+        )
+        aoi = age_of_information(robots, c.ended, c.fused_log, hops)
         return LaunchOutcome(
-            result, c, wall, self.agents, self.events, self.garbage.sent, self.dropped
+            result, c, wall, self.agents, self.events, self.garbage.sent, self.dropped, aoi
         )
 
 

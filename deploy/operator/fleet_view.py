@@ -170,8 +170,38 @@ def estimates_doc(view: FleetView, watched_s: float) -> dict[str, Any]:
     }
 
 
+def fusion_behind(view: FleetView) -> dict[str, dict[str, int]]:
+    """Per robot i, per peer j whose version it says it fused (``EstimateMessage.fused``) and
+    whose own estimate the view holds: how many steps j's latest estimate is ahead of the version
+    i's fusion holds, k_j − stamp (0 for a version at least as new: the two estimates answered
+    at slightly different times). A staleness every fleet can report without a shared clock."""
+    steps = {r: s.estimate.k for r, s in view.robots.items() if s.estimate is not None}
+    out: dict[str, dict[str, int]] = {}
+    for robot, state in sorted(view.robots.items()):
+        fused = state.estimate.fused if state.estimate is not None else None
+        if fused is not None:
+            out[robot] = {o: max(0, steps[o] - v) for o, v in sorted(fused.items()) if o in steps}
+    return out
+
+
+def behind_line(view: FleetView) -> str:
+    """The line under ``fleet status``'s table: the median and largest :func:`fusion_behind`
+    (empty when no robot says what it fused)."""
+    pairs = [(n, r, o) for r, peers in fusion_behind(view).items() for o, n in peers.items()]
+    if not pairs:
+        return ""
+    n, robot, owner = max(pairs)
+    median = float(np.median([p[0] for p in pairs]))
+    return (
+        f"fusion behind the peers' latest steps over {len(pairs)} (robot, peer): median "
+        f"{median:g}, max {n} ({robot} of {owner})"
+    )
+
+
 def status_doc(view: FleetView, elapsed_s: float, answered_s: float) -> dict[str, Any]:
-    """``fleet status --json``: per robot its token, step, hypotheses, objects and counters."""
+    """``fleet status --json``: per robot its token, step, hypotheses, objects, counters, the
+    peer versions its fusion holds and how far each is behind (:func:`fusion_behind`)."""
+    behind = fusion_behind(view)
     robots = []
     for robot in sorted(view.robots):
         state = view.robots[robot]
@@ -185,6 +215,8 @@ def status_doc(view: FleetView, elapsed_s: float, answered_s: float) -> dict[str
                 "hypotheses": {b: len(est.beliefs[b].weights) for b in beliefs} if est else {},
                 "objects": {b: len(est.beliefs[b].object_ids) for b in beliefs} if est else {},
                 "counters": dict(sorted(est.counters.items())) if est is not None else {},
+                "fused": dict(sorted(est.fused.items())) if est and est.fused is not None else None,
+                "behind_steps": behind.get(robot),
             }
         )
     return {

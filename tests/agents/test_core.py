@@ -775,6 +775,19 @@ def test_a_realtime_agent_behind_its_frames_defers_the_fusion_to_the_step_that_c
     assert not np.array_equal(snapshots[0].marginals(m), snapshots[1].marginals(m))
 
 
+def test_an_estimate_says_which_peer_versions_its_fusion_integrated(frames) -> None:  # type: ignore[no-untyped-def]
+    """``fused`` is D's integrated versions at the step reported: none before the peer's stack
+    is fused (a stack merged between steps waits for the next step), the peer's stamp after."""
+    peer = _seen_something("r2", frames)
+    d = Driver()
+    d.frame(frames["r1"][0])
+    assert decode_estimate(d.published[-1].payload).fused == {}
+    d.send(KEYS.stack("r2"), peer.encoded_stack())
+    d.frame(frames["r1"][1])
+    estimates = [p for p in d.published if p.key == KEYS.estimate("r1")]
+    assert decode_estimate(estimates[-1].payload).fused == {"r2": peer.k} != {}
+
+
 def test_catching_up_defers_at_most_catch_up_steps_in_a_row(frames) -> None:  # type: ignore[no-untyped-def]
     d = Driver(catch_up=2)
     _batch(d, _frames_of(frames["r1"][:7]))

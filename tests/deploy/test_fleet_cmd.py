@@ -33,7 +33,13 @@ from deploy.cli.args import zenoh_endpoint
 from deploy.launch import free_ports, write_agent_config
 from deploy.launch.conductor import without_truth
 from deploy.operator.fleet_session import StopProgress, session_settings, stop_fleet
-from deploy.operator.fleet_view import FleetView, estimates_doc
+from deploy.operator.fleet_view import (
+    FleetView,
+    behind_line,
+    estimates_doc,
+    fusion_behind,
+    status_doc,
+)
 from estimator.hybrid import BeliefSnapshot
 from estimator.metrics import mixture_moments
 from estimator.models import SensorFrame
@@ -598,3 +604,29 @@ def test_fleet_view_tokens_latest_estimate_trail_and_bad_input() -> None:
     assert view.invalid == 2 and "r2" not in view.robots
     assert view.on_message(Message(keys.alive("r1"), b"", "gone"), 6.0)
     assert view.alive() == [] and view.answered() == ["r1"]
+
+
+def test_fleet_status_says_how_far_each_fusion_is_behind_its_peers_steps() -> None:
+    """r1 at step 9 holds r2's version 5 (r2 is at 8: 3 behind) and r3's 7 (r3's estimate says
+    6: answered a little earlier, 0 behind); r2 holds r1's 9 (0); r3 says nothing of what it
+    fused (an older agent) and r4, which r2 fused, never answered."""
+    keys = Keys("f")
+    view = FleetView(keys)
+    for robot, k, fused in (
+        ("r1", 9, {"r2": 5, "r3": 7}),
+        ("r2", 8, {"r1": 9, "r4": 2}),
+        ("r3", 6, None),
+    ):
+        est = EstimateMessage(robot, k, {"distributed": HYP}, {}, fused)
+        view.on_message(Message(keys.estimate(robot), encode_estimate(est)), 1.0)
+    assert fusion_behind(view) == {"r1": {"r2": 3, "r3": 0}, "r2": {"r1": 0}}
+    doc = status_doc(view, 1.0, 0.5)
+    by_robot = {r["robot"]: r for r in doc["robots"]}
+    assert by_robot["r1"]["fused"] == {"r2": 5, "r3": 7}
+    assert by_robot["r1"]["behind_steps"] == {"r2": 3, "r3": 0}
+    assert by_robot["r3"]["fused"] is None and by_robot["r3"]["behind_steps"] is None
+    assert behind_line(view) == (
+        "fusion behind the peers' latest steps over 3 (robot, peer): median 0, max 3 (r1 of r2)"
+    )
+    json.dumps(doc, allow_nan=False)
+    assert behind_line(FleetView(keys)) == ""

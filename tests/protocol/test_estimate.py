@@ -113,6 +113,7 @@ def assert_same_snapshot(got: BeliefSnapshot, want: BeliefSnapshot) -> None:
 
 def assert_same_estimate(got: EstimateMessage, want: EstimateMessage) -> None:
     assert (got.robot, got.k, got.counters) == (want.robot, want.k, want.counters)
+    assert got.fused == want.fused
     assert sorted(got.beliefs) == sorted(want.beliefs)
     for name, snap in want.beliefs.items():
         assert_same_snapshot(got.beliefs[name], snap)
@@ -149,6 +150,13 @@ BASE_MESSAGES = (
             "local": make_snapshot(np.random.default_rng(7), h=2, n=2),
         },
     ),
+    EstimateMessage(  # the versions its fusion integrated
+        "r4",
+        9,
+        {"distributed": make_snapshot(np.random.default_rng(8), h=2, n=2)},
+        {"stacks_sent": 3},
+        {"r1": 8, "r2": 0, "x" * 32: MAX_STEP},
+    ),
 )
 BASE_BLOBS = tuple(encode_estimate(m) for m in BASE_MESSAGES)
 BASE_DOCS = tuple(msgpack.unpackb(b, raw=False) for b in BASE_BLOBS)
@@ -176,6 +184,9 @@ def _check_valid(msg: EstimateMessage, lim: EstimateLimits) -> None:
             assert p.ndim == 2 and p.shape[0] == n and 1 <= p.shape[1] <= lim.num_classes
             assert np.isfinite(p).all() and ((p >= 0) & (p <= 1)).all()
             assert (np.abs(p.sum(axis=1) - 1.0) <= lim.weight_tol).all()
+    if msg.fused is not None:
+        assert len(msg.fused) <= lim.max_fused
+        assert all(0 <= stamp <= MAX_STEP for stamp in msg.fused.values())
     assert_same_estimate(decode_estimate(encode_estimate(msg, lim), lim), msg)
 
 
@@ -683,7 +694,7 @@ EDGE_CLASSES = st.sampled_from(
 MUTATOR = fuzz.Mutator(
     known_keys=(
         *("v", "type", "robot", "k", "beliefs", "counters", "local", "objects", *ARRAYS),
-        *("num_classes", "class_probs"),
+        *("num_classes", "class_probs", "fused", "r1"),
     ),
     strings=("estimate", "r1", "local", ""),
     edge_ints=(-1, 0, 1, 63, 64, 2**32 - 1, 2**32, 2**63 - 1, 2**63),
@@ -857,6 +868,7 @@ def _head_agrees(blob: bytes) -> None:
         assert full.field.startswith("beliefs."), full  # refused for a belief's contents alone
     else:
         assert (head.robot, head.k, head.counters) == (full.robot, full.k, full.counters)
+        assert head.fused == full.fused
 
 
 @pytest.mark.parametrize("index", range(len(BASE_BLOBS)))
@@ -1142,3 +1154,103 @@ def test_the_head_of_an_estimate_with_class_probs_reads_as_an_old_decoder_would(
     why they came without a new version, which an older head decoder would refuse."""
     head = decode_estimate_head(PROBS_BLOB)
     assert (head.robot, head.k, head.beliefs) == ("r4", 5, {})
+
+
+# --------------------------------------------------------------------------- fused versions
+
+FUSED_REF = BASE_MESSAGES[4]
+FUSED_BLOB = BASE_BLOBS[4]
+FUSED_WIRE = fuzz.Wire(decode_estimate, BASE_DOCS[4], EstimateLimits(), _check_valid)
+
+
+def test_estimate_fused_versions_travel_after_the_counters_sorted_by_owner() -> None:
+    """``fused`` is written after ``counters``, owners sorted, the version unchanged; a message
+    without it is byte for byte what it was (REF has none)."""
+    doc = BASE_DOCS[4]
+    assert list(doc) == ["v", "type", "robot", "k", "beliefs", "counters", "fused"]
+    assert doc["v"] == 3
+    assert list(doc["fused"].items()) == [("r1", 8), ("r2", 0), ("x" * 32, MAX_STEP)]
+    assert "fused" not in REF_DOC and REF.fused is None
+    got = decode_estimate(FUSED_BLOB)
+    assert_same_estimate(got, FUSED_REF)
+    assert encode_estimate(got) == FUSED_BLOB
+    assert decode_estimate_head(FUSED_BLOB).fused == FUSED_REF.fused
+
+
+def test_estimate_fused_may_be_empty() -> None:
+    msg = dataclasses.replace(REF, fused={})
+    got = decode_estimate(encode_estimate(msg))
+    assert got.fused == {}
+    assert decode_estimate(REF_BLOB).fused is None
+
+
+@pytest.mark.parametrize(
+    ("value", "error", "field"),
+    [
+        ([["r1", 1]], MalformedMessage, "fused"),
+        ({"r 1": 1}, InvalidValue, "fused"),
+        ({"": 1}, InvalidValue, "fused"),
+        ({"r1": -1}, InvalidValue, "fused.r1"),
+        ({"r1": MAX_STEP + 1}, InvalidValue, "fused.r1"),
+        ({"r1": 1.0}, MalformedMessage, "fused.r1"),
+        ({"r1": True}, MalformedMessage, "fused.r1"),
+        ({"r1": None}, MalformedMessage, "fused.r1"),
+        ({f"r{i}": 1 for i in range(1025)}, LimitExceeded, "fused"),
+    ],
+)
+def test_estimate_malformed_fused_is_refused_naming_the_field(
+    value: Any, error: type[RemoteProtocolError], field: str
+) -> None:
+    blob = FUSED_WIRE.with_(("fused",), value)
+    FUSED_WIRE.assert_rejected(blob, error, field)
+    with pytest.raises(error) as caught:
+        decode_estimate_head(blob)
+    assert caught.value.field == field
+
+
+def test_estimate_fused_limit_follows_the_limits() -> None:
+    lim = EstimateLimits(max_fused=3)
+    assert decode_estimate(FUSED_BLOB, lim).fused == FUSED_REF.fused
+    blob = FUSED_WIRE.with_(("fused",), {"a": 1, "b": 1, "c": 1, "d": 1})
+    with pytest.raises(LimitExceeded) as caught:
+        decode_estimate(blob, lim)
+    assert caught.value.field == "fused"
+
+
+@pytest.mark.parametrize(
+    ("fused", "field"),
+    [
+        ([("r1", 1)], "fused"),
+        ({"r 1": 1}, "fused"),
+        ({1: 1}, "fused"),
+        ({"r1": -1}, "fused.r1"),
+        ({"r1": MAX_STEP + 1}, "fused.r1"),
+        ({"r1": 1.0}, "fused.r1"),
+        ({"r1": True}, "fused.r1"),
+        ({f"r{i}": 1 for i in range(1025)}, "fused"),
+    ],
+)
+def test_estimate_encode_rejects_the_fused_versions_decode_would(fused: Any, field: str) -> None:
+    with pytest.raises(LocalProtocolError) as caught:
+        encode_estimate(dataclasses.replace(REF, fused=fused))
+    assert caught.value.field == field
+
+
+@settings(FUZZ, max_examples=300)
+@given(
+    fused=st.dictionaries(
+        st.from_regex(r"^[A-Za-z0-9_-]{1,32}$", fullmatch=True),
+        st.integers(0, MAX_STEP),
+        max_size=20,
+    )
+)
+def test_estimate_fused_round_trips(fused: dict[str, int]) -> None:
+    msg = dataclasses.replace(REF, fused=fused)
+    assert_same_estimate(decode_estimate(encode_estimate(msg)), msg)
+
+
+@settings(FUZZ, max_examples=300)
+@given(edits=fuzz.BYTE_EDITS)
+def test_estimate_corrupted_fused_raise_only_remote_errors(edits: list[tuple[int, int]]) -> None:
+    FUSED_WIRE.decode_or_reject(fuzz.corrupt(FUSED_BLOB, edits))
+    _head_agrees(fuzz.corrupt(FUSED_BLOB, edits))

@@ -20,7 +20,7 @@ from deploy.cli.commands import ros2_options
 from deploy.cli.commands.launch import SECURE_HELP, check_outputs
 from deploy.cli.outputs import add_force
 from deploy.launch import LaunchPlan
-from deploy.launch.report import counters_table, security_line, write_outputs
+from deploy.launch.report import aoi_entry, counters_table, security_line, write_outputs
 from deploy.launch.rerun_view import add_options as add_view_options
 from deploy.launch.rerun_view import launch_recorded
 from deploy.study.scenario_show import render_show, save_ground_truth_plot
@@ -79,7 +79,9 @@ def run(args: argparse.Namespace, console: Console) -> int:
     console.print(counters_table(outcome))
     if bag is not None:
         ros2_options.write_recording(args, bag, plan, outcome, start_ns, console)
-    launched = {"mode": plan.mode, "wall_s": outcome.wall_s}
+    if outcome.aoi is not None:
+        console.print(outcome.aoi.line())
+    launched = {"mode": plan.mode, "wall_s": outcome.wall_s, **aoi_entry(outcome)}
     doc = write_outputs(plan, outcome, console, {"demo": True, "launch": launched})
     console.print(final_table(doc, scenario.steps))
     console.print(
