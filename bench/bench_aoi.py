@@ -10,8 +10,9 @@ receiver's next step (up to one period) to be fused, and each relay may add 30 m
 
 The relay is a parameter: :data:`RELAYS` names each way of relaying measured, with the launch
 plan's fields that select it; every one runs in the same invocation, one launch after the other,
-so that their rows stand side by side. Today's agents relay on their gossip timer (delta gossip
-with asks, ``stack_gossip = "ask"``, the default); an event-driven relay adds its own entry here.
+so that their rows stand side by side: the event-driven relay (``relay = "event"``, the default
+since issue 47: a slot a neighbour asked for goes as soon as it was merged) and the relay on the
+gossip timer (``"tick"``, before), both with delta gossip and asks (``stack_gossip = "ask"``).
 """
 
 from __future__ import annotations
@@ -36,7 +37,8 @@ TARGET_BASE_MS = 1e3 * PERIOD_S  # the receiver's next step
 TARGET_PER_HOP_MS = 30.0
 # Label → the LaunchPlan fields that select the relay (the other fields are the same for all).
 RELAYS: dict[str, dict[str, Any]] = {
-    "timer": {"stack_gossip": "ask"},
+    "event": {"stack_gossip": "ask", "relay": "event"},
+    "timer": {"stack_gossip": "ask", "relay": "tick"},
 }
 
 _notes: list[str] = []
