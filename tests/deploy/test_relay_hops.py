@@ -32,3 +32,23 @@ def test_hops_go_away_from_the_owner_in_both_directions() -> None:
            (0.009, "r4", {"r2": 1})]  # fmt: skip
     hops = sorted(round(ms, 6) for _, ms in forward_hops(log, LINE))
     assert hops == [pytest.approx(2.0), pytest.approx(4.0), pytest.approx(5.0)]
+
+
+def test_after_meeting_keeps_the_samples_of_the_later_steps_only() -> None:
+    import numpy as np
+
+    from bench.bench_aoi import after_meeting
+    from deploy.launch.aoi import AgeOfInformation
+
+    aoi = AgeOfInformation(
+        age_s=np.array([1.0, 0.5, 0.52, 0.99]),
+        hops=np.array([3, 1, 3, 2]),
+        owner=("r1", "r2", "r1", "r4"),
+        receiver=("r4", "r3", "r4", "r2"),
+        step=np.array([1, 3, 4, 2]),
+        unreached=2,
+    )
+    later = after_meeting(aoi, 2)
+    assert later.age_s.tolist() == [0.5, 0.52] and later.hops.tolist() == [1, 3]
+    assert later.owner == ("r2", "r1") and later.receiver == ("r3", "r4")
+    assert later.step.tolist() == [3, 4] and later.unreached == 2
