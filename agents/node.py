@@ -159,6 +159,8 @@ class NodeCounters:
     (the belief gate, ``estimator.gate``), ``foreign_slots``
     slots refused because their owner is outside the roster (or the stack is full),
     ``own_slot_invalid`` times the own slot could not be sent (outside the limits),
+    ``evicted_slots`` held slots dropped for a fresher one when the stack was full (the
+    neighbourhood bound, :meth:`RobotNode._admitted`),
     ``empty_joins`` slots whose join with D was empty and ``rebuilds`` the times D was rebuilt
     from L and the held slots because of one, ``completed_joins`` the hypotheses of D joined with
     a slot's nearest realisations because the slot carried none of theirs
@@ -179,6 +181,7 @@ class NodeCounters:
     rejected_slots: int = 0
     foreign_slots: int = 0
     own_slot_invalid: int = 0
+    evicted_slots: int = 0
     empty_joins: int = 0
     rebuilds: int = 0
     completed_joins: int = 0
@@ -600,13 +603,24 @@ class RobotNode:
         (or, for the own slot, than the node's own (epoch, step)); the others are not parsed."""
         if owner == self.robot:
             return (epoch, stamp) > (self.epoch, self.k)
-        return (epoch, stamp) > (self.stack.version_of(owner) or (-1, -1))
+        held = self.stack.version_of(owner)
+        if held is None:
+            return self._room_for(stamp)
+        return (epoch, stamp) > held
+
+    def _room_for(self, stamp: int) -> bool:
+        """Whether a slot of an owner not held, made at step ``stamp``, would be held: the
+        stack has room, or ``stamp`` is fresher than the stalest held slot's (the neighbourhood
+        bound, :meth:`_admitted`)."""
+        others = [s.stamp for s in self.stack if s.owner != self.robot]
+        return len(others) + 1 < self.limits.max_slots or stamp > min(others, default=stamp)
 
     def merge(self, message: StackMessage) -> bool:
         """Merge a decoded stack (newest version per owner, never the own slot); True if it
         brought a newer slot."""
         epoch = self.epoch
-        merged = self.stack.merge(self._admitted(message.stack), own=self.robot)
+        admitted = self._admitted(message.stack)  # may evict held slots from self.stack
+        merged = self.stack.merge(admitted, own=self.robot)
         if merged.versions() == self.stack.versions():
             if self.epoch != epoch:
                 return True  # the stack moved the own epoch: a replay must see it again
@@ -619,9 +633,19 @@ class RobotNode:
 
     def _admitted(self, stack: Stack) -> list[Slot]:
         """The slots of a received stack this node may hold: owners in the roster, and no more
-        owners in all than a stack may carry (so that the own stack always encodes)."""
+        owners in all than a stack may carry (so that the own stack always encodes).
+
+        The neighbourhood bound (docs/distributed.md, "How many robots a D holds"): when the
+        stack is full, a slot of a new owner takes the place of the stalest held slot (the
+        lowest stamp, the owner's step when it made the slot) if it is fresher, and is refused
+        otherwise. Relayed one hop per step, a slot's age is its owner's distance in hops, so a
+        robot keeps the ``max_slots − 1`` nearest robots it hears of, and lets go of those that
+        moved away. The evicted slots leave the stack at once and D at its next step, which
+        rebuilds D from L and the slots still held (``evicted_slots``). Stamps are compared
+        across owners: they count steps of one fleet (lock-step, or agents of one launch)."""
         held = self.stack.versions()
         room = self.limits.max_slots - len(held | {self.robot: (0, 0)})
+        stamps = {s.owner: s.stamp for s in self.stack if s.owner != self.robot}
         out = []
         for s in stack:
             if s.owner == self.robot:
@@ -633,7 +657,7 @@ class RobotNode:
             if self.roster is not None and s.owner not in self.roster:
                 self.counters.foreign_slots += 1
                 continue
-            if s.owner not in held and room <= 0:
+            if s.owner not in held and room <= 0 and not self._evict_for(s, held, stamps):
                 self.counters.foreign_slots += 1
                 continue
             if s.version <= held.get(s.owner, (-1, -1)):
@@ -642,8 +666,27 @@ class RobotNode:
                 continue  # never held, so never relayed either
             if s.owner not in held:
                 room -= 1
+            stamps.pop(s.owner, None)  # taken: no longer one to evict for this stack's others
             out.append(s)
         return out
+
+    def _evict_for(
+        self, slot: Slot, held: dict[str, tuple[int, int]], stamps: dict[str, int]
+    ) -> bool:
+        """Drop the stalest slot of ``stamps`` (held, and not taken from this stack) from the
+        stack, ``held`` and ``stamps`` (and from D at its next step) if ``slot`` is fresher and
+        fits D's model; whether one was dropped."""
+        if not stamps:
+            return False
+        stalest = min(stamps, key=lambda o: (stamps[o], o))
+        if slot.stamp <= stamps[stalest] or not self._fits(slot):
+            return False
+        self.stack = Stack(tuple(s for s in self.stack if s.owner != stalest))
+        del stamps[stalest], held[stalest]
+        self._encoded = None
+        self._rebuild_due = True
+        self.counters.evicted_slots += 1
+        return True
 
     def _check_own(self, slot: Slot) -> None:
         """A received version of the own slot newer than any this node made (its current
