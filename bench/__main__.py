@@ -15,6 +15,7 @@ from bench import (
     bench_capacity,
     bench_crowd,
     bench_draws,
+    bench_fleetscale,
     bench_gossip,
     bench_mapscale,
     bench_models,
@@ -38,6 +39,7 @@ MODULES = (
     bench_capacity,
     bench_secure,
     bench_mapscale,
+    bench_fleetscale,
     bench_study,
 )
 
