@@ -100,3 +100,22 @@ def test_linked_pairs_are_the_robots_in_range() -> None:
         if a != b and math.dist(pos[a], pos[b]) <= (s.communication.range or 10.0)
     }
     assert set(pairs) == expected and len(pairs) == len(expected) > 0
+
+
+def test_a_fleet_larger_than_a_stack_keeps_every_stack_within_the_wire() -> None:
+    """70 robots in one another's range, more than a stack's 64 slots (docs/distributed.md,
+    "How many robots a D holds"): every robot holds 63 peers' slots, every stack it sends is
+    one a peer accepts, and D fuses what the stack holds."""
+    s = generate_scenario(70, 24, 3, seed=4, steps=3, area=6.0, comm_range=20.0)
+    frames = Simulator(s, 1).all_frames()
+    nodes = make_nodes(s, belief_model(s), BeliefConfig(), lambda r: belief_rng(1, [r]))
+    stats = run_fleet(nodes, frames, link_model_for(s), s.steps)
+    cap = next(iter(nodes.values())).limits.max_slots
+    assert cap == 64 and stats.deliveries > 0
+    for r, node in nodes.items():
+        c = node.counters
+        assert c.invalid == c.own_slot_invalid == 0, r
+        assert len(node.current_stack()) <= cap
+        peers = {slot.owner for slot in node.stack} - {r}
+        assert set(node.distributed.versions) == peers, r
+    assert max(len(n.distributed.versions) for n in nodes.values()) == cap - 1
