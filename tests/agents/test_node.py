@@ -855,8 +855,9 @@ def test_a_full_stack_takes_a_fresher_slot_for_its_stalest_and_d_follows(
     frames: dict[str, list[SensorFrame]],
 ) -> None:
     """With room for two peers' slots, a slot of a new owner made later than the stalest held
-    one takes its place (counted), one made no later is neither parsed nor held, and D drops
-    the evicted owner's information at its next step (a rebuild from L and the held slots)."""
+    one takes its place (counted), one made no later is neither parsed nor held; D keeps the
+    evicted owners' last versions until it keeps two (as many as the stack holds peers), and
+    then drops them at its next step (a rebuild from L and the held slots)."""
     limits = dataclasses.replace(Limits(num_classes=SCENARIO.num_classes), max_slots=3)
     model = belief_model(SCENARIO)
     nodes = make_nodes(
@@ -878,6 +879,11 @@ def test_a_full_stack_takes_a_fresher_slot_for_its_stalest_and_d_follows(
     assert r1.counters.evicted_slots == 1 and len(r1.stack) <= limits.max_slots
     rebuilds = r1.counters.rebuilds
     _advance(r1, frames, 8)
-    assert set(r1.distributed.versions) == {"b", "c"}
-    assert r1.counters.rebuilds == rebuilds + 1
+    assert set(r1.distributed.versions) == {"a", "b", "c"}  # a's last version kept
+    assert r1.counters.rebuilds == rebuilds
+    assert r1.receive(_single("d", 9, summary), "d").taken  # b evicted: two dropped now
+    assert {s.owner for s in r1.current_stack()} == {"r1", "c", "d"}
+    _advance(r1, frames, 9)
+    assert set(r1.distributed.versions) == {"c", "d"}
+    assert r1.counters.rebuilds == rebuilds + 1 and r1.counters.evicted_slots == 2
     assert r1.outgoing() is not None and r1.counters.own_slot_invalid == 0
