@@ -2,29 +2,34 @@
 one hop per step) of N = 10, 25, 50, 100 robots on generated worlds at one density: 3 objects
 per robot, 16 m² per object (``generate_scenario(N, 3N, 3, seed, steps, area=4·√(3N))``, a side
 of 22 m at N = 10 and 69 m at N = 100), 10 m radio range, so that a robot has about as many
-neighbours at every N (6 to 7).
+neighbours at every N (5 to 8 heard a step).
 
-Per N, per robot and step, CPU time (``time.process_time``, over the second half of the mission,
-when every D holds every slot it will): L's step; D's fusion of the slots and D's step; gossip —
-encoding its stack and decoding and merging every stack it heard — per stack heard (per
+Per N, per robot and step, CPU time (``time.process_time``, over the second half of the
+mission): L's step; D's fusion of the slots and D's step (its rebuilds included); gossip —
+encoding its stack once and decoding and merging every stack it heard — per stack heard (per
 neighbour); the digests of the whole fleet its delta-gossip policy notes (the lock-step agents'
 protocol: every robot reads every digest); bytes sent; the age of information: for every pair
 (i, j) and every version v of j's slot (made at j's step v), the steps until i's D first fuses a
-version ≥ v (p50 / p99 / max, and in seconds at the agents' 0.5 s step), and against the hops
-between them at step v; L's and D's robot and object error at the last step and the objects
-each knows. Then D's cost against N (the exponent b of a least-squares fit of
-log(ms) = a + b·log N) and the target: at N = 100, L and gossip per neighbour ≤ 1.5× N = 25.
+version ≥ v (p50 / p99 / max, and in seconds at the agents' 0.5 s step), and its median against
+the hops between them at step v; L's and D's robot and object error at the last step and the
+objects each knows. Then each cost against N (the exponent b of a least-squares fit of
+log(ms) = a + b·log N, and the linear fit's ms per robot added) and the target: at N = 100, L
+and gossip per neighbour ≤ 1.5× N = 25, in the same run.
 
-And the 64-slot cap's question (docs/distributed.md, "How many robots a D holds"): the
-largest N again with every node's ``max_slots`` bounded (``SEMFLEET_BENCH_FLEETSCALE_BOUNDS``,
-default ``16,64``: 64 was the wire's cap before issue 47; a robot then keeps the slots of the
-first max_slots − 1 robots it hears of, in a proximity fleet the nearest hops first), so that
-what a bound saves in CPU and bytes is read beside what it costs in accuracy.
+And the 64-slot cap's question (docs/distributed.md, "How many robots a D holds"): the largest
+N again with every node's ``max_slots`` set (``SEMFLEET_BENCH_FLEETSCALE_BOUNDS``, default
+``25,256``: a robot keeps the slots of the max_slots − 1 freshest robots, the nearest by hops;
+256 holds every robot, the cap raised), each with the target, so that what a bound saves in CPU
+and bytes is read beside what it costs in accuracy.
 
 ``SEMFLEET_BENCH_FLEETSCALE_SIZES`` (default ``10,25,50,100``), ``SEMFLEET_BENCH_FLEETSCALE_STEPS``
 (default 40), ``SEMFLEET_BENCH_WORLD_SEED`` (the generated world, default 11) and
 ``SEMFLEET_BENCH_FLEETSCALE_SEED`` (the simulation's noise, default 1) choose what runs. At the
-defaults N = 100 takes about 2.5 min of one core, the whole module about 10 min.
+defaults one N = 100 run takes 1.5 to 4 min of one core, the whole module 10 to 15 min.
+
+Over 300 lines for a reason: one fleet run's measures (CPU by phase, versions fused, hops,
+accuracy) and the rows, slopes and targets that read them share the ``Point`` layout; split,
+the two halves would change together.
 """
 
 from __future__ import annotations
