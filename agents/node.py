@@ -654,8 +654,8 @@ class RobotNode:
         otherwise. Relayed one hop per step, a slot's age is its owner's distance in hops, so a
         robot keeps the ``max_slots − 1`` nearest robots it hears of, and lets go of those that
         moved away. The evicted slots leave the stack at once (``evicted_slots``), and D in
-        batches (:meth:`_drop_evicted`). Stamps are compared
-        across owners: they count steps of one fleet (lock-step, or agents of one launch)."""
+        batches (:meth:`_drop_evicted`). Stamps are compared across owners: they count steps
+        of one fleet (lock-step, or agents of one launch)."""
         held = self.stack.versions()
         room = self.limits.max_slots - len(held | {self.robot: (0, 0)})
         stamps = {s.owner: s.stamp for s in self.stack if s.owner != self.robot}
