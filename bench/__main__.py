@@ -16,6 +16,7 @@ from bench import (
     bench_capacity,
     bench_crowd,
     bench_draws,
+    bench_fleetscale,
     bench_gossip,
     bench_mapscale,
     bench_models,
@@ -40,6 +41,7 @@ MODULES = (
     bench_capacity,
     bench_secure,
     bench_mapscale,
+    bench_fleetscale,
     bench_study,
 )
 

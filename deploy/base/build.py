@@ -152,9 +152,11 @@ def make_nodes(
     fusion: str = "consistent",
     downdate: str = "remove",
     tracks: Mapping[str, LocalTrack] | None = None,
+    limits: Limits | None = None,
 ) -> dict[str, RobotNode]:
     """One node per robot of the scenario; ``rng_for(robot)`` builds a fresh generator, called
-    twice per robot so that L and D draw identical streams. ``tracks`` shares local beliefs."""
+    twice per robot so that L and D draw identical streams. ``tracks`` shares local beliefs;
+    ``limits``: every node's wire limits (default ``agents.node.node_limits``)."""
     return {
         r.id: _node(
             r.id,
@@ -165,6 +167,7 @@ def make_nodes(
             fusion,
             downdate,
             None if tracks is None else tracks[r.id],
+            limits=limits,
         )
         for r in scenario.robots
     }

@@ -32,6 +32,7 @@ __all__ = [
     "FleetStats",
     "StepCallback",
     "link_model_for",
+    "linked_pairs",
     "make_nodes",
     "run_fleet",
     "run_fleets",
@@ -47,13 +48,34 @@ class FleetStats:
     order ``on_step`` sees them) the empty joins and rebuilds of D's fusion (``FusionStats``);
     ``refused`` the stacks and slots the fleet's nodes refused over the run (``NodeCounters``:
     invalid stacks, slots that contradict the model, own slots outside the wire's limits), none
-    in an honest fleet whose limits fit its beliefs."""
+    in an honest fleet whose limits fit its beliefs.
+
+    Per robot step too, in seconds by the run's ``clock``: the three phases of its step
+    (``fusion_s`` into D, L's step ``local_s``, D's step ``distributed_s``; ``StepReport``),
+    ``gossip_s`` the stacks of the deliveries before it (its own stack encoded, once, and every
+    stack it received decoded and merged), ``digest_s`` the digests of the whole fleet noted by
+    its delta-gossip policy (0 with full stacks), and ``heard`` the stacks it received then."""
 
     delivered_bytes: list[int] = field(default_factory=list)
     deliveries: int = 0
     empty_joins: list[int] = field(default_factory=list)
     rebuilds: list[int] = field(default_factory=list)
     refused: int = 0
+    fusion_s: list[float] = field(default_factory=list)
+    local_s: list[float] = field(default_factory=list)
+    distributed_s: list[float] = field(default_factory=list)
+    gossip_s: list[float] = field(default_factory=list)
+    digest_s: list[float] = field(default_factory=list)
+    heard: list[int] = field(default_factory=list)
+
+
+@dataclass(slots=True)
+class _Gossiped:
+    """One robot's share of one step's deliveries (seconds by the run's clock)."""
+
+    gossip_s: float = 0.0
+    digest_s: float = 0.0
+    heard: int = 0
 
 
 def run_fleet(
@@ -63,12 +85,14 @@ def run_fleet(
     steps: int,
     on_step: StepCallback | None = None,
     gossip: str = "delta",
+    clock: Callable[[], float] = time.perf_counter,
 ) -> FleetStats:
     """Drive ``nodes`` through ``steps`` lock-step rounds; ``on_step(robot, k, node, fusion_ms,
-    step_ms)`` is called after every robot step with the wall times of the fusion into D and of
-    the whole step (fusion included) in ms."""
+    step_ms)`` is called after every robot step with the times of the fusion into D and of
+    the whole step (fusion included) in ms, by ``clock`` (seconds; default the wall clock,
+    ``time.process_time`` for CPU time): it times, never changes, what the fleet does."""
     callbacks = None if on_step is None else [on_step]
-    return run_fleets([nodes], frames, links, steps, callbacks, gossip=gossip)[0]
+    return run_fleets([nodes], frames, links, steps, callbacks, gossip=gossip, clock=clock)[0]
 
 
 def run_fleets(
@@ -79,23 +103,27 @@ def run_fleets(
     on_step: Sequence[StepCallback] | None = None,
     before_step: Callable[[int], None] | None = None,
     gossip: str = "delta",
+    clock: Callable[[], float] = time.perf_counter,
 ) -> list[FleetStats]:
     """Several fleets over the same frames and links in one lock-step loop, so that fleets whose
     nodes share a :class:`LocalTrack` per robot step each L once. ``before_step(k)`` runs after
     the deliveries of step k and before any robot steps (e.g. to step shared tracks itself).
-    ``gossip``: what a stack carries (module docstring)."""
+    ``gossip``: what a stack carries (module docstring); ``clock``: see :func:`run_fleet`."""
     if gossip not in GOSSIP_MODES:
         raise ValueError(f"gossip {gossip!r} (known: {', '.join(GOSSIP_MODES)})")
     stats = [FleetStats() for _ in fleets]
     policies = [_policies(nodes) if gossip == "delta" else None for nodes in fleets]
     for k in range(1, steps + 1):
         # Every fleet delivers before any robot steps: a shared L must not run ahead of a stack.
-        for i, nodes in enumerate(fleets):
-            _deliver(nodes, frames, links, k, stats[i], policies[i])
+        gossiped = [
+            _deliver(nodes, frames, links, k, stats[i], policies[i], clock)
+            for i, nodes in enumerate(fleets)
+        ]
         if before_step is not None:
             before_step(k)
         for i, nodes in enumerate(fleets):
-            _advance(nodes, frames, k, stats[i], None if on_step is None else on_step[i])
+            callback = None if on_step is None else on_step[i]
+            _advance(nodes, frames, k, stats[i], callback, gossiped[i], clock)
     for st, nodes in zip(stats, fleets, strict=True):
         st.refused = sum(_refused(node.counters) for node in nodes.values())
     return stats
@@ -115,20 +143,30 @@ def _policies(nodes: Mapping[str, RobotNode]) -> dict[str, DeltaGossip]:
 
 
 def _outgoing(
-    nodes: Mapping[str, RobotNode], senders: Sequence[str], policies: dict[str, DeltaGossip], k: int
+    nodes: Mapping[str, RobotNode],
+    senders: Sequence[str],
+    policies: dict[str, DeltaGossip],
+    k: int,
+    clock: Callable[[], float],
+    gossiped: dict[str, _Gossiped],
 ) -> dict[str, bytes | None]:
     """Delta gossip: every robot's round stack (the held slots some peer lacks by its latest
     digest; None while it holds nothing, as a full stack), then every robot notes every other's
     digest (the versions it held when it sent), as every lock-step agent reads every stack."""
     held = {r: _digest(node) for r, node in nodes.items()}
-    out = {
-        s: nodes[s].encoded_delta(policies[s].select(held[s], k, unsent=False)) if held[s] else None
-        for s in senders
-    }
-    for sender, have in held.items():
-        for r, policy in policies.items():
+    out: dict[str, bytes | None] = {}
+    for s in senders:
+        t0 = clock()
+        chosen = policies[s].select(held[s], k, unsent=False) if held[s] else None
+        out[s] = None if chosen is None else nodes[s].encoded_delta(chosen)
+        gossiped[s].gossip_s += clock() - t0
+    # Each policy notes the digests in the senders' order, whichever robot notes first.
+    for r, policy in policies.items():
+        t0 = clock()
+        for sender, have in held.items():
             if r != sender:
                 policy.note_digest(sender, have, frozenset(), k)
+        gossiped[r].digest_s += clock() - t0
     return out
 
 
@@ -143,37 +181,54 @@ def _digest(node: RobotNode) -> dict[str, tuple[int, int]]:
     return have
 
 
-def _deliver(
-    nodes: Mapping[str, RobotNode],
-    frames: Mapping[str, Sequence[SensorFrame]],
-    links: LinkModel,
-    k: int,
-    stats: FleetStats,
-    policies: dict[str, DeltaGossip] | None = None,
-) -> None:
-    robots = list(nodes)
+def linked_pairs(
+    robots: Sequence[str], frames: Mapping[str, Sequence[SensorFrame]], links: LinkModel, k: int
+) -> list[tuple[str, str]]:
+    """The (sender, receiver) pairs ``links`` allows at step k, by the robots' true positions
+    then, receiver by receiver in the order of ``robots``: the deliveries of step k."""
     positions = {r: frames[r][k - 1].true_pose for r in robots}
-    deliveries = [
+    return [
         (sender, receiver)
         for receiver in robots
         for sender in robots
         if sender != receiver
         and links.allowed(sender, receiver, k, positions[sender], positions[receiver])
     ]
+
+
+def _deliver(
+    nodes: Mapping[str, RobotNode],
+    frames: Mapping[str, Sequence[SensorFrame]],
+    links: LinkModel,
+    k: int,
+    stats: FleetStats,
+    policies: dict[str, DeltaGossip] | None,
+    clock: Callable[[], float],
+) -> dict[str, _Gossiped]:
+    deliveries = linked_pairs(list(nodes), frames, links, k)
+    gossiped = {r: _Gossiped() for r in nodes}
     # Every stack is taken before any is delivered: what peers had at the end of step k − 1.
     senders = sorted({s for s, _ in deliveries})
     if policies is None:
-        outgoing = {s: nodes[s].outgoing() for s in senders}
+        outgoing = {}
+        for s in senders:
+            t0 = clock()
+            outgoing[s] = nodes[s].outgoing()
+            gossiped[s].gossip_s += clock() - t0
     else:
-        outgoing = _outgoing(nodes, senders, policies, k)
+        outgoing = _outgoing(nodes, senders, policies, k, clock, gossiped)
     for sender, receiver in deliveries:
         data = outgoing[sender]
         if data is None:
             continue
+        t0 = clock()
         nodes[receiver].receive(data, sender)
+        gossiped[receiver].gossip_s += clock() - t0
+        gossiped[receiver].heard += 1
         nodes[sender].mark_sent(len(data))
         stats.delivered_bytes.append(len(data))
         stats.deliveries += 1
+    return gossiped
 
 
 def _advance(
@@ -182,11 +237,19 @@ def _advance(
     k: int,
     stats: FleetStats,
     on_step: StepCallback | None,
+    gossiped: Mapping[str, _Gossiped],
+    clock: Callable[[], float],
 ) -> None:
     for r in nodes:
-        done = nodes[r].on_frame(frames[r][k - 1], clock=time.perf_counter)
+        done = nodes[r].on_frame(frames[r][k - 1], clock=clock)
         stats.empty_joins.append(done.fusion.empty_joins)
         stats.rebuilds.append(done.fusion.rebuilds)
+        stats.fusion_s.append(done.fusion_s)
+        stats.local_s.append(done.local_s)
+        stats.distributed_s.append(done.distributed_s)
+        stats.gossip_s.append(gossiped[r].gossip_s)
+        stats.digest_s.append(gossiped[r].digest_s)
+        stats.heard.append(gossiped[r].heard)
         if on_step is not None:
             whole = done.fusion_s + done.local_s + done.distributed_s
             on_step(r, k, nodes[r], 1e3 * done.fusion_s, 1e3 * whole)

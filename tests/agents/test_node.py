@@ -842,3 +842,48 @@ def test_a_node_with_robot_local_ids_and_joint_classes_neither_sends_nor_holds_s
     assert peer is not None
     got = r1.receive(encode(StackMessage("r2", None, decode(peer).stack, STEPS)))
     assert not got.taken and r1.counters.unassociated_slots == 1 and len(r1.stack) == 0
+
+
+# -- the neighbourhood bound (issue 47) ----------------------------------------------------------
+
+
+def _single(owner: str, stamp: int, summary: LocalSummary) -> bytes:
+    return encode(StackMessage(owner, None, Stack((Slot(owner, stamp, summary),)), stamp))
+
+
+def test_a_full_stack_takes_a_fresher_slot_for_its_stalest_and_d_follows(
+    frames: dict[str, list[SensorFrame]],
+) -> None:
+    """With room for two peers' slots, a slot of a new owner made later than the stalest held
+    one takes its place (counted), one made no later is neither parsed nor held; D keeps the
+    evicted owners' last versions until it keeps two (as many as the stack holds peers), and
+    then drops them at its next step (a rebuild from L and the held slots)."""
+    limits = dataclasses.replace(Limits(num_classes=SCENARIO.num_classes), max_slots=3)
+    model = belief_model(SCENARIO)
+    nodes = make_nodes(
+        SCENARIO, model, BeliefConfig(), lambda r: belief_rng(SEED, [r]), limits=limits
+    )
+    r1, r3 = nodes["r1"], nodes["r3"]
+    _advance(r3, frames, 6)
+    _advance(r1, frames, 6)
+    summary = _own_slot(r3).summary
+    for owner, stamp in (("a", 6), ("b", 7)):
+        assert r1.receive(_single(owner, stamp, summary), owner).taken
+    _advance(r1, frames, 7)
+    assert set(r1.distributed.versions) == {"a", "b"}
+    skipped = r1.counters.slots_skipped
+    assert not r1.receive(_single("c", 6, summary), "c").taken  # no later than a's
+    assert r1.counters.slots_skipped == skipped + 1 and r1.counters.evicted_slots == 0
+    assert r1.receive(_single("c", 8, summary), "c").taken
+    assert {s.owner for s in r1.current_stack()} == {"r1", "b", "c"}
+    assert r1.counters.evicted_slots == 1 and len(r1.stack) <= limits.max_slots
+    rebuilds = r1.counters.rebuilds
+    _advance(r1, frames, 8)
+    assert set(r1.distributed.versions) == {"a", "b", "c"}  # a's last version kept
+    assert r1.counters.rebuilds == rebuilds
+    assert r1.receive(_single("d", 9, summary), "d").taken  # b evicted: two dropped now
+    assert {s.owner for s in r1.current_stack()} == {"r1", "c", "d"}
+    _advance(r1, frames, 9)
+    assert set(r1.distributed.versions) == {"c", "d"}
+    assert r1.counters.rebuilds == rebuilds + 1 and r1.counters.evicted_slots == 2
+    assert r1.outgoing() is not None and r1.counters.own_slot_invalid == 0
