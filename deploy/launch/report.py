@@ -34,9 +34,14 @@ def write_outputs(
     return doc
 
 
-def aoi_entry(outcome: LaunchOutcome) -> dict[str, Any]:
-    """``{"aoi": …}``, the run's age of information (docs/results.md), or nothing."""
-    return {} if outcome.aoi is None else {"aoi": outcome.aoi.document()}
+def aoi_entry(outcome: LaunchOutcome, console: Console | None = None) -> dict[str, Any]:
+    """``{"aoi": …}``, the run's age of information (docs/results.md), or nothing; its summary
+    line printed on ``console``, if given."""
+    if outcome.aoi is None:
+        return {}
+    if console is not None:
+        console.print(outcome.aoi.line())
+    return {"aoi": outcome.aoi.document()}
 
 
 def security_line(plan: LaunchPlan) -> str:

@@ -79,9 +79,7 @@ def run(args: argparse.Namespace, console: Console) -> int:
     console.print(counters_table(outcome))
     if bag is not None:
         ros2_options.write_recording(args, bag, plan, outcome, start_ns, console)
-    if outcome.aoi is not None:
-        console.print(outcome.aoi.line())
-    launched = {"mode": plan.mode, "wall_s": outcome.wall_s, **aoi_entry(outcome)}
+    launched = {"mode": plan.mode, "wall_s": outcome.wall_s, **aoi_entry(outcome, console)}
     doc = write_outputs(plan, outcome, console, {"demo": True, "launch": launched})
     console.print(final_table(doc, scenario.steps))
     console.print(

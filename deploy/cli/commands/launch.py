@@ -24,13 +24,7 @@ from deploy.launch import LAUNCH_METHODS, Faults, LaunchPlan
 from deploy.launch.attack_report import attack_list, run_attacks_command
 from deploy.launch.attacks import ATTACKS
 from deploy.launch.netns import require as require_netns
-from deploy.launch.report import (
-    agents,
-    aoi_entry,
-    counters_table,
-    security_line,
-    write_outputs,
-)
+from deploy.launch.report import agents, aoi_entry, counters_table, security_line, write_outputs
 from deploy.launch.rerun_view import add_options as add_view_options
 from deploy.launch.rerun_view import check_view, launch_recorded
 from deploy.study.fleet import COMM_MODES
@@ -147,11 +141,9 @@ def run_launch(args: argparse.Namespace, console: Console) -> int:
     outcome = launch_recorded(plan, console, args, f"launch {scenario.name} seed {plan.seed}")
     console.print(counters_table(outcome))
     console.print(f"run took {outcome.wall_s:.1f} s")
-    if outcome.aoi is not None:
-        console.print(outcome.aoi.line())
     if bag is not None:
         ros2_options.write_recording(args, bag, plan, outcome, start_ns, console)
-    entry = {"mode": plan.mode, "wall_s": outcome.wall_s, **aoi_entry(outcome)}
+    entry = {"mode": plan.mode, "wall_s": outcome.wall_s, **aoi_entry(outcome, console)}
     write_outputs(plan, outcome, console, {"launch": entry})
     return 0
 
@@ -201,10 +193,8 @@ def run_chaos(args: argparse.Namespace, console: Console) -> int:
         console.print(f"- {e}")
     console.print(f"- garbage stacks published: {outcome.garbage_sent}")
     console.print(counters_table(outcome))
-    if outcome.aoi is not None:
-        console.print(outcome.aoi.line())
     chaos = {"events": outcome.events, "net": plan.net, "dropped": outcome.dropped}
-    chaos |= aoi_entry(outcome)
+    chaos |= aoi_entry(outcome, console)
     doc = write_outputs(plan, outcome, console, {"chaos": chaos})
     steps = plan.run_steps
     # Frames are pure functions of (seed, robot, step): the first steps of the scenario are the
