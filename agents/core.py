@@ -702,6 +702,7 @@ def _counter_values(core: AgentCore) -> dict[str, int]:
         "stacks_misaddressed": c.errors_by_type.get("SenderMismatch", 0),
         "slots_rejected": c.rejected_slots,
         "slots_foreign": c.foreign_slots,
+        "slots_evicted": c.evicted_slots,
         "own_slot_invalid": c.own_slot_invalid,
         "slots_refused": a.slots_refused,
         "slots_implausible": a.slots_implausible,

@@ -958,3 +958,13 @@ def test_an_agent_associates_frames_without_ids_and_replays_them_to_the_same_bel
     fresh = AgentCore(make, KEYS, core.settings, log.records)
     assert fresh.replay(log.records()) == []
     _same_belief(fresh.node, node)
+
+
+def test_the_status_counters_report_the_node_and_relay_counters_they_name() -> None:
+    core = AgentCore(_factory("r1"), KEYS, CoreSettings())
+    c = core.node.counters
+    c.evicted_slots, c.foreign_slots = 3, 5
+    core.gossip.pushes, core.gossip.flushes = 2, 7
+    values = core.counter_values()
+    assert values["slots_evicted"] == 3 and values["slots_foreign"] == 5
+    assert values["relay_pushes"] == 9
