@@ -151,21 +151,9 @@ def _relay_hops(tmp: Path, relay: str, gossip: str) -> tuple[list[float], list[f
     a robot asks its neighbour to push an owner only once the neighbour's digest showed that
     owner, so the first versions wait for digests), and the kB each agent sent per step, with
     ``relay`` and ``gossip``."""
-    robots = [f"r{i}" for i in range(1, CHAIN + 1)]
-    text = line_world(CHAIN, steps=RELAY_STEPS)
-    path = tmp / f"chain{CHAIN}.toml"
-    path.write_text(text, encoding="utf-8")
-    s = parse_scenario(text, str(path))
-    neighbours = {
-        r: [robots[j] for j in (i - 1, i + 1) if 0 <= j < len(robots)] for i, r in enumerate(robots)
-    }
-    plan = LaunchPlan(
-        s, 0, robots, tmp / f"hops-{relay}-{gossip}", mode="realtime", period=PERIOD_S,
-        gossip_period=GOSSIP_S, fleet="hops", zenoh_neighbours=neighbours, observe_stacks=True,
-        publish_local=False, stack_gossip=gossip, relay=relay,
-    )  # fmt: skip
-    outcome, _ = _run_launch(plan)
-    collected = outcome.collected
+    robots, collected = _line_launch(
+        tmp, CHAIN, RELAY_STEPS, f"hops-{relay}-{gossip}", stack_gossip=gossip, relay=relay
+    )
     hops = forward_hops(collected.slot_log, robots)
     later, first = [ms for k, ms in hops if k > 1], [ms for k, ms in hops if k <= 1]
     return later, first, sent_kb(collected, len(robots), RELAY_STEPS)
@@ -208,25 +196,34 @@ def sent_kb(collected: Collected, agents: int, steps: int) -> float:
     return sent / (agents * steps) / 1e3
 
 
+def _line_launch(
+    tmp: Path, n: int, steps: int, name: str, **fields: str
+) -> tuple[list[str], Collected]:
+    """A realtime launch of ``n`` robots on a line (``line_world``) whose Zenoh links join
+    neighbours only, its stacks observed, with the plan ``fields``: the robots and what the
+    conductor collected."""
+    robots = [f"r{i}" for i in range(1, n + 1)]
+    text = line_world(n, steps=steps)
+    path = tmp / f"{name}.toml"
+    path.write_text(text, encoding="utf-8")
+    neighbours = {
+        r: [robots[j] for j in (i - 1, i + 1) if 0 <= j < n] for i, r in enumerate(robots)
+    }
+    plan = LaunchPlan(
+        parse_scenario(text, str(path)), 0, robots, tmp / name, mode="realtime", period=PERIOD_S,
+        gossip_period=GOSSIP_S, fleet="relay", zenoh_neighbours=neighbours, observe_stacks=True,
+        publish_local=False, **fields,  # type: ignore[arg-type]
+    )  # fmt: skip
+    outcome, _ = _run_launch(plan)
+    return robots, outcome.collected
+
+
 def _relay_per_hop(tmp: Path, gossip: str) -> list[float]:
     """The time per hop (ms) of every version of r1's slot that reached r4 over a 4-robot line
     whose Zenoh links join neighbours only, with ``gossip`` (``stack_gossip``)."""
-    robots = [f"r{i}" for i in range(1, 5)]
-    text = line_world(len(robots), steps=24)
-    path = tmp / "line.toml"
-    path.write_text(text, encoding="utf-8")
-    s = parse_scenario(text, str(path))
-    neighbours = {
-        r: [robots[j] for j in (i - 1, i + 1) if 0 <= j < len(robots)] for i, r in enumerate(robots)
-    }
-    plan = LaunchPlan(
-        s, 0, robots, tmp / f"relay-{gossip}", mode="realtime", period=PERIOD_S,
-        gossip_period=GOSSIP_S, fleet="relay", zenoh_neighbours=neighbours, observe_stacks=True,
-        publish_local=False, stack_gossip=gossip,
-    )  # fmt: skip
-    outcome, _ = _run_launch(plan)
+    _, collected = _line_launch(tmp, 4, 24, f"relay-{gossip}", stack_gossip=gossip)
     first_seen: dict[tuple[str, int], dict[str, float]] = {}
-    for t, holder, stamps in outcome.collected.stack_log:
+    for t, holder, stamps in collected.stack_log:
         for owner, stamp in stamps.items():
             first_seen.setdefault((owner, stamp), {}).setdefault(holder, t)
     return [
