@@ -57,6 +57,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from agents.ages import Ages, Aging
 from agents.control import (
     Control,
     NeedFrames,
@@ -252,7 +253,9 @@ class AgentCore:
     committed so far (the journal), from which a failed step is rolled back (None: a failed step
     halts the agent); ``wall_clock()`` seconds since the Unix epoch, for the version bound (None:
     no bound); ``step_clock()`` seconds, for the step's phase timings (None: not timed);
-    ``shell_counters()`` the shell's counters, reported with the core's."""
+    ``shell_counters()`` the shell's counters, reported with the core's; ``clock()`` the clock of
+    every ``now``, read when a step ends and when an estimate is made (holding times,
+    ``agents.ages``; None: the event's ``now``)."""
 
     def __init__(
         self,
@@ -263,12 +266,13 @@ class AgentCore:
         wall_clock: Callable[[], float] | None = None,
         step_clock: Callable[[], float] | None = None,
         shell_counters: Callable[[], Mapping[str, int]] | None = None,
+        clock: Callable[[], float] | None = None,
     ) -> None:
         self.make_node = make_node
         self.committed = committed
         self.wall_clock = wall_clock
         self.step_clock = step_clock
-        self.shell_counters = shell_counters
+        self.shell_counters, self.clock = shell_counters, clock
         self.node = make_node()
         self.robot = self.node.robot
         self.keys = keys
@@ -278,6 +282,7 @@ class AgentCore:
         self.replayed = Replayed()
         self.stop_reason = ""
         self.gossip, self.answers, self.rounds, self.radio = _policies(self.node, s)
+        self.ages, self._arrived = Ages(self.robot, self.node.limits.max_slots), 0.0
         self._frames: dict[int, tuple[SensorFrame, bytes]] = {}
         self.ledger = Ledger()
         self._last_estimate: bytes | None = None
@@ -331,9 +336,15 @@ class AgentCore:
         """One message that arrived on ``key``; then every step that became possible."""
         return self.on_messages([(key, payload)], now)
 
-    def on_messages(self, messages: Sequence[tuple[str, bytes]], now: float) -> list[Action]:
-        """Messages (key, payload) that arrived together, in order, each followed by every step
-        it made possible; what the timer sends is refreshed once, after all of them."""
+    def on_messages(
+        self,
+        messages: Sequence[tuple[str, bytes]],
+        now: float,
+        arrived: Sequence[float] | None = None,
+    ) -> list[Action]:
+        """Messages (key, payload) that arrived together, in order (each at ``arrived[i]``, by
+        default ``now``), each followed by every step it made possible; what the timer sends is
+        refreshed once, after all of them."""
         keys = self.keys
         self._now = now
         self.ledger.batch = []
@@ -341,9 +352,10 @@ class AgentCore:
         # In real time, every message of the batch first: a step then sees the frames that are
         # already waiting behind it (and catches up) and fuses every stack that came with them.
         at_once = self.settings.mode == "realtime"
-        for key, payload in messages:
+        for i, (key, payload) in enumerate(messages):
+            self._arrived = now if arrived is None else arrived[i]
             if key.startswith(keys.ctl("")):
-                actions += self._on_control(key, payload)
+                actions += _on_control(self, key, payload)
             elif key == keys.frames(self.robot):
                 actions += self._on_frame(payload)
             elif key.startswith(f"{keys.prefix}/stack/"):
@@ -397,35 +409,6 @@ class AgentCore:
         return actions
 
     # -- input -------------------------------------------------------------------------------
-
-    def _on_control(self, key: str, payload: bytes) -> list[Action]:
-        if (order := _decoded_control(self, key, payload)) is None:
-            return []
-        k = self.node.k
-        if isinstance(order, StepOrder):
-            if order.k == k and k > 0 and self.answers.order_due(order, self._now):
-                return self._publish_estimate(self._last_estimate)  # the conductor missed our ack
-            if self.rounds is not None:
-                self.rounds.on_order(order, k)
-            elif order.k > k + self.settings.window:
-                self.counters.orders_ahead += 1
-        elif isinstance(order, Status):
-            # One estimate per batch, after its steps, however many asked (issue 43, finding 3).
-            self.counters.status_requests += 1
-            self._status_due = True
-        elif isinstance(order, Stop):
-            self.stop_reason = self.stop_reason or order.reason or "stopped by the conductor"
-            return [Halt(self.stop_reason)]
-        elif isinstance(order, NeedRound) and self.rounds is not None:
-            out = self._out
-            data = self.rounds.answer_round(
-                order,
-                self.keys.robot_of(key),
-                {out.k: out.stack, out.k - 1: out.previous},
-                self._now,
-            )
-            return [] if data is None else [Publish(self.keys.stack(self.robot), data)]
-        return []  # NeedFrames: for whoever publishes frames
 
     def _on_frame(self, data: bytes) -> list[Action]:
         try:
@@ -503,6 +486,7 @@ class AgentCore:
         if got.taken:
             self.ledger.took(got.merged, payload)
             self.gossip.came([owner for owner, _ in got.merged], self._now)
+            _aged(self, got)
 
     def _listen(self, initial: bool = False) -> list[Action]:
         """A :class:`Listen` when whom to hear changed (``initial``: always)."""
@@ -573,6 +557,7 @@ class AgentCore:
         self.counters.fusions_deferred += not fused
         records = self.ledger.commit(frame, fused)
         actions: list[Action] = [*(Append(r.kind, r.body) for r in records), Commit()]
+        self.ages.took(self.robot, (self.node.epoch, self.node.k), 0, _time(self))
         if fused:
             actions += self._publish_stack(previous=self._out.stack)
         return actions + self._report(report)
@@ -639,14 +624,14 @@ class AgentCore:
     def _refresh(self) -> None:
         """Publish, whole, what the timer may read."""
         # Always, even empty: a lock-step peer ordered to hear us at round 1 needs our round 0.
-        data, digest, fresh = _stack_payload(self)
+        data, digest, fresh, aging = _stack_payload(self)
         old, k = self._out, self.node.k
         rounds = None if self.rounds is None else self.rounds.round_missing(k + 1, self._hears)
         sent_at = old.digest_sent_at if digest == old.digest else -math.inf
         pull_at = self.gossip.pull_at(self.node.stack.versions())
         missing = self._frames_missing()
         self._out = Outgoing(
-            data, old.previous, missing, digest, fresh, k, rounds, pull_at, sent_at
+            data, old.previous, missing, digest, fresh, k, rounds, pull_at, sent_at, aging=aging
         )
 
     def _need(self, k: int, now: float, force: bool = False) -> list[Action]:
@@ -658,13 +643,16 @@ class AgentCore:
         return [Publish(self.keys.ctl("need", self.robot), payload)]
 
     def _publish_stack(self, previous: bytes | None = None) -> list[Action]:
-        data, digest, _ = _stack_payload(self)
+        data, digest, _, aging = _stack_payload(self)
         pull_at, need, k = (
             self.gossip.pull_at(self.node.stack.versions()),
             self._out.need_from,
             self.node.k,
         )
-        self._out = Outgoing(data, previous, need, digest, False, k, None, pull_at, self._now)
+        out = Outgoing(
+            data, previous, need, digest, False, k, None, pull_at, self._now, aging=aging
+        )
+        self._out, data = out, out.sent_at(_time(self)) or data
         self.node.mark_sent(len(data))
         return [Publish(self.keys.stack(self.robot), data)]
 
@@ -748,6 +736,7 @@ def _counter_values(core: AgentCore) -> dict[str, int]:
         "records_quarantined": a.records_quarantined,
         "step_us_local": core._step_us[0],
         "step_us_distributed": core._step_us[1],
+        **core.ages.report(core.node.distributed.stamps, _time(core)),
         "hypotheses_local": len(core.node.local.hypotheses),
         "hypotheses_distributed": len(core.node.distributed.hypotheses),
         **(core.shell_counters() if core.shell_counters is not None else {}),
@@ -774,21 +763,39 @@ def _policies(
     return gossip, Answers(robot, period, peers), rounds, radio
 
 
-def _stack_payload(core: AgentCore) -> tuple[bytes, bytes | None, bool]:
-    """The stack to gossip now, its digest alone (delta gossip in real time) and whether the
-    stack holds a slot not sent before: every held slot (``stack_gossip = "full"``), else
-    those :meth:`DeltaGossip.select` picks, with the asks in force (real time)."""
+def _stack_payload(core: AgentCore) -> tuple[bytes, bytes | None, bool, Aging | None]:
+    """The stack to gossip now, its digest alone (delta gossip in real time), whether the stack
+    holds a slot not sent before and its slots' holding times (ask gossip in real time, when all
+    are known: ``agents.ages``): every held slot (``stack_gossip = "full"``), else those
+    :meth:`DeltaGossip.select` picks, with the asks in force (real time)."""
     node = core.node
     if core.settings.stack_gossip == "full":
-        return node.encoded_stack(), None, True
+        return node.encoded_stack(), None, True, None
     held = node.current_stack().versions()
     unsent = core._out.fresh and core.gossip.tick_last is not core._out.stack
     include = core.gossip.select(held, core._now, unsent)
     if core.rounds is not None:
-        return node.encoded_delta(include), None, bool(include)
+        return node.encoded_delta(include), None, bool(include), None
     asks = core.gossip.current_asks(held, core._now)
-    data = node.encoded_delta(include, asks)
-    return data, node.encoded_delta((), asks), bool(include)
+    aging = None
+    if core.settings.stack_gossip == "ask" and include:
+        aging = core.ages.aging((o for o in held if o in include), held)  # the stack's order
+    data = node.encoded_delta(include, asks, aged=aging is not None)
+    return data, node.encoded_delta((), asks), bool(include), aging
+
+
+def _aged(core: AgentCore, got: Received) -> None:
+    """Holding times: the versions ``got`` made the node hold came at ``core._arrived``, as old
+    as their stack said (``agents.ages``)."""
+    said = got.message.age if got.message is not None else None
+    for owner, version in got.merged:
+        carried = None if said is None else said.get(owner)
+        core.ages.took(owner, version, carried, core._arrived)
+
+
+def _time(core: AgentCore) -> float:
+    """Now, by the core's clock (the current event's ``now`` without one)."""
+    return core.clock() if core.clock is not None else core._now
 
 
 def _estimate(core: AgentCore) -> bytes:
@@ -816,6 +823,37 @@ def _merge_round(core: AgentCore, rounds: Rounds, k: int) -> bool:
         core._count(got, message.sender)
         core._took(got, data)
     return True
+
+
+def _on_control(core: AgentCore, key: str, payload: bytes) -> list[Action]:
+    """A control message: step order, status request, stop, round request (lock-step)."""
+    if (order := _decoded_control(core, key, payload)) is None:
+        return []
+    k = core.node.k
+    if isinstance(order, StepOrder):
+        if order.k == k and k > 0 and core.answers.order_due(order, core._now):
+            return core._publish_estimate(core._last_estimate)  # the conductor missed our ack
+        if core.rounds is not None:
+            core.rounds.on_order(order, k)
+        elif order.k > k + core.settings.window:
+            core.counters.orders_ahead += 1
+    elif isinstance(order, Status):
+        # One estimate per batch, after its steps, however many asked (issue 43, finding 3).
+        core.counters.status_requests += 1
+        core._status_due = True
+    elif isinstance(order, Stop):
+        core.stop_reason = core.stop_reason or order.reason or "stopped by the conductor"
+        return [Halt(core.stop_reason)]
+    elif isinstance(order, NeedRound) and core.rounds is not None:
+        out = core._out
+        data = core.rounds.answer_round(
+            order,
+            core.keys.robot_of(key),
+            {out.k: out.stack, out.k - 1: out.previous},
+            core._now,
+        )
+        return [] if data is None else [Publish(core.keys.stack(core.robot), data)]
+    return []  # NeedFrames: for whoever publishes frames
 
 
 def _check_frame(frame: SensorFrame, robot: str, kind: ObjectKind) -> None:

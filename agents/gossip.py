@@ -39,6 +39,9 @@ import math
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
 
+from agents.ages import Aging, stamped_ages
+from protocol.codec import stamp_ages
+
 Version = tuple[int, int]  # (epoch, stamp) of one owner's slot
 NONE: Version = (-1, -1)  # older than any version
 
@@ -80,6 +83,15 @@ class Outgoing:
     # Event-driven relay: when the shell flushes ``stack`` (asked slots held back by the push
     # window, :meth:`DeltaGossip.flush`; inf: nothing held back).
     flush_at: float = math.inf
+    # Holding times (``agents.ages``): per slot of ``stack``, the age it came with and since
+    # when it is held, for the ages it says when it goes (None: ``stack`` says none).
+    aging: Aging | None = None
+
+    def sent_at(self, now: float) -> bytes | None:
+        """``stack`` as it goes at ``now``: with its slots' ages of that moment."""
+        if self.stack is None or self.aging is None:
+            return self.stack
+        return stamp_ages(self.stack, stamped_ages(self.aging, now)) or self.stack
 
 
 @dataclass(frozen=True, slots=True)
@@ -300,7 +312,7 @@ class DeltaGossip:
             if self.urgent or now - self.pushed_at >= PUSH_WINDOW_S:
                 self.pushed_at = now
                 self.pushes += not self.urgent
-                return out.stack, replace(out, fresh=False, digest_sent_at=now)
+                return out.sent_at(now), replace(out, fresh=False, digest_sent_at=now)
             out = replace(out, flush_at=self.pushed_at + PUSH_WINDOW_S)
         if asked and out.digest is not None and now - self.asked_sent_at >= self.period:
             self.asked_sent_at = now
@@ -317,7 +329,7 @@ class DeltaGossip:
         self.flushes += 1
         if out.digest is not None:
             self.digest_sent = (out.digest, now)
-        return out.stack
+        return out.sent_at(now)
 
     def tick(self, out: Outgoing, now: float, announce: bool) -> bytes | None:
         """Real time, the timer thread: the bytes a gossip tick sends — the stack if it holds
@@ -334,7 +346,7 @@ class DeltaGossip:
         self.tick_last = out.stack
         if data is not None and out.digest is not None:
             self.digest_sent = (out.digest, now)
-        return data
+        return out.sent_at(now) if data is out.stack else data
 
     def digest_due(self, out: Outgoing, now: float) -> bool:
         """Whether a tick with nothing new to send sends the digest alone. A digest went last

@@ -450,7 +450,7 @@ class RobotNode:
         self._encoded: bytes | None = None
         # encoded_delta's bytes per chosen owners, for one (stack, step, position)
         self._deltas_at: tuple[Stack, int, tuple[float, float] | None] | None = None
-        self._deltas: dict[tuple[tuple[str, ...], tuple[tuple[str, str], ...]], bytes] = {}
+        self._deltas: dict[tuple[tuple[str, ...], tuple[tuple[str, str], ...], bool], bytes] = {}
         # Slots parsed and not yet held, by version (see ``decode_stack``).
         self._parsed: OrderedDict[tuple[str, int, int], Slot] = OrderedDict()
         self._own_slot_stale = False
@@ -826,14 +826,18 @@ class RobotNode:
         they are left out, counted in ``own_slot_invalid``, and the rest still goes out."""
         stack = self.current_stack()
         if self._encoded is None:
-            self._encoded = self._encoded_message(stack, None)
+            self._encoded = _encoded_message(self, stack, None)
         return self._encoded
 
-    def encoded_delta(self, owners: Collection[str], ask: Mapping[str, str] | None = None) -> bytes:
+    def encoded_delta(
+        self, owners: Collection[str], ask: Mapping[str, str] | None = None, aged: bool = False
+    ) -> bytes:
         """A delta stack (docs/wire.md, "Delta gossip"): the held slots of ``owners`` only — what
         some peer lacks — the digest of every version held (``have``) and ``ask`` (owner → the
-        relay asked to push its versions; None or empty: none). The own slot is left out, and
-        counted, when the limits refuse it, as in :meth:`encoded_stack`."""
+        relay asked to push its versions; None or empty: none); ``aged``: with an ``age`` of 0
+        for each slot, for the sender to stamp (``protocol.codec.stamp_ages``; none if no slot).
+        The own slot is left out, and counted, when the limits refuse it, as in
+        :meth:`encoded_stack` (and the stack then says no ages)."""
         stack = self.current_stack()
         chosen = tuple(s for s in stack if s.owner in owners)
         # The same delta is asked for again and again (after every batch of messages, for the
@@ -843,48 +847,51 @@ class RobotNode:
         if self._deltas_at != at or len(self._deltas) >= 8:
             self._deltas_at, self._deltas = at, {}
         asks = dict(ask) if ask else None
-        key = (tuple(s.owner for s in chosen), tuple(sorted(asks.items())) if asks else ())
+        aged = aged and bool(chosen)
+        key = (tuple(s.owner for s in chosen), tuple(sorted(asks.items())) if asks else (), aged)
         known = self._deltas.get(key)
         if known is not None:
             return known
-        data = self._encoded_message(Stack(chosen), (stack.versions(), asks))
+        data = _encoded_message(self, Stack(chosen), (stack.versions(), asks), aged)
         self._deltas[key] = data
         return data
-
-    def _encoded_message(
-        self,
-        stack: Stack,
-        delta: tuple[dict[str, tuple[int, int]], dict[str, str] | None] | None,
-    ) -> bytes:
-        """``stack`` (with ``delta``'s digest and asks) under the node's limits, with D's
-        position; if they refuse that, with L's position, so that the own slot, built from L,
-        never depends on D; failing that, without the own slot and position (counted in
-        ``own_slot_invalid``)."""
-        have, asks = delta if delta is not None else (None, None)
-        try:
-            message = StackMessage(self.robot, self.position, stack, self.k, have=have, ask=asks)
-            return encode(message, self.limits)
-        except LocalProtocolError as exc:
-            error = exc
-        if self.position is not None:
-            local = self.local.position(self.robot)
-            try:
-                message = StackMessage(self.robot, local, stack, self.k, have=have, ask=asks)
-                return encode(message, self.limits)
-            except LocalProtocolError as exc:
-                error = exc
-        self.counters.own_slot_invalid += 1
-        self.counters.last_error = str(error)
-        log.error("%s: own slot or position not sendable: %s", self.robot, error)
-        others = Stack(tuple(s for s in stack if s.owner != self.robot))
-        return encode(
-            StackMessage(self.robot, None, others, self.k, have=have, ask=asks), self.limits
-        )
 
     def mark_sent(self, size: int) -> None:
         """Tell the node a stack of ``size`` bytes went out (for its counters)."""
         self.counters.stacks_sent += 1
         self.counters.bytes_sent += size
+
+
+def _encoded_message(
+    node: RobotNode,
+    stack: Stack,
+    delta: tuple[dict[str, tuple[int, int]], dict[str, str] | None] | None,
+    aged: bool = False,
+) -> bytes:
+    """``stack`` (with ``delta``'s digest and asks; ``aged``: ages 0 to be stamped) under the
+    node's limits, with D's position; if they refuse that, with L's position, so that the own
+    slot, built from L, never depends on D; failing that, without the own slot, position and
+    ages (counted in ``own_slot_invalid``)."""
+    have, asks = delta if delta is not None else (None, None)
+    age = {s.owner: 0 for s in stack} if aged else None
+    try:
+        position = node.position
+        message = StackMessage(node.robot, position, stack, node.k, have=have, ask=asks, age=age)
+        return encode(message, node.limits)
+    except LocalProtocolError as exc:
+        error = exc
+    if node.position is not None:
+        local = node.local.position(node.robot)
+        try:
+            message = StackMessage(node.robot, local, stack, node.k, have=have, ask=asks, age=age)
+            return encode(message, node.limits)
+        except LocalProtocolError as exc:
+            error = exc
+    node.counters.own_slot_invalid += 1
+    node.counters.last_error = str(error)
+    log.error("%s: own slot or position not sendable: %s", node.robot, error)
+    others = Stack(tuple(s for s in stack if s.owner != node.robot))
+    return encode(StackMessage(node.robot, None, others, node.k, have=have, ask=asks), node.limits)
 
 
 def _evict_for(

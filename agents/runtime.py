@@ -132,11 +132,11 @@ def new_agent(
 ) -> Agent:
     """An agent on ``transport`` whose core is built with its ports: the journal reader (the
     records of ``journal``, or of a log in memory), ``wall_clock`` (slot versions' bound), the
-    step clock (``time.perf_counter``) and the shell's gauges."""
+    step clock (``time.perf_counter``), the shell's gauges and ``clock`` (holding times)."""
     log: Journal | MemoryLog = journal if journal is not None else MemoryLog()
     gauges = ShellGauges()
     core = AgentCore(
-        make_node, keys, settings, log.records, wall_clock, time.perf_counter, gauges.values
+        make_node, keys, settings, log.records, wall_clock, time.perf_counter, gauges.values, clock
     )
     return Agent(core, transport, log, gauges, clock, ros2)
 
@@ -339,16 +339,21 @@ class Agent:
         """In the worker: every message through the core, journal actions carried out here (in
         order, before the publications that follow them); the rest goes back to the loop. ROS 2
         samples become the frames they complete, in their place."""
-        puts = []
+        puts, arrived = [], []
         frames_key = self.keys.frames(self.robot)
+        now, mono = self.clock(), time.monotonic()
         for m in messages:
             if m.kind != "put":
                 continue
             if self.ros2 is not None and self.ros2.bridge.input_type(m.key) is not None:
-                puts += [(frames_key, f) for f in self.ros2.bridge.on_input(m.key, m.payload)]
+                frames = self.ros2.bridge.on_input(m.key, m.payload)
+                puts += [(frames_key, f) for f in frames]
+                arrived += [now] * len(frames)
             else:
                 puts.append((m.key, m.payload))
-        return execute_journal_actions(self.log, self.core.on_messages(puts, self.clock()))
+                arrived.append(now - (mono - m.at))  # on the agent's clock (holding times)
+        actions = self.core.on_messages(puts, now, arrived)
+        return execute_journal_actions(self.log, actions)
 
     def _carry_out(self, actions: Sequence[Action]) -> None:
         """On the loop: publications and halts."""

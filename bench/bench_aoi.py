@@ -13,6 +13,10 @@ plan's fields that select it; every one runs in the same invocation, one launch 
 so that their rows stand side by side: the event-driven relay (``relay = "event"``, the default
 since issue 47: a slot a neighbour asked for goes as soon as it was merged) and the relay on the
 gossip timer (``"tick"``, before), both with delta gossip and asks (``stack_gossip = "ask"``).
+
+Beside them, for each relay, what the agents themselves say (issue 47, item 1: holding times,
+which need no shared clock): per estimate, the largest age of its fused peers' versions as the
+robot summed it, minus the age this host's clock gives the same version.
 """
 
 from __future__ import annotations
@@ -24,10 +28,13 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+from numpy.typing import NDArray
+
 from agents.core import GOSSIP_PERIOD_S
 from bench import Result
 from deploy.launch import Launcher, LaunchPlan
-from deploy.launch.aoi import AgeOfInformation
+from deploy.launch.aoi import AgeOfInformation, holding_gaps
 from sim.generate import line_world
 from sim.loader import parse_scenario
 
@@ -56,9 +63,10 @@ def target_ms(hops: int) -> float:
 
 def chain_aoi(
     tmp: Path, relay: Mapping[str, Any], robots: int = ROBOTS, steps: int = STEPS
-) -> AgeOfInformation:
+) -> tuple[AgeOfInformation, NDArray[np.float64]]:
     """The AoI of a realtime launch of ``robots`` agents on a neighbour-only chain, with the
-    plan fields ``relay``."""
+    plan fields ``relay``, and the gaps (ms) between the ages the agents said by holding times
+    and this host's clock's (``deploy.launch.aoi.holding_gaps``)."""
     ids = [f"r{i}" for i in range(1, robots + 1)]
     text = line_world(robots, steps=steps)
     path = tmp / "chain.toml"
@@ -72,7 +80,26 @@ def chain_aoi(
     )  # fmt: skip
     outcome = asyncio.run(Launcher(plan).run())
     assert outcome.aoi is not None
-    return outcome.aoi
+    c = outcome.collected
+    return outcome.aoi, holding_gaps(c.ended, c.fused_log, c.age_log)
+
+
+def holding_rows(label: str, gaps: NDArray[np.float64]) -> list[Result]:
+    """The agents' own ages (holding times, no shared clock) against this host's clock."""
+    if not gaps.size:
+        _notes.append(f"holding times ({label} relay): no estimate gave the age of every peer")
+        return []
+    p50, p99 = np.percentile(gaps, [50, 99])
+    return [
+        Result(
+            f"holding-time age − one-clock age, per estimate, {label} relay (ms)",
+            int(gaps.size),
+            float(p50),
+            note=f"p50 {p50:+.1f} ms, p99 {p99:+.1f}, min {gaps.min():+.1f}, max "
+            f"{gaps.max():+.1f}: the oldest fused peer version of each estimate, as the robot "
+            "said it (summed holding times, transits left out) and as this host timed it",
+        )
+    ]
 
 
 def aoi_rows(label: str, aoi: AgeOfInformation, scope: str = "") -> list[Result]:
@@ -134,7 +161,8 @@ def run(relays: Mapping[str, Mapping[str, Any]] | None = None) -> list[Result]:
     rows: list[Result] = []
     with tempfile.TemporaryDirectory() as d:
         for label, fields in (relays or RELAYS).items():
-            aoi = chain_aoi(Path(d), fields)
+            aoi, gaps = chain_aoi(Path(d), fields)
             rows += aoi_rows(label, aoi)
+            rows += holding_rows(label, gaps)
             rows += aoi_rows(label, after_meeting(aoi), f", steps after the first {MEET_STEPS}")
     return rows

@@ -68,6 +68,10 @@ _SLOT_KEYS = frozenset({"owner", "stamp", "objects", "real"})
 _EPOCH_SLOT_KEYS = _SLOT_KEYS | {"epoch"}  # versions 1, 3: "epoch" only when it is not 0
 _SIGNED_SLOT_KEYS = _SLOT_KEYS | {"epoch", "sig"}
 MAX_EPOCH = 2**53 - 1  # an epoch is a count of milliseconds (docs/wire.md, "Versions and epochs")
+# The age a stack says each of its slots has (``age``, docs/wire.md, "Holding times"), at most a
+# day in milliseconds: a sender clamps an older one to it.
+MAX_AGE_MS = 86_400_000
+_AGE_KEY = msgpack.packb("age")
 _REAL_KEYS = frozenset({"c", "phi", "lin", "info", "eta"})
 # A realisation whose ξ is that of an earlier realisation of the slot (docs/wire.md, "Shared ξ").
 _REF_KEYS = frozenset({"c", "phi", "xi"})
@@ -172,6 +176,10 @@ class StackMessage:
     # the sender lacks, does not hear from the owner, and asks that relay for now; only with
     # ``have``. None: no ask.
     ask: dict[str, str] | None = None
+    # Holding times (docs/wire.md, "Holding times"): owner → the milliseconds since its owner's
+    # step made the slot, summed over the robots that held it on the way, transits excluded,
+    # for every slot the message carries (``skipped`` ones included). None: not said.
+    age: dict[str, int] | None = None
 
 
 @functools.lru_cache(maxsize=64)
@@ -462,17 +470,48 @@ def encode(message: StackMessage, limits: Limits | None = None) -> bytes:
     parts = [packer.pack_map_header(len(head) + 1)]
     for key, value in head.items():
         parts += [packer.pack(key), packer.pack(value)]
-    parts[0] = packer.pack_map_header(len(head) + 1 + (have is not None) + (ask is not None))
+    ages = _ages_local(message.age, slots)
+    optional = (have is not None) + (ask is not None) + (ages is not None)
+    parts[0] = packer.pack_map_header(len(head) + 1 + optional)
     parts += [packer.pack("slots"), packer.pack_array_header(len(slots))]
     parts += [_slot_bytes(s, f"slots[{i}]", lim, packer) for i, s in enumerate(slots)]
     if have is not None:
         parts += [packer.pack("have"), packer.pack(have)]
     if ask is not None:
         parts += [packer.pack("ask"), packer.pack(ask)]
+    if ages is not None:  # last, so that ``stamp_ages`` can rewrite it at the moment of sending
+        parts += [_AGE_KEY, packer.pack(ages)]
     blob = b"".join(parts)
-    size_ok = len(blob) <= lim.max_message_bytes
+    # Room for ``stamp_ages``: every age may grow from one byte to five (a uint32).
+    size_ok = len(blob) + 4 * len(ages or ()) <= lim.max_message_bytes
     _local(size_ok, "message", f"{len(blob)} bytes > {lim.max_message_bytes}")
     return blob
+
+
+def _ages_local(age: dict[str, int] | None, slots: tuple[Slot, ...]) -> list[int] | None:
+    """The ``age`` array of a message carrying ``slots``: one age per slot, in their order."""
+    if age is None:
+        return None
+    out = []
+    for i, slot in enumerate(slots):
+        value = age.get(slot.owner)
+        ok = _is_int(value) and 0 <= int(value) <= MAX_AGE_MS  # type: ignore[arg-type]
+        _local(ok, f"age[{i}]", f"expected an integer in 0..{MAX_AGE_MS} for {slot.owner!r}")
+        out.append(int(value))  # type: ignore[arg-type]
+    _local(len(age) == len(slots), "age", f"{len(age)} ages for {len(slots)} slots")
+    return out
+
+
+def stamp_ages(data: bytes, ages: list[int]) -> bytes | None:
+    """``data``, a message ``encode`` wrote with every age 0 and ``len(ages)`` slots, with
+    ``ages`` (clamped to 0 … ``MAX_AGE_MS``) in their place: the holding times as they are when
+    the message is sent, not when it was made. None when ``data`` does not end in such an
+    ``age`` (e.g. its own slot was left out: docs/wire.md, "Holding times")."""
+    tail = _AGE_KEY + msgpack.packb([0] * len(ages))
+    if not data.endswith(tail):
+        return None
+    clamped = [min(max(int(a), 0), MAX_AGE_MS) for a in ages]
+    return data[: len(data) - len(tail)] + _AGE_KEY + msgpack.packb(clamped)
 
 
 def _local(cond: bool, field: str, message: str) -> None:
@@ -935,7 +974,7 @@ def _decode_doc(
     if "v" in doc and (type(version) is not int or version not in VERSIONS):
         speaks = ", ".join(map(str, VERSIONS[:-1])) + f" and {VERSIONS[-1]}"
         raise UnsupportedVersion(f"schema version {doc['v']!r} (this side speaks {speaks})", "v")
-    top = as_map(doc, "message", _TOP_KEYS | ({"have", "ask"} & doc.keys()))
+    top = as_map(doc, "message", _TOP_KEYS | ({"have", "ask", "age"} & doc.keys()))
     if top["type"] != STACK:
         raise UnsupportedVersion(f"message type {top['type']!r}", "type")
     sender = robot_id(top["sender"], "sender")
@@ -988,9 +1027,20 @@ def _decode_doc(
     if "ask" in top:
         need(have is not None, "ask", "an ask goes only with a digest (have)")
         ask = _decode_ask(top["ask"], lim)
+    age = _decode_age(top["age"], owners) if "age" in top else None
     return StackMessage(
-        sender, position, Stack(tuple(slots)), step, skipped, have, tuple(reused), ask
+        sender, position, Stack(tuple(slots)), step, skipped, have, tuple(reused), ask, age
     )
+
+
+def _decode_age(raw: Any, owners: list[str]) -> dict[str, int]:
+    """``age``: one integer 0 … ``MAX_AGE_MS`` per slot of the message, in the slots' order."""
+    need(isinstance(raw, list), "age", "expected an array")
+    need(len(raw) == len(owners), "age", f"{len(raw)} ages for {len(owners)} slots")
+    if all(type(a) is int and 0 <= a <= MAX_AGE_MS for a in raw):
+        return dict(zip(owners, raw, strict=True))
+    pairs = enumerate(zip(owners, raw, strict=True))
+    return {owner: as_int(a, f"age[{i}]", 0, MAX_AGE_MS) for i, (owner, a) in pairs}
 
 
 def _decode_ask(raw: Any, lim: Limits) -> dict[str, str]:

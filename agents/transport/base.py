@@ -11,7 +11,8 @@ import asyncio
 import collections
 import contextlib
 import threading
-from dataclasses import dataclass
+import time
+from dataclasses import dataclass, field
 from typing import Literal, Protocol
 
 from estimator.models import ROBOT_ID_RULE
@@ -23,11 +24,12 @@ Kind = Literal["put", "alive", "gone"]
 @dataclass(frozen=True, slots=True)
 class Message:
     """One delivery: ``kind`` "put" carries ``payload``; "alive"/"gone" are liveliness changes of
-    the token ``key``."""
+    the token ``key``; ``at``: when it arrived (``time.monotonic``), for holding times."""
 
     key: str
     payload: bytes
     kind: Kind = "put"
+    at: float = field(default_factory=time.monotonic, compare=False)
 
 
 class TransportError(RuntimeError):

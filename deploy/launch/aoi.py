@@ -133,6 +133,27 @@ def age_of_information(
     )
 
 
+def holding_gaps(
+    ended: Mapping[tuple[str, int], float],
+    fused: Iterable[FusedRecord],
+    said: Iterable[tuple[float, str, int, int]],
+) -> NDArray[np.float64]:
+    """Per estimate whose robot said how old its peers' information was by holding times
+    (``said``: arrival, robot, step, the largest age in ms; ``agents.ages``), that age minus the
+    one this host's clock measures for the same estimate: the arrival of the estimate minus the
+    end of the owner's step of the oldest fused version (``ended``). In ms; estimates for which a
+    fused version's step has no known end are left out. Near 0 when the holding times account for
+    the whole age; below by the transits they leave out."""
+    versions = {(r[1], r[2]): r[3] for r in fused}
+    gaps = []
+    for at, robot, k, ms in said:
+        stamps = versions.get((robot, k), {})
+        ends = [ended.get((o, s)) for o, s in stamps.items() if o != robot]
+        if ends and all(e is not None for e in ends):
+            gaps.append(ms - 1e3 * (at - min(e for e in ends if e is not None)))
+    return np.array(gaps, dtype=np.float64)
+
+
 def hop_counts(edges: Mapping[str, Iterable[str]], source: str) -> dict[str, int]:
     """The fewest hops from ``source`` to every robot it reaches over ``edges`` (robot → the
     robots it sends to), by breadth-first search."""

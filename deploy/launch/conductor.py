@@ -96,6 +96,10 @@ class Collected:
     # (arrival, robot, step, {owner: stamp}) of every first estimate of a step that said which
     # peer versions its fusion had integrated (``EstimateMessage.fused``).
     fused_log: list[tuple[float, str, int, dict[str, int]]] = field(default_factory=list)
+    # (arrival, robot, step, ms) of every such estimate whose counters give the age of every
+    # peer version it fused by holding times (``peer_age_max_ms``: agents.ages): what the agents
+    # say without a shared clock, beside what ``fused_log`` and ``ended`` measure with one.
+    age_log: list[tuple[float, str, int, int]] = field(default_factory=list)
 
 
 @dataclass(frozen=True, slots=True)
@@ -306,6 +310,9 @@ class Conductor:
             c.ended[(est.robot, est.k)] = at
             if est.fused is not None:
                 c.fused_log.append((at, est.robot, est.k, est.fused))
+                peers = len([o for o in est.fused if o != est.robot])
+                if peers and est.counters.get("peers_aged") == peers:
+                    c.age_log.append((at, est.robot, est.k, est.counters["peer_age_max_ms"]))
         self._unscored.append(data)
         self._unscored_bytes += len(data)
         for belief, key in (("local", "step_us_local"), ("distributed", "step_us_distributed")):

@@ -198,6 +198,25 @@ def behind_line(view: FleetView) -> str:
     )
 
 
+def age_line(view: FleetView) -> str:
+    """The line under ``fleet status``'s table from the robots' holding times (``agents.ages``;
+    docs/wire.md, "Holding times"): the median of the robots' median ages of their peers'
+    information, and the largest with its robot (empty when no robot reports an age)."""
+    aged = [
+        (s.estimate.counters["peer_age_max_ms"], s.estimate.counters["peer_age_median_ms"], r)
+        for r, s in sorted(view.robots.items())
+        if s.estimate is not None and s.estimate.counters.get("peers_aged", 0) > 0
+    ]
+    if not aged:
+        return ""
+    largest, _, robot = max(aged)
+    median = float(np.median([a[1] for a in aged]))
+    return (
+        f"age of the peers' information (holding times, transits excluded) on {len(aged)} "
+        f"robots: median {median:.0f} ms, max {largest} ms ({robot})"
+    )
+
+
 def status_doc(view: FleetView, elapsed_s: float, answered_s: float) -> dict[str, Any]:
     """``fleet status --json``: per robot its token, step, hypotheses, objects, counters, the
     peer versions its fusion holds and how far each is behind (:func:`fusion_behind`)."""

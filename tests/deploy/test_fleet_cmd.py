@@ -35,6 +35,7 @@ from deploy.launch.conductor import without_truth
 from deploy.operator.fleet_session import StopProgress, session_settings, stop_fleet
 from deploy.operator.fleet_view import (
     FleetView,
+    age_line,
     behind_line,
     estimates_doc,
     fusion_behind,
@@ -630,3 +631,24 @@ def test_fleet_status_says_how_far_each_fusion_is_behind_its_peers_steps() -> No
     )
     json.dumps(doc, allow_nan=False)
     assert behind_line(FleetView(keys)) == ""
+
+
+def test_fleet_status_shows_the_age_of_the_peers_information_from_holding_times() -> None:
+    """Each robot reports the median and largest age of its fused peers' versions (counters);
+    a robot that knows no age (an older agent, or none yet) is left out."""
+    keys = Keys("f")
+    view = FleetView(keys)
+    for robot, aged, median, largest in (
+        ("r1", 2, 510, 530),
+        ("r2", 3, 620, 1040),
+        ("r3", 0, 0, 0),
+        ("r4", 1, 505, 505),
+    ):
+        counters = {"peers_aged": aged, "peer_age_median_ms": median, "peer_age_max_ms": largest}
+        est = EstimateMessage(robot, 4, {"distributed": HYP}, counters)
+        view.on_message(Message(keys.estimate(robot), encode_estimate(est)), 1.0)
+    assert age_line(view) == (
+        "age of the peers' information (holding times, transits excluded) on 3 robots: "
+        "median 510 ms, max 1040 ms (r2)"
+    )
+    assert age_line(FleetView(keys)) == ""

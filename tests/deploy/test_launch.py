@@ -348,6 +348,11 @@ def test_launch_relay_over_zenoh_links_between_neighbours_only(tmp_path: Path, g
         assert (c["relays_asked"] >= unheard) == (gossip == "ask"), (r, c)
         if r not in ("r1", "r6"):
             assert (c["asks_answered"] > 0) == (gossip == "ask"), (r, c)
+        # Holding times ride with ask gossip only (docs/wire.md, "Holding times"): there every
+        # robot's last estimate gives the age of the peers' versions its fusion used.
+        aged = c["peers_aged"]
+        assert (aged > 0) == (gossip == "ask"), (r, c)
+        assert 0 < c["peer_age_median_ms"] <= c["peer_age_max_ms"] or aged == 0, (r, c)
     # The answer time of every step answered: its estimate came after its frames went out.
     answered = outcome.collected.answered_s
     assert {(r, scenario.steps) for r in ids} <= answered.keys(), sorted(answered)

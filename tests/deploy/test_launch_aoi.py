@@ -16,6 +16,7 @@ from deploy.launch.aoi import (
     UNLINKED,
     AgeOfInformation,
     age_of_information,
+    holding_gaps,
     hop_counts,
     link_hops,
     senders_to_receivers,
@@ -30,6 +31,21 @@ LINE = ("a", "b", "c")
 
 def _line_hops(owner: str, receiver: str, k: int) -> int:
     return abs(LINE.index(owner) - LINE.index(receiver))
+
+
+def test_holding_gaps_compare_the_oldest_fused_version_with_the_host_clock() -> None:
+    """c's estimate of step 4 arrived at 10.9 s and fused a's 3 (ended 10.0) and b's 4 (10.5):
+    its oldest peer version is 900 ms old by the clock; c said 880 (transits left out): −20 ms.
+    b's estimate of 4 fused a's 2, whose end is not known: left out; a said nothing."""
+    ended = {("a", 3): 10.0, ("b", 4): 10.5, ("a", 4): 10.6}
+    fused = [
+        (10.9, "c", 4, {"a": 3, "b": 4, "c": 4}),
+        (10.7, "b", 4, {"a": 2, "b": 4}),
+        (10.8, "a", 4, {"b": 4}),
+    ]
+    said = [(10.9, "c", 4, 880), (10.7, "b", 4, 700)]
+    assert_close(holding_gaps(ended, fused, said), [-20.0], atol=1e-9)
+    assert holding_gaps(ended, fused, []).size == 0
 
 
 def _ages(r: AgeOfInformation) -> dict[tuple[str, str, int], tuple[float, int]]:

@@ -119,7 +119,7 @@ def _bits(values: Any) -> bytes:
 def assert_same_message(got: StackMessage, want: StackMessage) -> None:
     """Equal to the bit, -0.0 and subnormals included."""
     assert got.sender == want.sender and got.step == want.step
-    assert got.have == want.have and got.ask == want.ask
+    assert got.have == want.have and got.ask == want.ask and got.age == want.age
     if want.position is None:
         assert got.position is None
     else:
@@ -252,6 +252,7 @@ BASE_MESSAGES += (
         7,
         have={"a": (0, 3), "delta": (5, 7), "z-9": (2**53 - 1, 0)},
         ask={"b": "a", "c": "z-9"},
+        age={"a": 1234},
     ),
 )
 BASE_BLOBS = tuple(encode(m) for m in BASE_MESSAGES)
@@ -860,7 +861,7 @@ def test_codec_extra_key_is_malformed(path: Path, field: str, key: str) -> None:
 MUTATOR = fuzz.Mutator(
     known_keys=(
         *("v", "type", "sender", "k", "pos", "slots", "owner", "stamp", "objects", "real"),
-        *("c", "phi", "lin", "info", "eta", "have", "ask"),
+        *("c", "phi", "lin", "info", "eta", "have", "ask", "age"),
     ),
     strings=("stack", "r1", "r1\n", ""),
     edge_ints=(-1, 0, 1, 2, 3, 255, 256, 2**32 - 1, 2**32, 2**63 - 1, 2**63, 2**64 - 1, -(2**63)),

@@ -33,7 +33,13 @@ from deploy.cli.args import zenoh_endpoint
 from deploy.cli.commands.fleet_init import add_init_parser
 from deploy.cli.outputs import add_force, new_folder
 from deploy.operator.fleet_session import collect_status, session_settings, stop_fleet, watch_fleet
-from deploy.operator.fleet_view import FleetView, behind_line, status_doc, write_watch_results
+from deploy.operator.fleet_view import (
+    FleetView,
+    age_line,
+    behind_line,
+    status_doc,
+    write_watch_results,
+)
 from estimator.models import ROBOT_ID_RULE
 from protocol.validate import valid_id
 
@@ -113,8 +119,9 @@ def run_status(args: argparse.Namespace, console: Console) -> int:
         + (f" (the last {answered:.3f} s after ctl/status)" if math.isfinite(answered) else "")
         + (f"; {view.invalid} invalid estimates ({view.last_error})" if view.invalid else "")
     )
-    if line := behind_line(view):
-        console.print(line)
+    for line in (behind_line(view), age_line(view)):
+        if line:
+            console.print(line)
     return 0
 
 
