@@ -69,7 +69,7 @@ from agents.control import (
     encode_control,
     fits_key,
 )
-from agents.gossip import RELAYS, DeltaGossip, Outgoing
+from agents.gossip import RELAYS, DeltaGossip, Outgoing, Sent
 from agents.journal import Record
 from agents.node import Received, RobotNode, admits_round, refuse_round
 from agents.recovery import FRAME, FRAME_UNFUSED, Ledger, Replayed, apply, restore
@@ -373,21 +373,22 @@ class AgentCore:
             actions += self._publish_estimate()
         actions += self._listen() + self._hear()
         self._refresh()
-        data, self._out = self.gossip.send_now(self._out, now)  # real time: what goes at once
-        if data is not None:
-            self.node.mark_sent(len(data))
-            actions.append(Publish(self.keys.stack(self.robot), data))
+        sent, self._out = self.gossip.send_now(self._out, now)  # real time: what goes at once
+        if sent is not None:
+            pushes = _pushes(self, sent)
+            for p in pushes:
+                self.node.mark_sent(len(p.payload))
+            actions += pushes
         elif self._out.flush_at < math.inf:
             actions.append(Flush(self._out.flush_at))
         return actions
 
     def on_flush(self, now: float) -> list[Action]:
         """Event-driven relay, on the shell's loop at a :class:`Flush`: the stack held back."""
-        data = self.gossip.flush(self._out, now)
-        if data is None:
-            return []
-        self.tick_bytes += len(data)
-        return [Publish(self.keys.stack(self.robot), data)]
+        sent = self.gossip.flush(self._out, now)
+        pushes = [] if sent is None else _pushes(self, sent)
+        self.tick_bytes += sum(len(p.payload) for p in pushes)
+        return list(pushes)
 
     def on_timer(self, now: float, announce: bool = False) -> list[Action]:
         """The gossip tick: re-send the stack (and, in lock-step, the previous round's, which a
@@ -437,7 +438,7 @@ class AgentCore:
         """A peer's stack: admitted by the node (:meth:`RobotNode.receive`), its digest noted,
         then merged (real time) or held for its round (lock-step). A simulated radio does not
         even read the stack of a robot out of range, nor take its digest."""
-        sender = self.keys.robot_of(key)
+        sender = self.keys.stack_sender(key)
         radio = self.radio if self.settings.mode == "realtime" else None
         k = self.node.k
         if radio is not None and sender not in (None, self.robot) and not radio.heard(sender, k):
@@ -501,7 +502,10 @@ class AgentCore:
         if self.radio is None or self.settings.mode != "realtime":
             return []
         keys = self.radio.hear(self.node.k, self.keys.stack)
-        return [] if keys is None else [Hear(keys)]
+        if keys is None:
+            return []
+        pushes = {self.keys.stack_to(self.keys.stack_sender(k) or "*", self.robot) for k in keys}
+        return [Hear(keys | pushes)]
 
     # -- stepping ----------------------------------------------------------------------------
 
@@ -630,9 +634,11 @@ class AgentCore:
         sent_at = old.digest_sent_at if digest == old.digest else -math.inf
         pull_at = self.gossip.pull_at(self.node.stack.versions())
         missing = self._frames_missing()
+        to = self.gossip.askers
         self._out = Outgoing(
-            data, old.previous, missing, digest, fresh, k, rounds, pull_at, sent_at, aging=aging
-        )
+            data, old.previous, missing, digest, fresh, k, rounds, pull_at, sent_at, aging=aging,
+            push_to=to,
+        )  # fmt: skip
 
     def _need(self, k: int, now: float, force: bool = False) -> list[Action]:
         if not force and now - self._last_need < self.settings.retry_period:
@@ -782,6 +788,15 @@ def _stack_payload(core: AgentCore) -> tuple[bytes, bytes | None, bool, Aging | 
         aging = core.ages.aging((o for o in held if o in include), held)  # the stack's order
     data = node.encoded_delta(include, asks, aged=aging is not None)
     return data, node.encoded_delta((), asks), bool(include), aging
+
+
+def _pushes(core: AgentCore, sent: Sent) -> list[Publish]:
+    """The publications of ``sent``: on the robot's stack key, or one on ``Keys.stack_to`` for
+    each peer it goes to alone (event-driven relay's pushes of asked slots)."""
+    data, to = sent
+    if not to:
+        return [Publish(core.keys.stack(core.robot), data)]
+    return [Publish(core.keys.stack_to(core.robot, peer), data) for peer in sorted(to)]
 
 
 def _aged(core: AgentCore, got: Received) -> None:

@@ -43,6 +43,7 @@ from agents.ages import Aging, stamped_ages
 from protocol.codec import stamp_ages
 
 Version = tuple[int, int]  # (epoch, stamp) of one owner's slot
+Sent = tuple[bytes, frozenset[str]]  # bytes to publish, and the peers they go to (none: all)
 NONE: Version = (-1, -1)  # older than any version
 
 DIGEST_LIFE = 3  # gossip periods a peer's digest counts for (real time): then it is out of reach
@@ -86,6 +87,9 @@ class Outgoing:
     # Holding times (``agents.ages``): per slot of ``stack``, the age it came with and since
     # when it is held, for the ages it says when it goes (None: ``stack`` says none).
     aging: Aging | None = None
+    # Event-driven relay: the peers whose asks alone put slots in ``stack`` (a push goes to them
+    # alone, ``Keys.stack_to``); empty: it goes to every robot in range.
+    push_to: frozenset[str] = frozenset()
 
     def sent_at(self, now: float) -> bytes | None:
         """``stack`` as it goes at ``now``: with its slots' ages of that moment."""
@@ -135,6 +139,7 @@ class DeltaGossip:
         self.included: set[str] = set()  # the owners of the slots of the last selection
         self.urgent = False  # whether the last selection goes at once (not only asked slots)
         self.asked_only = False  # whether it holds slots only a peer's ask sends
+        self.askers: frozenset[str] = frozenset()  # the peers whose asks those are
         # Event-driven relay: when a stack last went at once or by a flush (written by the
         # worker and by the shell's flush: a lost race costs one stack more, never one less),
         # and the stacks pushed for asked slots at once (the worker's) and by flushes (the
@@ -273,63 +278,79 @@ class DeltaGossip:
         include: set[str] = set()
         urgent = False
         asked_only = not self.strict and unsent and self.asked_only  # still held back
+        askers = set(self.askers) if asked_only else set()
         if not self.strict and unsent:
             include |= self.included & set(held)  # computed, not sent yet
         for owner, version in held.items():
             sent_version, sent_at = self.sent.get(owner, (NONE, -math.inf))
+            asked_by: list[str] = []
             for peer, d in digests.items():
                 if peer == owner or d.have.get(owner, NONE) >= version:
                     continue
                 if self.strict:
                     include.add(owner)
                     break
-                resend = sent_version != version or d.heard_at > sent_at + self.period
-                chance = owner == self.robot or d.heard_at > self.got.get(owner, 0.0) + self.period
-                on_ask = not chance and owner in d.asked  # the peer does not hear the owner
-                if resend and (chance or on_ask):
-                    include.add(owner)
-                    self.asks_answered += on_ask
-                    urgent |= not on_ask
-                    asked_only |= on_ask
+                if not (sent_version != version or d.heard_at > sent_at + self.period):
+                    continue  # sent, and the peer's digest is no later than a period after it
+                if owner == self.robot or d.heard_at > self.got.get(owner, 0.0) + self.period:
+                    include.add(owner)  # the peer had its chance: every robot in range now
+                    urgent = True
+                    asked_by = []
                     break
+                if owner in d.asked:  # the peer does not hear the owner, and asked this robot
+                    asked_by.append(peer)
+            if asked_by:
+                include.add(owner)
+                self.asks_answered += 1
+                asked_only = True
+                askers.update(asked_by)
         for owner in include:
             self.sent[owner] = (held[owner], now)
         self.included = include
         self.urgent = urgent
         self.asked_only = asked_only and not urgent
+        self.askers = frozenset(askers) if self.asked_only else frozenset()
         return include
 
-    def send_now(self, out: Outgoing, now: float) -> tuple[bytes | None, Outgoing]:
-        """Real time, after a batch of messages: the bytes to send at once and what the timer
-        reads then. What a peer turned out to lack goes now, not at the next tick (a tick then
-        carries the digest alone); so does a slot only a peer's ask sends, with event-driven
-        relay, unless a stack went less than ``PUSH_WINDOW_S`` ago: then it goes when the
-        window ends (``flush_at``). With ``relay = "tick"`` it waits for the tick (docs/wire.md,
-        "Asks"). A changed ask goes now, at most once a period (else with the next tick)."""
+    def send_now(self, out: Outgoing, now: float) -> tuple[Sent | None, Outgoing]:
+        """Real time, after a batch of messages: what to send at once (the bytes, and the peers
+        they go to alone; none: every robot in range) and what the timer reads then. What a peer
+        turned out to lack goes now, to every robot in range, not at the next tick (a tick then
+        carries the digest alone); so does a slot only peers' asks send, with event-driven
+        relay, to those peers alone (``out.push_to``), unless a stack went less than
+        ``PUSH_WINDOW_S`` ago: then it goes when the window ends (``flush_at``). With ``relay =
+        "tick"`` it waits for the tick (docs/wire.md, "Asks"). A changed ask goes now, at most
+        once a period (else with the next tick)."""
         asked, self.asked_now = self.asked_now, False
         ready = out.fresh and out.digest is not None and out.stack is not None
         if ready and (self.urgent or (self.event and self.asked_only)):
             if self.urgent or now - self.pushed_at >= PUSH_WINDOW_S:
                 self.pushed_at = now
                 self.pushes += not self.urgent
-                return out.sent_at(now), replace(out, fresh=False, digest_sent_at=now)
+                to = frozenset() if self.urgent else out.push_to
+                # A push to its askers alone did not show the digest to the others.
+                shown = out.digest_sent_at if to else now
+                data = out.sent_at(now) or b""  # never empty: ``ready`` holds a stack
+                return (data, to), replace(out, fresh=False, digest_sent_at=shown)
             out = replace(out, flush_at=self.pushed_at + PUSH_WINDOW_S)
         if asked and out.digest is not None and now - self.asked_sent_at >= self.period:
             self.asked_sent_at = now
-            return out.digest, replace(out, digest_sent_at=now)
+            return (out.digest, frozenset()), replace(out, digest_sent_at=now)
         return None, out
 
-    def flush(self, out: Outgoing, now: float) -> bytes | None:
+    def flush(self, out: Outgoing, now: float) -> Sent | None:
         """Real time, the shell's flush at ``out.flush_at``: the stack whose asked slots the push
-        window held back, unless it went since (with a tick, or at once: then nothing)."""
+        window held back, to the peers that asked for them (``out.push_to``), unless it went
+        since (with a tick, or at once: then nothing)."""
         if out.stack is None or not out.fresh or out.stack is self.tick_last:
             return None
         self.tick_last = out.stack
         self.pushed_at = now
         self.flushes += 1
-        if out.digest is not None:
+        if out.digest is not None and not out.push_to:
             self.digest_sent = (out.digest, now)
-        return out.sent_at(now)
+        data = out.sent_at(now)
+        return None if data is None else (data, out.push_to)
 
     def tick(self, out: Outgoing, now: float, announce: bool) -> bytes | None:
         """Real time, the timer thread: the bytes a gossip tick sends — the stack if it holds

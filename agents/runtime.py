@@ -171,7 +171,7 @@ class Agent:
         self.requests = Inbox(256, REQUEST_INBOX_BYTES, largest)
         self.frames = Inbox(4096, FRAME_INBOX_BYTES)
         self.stacks = Inbox(1024, STACK_INBOX_BYTES)
-        self.stack_subscriptions = StackSubscriptions(transport, self.keys, self.stacks)
+        self.stack_subscriptions = StackSubscriptions(transport, self.keys, self.stacks, self.robot)
         self.ros2 = ros2
         self.ros2_in = Inbox(4096, FRAME_INBOX_BYTES)
         ros2_inboxes = (self.ros2_in,) if ros2 is not None else ()

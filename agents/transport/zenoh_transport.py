@@ -54,7 +54,7 @@ class ZenohConfigError(ValueError):
 # Gossip is latest-wins and re-sent every period, so it is put best-effort: over a session's
 # UDP link when it has one (a healed cut lets the next stack through at once, where TCP would
 # still be backing off its retransmissions for seconds), over its TCP link otherwise.
-BEST_EFFORT_KEYS = ("**/stack/*",)
+BEST_EFFORT_KEYS = ("**/stack/*", "**/stack/*/to/*")  # stacks, and pushes to one robot
 # How long close() waits for Zenoh's Session.close: it flushes and closes every link, which on a
 # lossy network can take seconds of TCP retransmissions. Then the process goes on (and exits: the
 # kernel closes the sockets), so that an agent's shutdown stays bounded — a launcher kills an

@@ -25,7 +25,7 @@ from numpy.typing import NDArray
 
 from agents.control import NeedFrames, StepOrder, Stop, decode_control, encode_control
 from agents.links import LinkModel
-from agents.transport.base import Inbox, Keys, Message, Transport
+from agents.transport.base import Inbox, Keys, Transport
 from deploy.launch.scoring import Scorer
 from estimator.models import SensorFrame
 from protocol.codec import decode
@@ -102,20 +102,6 @@ class Collected:
     age_log: list[tuple[float, str, int, int]] = field(default_factory=list)
 
 
-@dataclass(frozen=True, slots=True)
-class _Arrived(Message):
-    at: float = 0.0
-
-
-class _ArrivalInbox(Inbox):
-    """An inbox that keeps each message's arrival time: the conductor drains its inboxes only
-    every 50 ms or on an estimate, too coarse to time a stack's publication (or an estimate's
-    arrival, which it drains at once but may share the machine with busy agents) by."""
-
-    def put(self, message: Message) -> None:
-        super().put(_Arrived(message.key, message.payload, message.kind, time.monotonic()))
-
-
 def without_truth(frame: SensorFrame) -> SensorFrame:
     """The frame an agent gets: the simulator keeps the true pose for its metrics."""
     return replace(frame, true_pose=np.full(3, np.nan))
@@ -167,8 +153,12 @@ class Conductor:
         self.keep_estimates = keep_estimates
         self.observe_stacks = observe_stacks
         self.on_links = on_links
-        self.stacks: Inbox = _ArrivalInbox(100_000)
-        self.estimates: Inbox = _ArrivalInbox(100_000)
+        # Each message keeps its arrival time (``Message.at``): the conductor drains its inboxes
+        # only every 50 ms or on an estimate, too coarse to time a stack's publication (or an
+        # estimate's arrival, which it drains at once but may share the machine with busy
+        # agents) by.
+        self.stacks = Inbox(100_000)
+        self.estimates = Inbox(100_000)
         self.control = Inbox(10_000)
         self.alive_events = Inbox(10_000)
         self.alive: set[str] = set()
@@ -191,6 +181,7 @@ class Conductor:
         self.transport.watch_alive(self.keys.alive("*"), self.alive_events)
         if self.observe_stacks:
             self.transport.subscribe(self.keys.stack("*"), self.stacks)
+            self.transport.subscribe(self.keys.stack_to("*", "*"), self.stacks)  # pushes
         await self.transport.open()
 
     # -- helpers -----------------------------------------------------------------------------
@@ -249,12 +240,11 @@ class Conductor:
                     self._need_order_t = now
                     self._order(self.k)
         for m in self.estimates.drain():
-            self._on_estimate(m.payload, m.key, getattr(m, "at", None))
+            self._on_estimate(m.payload, m.key, m.at)
         while self._unscored_bytes > MAX_UNSCORED_BYTES:
             self._score(self._unscored.popleft())
-        now = time.monotonic()
         for m in self.stacks.drain():
-            robot = self.keys.robot_of(m.key)
+            robot = self.keys.stack_sender(m.key)
             if robot not in self._index:
                 continue
             try:
@@ -266,7 +256,7 @@ class Conductor:
                 held = carried = message.stack.stamps()
                 if message.have is not None:
                     held = {owner: stamp for owner, (_, stamp) in message.have.items()}
-                at = getattr(m, "at", now)
+                at = m.at
                 self.collected.stack_log.append((at, robot, held))
                 if carried:
                     self.collected.slot_log.append((at, robot, carried))

@@ -66,6 +66,7 @@ def access_control(
     for r in robots:
         own = [
             keys.stack(r),
+            keys.stack_to(r, "*"),  # event-driven relay's pushes to the robots that asked
             keys.estimate(r),
             keys.frames(r),
             f"{prefix}/ctl/need/{r}",

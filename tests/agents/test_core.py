@@ -692,7 +692,8 @@ def test_a_simulated_agent_does_not_read_the_stacks_of_robots_out_of_range() -> 
 
 
 def test_a_simulated_agent_wakes_only_for_the_stacks_of_robots_it_will_hear() -> None:
-    """``Hear``: the keys of the robots heard under the links due at the coming step and under
+    """``Hear``: the keys (stacks, and pushes to this robot) of the robots heard under the links
+    due at the coming step and under
     every later links already received (so the shell never keeps back a stack the core would
     read), without the agent's own; again only when that set changes; none in lock-step or off
     a simulation (every stack wakes the agent there)."""
@@ -701,12 +702,15 @@ def test_a_simulated_agent_wakes_only_for_the_stacks_of_robots_it_will_hear() ->
         actions = d.core.on_messages([(KEYS.sim_links(), encode_control(StepOrder(k, links)))], 0.0)
         return [a.keys for a in actions if isinstance(a, Hear)]
 
+    def keys(*robots: str) -> frozenset[str]:  # their stacks, and their pushes to r1
+        return frozenset(k for r in robots for k in (KEYS.stack(r), KEYS.stack_to(r, "r1")))
+
     d = Driver(mode="realtime", simulation=True)
     d.run(d.core.start(0.0))
-    assert hears(d, 1, {"r1": ("r1", "r3")}) == [frozenset({KEYS.stack("r3")})]
+    assert hears(d, 1, {"r1": ("r1", "r3")}) == [keys("r3")]
     assert hears(d, 1, {"r1": ("r3", "r1")}) == []  # the same robots: nothing to say
     # Links for step 2 already here while step 1 is coming: both steps' robots wake it.
-    assert hears(d, 2, {"r1": ("r2",)}) == [frozenset({KEYS.stack("r2"), KEYS.stack("r3")})]
+    assert hears(d, 2, {"r1": ("r2",)}) == [keys("r2", "r3")]
     for other in (Driver(mode="lockstep", simulation=True), Driver(mode="realtime")):
         other.run(other.core.start(0.0))
         assert hears(other, 1, {"r1": ("r3",)}) == []

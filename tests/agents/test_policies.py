@@ -132,11 +132,11 @@ def test_send_now_sends_what_a_peer_lacks_at_once_and_a_changed_ask_once_a_perio
     g = _gossip()
     g.urgent = True
     out = Outgoing(stack=b"s", digest=b"d", fresh=True)
-    data, after = g.send_now(out, 3.0)
-    assert data == b"s" and not after.fresh and after.digest_sent_at == 3.0
+    sent, after = g.send_now(out, 3.0)
+    assert sent == (b"s", frozenset()) and not after.fresh and after.digest_sent_at == 3.0
     g.urgent, g.asked_now = False, True
-    data, after = g.send_now(after, 3.1)
-    assert data == b"d" and g.asked_sent_at == 3.1 and not g.asked_now
+    sent, after = g.send_now(after, 3.1)
+    assert sent == (b"d", frozenset()) and g.asked_sent_at == 3.1 and not g.asked_now
     g.asked_now = True
     assert g.send_now(after, 3.2)[0] is None  # within a period of the last: with the tick
 

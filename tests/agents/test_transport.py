@@ -341,7 +341,7 @@ async def test_zenoh_stack_subscriptions_follow_the_peers_heard() -> None:
     a = ZenohTransport(settings_for(port_a, []))
     b = ZenohTransport(settings_for(port_b, [port_a]))
     stacks = Inbox(256)
-    subs = StackSubscriptions(b, KEYS, stacks)
+    subs = StackSubscriptions(b, KEYS, stacks, "r9")
     subs.follow(frozenset({"r1"}))  # before open: declared on open
 
     async def heard(robots: set[str], silent: set[str]) -> None:
@@ -388,7 +388,7 @@ async def test_memory_stack_subscriptions_follow_the_peers_heard() -> None:
     await a.open()
     await b.open()
     stacks = Inbox(16)
-    subs = StackSubscriptions(b, KEYS, stacks)
+    subs = StackSubscriptions(b, KEYS, stacks, "r9")
     assert subs.follow(frozenset({"r2"}))  # a subscription added (the runtime echoes then)
     assert not subs.follow(frozenset({"r2"}))  # no second one: one message per put
     for r in ("r1", "r2"):
@@ -400,7 +400,24 @@ async def test_memory_stack_subscriptions_follow_the_peers_heard() -> None:
         a.publish(KEYS.stack(r), r.encode())
     await asyncio.sleep(0)
     assert [m.payload for m in stacks.drain()] == [b"r1", b"r2"]
-    assert b.subscriptions == [(KEYS.stack("*"), stacks)]
+    assert sorted(b.subscriptions) == sorted(
+        [(KEYS.stack_to("*", "r9"), stacks), (KEYS.stack("*"), stacks)]
+    )
+    # The pushes addressed to this robot come whoever is followed, and no one else's do.
+    subs.follow(frozenset())
+    a.publish(KEYS.stack_to("r1", "r9"), b"to me")
+    a.publish(KEYS.stack_to("r1", "r8"), b"to r8")
+    await asyncio.sleep(0)
+    assert [m.payload for m in stacks.drain()] == [b"to me"]
+
+
+def test_keys_name_the_sender_of_a_stack_and_of_a_push() -> None:
+    assert KEYS.stack_to("r1", "r2") == KEYS.stack("r1") + "/to/r2"
+    assert KEYS.stack_sender(KEYS.stack("r1")) == "r1"
+    assert KEYS.stack_sender(KEYS.stack_to("r1", "r2")) == "r1"
+    for bad in (KEYS.estimate("r1"), KEYS.stack("r1") + "/to", KEYS.stack("r1") + "/x/r2",
+                "semfleet/other/stack/r1", KEYS.stack("r1") + "/to/r2/x"):  # fmt: skip
+        assert KEYS.stack_sender(bad) is None, bad
 
 
 def test_zenoh_settings_recover_fast_after_a_cut_and_pair_udp_with_tcp(tmp_path: Path) -> None:

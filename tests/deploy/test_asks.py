@@ -249,3 +249,48 @@ def test_tick_relay_never_asks_for_a_flush() -> None:
     actions = r2.on_message(KEYS.stack("r3"), sent[0], now + 0.01)
     assert not [a for a in actions if isinstance(a, (Publish, Flush))]
     assert r2.counter_values()["relay_pushes"] == 0
+
+
+def test_an_event_push_goes_to_its_askers_alone_and_what_a_peer_lacks_to_everyone() -> None:
+    """A push carries slots only asks send: it goes on ``Keys.stack_to`` to each asker (the
+    other robots in range neither need it nor decode it); a stack with a slot some peer lacks
+    after its chance goes on the robot's own key, to every robot in range."""
+    r1, log1, r2, log2, frames, now = _hearing_pair(2)
+    askers = {}
+    s = load_scenario("paper")
+    for robot in ("r3", "r4"):
+
+        def make(robot: str = robot):  # type: ignore[no-untyped-def]
+            # r4: a fourth robot, which the paper does not have, where r3 starts.
+            return make_node(robot, s.robot("r3").start, belief_model(s), 4, BeliefConfig())
+
+        log = MemoryLog()
+        core = AgentCore(make, KEYS, CoreSettings(gossip_period=PERIOD), log.records)
+        _stacks(core.start(now), log, robot)
+        ask = _stacks(core.on_message(KEYS.stack("r2"), r2.node.encoded_delta(()), now), log, robot)
+        assert [decode(p).ask for p in ask] == [{"r1": "r2"}]
+        askers[robot] = ask[0]
+    # r3's ask is answered at once, to r3 alone.
+    first = execute_journal_actions(log2, r2.on_message(KEYS.stack("r3"), askers["r3"], now))
+    assert [a.key for a in first if isinstance(a, Publish)] == [KEYS.stack_to("r2", "r3")]
+    # Both ask; r1's next version goes to each of them, the same bytes, and to nobody else.
+    now += 0.1
+    execute_journal_actions(log2, r2.on_message(KEYS.stack("r4"), askers["r4"], now))
+    for core_ask in ("r3", "r4"):
+        execute_journal_actions(log2, r2.on_message(KEYS.stack(core_ask), askers[core_ask], now))
+    now += 1.0
+    s1 = _stacks(r1.on_message(KEYS.frames("r1"), encode_frame(frames["r1"][2]), now), log1, "r1")
+    pushed = [
+        a for a in execute_journal_actions(log2, r2.on_message(KEYS.stack("r1"), s1[-1], now))
+        if isinstance(a, Publish)
+    ]  # fmt: skip
+    assert sorted(a.key for a in pushed) == [KEYS.stack_to("r2", "r3"), KEYS.stack_to("r2", "r4")]
+    assert len({a.payload for a in pushed}) == 1
+    assert decode(pushed[0].payload).stack.versions()["r1"] == r1.node.stack.versions()["r1"]
+    # r2's own new slot, which every peer lacks after its chance: on r2's own key.
+    own = execute_journal_actions(
+        log2, r2.on_message(KEYS.frames("r2"), encode_frame(frames["r2"][2]), now + 0.2)
+    )
+    assert [a.key for a in own if isinstance(a, Publish) and "/stack/" in a.key] == [
+        KEYS.stack("r2")
+    ]

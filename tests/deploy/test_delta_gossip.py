@@ -77,8 +77,9 @@ def _core(robot: str, epoch: int = 1, relay: str = "event") -> tuple[AgentCore, 
 
 
 def _stacks(actions: list[object], log: MemoryLog, robot: str) -> list[bytes]:
+    """The stacks ``robot`` publishes, to every robot in range or to one alone (a push)."""
     rest = execute_journal_actions(log, actions)  # type: ignore[arg-type]
-    return [a.payload for a in rest if isinstance(a, Publish) and a.key == KEYS.stack(robot)]
+    return [a.payload for a in rest if isinstance(a, Publish) and KEYS.stack_sender(a.key) == robot]
 
 
 _Pair = tuple[AgentCore, MemoryLog, AgentCore, MemoryLog, dict[str, list[SensorFrame]], float]

@@ -112,8 +112,8 @@ def test_access_control_lets_each_robot_put_only_on_its_own_keys(fleet: Path) ->
                         allowed.setdefault(cn, set()).update(rule["key_exprs"])
     p = "semfleet/lab"
     for r in ROBOTS:
-        assert allowed[r] == {f"{p}/stack/{r}", f"{p}/estimate/{r}", f"{p}/frames/{r}",
-                              f"{p}/ctl/need/{r}"}  # fmt: skip
+        assert allowed[r] == {f"{p}/stack/{r}", f"{p}/stack/{r}/to/*", f"{p}/estimate/{r}",
+                              f"{p}/frames/{r}", f"{p}/ctl/need/{r}"}  # fmt: skip
     assert allowed["ops"] == {f"{p}/ctl/**", f"{p}/sim/**"}
 
 

@@ -103,24 +103,26 @@ def test_only_the_owners_identity_puts_on_its_keys_and_only_the_operator_control
         await asyncio.sleep(1.5)  # let r1's subscriptions reach the certified sessions
         forged = [
             (KEYS.stack("r1"), GARBAGE),
+            (KEYS.stack_to("r3", "r1"), GARBAGE),  # a push as if from r3
             (KEYS.frames("r1"), GARBAGE),
             (KEYS.ctl("stop"), encode_control(Stop("attack"))),
             (KEYS.ctl("status"), encode_control(Status())),
         ]
+        own = [(KEYS.stack("r2"), GARBAGE), (KEYS.stack_to("r2", "r1"), GARBAGE)]
         await asyncio.gather(
-            _put_repeatedly(attacks["r2"], [*forged, (KEYS.stack("r2"), GARBAGE)]),
-            _put_repeatedly(attacks["foreign CA"], [*forged, (KEYS.stack("r2"), GARBAGE)]),
-            _put_repeatedly(attacks["uncertified"], [*forged, (KEYS.stack("r2"), GARBAGE)]),
+            _put_repeatedly(attacks["r2"], [*forged, *own]),
+            _put_repeatedly(attacks["foreign CA"], [*forged, *own]),
+            _put_repeatedly(attacks["uncertified"], [*forged, *own]),
         )
         await asyncio.sleep(1.0)
         assert proc.poll() is None, "an attacker's ctl/stop stopped the agent"
         after = (await ask_status(operator, estimates, KEYS)).counters
         for session in attacks.values():
             await session.close()
-        # r2's puts on its own stack arrive (so its link works) and are counted as invalid;
-        # nothing else of any attacker reaches r1.
-        assert after["stacks_invalid"] - before["stacks_invalid"] == PUTS
-        assert after["stacks_received"] - before["stacks_received"] == PUTS
+        # r2's puts on its own stack and its own pushes to r1 arrive (so its link works) and
+        # are counted as invalid; nothing else of any attacker reaches r1.
+        assert after["stacks_invalid"] - before["stacks_invalid"] == 2 * PUTS
+        assert after["stacks_received"] - before["stacks_received"] == 2 * PUTS
         for name in ("frames_invalid", "frames_processed", "control_invalid"):
             assert after[name] == before[name], name
         # status requests: the operator's only (at least the two above), never an attacker's 15

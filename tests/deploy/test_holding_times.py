@@ -41,7 +41,8 @@ def _core(robot: str, clock: Clock) -> tuple[AgentCore, MemoryLog]:
 
 def _stacks(core: AgentCore, log: MemoryLog, actions: list[object]) -> list[bytes]:
     rest = execute_journal_actions(log, actions)  # type: ignore[arg-type]
-    return [a.payload for a in rest if isinstance(a, Publish) and a.key == KEYS.stack(core.robot)]
+    mine = (a for a in rest if isinstance(a, Publish) and KEYS.stack_sender(a.key) == core.robot)
+    return [a.payload for a in mine]
 
 
 def _line() -> tuple[dict[str, AgentCore], dict[str, MemoryLog], dict[str, Clock], dict]:  # type: ignore[type-arg]
