@@ -407,6 +407,7 @@ class RobotNode:
         epoch: int = 0,
         gate: GateSettings | None = None,
         sensor: SensorField | None = None,
+        keep_slots: int | None = None,
     ) -> None:
         self.robot = robot
         # The own slot's epoch (docs/wire.md, "Versions and epochs"): the shell gives the one of
@@ -441,6 +442,12 @@ class RobotNode:
         if largest < self.limits.max_message_bytes:
             self.limits = replace(self.limits, max_message_bytes=largest)
         self.stack = Stack()
+        # The slots this robot keeps, its own included (docs/distributed.md, "How many robots a
+        # D holds"): at most a stack's (the wire's ``max_slots``), fewer on a robot that bounds
+        # its neighbourhood while it still takes stacks of up to ``max_slots``.
+        self.keep_slots = self.limits.max_slots if keep_slots is None else keep_slots
+        if not 2 <= self.keep_slots <= self.limits.max_slots:
+            raise ValueError(f"keep_slots {keep_slots}: must be in 2..{self.limits.max_slots}")
         semantic_poses = cfg.semantic_poses
         self.gate = BeliefGate(gate or GateSettings(), model, semantic_poses, self.limits.max_slots)
         self.counters = NodeCounters()
@@ -625,7 +632,7 @@ class RobotNode:
         """The slots of a received stack this node may hold: owners in the roster, no more in all
         than a stack carries (the own stack always encodes; full: :func:`_evict_for`)."""
         held = self.stack.versions()
-        room = self.limits.max_slots - len(held | {self.robot: (0, 0)})
+        room = self.keep_slots - len(held | {self.robot: (0, 0)})
         stamps = {s.owner: s.stamp for s in self.stack if s.owner != self.robot}
         out = []
         for s in stack:
@@ -902,7 +909,7 @@ def _evict_for(
     slots not taken from the stack being admitted) from the stack, ``held`` and ``stamps`` if
     ``slot`` is fresher (a higher stamp, the owner's step when it made the slot) and fits D's
     model; whether one was dropped. Relayed one hop per step, a slot's age is its owner's
-    distance in hops, so a robot keeps the ``max_slots − 1`` nearest robots it hears of and
+    distance in hops, so a robot keeps the ``keep_slots − 1`` nearest robots it hears of and
     lets go of those that moved away (``evicted_slots``); D lets go in batches
     (:func:`_drop_evicted`). Stamps are compared across owners: they count steps of one fleet
     (lock-step, or the agents of one launch)."""
@@ -926,7 +933,7 @@ def _wanted(node: RobotNode, owner: str, epoch: int, stamp: int) -> bool:
     if held is not None:
         return (epoch, stamp) > held
     others = [s.stamp for s in node.stack if s.owner != node.robot]
-    return len(others) + 1 < node.limits.max_slots or stamp > min(others, default=stamp)
+    return len(others) + 1 < node.keep_slots or stamp > min(others, default=stamp)
 
 
 def _merge_admitted(node: RobotNode, stack: Stack) -> Stack:
@@ -946,7 +953,7 @@ def _drop_evicted(node: RobotNode, evicted_before: int) -> None:
         return
     held = node.stack.versions()
     dropped = sum(owner not in held for owner in node.distributed.versions)
-    if dropped >= node.limits.max_slots - 1:
+    if dropped >= node.keep_slots - 1:
         node._rebuild_due = True
 
 

@@ -120,13 +120,15 @@ def make_node(
     signing: Signing | None = None,
     epoch: int = 0,
     sensor: SensorField | None = None,
+    keep_slots: int | None = None,
 ) -> RobotNode:
     """The node of ``robot`` starting at ``start`` (3,) in run ``seed``, exactly as
     :func:`make_nodes` builds it with ``rng_for = lambda r: belief_rng(seed, [r])``; ``roster``
     limits the slots it holds to those robots' (None: any owner); ``limits`` what it accepts and
     sends (default: the wire defaults with the model's class count); ``epoch`` its own slots'
     epoch (docs/wire.md, "Versions and epochs"); ``sensor``: the robot's sensor field, with
-    which it associates frames without global ids (``estimator.association``)."""
+    which it associates frames without global ids (``estimator.association``); ``keep_slots``:
+    the slots it keeps, its own included (default: a stack's ``max_slots``)."""
     rng_for = lambda r: belief_rng(seed, [r])  # noqa: E731
     return _node(
         robot,
@@ -141,6 +143,7 @@ def make_node(
         signing=signing,
         epoch=epoch,
         sensor=sensor,
+        keep_slots=keep_slots,
     )
 
 
@@ -187,6 +190,7 @@ def _node(
     signing: Signing | None = None,
     epoch: int = 0,
     sensor: SensorField | None = None,
+    keep_slots: int | None = None,
 ) -> RobotNode:
     return RobotNode(
         robot,
@@ -203,4 +207,5 @@ def _node(
         signing=signing,
         epoch=epoch,
         sensor=sensor,
+        keep_slots=keep_slots,
     )

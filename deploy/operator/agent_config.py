@@ -57,12 +57,15 @@ class AgentConfig:
     classes: str = DEFAULT_CLASSES
     # BeliefConfig.window: robot poses older than this many steps are marginalised (None: all kept).
     pose_window: int | None = POSE_WINDOW
+    # The slots this robot keeps, its own included (None: a stack's max_slots, 64; docs/
+    # distributed.md, "How many robots a D holds").
+    keep_slots: int | None = None
 
 
 _AGENT_KEYS = {
     "fleet", "model", "start", "roster", "seed", "mode", "gossip_period", "journal",
     "publish_local", "simulation", "window", "world_extent", "stack_gossip", "relay", "catch_up",
-    "listen_in_range", "classes", "pose_window",
+    "listen_in_range", "classes", "pose_window", "keep_slots",
 }  # fmt: skip
 _ZENOH_KEYS = {
     "listen", "connect", "gossip", "shared_memory", "lease_ms", "config_file", "insecure", "mode",
@@ -259,4 +262,5 @@ def _read_agent_config(path: Path, robot: str) -> AgentConfig:
         limits=limits,
         classes=classes,
         pose_window=pose_window,
+        keep_slots=a.integer("keep_slots", 2, limits.max_slots) if a.has("keep_slots") else None,
     )

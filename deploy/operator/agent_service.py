@@ -49,6 +49,7 @@ def node_factory(config: AgentConfig, epoch: int = 0) -> Callable[[], RobotNode]
         signing=config.signing,
         epoch=epoch,
         sensor=sensor_field(config.model),
+        keep_slots=config.keep_slots,
     )
 
 

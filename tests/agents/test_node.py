@@ -887,3 +887,31 @@ def test_a_full_stack_takes_a_fresher_slot_for_its_stalest_and_d_follows(
     assert set(r1.distributed.versions) == {"c", "d"}
     assert r1.counters.rebuilds == rebuilds + 1 and r1.counters.evicted_slots == 2
     assert r1.outgoing() is not None and r1.counters.own_slot_invalid == 0
+
+
+def test_a_robot_that_keeps_fewer_slots_than_a_stack_holds_takes_stacks_of_any_size(
+    frames: dict[str, list[SensorFrame]],
+) -> None:
+    """``keep_slots`` (``[agent] keep_slots``) bounds what one robot keeps, not what it takes:
+    with 3 (two peers) and the wire's 64 slots a stack, a stack of four peers' slots is taken,
+    not refused whole — two held, two refused for want of room — and the robot's own stacks
+    carry at most three; a fresher slot of a new owner then takes the stalest's place."""
+    model = belief_model(SCENARIO)
+    r1 = make_node("r1", SCENARIO.robot("r1").start, model, SEED, BeliefConfig(), keep_slots=3)
+    r3 = make_nodes(SCENARIO, model, BeliefConfig(), lambda r: belief_rng(SEED, [r]))["r3"]
+    assert r1.limits.max_slots == 64 and r1.keep_slots == 3
+    _advance(r3, frames, 6)
+    _advance(r1, frames, 6)
+    summary = _own_slot(r3).summary
+    four = Stack(tuple(Slot(o, 6 + i, summary) for i, o in enumerate(("a", "b", "c", "d"))))
+    got = r1.receive(encode(StackMessage("a", None, four, 9)), "a")
+    assert got.taken and got.error is None
+    assert {s.owner for s in r1.current_stack()} == {"r1", "a", "b"}
+    assert r1.counters.foreign_slots == 2 and r1.counters.evicted_slots == 0
+    assert len(decode(r1.outgoing(), r1.limits).stack) == 3
+    assert r1.receive(_single("e", 10, summary), "e").taken  # fresher than a's 6: a goes
+    assert {s.owner for s in r1.current_stack()} == {"r1", "b", "e"}
+    assert r1.counters.evicted_slots == 1
+    for bad in (1, 65):
+        with pytest.raises(ValueError, match="keep_slots"):
+            make_node("r1", SCENARIO.robot("r1").start, model, SEED, BeliefConfig(), keep_slots=bad)

@@ -14,6 +14,7 @@ import pytest
 
 from agents.journal import Journal
 from deploy.operator.agent_config import AgentConfigError, load_agent_config
+from deploy.operator.agent_service import node_factory
 from estimator.hybrid import POSE_WINDOW
 from sim.loader import load_scenario
 from sim.robot_model import dump_robot_model
@@ -112,6 +113,14 @@ def test_agent_config_zenoh_mode_is_peer_by_default_or_a_routers_client(tmp_path
     for bad in (_set("zenoh.mode", '"client"'), _set("zenoh.mode", '"router"')):
         with pytest.raises(AgentConfigError, match=r"zenoh\.mode"):
             load_agent_config(_write(tmp_path, bad), "r1")
+
+
+def test_agent_config_keep_slots_bounds_the_slots_a_robot_keeps(tmp_path: Path) -> None:
+    config = load_agent_config(_write(tmp_path, _set("agent.keep_slots", "25")), "r1")
+    assert config.keep_slots == 25
+    assert node_factory(config)().keep_slots == 25
+    default = load_agent_config(_write(tmp_path, MINIMAL), "r2")
+    assert default.keep_slots is None and node_factory(default)().keep_slots == 64
 
 
 def test_agent_config_relay_is_event_by_default_or_tick(tmp_path: Path) -> None:
@@ -215,6 +224,9 @@ BAD = [
     (_set("agent.window", '"8"'), "agent.window"),
     (_set("agent.stack_gossip", '"rumour"'), "agent.stack_gossip"),
     (_set("agent.relay", '"gossip"'), "agent.relay"),
+    (_set("agent.keep_slots", "1"), "agent.keep_slots"),
+    (_set("agent.keep_slots", "65"), "agent.keep_slots"),
+    (_set("agent.keep_slots", '"all"'), "agent.keep_slots"),
     (_set("agent.catch_up", "-1"), "agent.catch_up"),
     (_set("agent.catch_up", "1001"), "agent.catch_up"),
     (_set("agent.simulation", '"yes"'), "agent.simulation"),
