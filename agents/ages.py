@@ -65,6 +65,19 @@ class Ages:
             out.append(known)
         return tuple(out)
 
+    def held_ages(
+        self, owners: Iterable[str], held: Mapping[str, Version], now: float
+    ) -> dict[str, int]:
+        """The age (ms) at ``now`` of the held version (``held``) of each of ``owners`` whose age
+        is known: what a full stack compares to let go of the oldest information
+        (``agents.node``, the neighbourhood bound)."""
+        out = {}
+        for owner in owners:
+            known = self._held.get(owner, {}).get(held.get(owner, (-1, -1)))
+            if known is not None:
+                out[owner] = known[0] + max(0, round(1000 * (now - known[1])))
+        return out
+
     def report(self, fused: Mapping[str, int], now: float) -> dict[str, int]:
         """The counters of an estimate made at ``now``: median and largest age (ms) of the
         versions D has fused (``fused``: owner → stamp) whose age is known, and how many."""

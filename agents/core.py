@@ -50,6 +50,7 @@ committed and what is refused are invariants of it. The policies hold everything
 from __future__ import annotations
 
 import dataclasses
+import functools
 import logging
 import math
 from collections.abc import Callable, Mapping, Sequence
@@ -69,7 +70,7 @@ from agents.control import (
     encode_control,
     fits_key,
 )
-from agents.gossip import RELAYS, DeltaGossip, Outgoing, Sent
+from agents.gossip import DIGEST_LIFE, RELAYS, DeltaGossip, Outgoing, Sent
 from agents.journal import Record
 from agents.node import Received, RobotNode, admits_round, refuse_round
 from agents.recovery import FRAME, FRAME_UNFUSED, Ledger, Replayed, apply, restore
@@ -268,15 +269,15 @@ class AgentCore:
         shell_counters: Callable[[], Mapping[str, int]] | None = None,
         clock: Callable[[], float] | None = None,
     ) -> None:
-        self.make_node = make_node
+        self.make_node = functools.partial(_aged_node, self, make_node)
         self.committed = committed
         self.wall_clock = wall_clock
         self.step_clock = step_clock
         self.shell_counters, self.clock = shell_counters, clock
-        self.node = make_node()
+        s = self.settings = settings or CoreSettings()
+        self.node = self.make_node()
         self.robot = self.node.robot
         self.keys = keys
-        s = self.settings = settings or CoreSettings()
         self.counters = CoreCounters()
         self._status_due = False  # a status request came in the current batch
         self.replayed = Replayed()
@@ -797,6 +798,21 @@ def _pushes(core: AgentCore, sent: Sent) -> list[Publish]:
     if not to:
         return [Publish(core.keys.stack(core.robot), data)]
     return [Publish(core.keys.stack_to(core.robot, peer), data) for peer in sorted(to)]
+
+
+def _aged_node(core: AgentCore, make_node: Callable[[], RobotNode]) -> RobotNode:
+    """``make_node()``, whose full stack lets go of the oldest information by holding times in
+    real time with ask gossip (``RobotNode.slot_ages``): an owner whose held version is older by
+    more than the life of a digest (``DIGEST_LIFE`` gossip periods: then a peer is out of reach)
+    than a new owner's makes room for it."""
+    node = make_node()
+    s = core.settings
+    if s.mode == "realtime" and s.stack_gossip == "ask":
+        node.slot_ages = lambda owners: core.ages.held_ages(
+            owners, node.stack.versions(), core._arrived
+        )
+        node.age_margin_ms = round(1000 * DIGEST_LIFE * s.gossip_period)
+    return node
 
 
 def _aged(core: AgentCore, got: Received) -> None:

@@ -448,6 +448,12 @@ class RobotNode:
         self.keep_slots = self.limits.max_slots if keep_slots is None else keep_slots
         if not 2 <= self.keep_slots <= self.limits.max_slots:
             raise ValueError(f"keep_slots {keep_slots}: must be in 2..{self.limits.max_slots}")
+        # Real time with holding times: the ages (ms) of held slots, which the agent core gives
+        # (``agents.ages``), and by how much a new owner's slot must be younger than the oldest
+        # held to take its place (:func:`_evict_for`); None: stamps decide.
+        self.slot_ages: Callable[[Iterable[str]], dict[str, int]] | None = None
+        self.age_margin_ms = 0
+        self._incoming_age: dict[str, int] | None = None  # the ages the stack being merged said
         semantic_poses = cfg.semantic_poses
         self.gate = BeliefGate(gate or GateSettings(), model, semantic_poses, self.limits.max_slots)
         self.counters = NodeCounters()
@@ -616,6 +622,7 @@ class RobotNode:
         """Merge a decoded stack (newest version per owner, never the own slot); True if it
         brought a newer slot."""
         epoch, evicted = self.epoch, self.counters.evicted_slots
+        self._incoming_age = message.age
         merged = _merge_admitted(self, message.stack)
         if merged.versions() == self.stack.versions():
             if self.epoch != epoch:
@@ -907,16 +914,28 @@ def _evict_for(
     """The neighbourhood bound (docs/distributed.md, "How many robots a D holds"), when
     ``node``'s stack is full: drop the stalest slot of ``stamps`` (owner → stamp of the held
     slots not taken from the stack being admitted) from the stack, ``held`` and ``stamps`` if
-    ``slot`` is fresher (a higher stamp, the owner's step when it made the slot) and fits D's
-    model; whether one was dropped. Relayed one hop per step, a slot's age is its owner's
-    distance in hops, so a robot keeps the ``keep_slots − 1`` nearest robots it hears of and
-    lets go of those that moved away (``evicted_slots``); D lets go in batches
-    (:func:`_drop_evicted`). Stamps are compared across owners: they count steps of one fleet
-    (lock-step, or the agents of one launch)."""
+    ``slot`` is fresher and fits D's model; whether one was dropped (``evicted_slots``); D lets
+    go in batches (:func:`_drop_evicted`).
+
+    Fresher by holding times when the agent core gives the ages of the held slots and the stack
+    said the new slot's (real time, ask gossip: ``agents.ages``): the held slot whose information
+    is oldest goes for one at least ``age_margin_ms`` younger — so a robot lets go of those it no
+    longer hears of, whatever step they are at (robots that started later have lower stamps).
+    Otherwise by stamp, the owner's step when it made the slot: relayed one hop per step (the
+    in-process fleet, lock-step), a slot's age is its owner's distance in hops, so a robot keeps
+    the ``keep_slots − 1`` nearest robots it hears of; stamps are compared across owners, which
+    holds for the robots of one fleet stepping together."""
     if not stamps:
         return False
-    stalest = min(stamps, key=lambda o: (stamps[o], o))
-    if slot.stamp <= stamps[stalest] or not node._fits(slot):
+    said = node._incoming_age.get(slot.owner) if node._incoming_age is not None else None
+    ages = node.slot_ages(stamps) if node.slot_ages is not None and said is not None else {}
+    if said is not None and len(ages) == len(stamps):
+        stalest = max(stamps, key=lambda o: (ages[o], o))
+        fresher = ages[stalest] - said > node.age_margin_ms
+    else:
+        stalest = min(stamps, key=lambda o: (stamps[o], o))
+        fresher = slot.stamp > stamps[stalest]
+    if not fresher or not node._fits(slot):
         return False
     node.stack = Stack(tuple(s for s in node.stack if s.owner != stalest))
     del stamps[stalest], held[stalest]
@@ -932,6 +951,8 @@ def _wanted(node: RobotNode, owner: str, epoch: int, stamp: int) -> bool:
     held = node.stack.version_of(owner)
     if held is not None:
         return (epoch, stamp) > held
+    if node.slot_ages is not None:
+        return True  # by holding times, which come after the slots: admission decides
     others = [s.stamp for s in node.stack if s.owner != node.robot]
     return len(others) + 1 < node.keep_slots or stamp > min(others, default=stamp)
 

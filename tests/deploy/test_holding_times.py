@@ -11,7 +11,7 @@ from deploy.base.build import belief_model, make_node
 from estimator.hybrid import BeliefConfig
 from protocol.codec import StackMessage, decode, encode
 from protocol.frames import encode_frame
-from protocol.stack import Stack
+from protocol.stack import Slot, Stack
 from sim.loader import load_scenario
 from sim.sensors import Simulator
 from tests.deploy.test_delta_gossip import KEYS
@@ -131,3 +131,49 @@ def test_a_version_that_came_without_an_age_is_never_given_one() -> None:
     r3.on_message(KEYS.frames("r3"), encode_frame(frames["r3"][0]), 3.38)
     assert r3.node.distributed.stamps.get("r1") == held.versions()["r1"][1]
     assert r3.ages.report({"r1": held.versions()["r1"][1]}, 3.4)["peers_aged"] == 0
+
+
+def _owned(owner: str, stamp: int, summary: object, age: int) -> bytes:
+    slot = Slot(owner, stamp, summary)  # type: ignore[arg-type]
+    have = {owner: (0, stamp)}
+    return encode(StackMessage(owner, None, Stack((slot,)), stamp, have=have, age={owner: age}))
+
+
+def test_a_full_stack_lets_go_of_the_oldest_information_not_of_the_lowest_stamp() -> None:
+    """Real time, two peers' slots kept (``keep_slots = 3``): a robot that started later (lower
+    stamps) gets no place while both held peers are heard of, and takes the place of the one
+    whose information grew older than a digest's life (1.5 s at a 0.5 s gossip period) beyond
+    its own — which the stamps alone would never give it (its stamp stays below)."""
+    s = load_scenario("paper")
+    frames = Simulator(s, 4).all_frames()
+    clock = Clock()
+    model = belief_model(s)
+    donor = make_node("r3", s.robot("r3").start, model, 4, BeliefConfig())
+    for f in frames["r3"][:4]:
+        donor.on_frame(f)
+    summary = decode(donor.outgoing() or b"").stack.by_owner()["r3"].summary
+
+    def make():  # type: ignore[no-untyped-def]
+        return make_node("r1", s.robot("r1").start, model, 4, BeliefConfig(), keep_slots=3)
+
+    log = MemoryLog()
+    core = AgentCore(make, KEYS, CoreSettings(gossip_period=PERIOD), log.records, clock=clock)
+    core.start(0.0)
+    assert core.node.age_margin_ms == 1500
+    t = 10.0
+    for stamp in (40, 41):
+        for owner in ("a", "b"):
+            core.on_messages([(KEYS.stack(owner), _owned(owner, stamp, summary, 20))], t, [t])
+        t += 0.5
+    assert {sl.owner for sl in core.node.stack} == {"a", "b"}
+    late = _owned("c", 3, summary, 20)  # started 38 steps later, as fresh as the others
+    core.on_messages([(KEYS.stack("c"), late)], t, [t])
+    assert {sl.owner for sl in core.node.stack} == {"a", "b"}
+    # b falls silent; a goes on. 1.6 s after b's last version, c's next one takes b's place.
+    for stamp in (42, 43, 44):
+        core.on_messages([(KEYS.stack("a"), _owned("a", stamp, summary, 20))], t, [t])
+        t += 0.5
+    assert t - 10.5 > 1.52  # b's version: 20 ms old at 10.5
+    core.on_messages([(KEYS.stack("c"), _owned("c", 6, summary, 20))], t, [t])
+    assert {sl.owner for sl in core.node.stack} == {"a", "c"}
+    assert core.counter_values()["slots_evicted"] == 1
