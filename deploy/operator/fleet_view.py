@@ -203,10 +203,10 @@ def age_line(view: FleetView) -> str:
     docs/wire.md, "Holding times"): the median of the robots' median ages of their peers'
     information, and the largest with its robot (empty when no robot reports an age)."""
     aged = [
-        (s.estimate.counters["peer_age_max_ms"], s.estimate.counters["peer_age_median_ms"], r)
+        (c.get("peer_age_max_ms", 0), c.get("peer_age_median_ms", 0), r)
         for r, s in sorted(view.robots.items())
-        if s.estimate is not None and s.estimate.counters.get("peers_aged", 0) > 0
-    ]
+        if s.estimate is not None and (c := s.estimate.counters).get("peers_aged", 0) > 0
+    ]  # counters are a peer's word: one it leaves out reads as 0, never a KeyError
     if not aged:
         return ""
     largest, _, robot = max(aged)

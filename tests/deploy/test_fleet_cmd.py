@@ -652,3 +652,7 @@ def test_fleet_status_shows_the_age_of_the_peers_information_from_holding_times(
         "median 510 ms, max 1040 ms (r2)"
     )
     assert age_line(FleetView(keys)) == ""
+    # A robot that says it aged peers but leaves the figures out (a hostile or broken agent).
+    odd = EstimateMessage("r5", 4, {"distributed": HYP}, {"peers_aged": 2})
+    view.on_message(Message(keys.estimate("r5"), encode_estimate(odd)), 1.0)
+    assert age_line(view).startswith("age of the peers' information (holding times, transits ")
