@@ -16,9 +16,10 @@ A version whose age is not known (it came in a stack without ``age``: from an ag
 earlier version, a full or lock-step stack, or a journal replay) is left out of the report, and
 a stack that would carry one goes without ``age`` at all: an age is never guessed.
 
-Ages are what the senders say. A member may lie about them; that changes the figures reported,
-and nothing else (no decision of the agent reads an age). Bounded: the last ``KEEP`` versions of
-at most ``max_owners`` owners.
+Ages are what the senders say. A member may lie about them: that changes the figures reported
+and, in a full stack, which held slot is let go of first (``agents.node``; docs/wire.md, "Holding
+times": never one whose versions keep coming from honest peers). Bounded: the last ``KEEP``
+versions of at most ``max_owners`` owners.
 """
 
 from __future__ import annotations
