@@ -18,7 +18,7 @@ a stack that would carry one goes without ``age`` at all: an age is never guesse
 
 Ages are what the senders say. A member may lie about them: that changes the figures reported
 and, in a full stack, which held slot is let go of first (``agents.node``; docs/wire.md, "Holding
-times": never one whose versions keep coming from honest peers). Bounded: the last ``KEEP``
+times": never one whose versions keep coming first from honest peers). Bounded: the last ``KEEP``
 versions of at most ``max_owners`` owners.
 """
 
