@@ -240,17 +240,15 @@ class Keys:
         return f"{self.prefix}/stack/{_robot(robot)}"
 
     def stack_to(self, robot: str, to: str) -> str:
-        """A stack ``robot`` sends to ``to`` alone: event-driven relay's push of the slots ``to``
-        asked it for (docs/wire.md, "Asks"); every other stack goes on :meth:`stack`."""
+        """A stack for ``to`` alone: a push of the slots it asked for (docs/wire.md, "Asks")."""
         return f"{self.prefix}/stack/{_robot(robot)}/to/{_robot(to)}"
 
     def stack_sender(self, key: str) -> str | None:
-        """The robot whose key a stack came on, :meth:`stack` or :meth:`stack_to` (None if the
-        key is neither, or the id is not valid)."""
-        parts = key[len(self.prefix) + 1 :].split("/") if key.startswith(self.prefix) else []
-        if len(parts) == 2 or (len(parts) == 4 and parts[2] == "to"):
-            return parts[1] if parts[0] == "stack" and valid_id(parts[1]) else None
-        return None
+        """The robot of a :meth:`stack` or :meth:`stack_to` key (None: neither, or a bad id)."""
+        head = f"{self.prefix}/stack/"
+        parts = key[len(head) :].split("/") if key.startswith(head) else []
+        ok = len(parts) == 1 or (len(parts) == 3 and parts[1] == "to" and valid_id(parts[2]))
+        return parts[0] if ok and valid_id(parts[0]) else None
 
     def alive(self, robot: str) -> str:
         return f"{self.prefix}/alive/{_robot(robot)}"

@@ -416,7 +416,8 @@ def test_keys_name_the_sender_of_a_stack_and_of_a_push() -> None:
     assert KEYS.stack_sender(KEYS.stack("r1")) == "r1"
     assert KEYS.stack_sender(KEYS.stack_to("r1", "r2")) == "r1"
     for bad in (KEYS.estimate("r1"), KEYS.stack("r1") + "/to", KEYS.stack("r1") + "/x/r2",
-                "semfleet/other/stack/r1", KEYS.stack("r1") + "/to/r2/x"):  # fmt: skip
+                "semfleet/other/stack/r1", KEYS.stack("r1") + "/to/r2/x",
+                "semfleet/t12/stack/r1", KEYS.stack("r1") + "/to/" + "x" * 40):  # fmt: skip
         assert KEYS.stack_sender(bad) is None, bad
 
 
