@@ -9,10 +9,12 @@ from collections.abc import Callable
 
 from deploy.base.errors import UsageError
 from estimator.models import GLOBAL_IDS, ID_KINDS
+from protocol.codec import Limits
 from sim.loader import MAX_CLASSES
 from sim.sensors import Detector
 
 MAX_SEED = 2**63 - 1
+MAX_SLOTS = Limits().max_slots  # a stack's most slots (docs/wire.md, "Limits")
 
 
 def _integer(text: str) -> int:
@@ -26,6 +28,14 @@ def positive_int(text: str) -> int:
     value = _integer(text)
     if value < 1:
         raise argparse.ArgumentTypeError(f"{text} must be a positive integer")
+    return value
+
+
+def slot_count(text: str) -> int:
+    """``--keep-slots``: the slots a robot keeps, its own included, 2 to a stack's 64."""
+    value = _integer(text)
+    if not 2 <= value <= MAX_SLOTS:
+        raise argparse.ArgumentTypeError(f"{text}: a robot keeps 2 to {MAX_SLOTS} slots")
     return value
 
 

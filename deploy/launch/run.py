@@ -82,6 +82,7 @@ class LaunchPlan:
     gossip_period: float = GOSSIP_PERIOD_S
     stack_gossip: str = "ask"  # or "delta", "full" (docs/wire.md, "Delta gossip", "Asks")
     relay: str = "event"  # or "tick": when asked slots go (agents.gossip; docs/wire.md, "Asks")
+    keep_slots: int | None = None  # the slots each agent keeps, its own included (None: 64)
     catch_up: int = CATCH_UP_STEPS  # realtime: steps in a row that may defer fusion (agents.core)
     listen_in_range: bool = True  # realtime simulation: subscribe to the peers in range only
     comm: str | None = None
@@ -309,6 +310,7 @@ class Launcher:
             "gossip_period": plan.gossip_period,
             "stack_gossip": plan.stack_gossip,
             "relay": plan.relay,
+            **({} if plan.keep_slots is None else {"keep_slots": plan.keep_slots}),
             "catch_up": plan.catch_up,
             "listen_in_range": plan.listen_in_range,
             # A conductor-only agent runs on a machine of its own, from a folder with its config

@@ -227,12 +227,18 @@ def test_demo_launches_three_agents_over_zenoh_and_prints_the_final_table(tmp_pa
 def test_launch_stack_gossip_reaches_every_agents_config(tmp_path: Path) -> None:
     r = semfleet(
         "launch", "--scenario", "paper", "--mode", "realtime", "--steps", "3",
-        "--stack-gossip", "delta", "--relay", "tick", "--out", "out", cwd=tmp_path,
+        "--stack-gossip", "delta", "--relay", "tick", "--keep-slots", "2", "--out", "out",
+        cwd=tmp_path,
     )  # fmt: skip
     assert r.returncode == 0, r.stderr
-    for robot in ("r1", "r2", "r3"):  # not the defaults ("ask", "event")
+    for robot in ("r1", "r2", "r3"):  # not the defaults ("ask", "event", 64)
         text = (tmp_path / "out" / "agents" / f"{robot}.toml").read_text()
         assert 'stack_gossip = "delta"' in text and 'relay = "tick"' in text
+        assert "keep_slots = 2" in text
+    for value in ("1", "65", "all"):
+        bad = semfleet("launch", "--scenario", "paper", "--keep-slots", value, cwd=tmp_path)
+        assert bad.returncode == 2 and "--keep-slots:" in bad.stderr, bad.stderr
+        assert len(bad.stderr.strip().splitlines()) <= 3, bad.stderr
     bad = semfleet("launch", "--scenario", "paper", "--stack-gossip", "rumour", cwd=tmp_path)
     assert bad.returncode == 2 and "--stack-gossip: invalid choice: 'rumour'" in bad.stderr
     bad = semfleet("launch", "--scenario", "paper", "--relay", "rumour", cwd=tmp_path)
@@ -269,6 +275,14 @@ GENERATE = ["scenario", "generate", "--robots", "1", "--objects", "2", "--classe
         (
             ["launch", "--scenario", "paper", "--conductor-only", "--relay", "tick"],
             "--relay: not with --conductor-only",
+        ),
+        (
+            ["chaos", "--scenario", "paper", "--attack", "all", "--keep-slots", "3"],
+            "--keep-slots: not with",
+        ),
+        (
+            ["launch", "--scenario", "paper", "--conductor-only", "--keep-slots", "3"],
+            "--keep-slots: not with --conductor-only",
         ),
         (
             ["launch", "--scenario", "paper", "--advertise", "tcp/10.0.0.1:7447"],

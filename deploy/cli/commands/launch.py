@@ -1,4 +1,9 @@
-"""`semfleet launch` and `semfleet chaos`: multi-process runs of a scenario over loopback Zenoh."""
+"""`semfleet launch` and `semfleet chaos`: multi-process runs of a scenario over loopback Zenoh.
+
+Over 300 lines for a reason: the two commands share their options, the settings they write into
+the agents' configs (and the checks that refuse those with ``--conductor-only`` or ``--attack``)
+and the checks of their outputs; split, the two option sets would drift apart.
+"""
 
 from __future__ import annotations
 
@@ -17,7 +22,7 @@ from agents.core import STACK_GOSSIP
 from agents.gossip import RELAYS
 from agents.links import Partition
 from deploy.base.errors import UsageError
-from deploy.cli.args import positive_float, positive_int, seed
+from deploy.cli.args import positive_float, positive_int, seed, slot_count
 from deploy.cli.commands import conductor_only, ros2_options
 from deploy.cli.outputs import add_force, new_file, new_folder
 from deploy.launch import LAUNCH_METHODS, Faults, LaunchPlan
@@ -83,14 +88,14 @@ def _steps(scenario: Scenario, steps: int | None) -> int | None:
     return steps
 
 
-def _agents_setting(args: argparse.Namespace, name: str, default: str) -> str:
-    """``--stack-gossip`` or ``--relay``: written into the agents' configs, so never with
-    ``--conductor-only`` (the agents' own configs decide)."""
+def _agents_setting(args: argparse.Namespace, name: str, default: Any) -> Any:
+    """``--stack-gossip``, ``--relay`` or ``--keep-slots``: written into the agents' configs,
+    so never with ``--conductor-only`` (the agents' own configs decide)."""
     value = getattr(args, name)
     if value is not None and getattr(args, "conductor_only", False):
         flag = "--" + name.replace("_", "-")
         raise UsageError(f"{flag}: not with --conductor-only (the agents' configs decide)")
-    return str(value or default)
+    return default if value is None else value
 
 
 def check_outputs(args: argparse.Namespace) -> None:
@@ -119,6 +124,7 @@ def run_launch(args: argparse.Namespace, console: Console) -> int:
         keep_estimates=bool(args.view or args.record or args.ros2_bag),
         stack_gossip=_agents_setting(args, "stack_gossip", "ask"),
         relay=_agents_setting(args, "relay", "event"),
+        keep_slots=_agents_setting(args, "keep_slots", None),
         ros2=ros2,
         **conductor_only.plan_fields(args),
     )
@@ -152,7 +158,8 @@ def run_chaos(args: argparse.Namespace, console: Console) -> int:
     if args.attack is not None:
         if args.view or args.record:
             raise UsageError("--view/--record: not with --attack (one run per attack)")
-        for flag, value in (("--stack-gossip", args.stack_gossip), ("--relay", args.relay)):
+        given = (args.stack_gossip, args.relay, args.keep_slots)
+        for flag, value in zip(("--stack-gossip", "--relay", "--keep-slots"), given, strict=True):
             if value is not None:
                 raise UsageError(f"{flag}: not with --attack (each attack sets up its fleet)")
         check_outputs(args)
@@ -178,6 +185,7 @@ def run_chaos(args: argparse.Namespace, console: Console) -> int:
         keep_estimates=bool(args.view or args.record),
         stack_gossip=_agents_setting(args, "stack_gossip", "ask"),
         relay=_agents_setting(args, "relay", "event"),
+        keep_slots=_agents_setting(args, "keep_slots", None),
     )
     if plan.net == "netns":
         require_netns()
@@ -254,6 +262,13 @@ def _common(p: argparse.ArgumentParser) -> None:
         default=None,
         help='when a slot a neighbour asked for goes: "event" (default) on arrival, "tick" with '
         "the next gossip tick (docs/wire.md)",
+    )
+    p.add_argument(
+        "--keep-slots",
+        type=slot_count,
+        default=None,
+        help="the slots each robot keeps, its own included (2 to 64, the default): beyond, a "
+        "fresher robot's slot takes the stalest's place (docs/distributed.md)",
     )
     add_view_options(p)
     add_force(p)
