@@ -283,7 +283,9 @@ class AgentCore:
         self.replayed = Replayed()
         self.stop_reason = ""
         self.gossip, self.answers, self.rounds, self.radio = _policies(self.node, s)
-        self.ages, self._arrived = Ages(self.robot, self.node.limits.max_slots), 0.0
+        # Room for the ages of every slot held and of as many again let go of, twice: a held
+        # slot whose versions stopped coming must keep its age (the neighbourhood bound reads it).
+        self.ages, self._arrived = Ages(self.robot, 4 * self.node.limits.max_slots), 0.0
         self._frames: dict[int, tuple[SensorFrame, bytes]] = {}
         self.ledger = Ledger()
         self._last_estimate: bytes | None = None
