@@ -215,6 +215,10 @@ def test_status_sees_both_agents_alive_at_their_last_step(tmp_path: Path) -> Non
         assert [row[:3] for row in rows] == [["r1", "yes", str(STEPS)], ["r2", "yes", str(STEPS)]]
         assert "0 on every robot: invalid, slots rej., quarantined" in r.stdout
         assert "2 alive, 2 answered" in r.stdout
+        # Each fused the other's slot, whose stacks said how old it was (holding times).
+        assert "age of the peers' information (holding times, transits excluded) on 2 robots" in (
+            " ".join(r.stdout.split())
+        )
         r = semfleet(
             "fleet", "status", "--connect", fleet.endpoints["r1"], "--fleet", "opstatus", "--json"
         )
@@ -230,6 +234,7 @@ def test_status_sees_both_agents_alive_at_their_last_step(tmp_path: Path) -> Non
             assert row["hypotheses"]["distributed"] == c["hypotheses_distributed"] >= 1, row
             assert row["objects"]["distributed"] == 4, row
             assert c["status_requests"] >= 1, c
+            assert c["peers_aged"] == 1 and 0 < c["peer_age_median_ms"] == c["peer_age_max_ms"], c
 
 
 def one_table_at_80_columns(stdout: str) -> list[list[str]]:
