@@ -236,3 +236,94 @@ def test_launch_ros2_bag_refuses_before_starting(
     assert error in capsys.readouterr().err
     assert not (tmp_path / "out").exists()
     assert sorted(p.name for p in bag.iterdir()) == sorted(files)  # nothing removed
+
+
+CHAOS_STEPS = 10
+
+
+def test_chaos_ros2_shows_a_killed_robot_leave_the_ros2_graph_and_come_back(
+    tmp_path: Path,
+) -> None:
+    """`semfleet chaos --ros2 --ros2-bag`: the ROS 2 side of a chaos run through a router. r3's
+    node and publishers leave the graph when it is killed (liveliness tokens deleted) and come
+    back when it restarts from its journal; every robot's Path reaches the last step; the bag
+    holds each robot's steps, r3's without the ones it was dead for."""
+    (port,) = free_ports(1)
+    router_at = f"tcp/127.0.0.1:{port}"
+    router = _semfleet(["router", "--listen", router_at], tmp_path / "router.log")
+    session = None
+    try:
+        ros = ZenohSettings(connect=(router_at,), listen=("tcp/127.0.0.1:0",))
+        session = zenoh.open(ros.config())
+        samples, _ = _listen(session)
+        events: list[tuple[str, str]] = []
+        session.liveliness().declare_subscriber(
+            f"@ros2_lv/{DOMAIN}/**",
+            lambda s: events.append((str(s.kind).rsplit(".", 1)[-1], str(s.key_expr))),
+        )
+        out, bag = tmp_path / "out", tmp_path / "bag"
+        chaos = _semfleet(
+            [
+                "chaos", "--scenario", "paper", "--steps", str(CHAOS_STEPS), "--out", str(out),
+                "--kill", "r3@3", "--restart", "r3@6", "--drop", "0.1", "--seed", "2",
+                "--ros2", "--ros2-domain", str(DOMAIN), "--ros2-router", router_at,
+                "--ros2-bag", str(bag),
+            ],
+            tmp_path / "chaos.log",
+        )  # fmt: skip
+        rc = chaos.wait(240)
+        printed = (tmp_path / "chaos.log").read_text()
+        assert rc == 0, printed[-3000:]
+    finally:
+        if session is not None:
+            session.close()
+        router.send_signal(signal.SIGTERM)
+        router.wait(10)
+    assert f"ROS 2 (jazzy, domain {DOMAIN})" in printed
+    assert "SIGKILL r3" in printed and "restarted r3" in printed
+    # r3's node token: put, deleted by the kill, put again by the restart, deleted when the run
+    # ends. The others' stay until the run ends, after r3 came back.
+    nodes = {
+        r: [(i, kind) for i, (kind, key) in enumerate(events) if "/NN/" in key and key.endswith(r)]
+        for r in ROBOTS
+    }
+    assert [k for _, k in nodes["r3"]] == ["PUT", "DELETE", "PUT", "DELETE"], events
+    back = nodes["r3"][2][0]
+    for r in ("r1", "r2"):
+        assert [k for _, k in nodes[r]] == ["PUT", "DELETE"], events
+        assert nodes[r][1][0] > back
+    types = types_for("jazzy")
+    for r in ROBOTS:
+        key = topic_key(DOMAIN, f"/{r}/semfleet/path", PATH, types.type_hash(PATH))
+        path = types.store.deserialize_cdr(samples[key][-1], PATH)
+        assert len(path.poses) >= 1
+    from rosbags.rosbag2 import Reader
+
+    with Reader(bag) as reader:
+        counts = {c.topic: c.msgcount for c in reader.connections}
+    for r in ("r1", "r2"):
+        assert counts[f"/{r}/semfleet/path"] == CHAOS_STEPS
+    # Dead from its kill at step 3 until its restart at 6: its estimates of those steps are
+    # missing, and the bag does not invent them.
+    assert 0 < counts["/r3/semfleet/path"] < CHAOS_STEPS
+
+
+@pytest.mark.parametrize(
+    ("extra", "error"),
+    [
+        (["--net", "netns"], "--ros2: not with --net netns (an agent's localhost"),
+        (["--attack", "all"], "--ros2: not with --attack"),
+        (["--ros2-domain", "300"], "expected a ROS_DOMAIN_ID in 0..232"),
+    ],
+)
+def test_chaos_ros2_refuses_what_cannot_reach_rmw_zenohd(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], extra: list[str], error: str
+) -> None:
+    argv = ["chaos", "--scenario", "paper", "--out", str(tmp_path / "out"), "--ros2", *extra]
+    try:
+        code = main(argv)
+    except SystemExit as exc:  # argparse's own refusal of a value
+        code = exc.code
+    assert code == 2
+    assert error in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()

@@ -158,10 +158,13 @@ def run_chaos(args: argparse.Namespace, console: Console) -> int:
     if args.attack is not None:
         if args.view or args.record:
             raise UsageError("--view/--record: not with --attack (one run per attack)")
-        given = (args.stack_gossip, args.relay, args.keep_slots)
-        for flag, value in zip(("--stack-gossip", "--relay", "--keep-slots"), given, strict=True):
+        given = (args.stack_gossip, args.relay, args.keep_slots, args.ros2_bag)
+        flags = ("--stack-gossip", "--relay", "--keep-slots", "--ros2-bag")
+        for flag, value in zip(flags, given, strict=True):
             if value is not None:
                 raise UsageError(f"{flag}: not with --attack (each attack sets up its fleet)")
+        if args.ros2:
+            raise UsageError("--ros2: not with --attack (each attack sets up its fleet)")
         check_outputs(args)
         return run_attacks_command(args, console)
     scenario = load_scenario(args.scenario)
@@ -170,10 +173,17 @@ def run_chaos(args: argparse.Namespace, console: Console) -> int:
         if r not in scenario.robot_ids:
             raise UsageError(f"--kill/--restart: unknown robot {r!r}")
     faults = Faults(args.drop, tuple(args.partition), kills, restarts, args.garbage)
+    robots = list(scenario.robot_ids)
+    ros2 = ros2_options.ros2_table(args, scenario, robots)
+    if ros2 is not None and args.net == "netns":
+        raise UsageError(
+            "--ros2: not with --net netns (an agent's localhost is its own namespace's, so it "
+            "cannot dial the rmw_zenohd of this machine)"
+        )
     plan = LaunchPlan(
         scenario,
         args.seed,
-        list(scenario.robot_ids),
+        robots,
         Path(args.out),
         mode="realtime",
         period=args.period,
@@ -182,25 +192,32 @@ def run_chaos(args: argparse.Namespace, console: Console) -> int:
         steps=_steps(scenario, args.steps),
         secure=args.secure,
         net=args.net,
-        keep_estimates=bool(args.view or args.record),
+        keep_estimates=bool(args.view or args.record or args.ros2_bag),
         stack_gossip=_agents_setting(args, "stack_gossip", "ask"),
         relay=_agents_setting(args, "relay", "event"),
         keep_slots=_agents_setting(args, "keep_slots", None),
+        ros2=ros2,
     )
     if plan.net == "netns":
         require_netns()
     check_outputs(args)
+    bag = ros2_options.bag_settings(args, scenario, robots, ros2)
     where = ", on real packets between network namespaces" if plan.net == "netns" else ""
     console.print(
         f"chaos on {scenario.name}, seed {plan.seed}: {faults.describe()} "
         f"(realtime, period {plan.period:g} s{where})"
     )
     console.print(security_line(plan))
+    if plan.ros2 is not None:
+        console.print(ros2_options.describe(plan.ros2, plan.robots))
+    start_ns = time.time_ns()
     outcome = launch_recorded(plan, console, args, f"chaos {scenario.name} seed {plan.seed}")
     for e in outcome.events:
         console.print(f"- {e}")
     console.print(f"- garbage stacks published: {outcome.garbage_sent}")
     console.print(counters_table(outcome))
+    if bag is not None:
+        ros2_options.write_recording(args, bag, plan, outcome, start_ns, console)
     chaos = {"events": outcome.events, "net": plan.net, "dropped": outcome.dropped}
     chaos |= aoi_entry(outcome, console)
     doc = write_outputs(plan, outcome, console, {"chaos": chaos})
@@ -310,4 +327,5 @@ def add_parser(sub: Any) -> None:
         help="netns (root): each agent in its own network namespace, loss, partitions and "
         "range applied to real packets with nftables (docs/deploy.md)",
     )
+    ros2_options.add_options(c)
     c.set_defaults(run=run_chaos)
