@@ -278,6 +278,7 @@ class AgentCore:
         self.node = self.make_node()
         self.robot = self.node.robot
         self.keys = keys
+        self._sim_keys = (keys.sim_links(self.robot), keys.sim_listen(self.robot))
         self.counters = CoreCounters()
         self._status_due = False  # a status request came in the current batch
         self.replayed = Replayed()
@@ -363,8 +364,9 @@ class AgentCore:
                 actions += self._on_frame(payload)
             elif key.startswith(f"{keys.prefix}/stack/"):
                 self._on_stack(key, payload)
-            elif key in (keys.sim_links(), keys.sim_listen()) and self.radio is not None:
-                error = self.radio.on_links(payload, key == keys.sim_listen(), self.node.k)
+            elif key in self._sim_keys and self.radio is not None:
+                ahead = key == self._sim_keys[1]
+                error = self.radio.on_links(payload, ahead, self.node.k)
                 if error is not None:
                     _log_invalid(self, "sim", error)
             if not at_once:

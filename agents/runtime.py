@@ -211,10 +211,15 @@ class Agent:
         t, keys = self.transport, self.keys
         for order in ORDER_KEYS:
             t.subscribe(keys.ctl(order), self.control)
-        t.subscribe(keys.ctl("need", "*"), self.requests)
+        if self.settings.mode == "lockstep":
+            # Round requests, which only a lock-step agent answers. In real time every peer's
+            # request for frames would reach every agent to be read and ignored: N² messages.
+            t.subscribe(keys.ctl("need", "*"), self.requests)
         if self.settings.simulation:
-            t.subscribe(keys.sim_links(), self.control)
-            t.subscribe(keys.sim_listen(), self.control)
+            # Its own row of the simulator's links only: the whole table is N² robot ids,
+            # which every agent of a large simulated fleet would decode at every step.
+            t.subscribe(keys.sim_links(self.robot), self.control)
+            t.subscribe(keys.sim_listen(self.robot), self.control)
         t.subscribe(keys.frames(self.robot), self.frames)
         t.declare_alive(keys.alive(self.robot))
         if self.ros2 is not None:

@@ -259,14 +259,14 @@ class Keys:
     def estimate(self, robot: str) -> str:
         return f"{self.prefix}/estimate/{_robot(robot)}"
 
-    def sim_links(self) -> str:
-        """Simulations only: who hears whom at step k, as decided by the simulator."""
-        return f"{self.prefix}/sim/links"
+    def sim_links(self, robot: str) -> str:
+        """Simulations only: whom ``robot`` hears at step k, as decided by the simulator."""
+        return f"{self.prefix}/sim/links/{robot}"
 
-    def sim_listen(self) -> str:
-        """Simulations only: who will hear whom at step k, sent by the simulator a step ahead,
-        for subscriptions only (who is heard is decided by :meth:`sim_links`)."""
-        return f"{self.prefix}/sim/listen"
+    def sim_listen(self, robot: str) -> str:
+        """Simulations only: whom ``robot`` will hear at step k, sent by the simulator a step
+        ahead, for subscriptions only (who is heard is decided by :meth:`sim_links`)."""
+        return f"{self.prefix}/sim/listen/{robot}"
 
     def ctl(self, *parts: str) -> str:
         return "/".join((self.prefix, "ctl", *parts))

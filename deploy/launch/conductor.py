@@ -210,7 +210,7 @@ class Conductor:
         if self.on_links is not None:
             self.on_links(k, verdict)
         self.collected.links_published[k] = time.monotonic()
-        self.transport.publish(self.keys.sim_links(), encode_control(StepOrder(k, verdict)))
+        self._publish_rows(self.keys.sim_links, k, verdict)
         if all(k < len(self.frames[r]) for r in self.robots):
             # A step ahead, on its own key: an agent subscribes to the stacks of a robot it is
             # about to hear before it hears it, but still obeys only the links of sim/links.
@@ -218,7 +218,16 @@ class Conductor:
             # kept for it.
             ahead = links_at(self.links, self.frames, self.robots, k + 1)
             self._links_ahead = (k + 1, ahead)
-            self.transport.publish(self.keys.sim_listen(), encode_control(StepOrder(k + 1, ahead)))
+            self._publish_rows(self.keys.sim_listen, k + 1, ahead)
+
+    def _publish_rows(
+        self, key: Callable[[str], str], k: int, verdict: Mapping[str, tuple[str, ...]]
+    ) -> None:
+        """Each robot's row of ``verdict`` on its own key (``sim/links/<robot>``): a robot reads
+        whom it hears, not the N² ids of the whole table."""
+        for r in self.robots:
+            row = StepOrder(k, {r: verdict.get(r, ())})
+            self.transport.publish(key(r), encode_control(row))
 
     def pump(self) -> None:
         """Handle everything that arrived: liveliness, frame requests, estimates."""

@@ -682,7 +682,7 @@ def test_a_simulated_agent_does_not_read_the_stacks_of_robots_out_of_range() -> 
     d = Driver(mode="realtime", simulation=True)
     d.run(d.core.start(0.0))
     links = StepOrder(1, {"r1": ("r3",)})
-    d.send(KEYS.sim_links(), encode_control(links))
+    d.send(KEYS.sim_links("r1"), encode_control(links))
     d.send(KEYS.stack("r2"), b"\xc1 not a stack")
     c = d.core.counter_values()
     assert (c["stacks_received"], c["ignored_out_of_range"], c["stacks_invalid"]) == (1, 1, 0)
@@ -699,7 +699,8 @@ def test_a_simulated_agent_wakes_only_for_the_stacks_of_robots_it_will_hear() ->
     a simulation (every stack wakes the agent there)."""
 
     def hears(d: Driver, k: int, links: dict[str, tuple[str, ...]]) -> list[frozenset[str] | None]:
-        actions = d.core.on_messages([(KEYS.sim_links(), encode_control(StepOrder(k, links)))], 0.0)
+        order = encode_control(StepOrder(k, links))
+        actions = d.core.on_messages([(KEYS.sim_links("r1"), order)], 0.0)
         return [a.keys for a in actions if isinstance(a, Hear)]
 
     def keys(*robots: str) -> frozenset[str]:  # their stacks, and their pushes to r1

@@ -297,15 +297,15 @@ async def test_simulated_agent_hears_whom_the_simulator_says_and_counts_the_rest
         await _until(lambda: agent.node.counters.stacks_received == 1)
         assert agent.counter_values()["ignored_out_of_range"] == 0  # (nor counted out of range)
         assert agent.node.stack.stamps() == {}
-        world.publish(KEYS.sim_links(), _links(1, {"r1": (), "r2": ("r1",)}))
+        world.publish(KEYS.sim_links("r1"), _links(1, {"r1": (), "r2": ("r1",)}))
         world.publish(KEYS.frames("r1"), encode_frame(frames["r1"][0]))
         await _until(lambda: agent.node.k == 1)
         world.publish(KEYS.stack("r2"), _stack_from(peer))  # step 1's links: r2 → r1 is cut
         await _until(lambda: agent.node.counters.stacks_received == 2)
         assert agent.counter_values()["ignored_out_of_range"] == 1
         assert agent.node.stack.stamps() == {"r1": 1}
-        world.publish(KEYS.sim_links(), _links(2, {"r1": ("r2",)}))
-        world.publish(KEYS.sim_links(), b"\xff")  # counted, never fatal
+        world.publish(KEYS.sim_links("r1"), _links(2, {"r1": ("r2",)}))
+        world.publish(KEYS.sim_links("r1"), b"\xff")  # counted, never fatal
         await asyncio.sleep(0.05)
         world.publish(KEYS.stack("r2"), _stack_from(peer))
         await _until(lambda: agent.node.counters.stacks_received == 3)
@@ -342,12 +342,12 @@ async def test_simulated_agent_subscribes_to_the_stacks_of_whom_the_simulator_sa
         await _until(lambda: agent.counter_values()["listen_changes"] == 1)
         assert agent.stack_subscriptions.exprs == set()  # no links yet: nobody is heard
         world.publish(KEYS.stack("r2"), _stack_from(peers["r2"]))
-        world.publish(KEYS.sim_links(), _links(1, {"r1": (), "r2": ("r1",)}))
+        world.publish(KEYS.sim_links("r1"), _links(1, {"r1": (), "r2": ("r1",)}))
         world.publish(KEYS.frames("r1"), encode_frame(frames["r1"][0]))
         await _until(lambda: agent.node.k == 1)
         world.publish(KEYS.stack("r2"), _stack_from(peers["r2"]))  # step 1: r2 → r1 is cut
-        world.publish(KEYS.sim_links(), _links(2, {"r1": ("r2",)}))
-        world.publish(KEYS.sim_links(), b"\xff")  # counted, never fatal
+        world.publish(KEYS.sim_links("r1"), _links(2, {"r1": ("r2",)}))
+        world.publish(KEYS.sim_links("r1"), b"\xff")  # counted, never fatal
         await _until(lambda: agent.stack_subscriptions.exprs == {KEYS.stack("r2")})
         assert agent.node.counters.stacks_received == 0
         world.publish(KEYS.stack("r3"), _stack_from(peers["r3"]))  # out of range: not sent
@@ -360,7 +360,7 @@ async def test_simulated_agent_subscribes_to_the_stacks_of_whom_the_simulator_sa
         assert c["listen_changes"] == 2
         # Links of a later step already here: their robots are subscribed to as well (the agent
         # will need them), and stay unread until their step comes.
-        world.publish(KEYS.sim_links(), _links(3, {"r1": ("r3",)}))
+        world.publish(KEYS.sim_links("r1"), _links(3, {"r1": ("r3",)}))
         await _until(
             lambda: agent.stack_subscriptions.exprs == {KEYS.stack(r) for r in ("r2", "r3")}
         )
@@ -383,10 +383,10 @@ async def test_links_sent_a_step_ahead_subscribe_but_are_not_obeyed(
     agent.core.node.roster = frozenset(ROBOTS)  # x9, not in it, is never subscribed to
     async with _running(agent) as (task,):
         await _until(lambda: agent.counter_values()["listen_changes"] == 1)
-        world.publish(KEYS.sim_links(), _links(1, {"r1": ("r2",)}))
-        world.publish(KEYS.sim_listen(), _links(2, {"r1": ("r2", "r3", "x9")}))
-        world.publish(KEYS.sim_listen(), _links(10_000, {"r1": ("r4",)}))  # beyond the window
-        world.publish(KEYS.sim_listen(), b"\xff")
+        world.publish(KEYS.sim_links("r1"), _links(1, {"r1": ("r2",)}))
+        world.publish(KEYS.sim_listen("r1"), _links(2, {"r1": ("r2", "r3", "x9")}))
+        world.publish(KEYS.sim_listen("r1"), _links(10_000, {"r1": ("r4",)}))  # beyond the window
+        world.publish(KEYS.sim_listen("r1"), b"\xff")
         world.publish(KEYS.frames("r1"), encode_frame(frames["r1"][0]))
         await _until(lambda: agent.node.k == 1)
         want = {KEYS.stack(r) for r in ("r2", "r3")}
@@ -398,7 +398,7 @@ async def test_links_sent_a_step_ahead_subscribe_but_are_not_obeyed(
         await _until(lambda: agent.counter_values()["ignored_out_of_range"] == 1)
         assert set(agent.node.stack.stamps()) == {"r1", "r2"}
         assert agent.counter_values()["links_invalid"] == 1
-        world.publish(KEYS.sim_links(), _links(2, {"r1": ("r2", "r3")}))
+        world.publish(KEYS.sim_links("r1"), _links(2, {"r1": ("r2", "r3")}))
         await asyncio.sleep(0.05)
         world.publish(KEYS.stack("r3"), _stack_from(peers["r3"]))
         await _until(lambda: "r3" in agent.node.stack.stamps())
@@ -417,7 +417,7 @@ async def test_a_real_robots_agent_ignores_simulated_links(
     peer.on_frame(frames["r2"][0])
     agent = _agent("r1", bus, "realtime", simulation=False)
     async with _running(agent):
-        world.publish(KEYS.sim_links(), _links(1, {"r1": ()}))
+        world.publish(KEYS.sim_links("r1"), _links(1, {"r1": ()}))
         world.publish(KEYS.frames("r1"), encode_frame(frames["r1"][0]))
         await _until(lambda: agent.node.k == 1)
         world.publish(KEYS.stack("r2"), _stack_from(peer))
@@ -653,9 +653,10 @@ async def _conductor_and_a_robot(
 async def test_realtime_conductor_sends_each_steps_links_a_step_ahead_too(
     frames: dict[str, list[SensorFrame]],
 ) -> None:
-    """With the frames of step k the conductor publishes the links of step k on ``sim/links``
-    and those of step k + 1 on ``sim/listen``: the verdict sent ahead is the one obeyed when its
-    step comes (links that change from step to step), and nothing goes ahead of the last frame."""
+    """With the frames of step k the conductor publishes each robot's links of step k on
+    ``sim/links/<robot>`` and those of step k + 1 on ``sim/listen/<robot>``: the verdict sent
+    ahead is the one obeyed when its step comes (links that change from step to step), and
+    nothing goes ahead of the last frame."""
     bus = MemoryBus()
     side = MemoryTransport(bus)
     changing = Schedule(((1, 1, "r1", "r2"), (2, 3, "r2", "r3"), (3, STEPS, "r1", "r3")))
@@ -663,8 +664,8 @@ async def test_realtime_conductor_sends_each_steps_links_a_step_ahead_too(
     await conductor.open()
     watcher = MemoryTransport(bus)
     obeyed, ahead = Inbox(100), Inbox(100)
-    watcher.subscribe(KEYS.sim_links(), obeyed)
-    watcher.subscribe(KEYS.sim_listen(), ahead)
+    watcher.subscribe(KEYS.sim_links("r1"), obeyed)
+    watcher.subscribe(KEYS.sim_listen("r1"), ahead)
     await watcher.open()
     try:
         await conductor.run_realtime(STEPS, 0.001, settle=0.0)
@@ -683,6 +684,8 @@ async def test_realtime_conductor_sends_each_steps_links_a_step_ahead_too(
         assert sorted(sent) == list(range(2, STEPS + 1))
         assert all(sent[k] == links[k] for k in sent)
         assert links[1]["r1"] == ("r2",) and links[2]["r1"] == () and links[3]["r1"] == ("r3",)
+        # Each robot's own row on its own key: not the whole table (N² ids) to every robot.
+        assert all(set(v) == {"r1"} for v in (*links.values(), *sent.values()))
     finally:
         await watcher.close()
         await side.close()
@@ -805,30 +808,36 @@ async def test_an_agent_that_subscribes_to_new_peers_gossips_again_once_subscrib
         await _until(lambda: agent.counter_values()["listen_changes"] == 1)
         await asyncio.sleep(0.2)
         before = len(watched.drain())
-        world.publish(KEYS.sim_links(), _links(1, {"r1": ("r2",)}))
+        world.publish(KEYS.sim_links("r1"), _links(1, {"r1": ("r2",)}))
         await _until(lambda: agent.stack_subscriptions.exprs == {KEYS.stack("r2")})
         assert not watched.drain()  # nothing at once: the subscription is being declared
         await _until(lambda: len(watched) >= 1)
-        world.publish(KEYS.sim_links(), _links(1, {"r1": ("r2",)}))  # the same peers: no echo
+        world.publish(KEYS.sim_links("r1"), _links(1, {"r1": ("r2",)}))  # the same peers: no echo
         await asyncio.sleep(0.2)
         assert len(watched.drain()) == 1 and before >= 1
         assert not task.done()
 
 
 @pytest.mark.asyncio
+@pytest.mark.parametrize("mode", ["lockstep", "realtime"])
 async def test_a_flood_of_requests_never_displaces_a_stop(
-    frames: dict[str, list[SensorFrame]],
+    frames: dict[str, list[SensorFrame]], mode: str
 ) -> None:
     """Issue 43, findings 3 and 6: requests that any member may put (``ctl/need/<robot>``) wait
     in an inbox of their own, and control messages larger than the agent reads are dropped on
-    arrival, so neither can push a Stop out of the control inbox before the loop reads it."""
+    arrival, so neither can push a Stop out of the control inbox before the loop reads it. A
+    real time agent, which answers no round request, does not even subscribe to them (issue 47:
+    every peer's requests for frames reached every agent)."""
     bus = MemoryBus()
     world = MemoryTransport(bus)
     await world.open()
-    agent = _agent("r1", bus, "realtime")
+    agent = _agent("r1", bus, mode)
     async with _running(agent) as (task,):
-        world.publish(KEYS.frames("r1"), encode_frame(frames["r1"][0]))
-        await _until(lambda: agent.node.k == 1)
+        if mode == "realtime":
+            world.publish(KEYS.frames("r1"), encode_frame(frames["r1"][0]))
+            await _until(lambda: agent.node.k == 1)
+        else:
+            await _until(lambda: agent.transport.is_open)  # type: ignore[attr-defined]
         # All of it is put before the agent's loop runs again: the Stop first, then a flood on
         # 3,000 distinct request keys (an insecure fleet lets anyone put there) and 40 control
         # messages of 1 MiB on the operator's own key.
@@ -840,5 +849,8 @@ async def test_a_flood_of_requests_never_displaces_a_stop(
             world.publish(KEYS.ctl("status"), bytes(1 << 20))
         await asyncio.wait_for(task, 10)
         assert agent.stop_reason == "the operator's"
-        assert agent.requests.dropped >= 3000 - agent.requests.capacity
+        if mode == "lockstep":
+            assert agent.requests.dropped >= 3000 - agent.requests.capacity
+        else:
+            assert agent.requests.dropped == len(agent.requests) == 0
         assert agent.control.dropped == 40  # the 1 MiB messages, on arrival
