@@ -430,7 +430,11 @@ class FleetAssociation:
         taken: set[int] = set()
         for i in order:  # one-to-one: unchanged targets first, a clash makes a fresh object
             if ids[i] in taken:
-                ids[i] = self._fresh_id(s.owner, i, renew=ids[i] == self._fresh.get((s.owner, i)))
+                # Its fresh object, or a new one when that is taken too: by this very clash,
+                # or by an object of this owner matched onto it since another owner maps there.
+                ids[i] = self._fresh_id(s.owner, i)
+                if ids[i] in taken:
+                    ids[i] = self._fresh_id(s.owner, i, renew=True)
             taken.add(ids[i])
         self.maps[s.owner] = OwnerMap(s.version, ids, pending)
 

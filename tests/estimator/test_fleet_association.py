@@ -140,6 +140,26 @@ def test_the_younger_of_two_fresh_objects_moves_to_the_older() -> None:
     assert fa.orphans([old, young]) == [young]
 
 
+
+def test_a_clash_never_maps_two_objects_onto_one_fresh_object() -> None:
+    """Found on MRCLAM Dataset 7 with its barcodes hidden (`study --ids none`, D crashed with a
+    key inserted twice): r2's object 21 had moved to one of the receiver's objects, and its old
+    fresh object had been taken by r2's object 10. When 21 then clashed with another of r2's
+    objects, it was sent back to that fresh object, which 10 held: two objects of one slot on
+    one D id. It now gets a new fresh object."""
+    fa = FleetAssociation(LOG_PRIOR, FleetAssociationConfig(hold=1))
+    fa._update(_slot("r2", 1, (21,)), {})
+    assert fa.mapping("r2") == {21: FRESH_TOP}
+    fa._update(_slot("r2", 2, (5, 10, 21)), {5: 40, 21: 15})
+    assert fa.mapping("r2") == {5: 40, 10: FRESH_TOP - 1, 21: 15}
+    fa._update(_slot("r2", 3, (5, 10, 21)), {5: 40, 10: FRESH_TOP, 21: 15})  # to the older one
+    assert fa.mapping("r2") == {5: 40, 10: FRESH_TOP, 21: 15}
+    fa._update(_slot("r2", 4, (5, 10, 21)), {5: 40, 10: FRESH_TOP, 21: 40})  # 5 holds 40
+    m = fa.mapping("r2")
+    assert len(set(m.values())) == 3, m
+    assert (m[5], m[10]) == (40, FRESH_TOP)
+    assert m[21] not in (40, FRESH_TOP, FRESH_TOP - 1) and fa.origin(m[21]) == ("r2", 21)
+
 # -- inside a distributed belief ------------------------------------------------------------------
 
 STEPS = 14
