@@ -39,8 +39,8 @@ def bag_topic(key: str) -> str:
 def offered_qos(depth: int) -> Qos:
     """The QoS a robot's publisher offers (reliable, volatile, keep last ``depth``; deadline,
     lifespan and lease left at rmw's default 0 s, liveliness automatic), as ``ros2 bag play``
-    reads it back to publish the topic again: recorded by rosbag2 as every publisher offered it.
-    Without it rosbags writes an empty string, which Humble's player cannot parse as a list."""
+    reads it back to publish the topic again, as rosbag2 records what a publisher offered
+    (rosbags writes an empty string unless given one)."""
     from rosbags.interfaces import (
         Qos,
         QosDurability,
