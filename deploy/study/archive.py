@@ -193,7 +193,8 @@ def method_summary(
         entry["stacks_delivered"] = len(sizes)
     if all(method in r.association for r in results):
         counts = {
-            name: sum(r.association[method][name] for r in results) for name in ASSOCIATION_COUNTS
+            name: sum(r.association[method].get(name, 0) for r in results)
+            for name in ASSOCIATION_COUNTS
         }
         ms = [x for r in results for x in r.association_ms.get(method, [])]
         figures = association_summary(counts, ms)

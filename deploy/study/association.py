@@ -8,7 +8,8 @@ true object. ``precision`` = right / matched; ``recall`` = right / matchable, th
 true objects the robot had detected before. At the end: ``wrong_merges``, the objects (or
 clutter) beyond the first that a map object's detections hold; ``splits``, the map objects
 beyond the first whose detections are mostly one true object; ``confirmed_clutter``, map objects
-made mostly of false detections; ``clutter_entered``, false detections that reached the belief.
+made mostly of false detections; ``clutter_entered``, false detections that reached the belief;
+``searches_cut``, frames whose joint search stopped at its budget (``AssociationConfig.budget``).
 
 Across the fleet (``estimator.fleet_association``): at a run's end, every receiver's mapping of
 every owner's objects onto its D, each owner object and D object taken as the true object its
@@ -37,6 +38,7 @@ COUNTS = (
     "confirmed",
     "confirmed_clutter",
     "clutter_entered",
+    "searches_cut",
 )
 
 
@@ -54,6 +56,7 @@ class AssociationTally:
         f = self.figures
         f["frames"] += 1
         f["detections"] += len(labels)
+        f["searches_cut"] += a.cut
         self.ms.append(ms)
         for track, label, entered in zip(a.tracks, labels, a.entered, strict=True):
             before = self.counts.get(track)

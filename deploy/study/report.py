@@ -60,7 +60,8 @@ def render_association(doc: dict[str, Any], console: Console) -> None:
             f"{a['wrong_merges']:.0f}, splits {a['splits']:.0f}, map objects "
             f"{a['confirmed']:.0f} ({a['confirmed_clutter']:.0f} of clutter), false detections "
             f"in the belief {a['clutter_entered']:.0f}, {fig(a['ms_mean'], '{:.1f}')} ms per frame "
-            f"(p99 {fig(a['ms_p99'], '{:.1f}')})"
+            f"(p99 {fig(a['ms_p99'], '{:.1f}')}), {a.get('searches_cut', 0):.0f} joint searches "
+            "cut at their budget"
         )
     for method, entry in doc["methods"].items():
         f = entry.get("fleet_association")
