@@ -140,7 +140,6 @@ def test_the_younger_of_two_fresh_objects_moves_to_the_older() -> None:
     assert fa.orphans([old, young]) == [young]
 
 
-
 def test_a_clash_never_maps_two_objects_onto_one_fresh_object() -> None:
     """Found on MRCLAM Dataset 7 with its barcodes hidden (`study --ids none`, D crashed with a
     key inserted twice): r2's object 21 had moved to one of the receiver's objects, and its old
@@ -159,6 +158,7 @@ def test_a_clash_never_maps_two_objects_onto_one_fresh_object() -> None:
     assert len(set(m.values())) == 3, m
     assert (m[5], m[10]) == (40, FRESH_TOP)
     assert m[21] not in (40, FRESH_TOP, FRESH_TOP - 1) and fa.origin(m[21]) == ("r2", 21)
+
 
 # -- inside a distributed belief ------------------------------------------------------------------
 
