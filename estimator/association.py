@@ -462,7 +462,13 @@ class _JointSearch:
         to ``exhaustive`` detections with a gated candidate, greedy by ``gain`` beyond; and
         whether the exhaustive search was cut short after ``budget`` joint evaluations (then the
         better of the best found and the greedy pairing)."""
-        options = [list(np.flatnonzero(gated[d])) for d in range(len(gated))]
+        # Each detection's candidates best first, and "new" after them: a search cut short at
+        # its budget has then met the pairings most likely to score, not only "all new" ones.
+        # (A search that finishes finds the same optimum in any order.)
+        options: list[list[int]] = []
+        for d in range(len(gated)):
+            cands = np.flatnonzero(gated[d])
+            options.append(cands[np.argsort(-gain[d, cands], kind="stable")].tolist())
         active = [d for d, o in enumerate(options) if o]
         if len(active) > exhaustive:
             return self._greedy(gated, gain), False
@@ -483,15 +489,15 @@ class _JointSearch:
                 if score is not None and score > best[0]:
                     best = (score, list(pairs))
                 return
-            visit(at + 1, pairs, used)  # the detection is new (or clutter)
             d = active[at]
             for c in options[d]:
                 if c in used or left <= 0:
                     continue
-                pairs.append((d, int(c)))
+                pairs.append((d, c))
                 if joint(pairs) is not None:  # prune what is not jointly compatible
-                    visit(at + 1, pairs, used | {int(c)})
+                    visit(at + 1, pairs, used | {c})
                 pairs.pop()
+            visit(at + 1, pairs, used)  # the detection is new (or clutter)
 
         visit(0, [], set())
         if left > 0:
