@@ -21,6 +21,7 @@ import numpy as np
 from agents.ros2 import messages as msgs
 from agents.ros2 import outputs, readings
 from agents.ros2.wire import (
+    DEFAULT_DEPTH,
     DISTROS,
     GraphNode,
     encode_attachment,
@@ -43,7 +44,6 @@ MAX_PENDING = 64  # detections messages waiting for odometry
 MAX_ODOMETRY = 1024  # odometry readings held
 MAX_STAMPS = 256  # steps whose detections stamp is remembered (to stamp their estimate)
 MAX_PATH = 1000  # steps of the estimated trajectory in each Path message
-DEFAULT_DEPTH = 10  # rclcpp's and rclpy's default publisher QoS (DEFAULT_QOS)
 TF_DEPTH = 100  # tf2_ros' TransformBroadcaster: reliable, volatile, depth 100
 # Where a ROS 2 node with rmw_zenoh finds its router (rmw_zenoh's default session config).
 ROS2_ROUTER = "tcp/localhost:7447"

@@ -79,7 +79,8 @@ def qos_chunk(
 
 
 # rclcpp's and rclpy's default publisher and subscription QoS (a depth of 10, reliable, volatile).
-DEFAULT_QOS = qos_chunk(depth=10)
+DEFAULT_DEPTH = 10
+DEFAULT_QOS = qos_chunk(depth=DEFAULT_DEPTH)
 
 
 def resolve_topic(namespace: str, topic: str) -> str:

@@ -8,6 +8,7 @@ The run's rosbag2 recording, read back with rosbags, holds the same messages as 
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
@@ -15,6 +16,7 @@ import subprocess
 import sys
 import threading
 import tomllib
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -60,13 +62,7 @@ def test_launch_ros2_publishes_every_agents_belief_through_the_router(
 ) -> None:
     """Plain, with the bag; a throwaway secure fleet (mutual TLS among the agents, the ROS 2
     client session beside it), without."""
-    (port,) = free_ports(1)
-    router_at = f"tcp/127.0.0.1:{port}"
-    router = _semfleet(["router", "--listen", router_at], tmp_path / "router.log")
-    session = None
-    try:
-        ros = ZenohSettings(connect=(router_at,), listen=("tcp/127.0.0.1:0",))
-        session = zenoh.open(ros.config())
+    with _router_and_ros2_side(tmp_path) as (router_at, session):
         samples, tokens = _listen(session)
         out = tmp_path / "out"
         launch = _semfleet(
@@ -85,6 +81,20 @@ def test_launch_ros2_publishes_every_agents_belief_through_the_router(
             _check_bag(tmp_path / "bag", printed, samples)
         else:
             assert "secure fleet: mutual TLS" in printed and "ROS 2 bag" not in printed
+
+
+@contextlib.contextmanager
+def _router_and_ros2_side(tmp_path: Path) -> Iterator[tuple[str, zenoh.Session]]:
+    """A `semfleet router` standing in for `rmw_zenohd`, and a Zenoh session dialling it as a
+    ROS 2 node's does: the router's endpoint and the session."""
+    (port,) = free_ports(1)
+    router_at = f"tcp/127.0.0.1:{port}"
+    router = _semfleet(["router", "--listen", router_at], tmp_path / "router.log")
+    session = None
+    try:
+        ros = ZenohSettings(connect=(router_at,), listen=("tcp/127.0.0.1:0",))
+        session = zenoh.open(ros.config())
+        yield router_at, session
     finally:
         if session is not None:
             session.close()
@@ -248,13 +258,7 @@ def test_chaos_ros2_shows_a_killed_robot_leave_the_ros2_graph_and_come_back(
     node and publishers leave the graph when it is killed (liveliness tokens deleted) and come
     back when it restarts from its journal; every robot's Path reaches the last step; the bag
     holds each robot's steps, r3's without the ones it was dead for."""
-    (port,) = free_ports(1)
-    router_at = f"tcp/127.0.0.1:{port}"
-    router = _semfleet(["router", "--listen", router_at], tmp_path / "router.log")
-    session = None
-    try:
-        ros = ZenohSettings(connect=(router_at,), listen=("tcp/127.0.0.1:0",))
-        session = zenoh.open(ros.config())
+    with _router_and_ros2_side(tmp_path) as (router_at, session):
         samples, _ = _listen(session)
         events: list[tuple[str, str]] = []
         session.liveliness().declare_subscriber(
@@ -274,11 +278,6 @@ def test_chaos_ros2_shows_a_killed_robot_leave_the_ros2_graph_and_come_back(
         rc = chaos.wait(240)
         printed = (tmp_path / "chaos.log").read_text()
         assert rc == 0, printed[-3000:]
-    finally:
-        if session is not None:
-            session.close()
-        router.send_signal(signal.SIGTERM)
-        router.wait(10)
     assert f"ROS 2 (jazzy, domain {DOMAIN})" in printed
     assert "SIGKILL r3" in printed and "restarted r3" in printed
     # r3's node token: put, deleted by the kill, put again by the restart, deleted when the run
