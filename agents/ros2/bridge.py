@@ -21,12 +21,12 @@ import numpy as np
 from agents.ros2 import messages as msgs
 from agents.ros2 import outputs, readings
 from agents.ros2.wire import (
-    DEFAULT_DEPTH,
+    DEFAULT_QOS,
     DISTROS,
+    TF_QOS,
     GraphNode,
     encode_attachment,
     endpoint_gid,
-    qos_chunk,
     resolve_topic,
     topic_key,
     topic_key_any_hash,
@@ -44,7 +44,6 @@ MAX_PENDING = 64  # detections messages waiting for odometry
 MAX_ODOMETRY = 1024  # odometry readings held
 MAX_STAMPS = 256  # steps whose detections stamp is remembered (to stamp their estimate)
 MAX_PATH = 1000  # steps of the estimated trajectory in each Path message
-TF_DEPTH = 100  # tf2_ros' TransformBroadcaster: reliable, volatile, depth 100
 # Where a ROS 2 node with rmw_zenoh finds its router (rmw_zenoh's default session config).
 ROS2_ROUTER = "tcp/localhost:7447"
 
@@ -99,7 +98,6 @@ class _Publication:
     key: str
     token: str
     gid: bytes
-    depth: int  # its QoS: reliable, volatile, keep last ``depth`` (the token's QoS chunk)
     sequence: int = 0
 
 
@@ -159,21 +157,19 @@ class Ros2Bridge:
         self._tokens = [self.graph.node_token()]
         self.publications: dict[str, _Publication] = {}
         eid = 1
-        for name, topic, type_name, depth in (
-            ("odometry", s.odometry_topic, msgs.ODOMETRY, DEFAULT_DEPTH),
-            ("pose", s.pose_topic, msgs.POSE, DEFAULT_DEPTH),
-            ("markers", s.markers_topic, msgs.MARKERS, DEFAULT_DEPTH),
-            ("path", s.path_topic, outputs.PATH, DEFAULT_DEPTH),
-            ("objects", s.objects_topic, outputs.OBJECTS, DEFAULT_DEPTH),
-            ("tf", s.tf_topic, outputs.TF, TF_DEPTH),
+        for name, topic, type_name, qos in (
+            ("odometry", s.odometry_topic, msgs.ODOMETRY, DEFAULT_QOS),
+            ("pose", s.pose_topic, msgs.POSE, DEFAULT_QOS),
+            ("markers", s.markers_topic, msgs.MARKERS, DEFAULT_QOS),
+            ("path", s.path_topic, outputs.PATH, DEFAULT_QOS),
+            ("objects", s.objects_topic, outputs.OBJECTS, DEFAULT_QOS),
+            ("tf", s.tf_topic, outputs.TF, TF_QOS),
         ):
             full = resolve_topic(s.namespace, topic)
             th = self.types.type_hash(type_name)
-            qos = qos_chunk(depth=depth)
             token = self.graph.endpoint_token(eid, "MP", full, type_name, th, qos)
             key = topic_key(s.domain_id, full, type_name, th)
-            gid = endpoint_gid(token)
-            self.publications[name] = _Publication(type_name, key, token, gid, depth)
+            self.publications[name] = _Publication(type_name, key, token, endpoint_gid(token))
             self._tokens.append(token)
             eid += 1
         self.inputs: dict[str, str] = {}  # subscription expression → message type

@@ -81,6 +81,8 @@ def qos_chunk(
 # rclcpp's and rclpy's default publisher and subscription QoS (a depth of 10, reliable, volatile).
 DEFAULT_DEPTH = 10
 DEFAULT_QOS = qos_chunk(depth=DEFAULT_DEPTH)
+TF_DEPTH = 100  # tf2_ros' TransformBroadcaster's depth (reliable, volatile)
+TF_QOS = qos_chunk(depth=TF_DEPTH)
 
 
 def resolve_topic(namespace: str, topic: str) -> str:

@@ -14,6 +14,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Literal
 
 from agents.ros2.bridge import Ros2Bridge, Ros2Settings
+from agents.ros2.outputs import TF
+from agents.ros2.wire import DEFAULT_DEPTH, TF_DEPTH
 from protocol.estimate import EstimateMessage
 
 if TYPE_CHECKING:
@@ -83,11 +85,12 @@ def write_bag(
             for sample in bridge.samples_of(estimate, stamp):
                 if sample.key not in connections:
                     p = next(p for p in bridge.publications.values() if p.key == sample.key)
+                    depth = TF_DEPTH if p.type_name == TF else DEFAULT_DEPTH  # as published
                     connections[sample.key] = writer.add_connection(
                         bag_topic(sample.key),
                         p.type_name,
                         typestore=bridge.types.store,
-                        offered_qos_profiles=[offered_qos(p.depth)],
+                        offered_qos_profiles=[offered_qos(depth)],
                     )
                 writer.write(connections[sample.key], stamp, sample.payload)
                 topic = bag_topic(sample.key)
