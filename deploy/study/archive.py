@@ -219,7 +219,11 @@ def study_arrays(results: Sequence[RunResult], methods: Sequence[str]) -> dict[s
     and the true ones ``true_robot_pose`` (runs, robots, steps, 3) where the runs recorded them,
     step times, wall times per run, class-ECE bin statistics, the fleets' fusion times, empty
     joins and rebuilds and the sizes of their delivered stacks (``METHOD/stack_bytes``, every
-    run's in turn, ``METHOD/stacks_delivered`` of them per run)."""
+    run's in turn, ``METHOD/stacks_delivered`` of them per run); without global ids, each run's
+    association counts (``METHOD/association``, runs × ``ASSOCIATION_COUNTS``), its times per
+    frame (``METHOD/association_ms``, every run's in turn, ``METHOD/association_frames`` of them
+    per run) and the fleet's (``METHOD/fleet_association``, runs × ``FLEET_COUNTS``), so that
+    `study merge` makes the same association figures as one study."""
     arrays: dict[str, NDArray[Any]] = {}
     for method in methods:
         for metric, values in stack_runs(results, method).items():
@@ -247,6 +251,19 @@ def study_arrays(results: Sequence[RunResult], methods: Sequence[str]) -> dict[s
         if all(method in r.refused for r in results):
             refused = [r.refused[method] for r in results]
             arrays[f"{method}/refused"] = np.array(refused, dtype=np.int64)
+        if all(method in r.association for r in results):
+            arrays[f"{method}/association"] = np.array(
+                [[r.association[method].get(n, 0) for n in ASSOCIATION_COUNTS] for r in results],
+                dtype=np.int64,
+            )
+            ms = [r.association_ms.get(method, []) for r in results]
+            arrays[f"{method}/association_ms"] = np.array([x for m in ms for x in m])
+            arrays[f"{method}/association_frames"] = np.array([len(m) for m in ms], np.int64)
+        if all(method in r.fleet_association for r in results):
+            arrays[f"{method}/fleet_association"] = np.array(
+                [[r.fleet_association[method][n] for n in FLEET_COUNTS] for r in results],
+                dtype=np.int64,
+            )
     truth = [m for m in methods if all("true_robot_pose" in r.metrics[m] for r in results)]
     if truth:  # the same for every method: stored once
         arrays["true_robot_pose"] = np.stack(
@@ -275,6 +292,11 @@ def study_runs(doc: Mapping[str, Any], arrays: Mapping[str, NDArray[Any]]) -> li
                 raise ValueError(
                     f"{m}/{name} has shape {got.shape}, not (runs, robots, steps) {per_run}"
                 )
+    frames = {
+        m: np.concatenate([[0], np.cumsum(arrays[f"{m}/association_frames"])])
+        for m in methods
+        if f"{m}/association_frames" in arrays
+    }
     runs = []
     for i, seed in enumerate(doc["seeds"]):
         metrics: dict[str, dict[str, Array]] = {}
@@ -315,6 +337,24 @@ def study_runs(doc: Mapping[str, Any], arrays: Mapping[str, NDArray[Any]]) -> li
                     m: int(arrays[f"{m}/refused"][i]) for m in methods if f"{m}/refused" in arrays
                 },
                 robots=tuple(doc["robots"]),
+                association={
+                    m: dict(
+                        zip(ASSOCIATION_COUNTS, arrays[f"{m}/association"][i].tolist(), strict=True)
+                    )
+                    for m in methods
+                    if f"{m}/association" in arrays
+                },
+                association_ms={
+                    m: arrays[f"{m}/association_ms"][frames[m][i] : frames[m][i + 1]].tolist()
+                    for m in frames
+                },
+                fleet_association={
+                    m: dict(
+                        zip(FLEET_COUNTS, arrays[f"{m}/fleet_association"][i].tolist(), strict=True)
+                    )
+                    for m in methods
+                    if f"{m}/fleet_association" in arrays
+                },
             )
         )
     return runs

@@ -254,3 +254,42 @@ def test_study_merge_refuses_a_shard_whose_arrays_are_missing_or_misshapen(
     why = _refusal(["study", "merge", str(s0), str(missing), "--out", out], capsys)
     assert str(missing) in why and "local/msde" in why
     assert not (tmp_path / "m").exists()
+
+
+def test_study_merge_keeps_the_association_figures_of_frames_without_ids(
+    world: Path, tmp_path: Path
+) -> None:
+    """Issue 45: with `--ids none` a study's association and fleet association figures are in
+    results.json; the merge of its shards makes the very same figures (all but the times per
+    frame, which are the runs' own) from the arrays the shards archive."""
+    ids = ("--ids", "none", "--clutter", "0.1")
+    for i in range(2):
+        argv = ["study", "--scenario", str(world), *STUDY, *ids, "--shard", f"{i}/2"]
+        assert main([*argv, "--out", str(tmp_path / f"s{i}")]) == 0
+    assert (
+        main(
+            [
+                "study",
+                "merge",
+                str(tmp_path / "s0"),
+                str(tmp_path / "s1"),
+                "--out",
+                str(tmp_path / "m"),
+            ]
+        )
+        == 0
+    )
+    argv = ["study", "--scenario", str(world), *STUDY, *ids, "--out", str(tmp_path / "full")]
+    assert main(argv) == 0
+    (doc, arrays), (ref, ref_arrays) = read(tmp_path / "m"), read(tmp_path / "full")
+    for key in ("association", "fleet_association"):
+        method = "local" if key == "association" else "distributed"
+        got, want = doc["methods"][method][key], ref["methods"][method][key]
+        timed = {"ms_mean", "ms_p99"}
+        assert {k: v for k, v in got.items() if k not in timed} == {
+            k: v for k, v in want.items() if k not in timed
+        }
+        assert want["frames" if key == "association" else "owner_objects"] > 0
+    np.testing.assert_array_equal(arrays["local/association"], ref_arrays["local/association"])
+    assert arrays["local/association_ms"].shape == ref_arrays["local/association_ms"].shape
+    assert arrays["local/association_frames"].tolist() == [2 * STEPS] * 3  # 2 robots a run
