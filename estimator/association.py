@@ -480,13 +480,13 @@ class _JointSearch:
             left -= 1
             return self.joint(pairs)
 
-        def visit(at: int, pairs: list[tuple[int, int]], used: set[int]) -> None:
+        def visit(at: int, pairs: list[tuple[int, int]], used: set[int], score: float) -> None:
+            """``score``: that of ``pairs``, evaluated when their last pairing was added."""
             nonlocal best
             if left <= 0:
                 return
             if at == len(active):
-                score = joint(pairs)
-                if score is not None and score > best[0]:
+                if score > best[0]:
                     best = (score, list(pairs))
                 return
             d = active[at]
@@ -494,12 +494,13 @@ class _JointSearch:
                 if c in used or left <= 0:
                     continue
                 pairs.append((d, c))
-                if joint(pairs) is not None:  # prune what is not jointly compatible
-                    visit(at + 1, pairs, used | {c})
+                more = joint(pairs)
+                if more is not None:  # prune what is not jointly compatible
+                    visit(at + 1, pairs, used | {c}, more)
                 pairs.pop()
-            visit(at + 1, pairs, used)  # the detection is new (or clutter)
+            visit(at + 1, pairs, used, score)  # the detection is new (or clutter)
 
-        visit(0, [], set())
+        visit(0, [], set(), 0.0)
         if left > 0:
             return dict(best[1]), False
         greedy = self._greedy(gated, gain)
