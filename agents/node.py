@@ -33,7 +33,7 @@ from estimator.gate import (
     held_objects,
 )
 from estimator.hybrid import SPARSE_XI_ABOVE, BeliefConfig, BeliefModel, HybridBelief
-from estimator.models import GLOBAL_IDS, SensorFrame
+from estimator.models import GLOBAL_IDS, Detection, SensorFrame
 from estimator.slots import linearisation_point, summarise
 from estimator.summary import LocalSummary
 from protocol.codec import (
@@ -275,9 +275,15 @@ class LocalTrack:
             self.association = self.associator.associate(self.belief, frame)
             self.association_s = tick() - t0
             frame = self.association.frame
-        self.belief.step([frame], self._rng)
+        self.belief.step([frame], self._rng, self.replay_of(frame))
         self._stepped = frame
         return frame
+
+    def replay_of(self, frame: SensorFrame) -> tuple[tuple[str, int, Detection], ...]:
+        """The earlier detections of the objects ``frame`` confirmed (``Association.replay``),
+        when it is the frame this track last associated; none for any other frame."""
+        a = self.association
+        return a.replay if a is not None and a.frame is frame else ()
 
     def summary(self, at: gtsam.Values | None = None) -> LocalSummary | None:
         """The own slot's content at the current step (None before any object is seen),
@@ -712,7 +718,7 @@ class RobotNode:
         t1 = tick()
         stepped = self.track.advance(frame, clock)
         t2 = tick()
-        self.distributed.step([stepped], self._rng_distributed)
+        self.distributed.step([stepped], self._rng_distributed, self.track.replay_of(stepped))
         if self._rebuild_due and fuse:
             rebuilt = self.rebuild()
             fusion = replace(

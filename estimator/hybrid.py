@@ -609,6 +609,8 @@ class HybridBelief:
         self.slot_fit_refused = 0
         # Per-object classes: steps since the ledger last re-read every detection's poses.
         self._since_refresh = 0
+        # Replayed detections (``step``) left out: their pose was marginalised.
+        self.replays_dropped = 0
 
     @property
     def per_object(self) -> bool:
@@ -740,8 +742,20 @@ class HybridBelief:
 
     # -- the step ---------------------------------------------------------------------------
 
-    def step(self, frames: Sequence[SensorFrame], rng: np.random.Generator) -> StepStats:
-        """Eq. 5–6 for one step: every frame advances its robot by one step."""
+    def step(
+        self,
+        frames: Sequence[SensorFrame],
+        rng: np.random.Generator,
+        replay: Sequence[tuple[str, int, Detection]] = (),
+    ) -> StepStats:
+        """Eq. 5–6 for one step: every frame advances its robot by one step.
+
+        ``replay``: earlier detections (robot, step, detection) of
+        objects this step's frames hold, added from the poses of the steps they were made at,
+        with their class evidence, as if the objects had been known then: a robot that confirms
+        an object only at its n-th detection (``estimator.association``) keeps the first n − 1.
+        A replayed detection whose pose the window has marginalised is left out
+        (``replays_dropped``)."""
         self._check_frames(frames)
         detections = [(f, d) for f in frames for d in f.detections]
         new_ids: list[int] = []
@@ -750,6 +764,8 @@ class HybridBelief:
             if d.object_id not in self._object_index and d.object_id not in first:
                 new_ids.append(d.object_id)
                 first[d.object_id] = (f, d)
+        if replay:
+            detections += self._replayed(frames, replay, first)
         if self.per_object:
             return self._step_per_object(frames, detections, new_ids, first, rng)
         parents = self.hypotheses
@@ -772,6 +788,45 @@ class HybridBelief:
         self._relinearise_evidence()
         self._normalise()
         return StepStats(len(parents), beam.weighed, len(self.hypotheses))
+
+    def _replayed(
+        self,
+        frames: Sequence[SensorFrame],
+        replay: Sequence[tuple[str, int, Detection]],
+        first: Mapping[int, tuple[SensorFrame, Detection]],
+    ) -> list[tuple[SensorFrame, Detection]]:
+        """``step``'s ``replay`` checked and paired with frames of their steps (which carry only
+        what the factors read: the robot and the step)."""
+        now = {f.robot: f for f in frames}
+        isam = self.hypotheses[0].continuous.isam
+        oldest = 0  # the oldest pose still held after this step's update
+        if isinstance(isam, WindowedISAM2):
+            latest = max(isam.latest, *(f.k for f in frames))
+            oldest = max(isam.oldest_kept(), latest - isam.window)
+        out = []
+        for robot, k, d in replay:
+            f = now.get(robot)
+            if f is None or not 1 <= k < f.k:
+                raise ValueError(
+                    f"replayed detection of object {d.object_id} at step {k} of {robot!r}: not "
+                    "an earlier step of a robot this step advances"
+                )
+            if d.object_id not in self._object_index and d.object_id not in first:
+                raise ValueError(
+                    f"replayed detection of object {d.object_id}: no frame of this step and no "
+                    "earlier one holds that object"
+                )
+            if np.shape(d.z_geo) != (self._kind.dim,):
+                raise ValueError(
+                    f"replayed detection of object {d.object_id}: z_geo has "
+                    f"{np.size(d.z_geo)} numbers, this belief's {self._kind.name} objects "
+                    f"{self._kind.dim}"
+                )
+            if k < oldest:
+                self.replays_dropped += 1
+                continue
+            out.append((SensorFrame(robot, k, f.odometry, (), f.true_pose, f.ids), d))
+        return out
 
     def _step_per_object(
         self,

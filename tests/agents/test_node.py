@@ -915,3 +915,31 @@ def test_a_robot_that_keeps_fewer_slots_than_a_stack_holds_takes_stacks_of_any_s
     for bad in (1, 65):
         with pytest.raises(ValueError, match="keep_slots"):
             make_node("r1", SCENARIO.robot("r1").start, model, SEED, BeliefConfig(), keep_slots=bad)
+
+
+def test_a_nodes_d_takes_the_earlier_detections_its_l_confirms() -> None:
+    """Frames without ids: when L confirms an object, its earlier detections enter L and D
+    alike, so a node that has heard no peer has D equal to L (without them in D, D's objects
+    would hold fewer detections than L's)."""
+    model = belief_model(SCENARIO)
+    node = make_node(
+        "r1",
+        SCENARIO.robot("r1").start,
+        model,
+        SEED,
+        BeliefConfig(),
+        sensor=sensor_field(SCENARIO, "r1"),
+    )
+    replayed = 0
+    for frame in Simulator(SCENARIO, SEED, detector=Detector("none")).frames("r1"):
+        node.on_frame(frame)
+        assert node.track.association is not None
+        replayed += len(node.track.association.replay)
+    assert replayed >= 2 and node.local.object_ids
+    local, dist = node.local.snapshot("r1"), node.distributed.snapshot("r1")
+    assert node.distributed.object_ids == node.local.object_ids
+    np.testing.assert_allclose(dist.object_pose, local.object_pose, atol=1e-9)
+    np.testing.assert_allclose(dist.object_cov, local.object_cov, atol=1e-12)
+    np.testing.assert_allclose(
+        node.distributed.class_log_posterior(), node.local.class_log_posterior(), atol=1e-9
+    )

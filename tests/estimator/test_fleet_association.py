@@ -190,7 +190,8 @@ def _beliefs() -> tuple[HybridBelief, DistributedBelief, DistributedBelief]:
         assoc = Associator(model, sensor_field(SCENARIO, robot))
         rng = belief_rng(SEED, [robot])
         for k in range(1, STEPS + 1):
-            belief.step([assoc.associate(belief, sim.frame(robot, k)).frame], rng)
+            a = assoc.associate(belief, sim.frame(robot, k))
+            belief.step([a.frame], rng, a.replay)
         out.append(belief)
     return out[0], out[1], out[2]  # type: ignore[return-value]
 
