@@ -224,7 +224,8 @@ def plot_hypotheses(
     max_hypotheses: int = 5,
 ) -> None:
     """Fig. 3b/3c: the heaviest hypotheses' robot and object estimates with 2σ ellipses over the
-    truth, and P(c = 1) per known object against its true class."""
+    truth, and P(c = 1) per known object against its true class (objects of false detections,
+    which given ids with clutter bring, have no truth to draw)."""
     from estimator.metrics import world_position_cov
 
     s = world.scenario
@@ -235,6 +236,8 @@ def plot_hypotheses(
     truth = {o.id: o for o in s.objects}
     ids = snap.object_ids
     for j in ids:
+        if j not in truth:  # a false detection's object (given ids with clutter): no truth
+            continue
         tx, ty = truth[j].pose[:2]
         ax_map.plot(tx, ty, "ks", ms=5, mfc="none")
         ax_map.annotate(str(j), (tx, ty), textcoords="offset points", xytext=(4, 4), fontsize=7)
@@ -261,7 +264,7 @@ def plot_hypotheses(
     ax_map.grid(True, alpha=0.3)
     prob = snap.marginals(s.num_classes)
     x = np.arange(len(ids))
-    true_c1 = np.array([1.0 if truth[j].class_index == 0 else 0.0 for j in ids])
+    true_c1 = np.array([float(truth[j].class_index == 0) if j in truth else math.nan for j in ids])
     ax_class.bar(x, prob[:, 0], color="tab:blue", label="P(c = 1)")
     ax_class.scatter(
         x, true_c1, marker="_", s=300, color="red", linewidths=2, label="truth", zorder=3

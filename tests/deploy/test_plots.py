@@ -132,3 +132,31 @@ def test_fleet_map_panels_say_their_axes_and_units() -> None:
         assert ax.get_xlabel() == "x [m] (fleet frame)" and ax.get_ylabel() == "y [m] (fleet frame)"
     finally:
         plt.close(fig)
+
+
+def test_plot_hypotheses_draws_an_object_without_truth() -> None:
+    """Given ids with clutter: a false detection's object is in the belief and in no world's
+    truth. Its estimate is drawn; no truth marker or class truth is (the study crashed here)."""
+    world = World(load_scenario("paper"))
+    cov = np.diag([0.04, 0.01, 0.001])
+    clutter = 2_731_202_176
+    assert clutter not in {o.id for o in world.scenario.objects}
+    snap = BeliefSnapshot(
+        (1, clutter),
+        np.array([1.0]),
+        np.array([[0, 1]], dtype=np.int64),
+        np.array([[0.0, 0.0, 0.0]]),
+        cov[None],
+        np.array([[world.scenario.objects[0].pose, (3.0, 4.0, 0.5)]], dtype=float),
+        np.tile(cov, (1, 2, 1, 1)),
+        class_probs=np.array([[0.3, 0.7], [0.6, 0.4]]),
+    )
+    fig, (ax_map, ax_class) = plt.subplots(1, 2)
+    try:
+        plot_hypotheses(ax_map, ax_class, snap, world, "r1", 5)
+        assert [t.get_text() for t in ax_map.texts] == ["1"]
+        marks = ax_class.collections[0].get_offsets()
+        assert np.isfinite(marks[0]).all() and not np.isfinite(marks[1]).all()
+        assert_close([bar.get_height() for bar in ax_class.patches], [0.3, 0.6])
+    finally:
+        plt.close(fig)
