@@ -690,3 +690,14 @@ def test_study_without_ids_associates_on_each_robot_and_across_the_fleet() -> No
     doc = study_archive("paper", [none], methods).document()
     assert doc["methods"]["local"]["association"]["precision"] >= 0.98
     assert doc["methods"]["distributed"]["fleet_association"]["precision"] == 1.0
+
+
+def test_study_with_given_ids_and_clutter_writes_its_report(tmp_path: Path) -> None:
+    """``--ids global --clutter R``: false detections come with ids of objects no world holds;
+    the study scores, archives and plots them (it crashed drawing the hypotheses plot)."""
+    out = tmp_path / "out"
+    argv = ["study", "--scenario", "paper", "--methods", "local", "--runs", "1", "--out", str(out)]
+    assert main([*argv, "--ids", "global", "--clutter", "0.3", "--miss", "0.1"]) == 0
+    assert (out / "hypotheses.png").stat().st_size > 0 and (out / "results.npz").exists()
+    doc = json.loads((out / "results.json").read_text())
+    assert np.isfinite(doc["methods"]["local"]["mean"]["object_error"]).all()
