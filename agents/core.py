@@ -710,6 +710,7 @@ def _counter_values(core: AgentCore) -> dict[str, int]:
         "slots_skipped": c.slots_skipped,
         "slots_reused": c.slots_reused,
         "slots_unassociated": c.unassociated_slots,
+        "rematches": c.rematches,
         "empty_joins": c.empty_joins,
         "rebuilds": c.rebuilds,
         "completed_joins": c.completed_joins,

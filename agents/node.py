@@ -172,7 +172,8 @@ class NodeCounters:
     parsed the very same bytes before and not merged them yet (a lock-step agent buffers the
     stacks of later rounds; docs/wire.md, "Decoding only what is new"); ``unassociated_slots``
     peers' slots not held because this robot's objects have robot-local ids (its frames came
-    without global ids)."""
+    without global ids); ``rematches`` the times a step's newly confirmed objects changed the
+    mapping of a held peer's slot (``FleetAssociation.rematch``; D is then rebuilt)."""
 
     stacks_received: int = 0
     stacks_merged: int = 0
@@ -190,6 +191,7 @@ class NodeCounters:
     slots_skipped: int = 0
     slots_reused: int = 0
     unassociated_slots: int = 0
+    rematches: int = 0
     bytes_received: int = 0
     stacks_sent: int = 0
     bytes_sent: int = 0
@@ -719,6 +721,8 @@ class RobotNode:
         stepped = self.track.advance(frame, clock)
         t2 = tick()
         self.distributed.step([stepped], self._rng_distributed, self.track.replay_of(stepped))
+        if fuse and self._confirmed(stepped):
+            self._rematch()
         if self._rebuild_due and fuse:
             rebuilt = self.rebuild()
             fusion = replace(
@@ -762,6 +766,22 @@ class RobotNode:
         self.counters.empty_joins += stats.empty_joins
         self.counters.completed_joins += stats.completed
         return stats
+
+    def _confirmed(self, stepped: SensorFrame) -> bool:
+        """Whether L confirmed objects at the frame it ``stepped`` (frames without ids)."""
+        a = self.track.association
+        return a is not None and a.frame is stepped and bool(a.confirmed)
+
+    def _rematch(self) -> None:
+        """D's own map has new objects: the held peers' slots are matched again, and D rebuilt
+        at this step if a mapping changed (``FleetAssociation.rematch``)."""
+        fleet = self.distributed.association
+        if fleet is None or not fleet.maps:
+            return
+        held = self._checked(self.stack.newer_than({}, own=self.robot))
+        if fleet.rematch(self.distributed, held):
+            self.counters.rematches += 1
+            self._rebuild_due = True
 
     def rebuild(self) -> FusionStats:
         """Make D anew from L and the newest held version of every other robot's slot (L and D

@@ -363,14 +363,17 @@ class FleetAssociation:
             out.add("")
         return out
 
-    def associate(self, belief: FusedBelief, slots: Sequence[Slot]) -> list[Slot]:
+    def associate(
+        self, belief: FusedBelief, slots: Sequence[Slot], again: bool = False
+    ) -> list[Slot]:
         """Match every slot of a batch against ``belief`` as it is before the batch, update the
-        owners' mappings and return the slots with D's ids."""
-        fresh = [s for s in slots if not self._mapped(s)]
+        owners' mappings and return the slots with D's ids. ``again``: match versions matched
+        before too (:meth:`rematch`)."""
+        fresh = [s for s in slots if again or not self._mapped(s)]
         d = belief_objects(belief) if fresh else None
         out = []
         for s in slots:
-            if d is None or self._mapped(s):
+            if d is None or (self._mapped(s) and not again):
                 out.append(self.translate(s))  # a version matched before (D rebuilt)
                 continue
             held = self.maps.get(s.owner)
@@ -392,6 +395,16 @@ class FleetAssociation:
             self._update(s, proposal)
             out.append(self.translate(s))
         return out
+
+    def rematch(self, belief: FusedBelief, held: Sequence[Slot]) -> bool:
+        """Match the ``held`` slots (each owner's newest version, already integrated) again
+        against ``belief``, whose own objects have changed since: whether any mapping changed
+        (D must then be rebuilt under the new mappings). Without it an object the receiver
+        confirms after a peer's version arrived stays a duplicate of that peer's fresh object
+        until the peer's next version, which a robot out of the peer's range never gets."""
+        before = {o: dict(m.ids) for o, m in self.maps.items()}
+        self.associate(belief, [s for s in held if s.owner in self.maps], again=True)
+        return any(self.maps[o].ids != ids for o, ids in before.items())
 
     def _mapped(self, s: Slot) -> bool:
         held = self.maps.get(s.owner)
@@ -419,11 +432,15 @@ class FleetAssociation:
             if current is None or current == want:
                 ids[i] = want
                 continue
+            if self._origin.get(current) == (s.owner, i) and not self.is_fresh(want):
+                # its own fresh object held its place until a first match: as a new object,
+                # it takes that at once
+                ids[i] = want
+                continue
             before = held.pending.get(i)
             count = before[1] + 1 if before is not None and before[0] == want else 1
             if count >= self.config.hold:
                 ids[i] = want
-                self.changes += 1
             else:
                 ids[i] = current
                 pending[i] = (want, count)
@@ -436,6 +453,8 @@ class FleetAssociation:
                 if ids[i] in taken:
                     ids[i] = self._fresh_id(s.owner, i, renew=True)
             taken.add(ids[i])
+        # the moves that stand (one that clashed went back to a fresh object)
+        self.changes += sum(held.ids.get(i, j) != j for i, j in ids.items())
         self.maps[s.owner] = OwnerMap(s.version, ids, pending)
 
     def _fresh_id(self, owner: str, i: int, renew: bool = False) -> int:

@@ -943,3 +943,41 @@ def test_a_nodes_d_takes_the_earlier_detections_its_l_confirms() -> None:
     np.testing.assert_allclose(
         node.distributed.class_log_posterior(), node.local.class_log_posterior(), atol=1e-9
     )
+
+
+def test_a_node_matches_a_held_slot_again_when_its_l_confirms_objects() -> None:
+    """Frames without ids: r2's stack reaches r1 before r1 has confirmed any object, and no
+    newer one follows. When r1 confirms its own objects, the node matches r2's held slot again
+    and rebuilds D: r2's objects land on r1's own, and no fresh duplicate stays (without it,
+    D would hold every object twice until r2's next version)."""
+    steps = 14
+    pair = parse_scenario(
+        fleet_text(
+            "pair",
+            steps,
+            [0.0, 1.0],
+            [(3.0, 0.5, 0.5, 1), (4.0, -0.4, -1.0, 2), (5.0, 1.2, 2.0, 2), (6.0, 0.3, 1.0, 1)],
+        ),
+        "pair.toml",
+    )
+    model = belief_model(pair)
+    nodes = {
+        r: make_node(r, pair.robot(r).start, model, 4, BeliefConfig(), sensor=sensor_field(pair, r))
+        for r in ("r1", "r2")
+    }
+    sim = Simulator(pair, 4, detector=Detector("none"))
+    for frame in sim.frames("r2"):
+        nodes["r2"].on_frame(frame)
+    r1 = nodes["r1"]
+    for k, frame in enumerate(sim.frames("r1"), start=1):
+        if k == 2:
+            assert not r1.local.object_ids
+            message = nodes["r2"].outgoing()
+            assert message is not None
+            assert r1.receive(message).taken
+        r1.on_frame(frame)
+    fleet = r1.distributed.association
+    assert fleet is not None and r1.counters.rematches >= 1
+    assert len(r1.local.object_ids) == 4
+    assert sorted(r1.distributed.object_ids) == sorted(r1.local.object_ids)
+    assert all(fleet.sources(j) == {"", "r2"} for j in r1.distributed.object_ids)

@@ -240,3 +240,35 @@ def test_same_object_ratio_is_neutral_on_the_prior_and_rewards_a_shared_rare_cla
     assert same_object_log_ratio(sure_rare, sure_rare, prior) == pytest.approx(np.log(10.0))
     assert same_object_log_ratio(sure_common, sure_common, prior) == pytest.approx(np.log(1 / 0.9))
     assert same_object_log_ratio(sure_rare, sure_common, prior) < -20.0
+
+
+def test_a_held_slot_is_matched_again_onto_objects_confirmed_after_it() -> None:
+    """r2's slot reaches r1 before r1 has confirmed any object: all four enter D as fresh
+    objects. Once r1 confirms its own, matching the held version again maps r2's objects onto
+    them at once (a fresh object is a placeholder, not a match to hold on to), leaving the
+    fresh ones orphaned for a rebuild; matching again without news changes nothing."""
+    local2 = _beliefs()[0]
+    slot = Slot("r2", STEPS, summarise(local2))
+    model = belief_model(SCENARIO)
+    sim = Simulator(SCENARIO, SEED, detector=Detector("none"))
+    start = SCENARIO.robot("r1").start
+    local = HybridBelief(model, {"r1": start}, BeliefConfig())
+    d = DistributedBelief(model, "r1", start, BeliefConfig())
+    fa = FleetAssociation(LOG_PRIOR)
+    d.association = fa
+    assoc = Associator(model, sensor_field(SCENARIO, "r1"))
+    rng, rng_d = belief_rng(SEED, ["r1"]), belief_rng(SEED, ["r1"])
+    for k in range(1, STEPS + 1):
+        if k == 2:
+            assert not d.object_ids
+            d.integrate([slot])
+            assert all(fa.is_fresh(j) for j in fa.mapping("r2").values())
+        a = assoc.associate(local, sim.frame("r1", k))  # on L, as a node does
+        local.step([a.frame], rng, a.replay)
+        d.step([a.frame], rng_d, a.replay)
+    own = sorted(j for j in d.object_ids if not fa.is_fresh(j))
+    assert len(own) == 4 and not fa.rematch(d, []) and fa.orphans(d.object_ids) == []
+    assert fa.rematch(d, [slot])
+    assert sorted(fa.mapping("r2").values()) == own
+    assert len(fa.orphans(d.object_ids)) == 4 and fa.changes == 4
+    assert not fa.rematch(d, [slot]) and fa.changes == 4
