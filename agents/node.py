@@ -477,6 +477,7 @@ class RobotNode:
         self._own_slot_stale = False
         self._fit_logged_k = -FIT_LOG_STEPS  # the step of the last "taken at L's point" line
         self._rebuild_due = False
+        self._rematch_again = False  # a rematch left proposals pending (``_rematch``)
         self._last_refusal: Exception | None = None  # why the last stack was refused whole
         # Frames without global ids: robot-local object ids, which no peer shares: D matches
         # peers' objects onto its own (``_local_ids``; issue 45, item 3).
@@ -721,7 +722,7 @@ class RobotNode:
         stepped = self.track.advance(frame, clock)
         t2 = tick()
         self.distributed.step([stepped], self._rng_distributed, self.track.replay_of(stepped))
-        if fuse and self._confirmed(stepped):
+        if fuse and (self._confirmed(stepped) or self._rematch_again):
             self._rematch()
         if self._rebuild_due and fuse:
             rebuilt = self.rebuild()
@@ -774,7 +775,10 @@ class RobotNode:
 
     def _rematch(self) -> None:
         """D's own map has new objects: the held peers' slots are matched again, and D rebuilt
-        at this step if a mapping changed (``FleetAssociation.rematch``)."""
+        at this step if a mapping changed (``FleetAssociation.rematch``). A move waits for a
+        second proposal (the mappings' hysteresis): proposals this left pending are matched
+        once more at the next step, so they do not wait for the owner's next version."""
+        again, self._rematch_again = self._rematch_again, False
         fleet = self.distributed.association
         if fleet is None or not fleet.maps:
             return
@@ -782,6 +786,7 @@ class RobotNode:
         if fleet.rematch(self.distributed, held):
             self.counters.rematches += 1
             self._rebuild_due = True
+        self._rematch_again = not again and any(m.pending for m in fleet.maps.values())
 
     def rebuild(self) -> FusionStats:
         """Make D anew from L and the newest held version of every other robot's slot (L and D

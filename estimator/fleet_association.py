@@ -399,9 +399,11 @@ class FleetAssociation:
     def rematch(self, belief: FusedBelief, held: Sequence[Slot]) -> bool:
         """Match the ``held`` slots (each owner's newest version, already integrated) again
         against ``belief``, whose own objects have changed since: whether any mapping changed
-        (D must then be rebuilt under the new mappings). Without it an object the receiver
-        confirms after a peer's version arrived stays a duplicate of that peer's fresh object
-        until the peer's next version, which a robot out of the peer's range never gets."""
+        (D must then be rebuilt under the new mappings). A rematch is a matching like any
+        other: a move waits for ``hold`` consecutive proposals. Without it an object the
+        receiver confirms after a peer's version arrived stays a duplicate of that peer's fresh
+        object until the peer's next versions, which a robot out of the peer's range never
+        gets."""
         before = {o: dict(m.ids) for o, m in self.maps.items()}
         self.associate(belief, [s for s in held if s.owner in self.maps], again=True)
         return any(self.maps[o].ids != ids for o, ids in before.items())
@@ -430,11 +432,6 @@ class FleetAssociation:
                 # and swap forever: only the younger one (a lower id) moves, to the older one.
                 want = current if self.is_fresh(want) else want
             if current is None or current == want:
-                ids[i] = want
-                continue
-            if self._origin.get(current) == (s.owner, i) and not self.is_fresh(want):
-                # its own fresh object held its place until a first match: as a new object,
-                # it takes that at once
                 ids[i] = want
                 continue
             before = held.pending.get(i)

@@ -244,9 +244,9 @@ def test_same_object_ratio_is_neutral_on_the_prior_and_rewards_a_shared_rare_cla
 
 def test_a_held_slot_is_matched_again_onto_objects_confirmed_after_it() -> None:
     """r2's slot reaches r1 before r1 has confirmed any object: all four enter D as fresh
-    objects. Once r1 confirms its own, matching the held version again maps r2's objects onto
-    them at once (a fresh object is a placeholder, not a match to hold on to), leaving the
-    fresh ones orphaned for a rebuild; matching again without news changes nothing."""
+    objects. Once r1 confirms its own, matching the held version again proposes r2's objects
+    onto them, and the second proposal moves them (``hold`` = 2, as for a new version), leaving
+    the fresh ones orphaned for a rebuild; matching again without news changes nothing."""
     local2 = _beliefs()[0]
     slot = Slot("r2", STEPS, summarise(local2))
     model = belief_model(SCENARIO)
@@ -268,6 +268,7 @@ def test_a_held_slot_is_matched_again_onto_objects_confirmed_after_it() -> None:
         d.step([a.frame], rng_d, a.replay)
     own = sorted(j for j in d.object_ids if not fa.is_fresh(j))
     assert len(own) == 4 and not fa.rematch(d, []) and fa.orphans(d.object_ids) == []
+    assert not fa.rematch(d, [slot]) and len(fa.maps["r2"].pending) == 4  # proposed once
     assert fa.rematch(d, [slot])
     assert sorted(fa.mapping("r2").values()) == own
     assert len(fa.orphans(d.object_ids)) == 4 and fa.changes == 4
