@@ -711,6 +711,7 @@ def _counter_values(core: AgentCore) -> dict[str, int]:
         "slots_reused": c.slots_reused,
         "slots_unassociated": c.unassociated_slots,
         "rematches": c.rematches,
+        "peer_sightings": c.peer_sightings,
         "empty_joins": c.empty_joins,
         "rebuilds": c.rebuilds,
         "completed_joins": c.completed_joins,

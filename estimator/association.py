@@ -39,7 +39,7 @@ others' covariance layout and track numbering.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from dataclasses import dataclass, field
 
 import gtsam
@@ -219,6 +219,28 @@ class Associator:
             tuple((robot, step, d) for step, d in seen),
         )
 
+    def pair(
+        self, belief: HybridBelief, frame: SensorFrame, among: Collection[int]
+    ) -> dict[int, int]:
+        """Pair ``frame``'s detections with ``belief``'s objects ``among`` (stage 1 alone: the
+        gates and the joint search, scored against a new object; the tentative objects are
+        neither read nor changed): detection index (in ``frame``'s order) → object id. A node
+        pairs the detections its L left unconfirmed with the objects only peers inform D of."""
+        robot, dim = frame.robot, self.kind.dim
+        among = set(among)
+        if not frame.detections or not among.intersection(belief.object_ids):
+            return {}
+        cont = belief.map_hypothesis().continuous
+        x_prev = cont.pose(belief.pose_key(robot))
+        x_k = se2.compose(x_prev, frame.odometry)
+        order = _canonical(frame.detections)
+        dets = [frame.detections[i] for i in order]
+        z = np.array([d.z_geo for d in dets]).reshape(len(dets), dim)
+        track: list[int | None] = [None] * len(dets)
+        nis = [math.nan] * len(dets)
+        self._map_stage(belief, cont, robot, x_prev, x_k, dets, z, track, nis, among)
+        return {order[i]: t for i, t in enumerate(track) if t is not None}
+
     # -- stage 1: the map's objects ---------------------------------------------------------
 
     def _map_stage(
@@ -232,15 +254,18 @@ class Associator:
         z: Array,
         track: list[int | None],
         nis: list[float],
+        among: Collection[int] | None = None,
     ) -> bool:
-        """Pair detections with map objects (into ``track`` and ``nis``); whether the joint
-        search was cut short at its budget."""
+        """Pair detections with map objects (into ``track`` and ``nis``; only those ``among``
+        when given); whether the joint search was cut short at its budget."""
         kind, dim = self.kind, self.kind.dim
         ids = np.array(belief.object_ids)
         objects = np.array([cont.pose(object_key(int(j))) for j in ids]).reshape(-1, dim)
         rel = _body_xy(x_k, objects)
         reach = self.field.range + self.config.margin
         near = np.flatnonzero(np.hypot(rel[:, 0], rel[:, 1]) <= reach)
+        if among is not None:
+            near = near[np.isin(ids[near], np.fromiter(among, dtype=ids.dtype))]
         if not len(near):
             return False
         ids, objects = ids[near], objects[near]

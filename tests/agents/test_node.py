@@ -23,6 +23,7 @@ from estimator.factors import object_key
 from estimator.hybrid import BeliefConfig, HybridBelief
 from estimator.models import SensorFrame
 from estimator.slots import object_log_phi
+from estimator.smoother import pose_step
 from estimator.summary import LocalSummary, ObjectClasses
 from estimator.xi import Xi
 from protocol.codec import Limits, StackMessage, decode, encode
@@ -981,3 +982,50 @@ def test_a_node_matches_a_held_slot_again_when_its_l_confirms_objects() -> None:
     assert len(r1.local.object_ids) == 4
     assert sorted(r1.distributed.object_ids) == sorted(r1.local.object_ids)
     assert all(fleet.sources(j) == {"", "r2"} for j in r1.distributed.object_ids)
+
+
+def _sightings(belief: HybridBelief) -> int:
+    """The detection factors a belief holds (a robot pose and an object)."""
+    graph = belief.map_hypothesis().continuous.isam.getFactorsUnsafe()
+    n = 0
+    for i in range(graph.size()):
+        factor = graph.at(i)
+        keys = [] if factor is None else list(factor.keys())
+        n += len(keys) == 2 and sum(pose_step(k) is not None for k in keys) == 1
+    return n
+
+
+def test_d_takes_a_peers_object_at_its_first_sightings_and_never_counts_one_twice() -> None:
+    """r2's stack reaches r1 at step 2, before r1 confirms anything: r1's next unconfirmed
+    detections of those objects go to D at once (its L waits for its 3rd hit). At every step
+    D holds each of r1's detections once: L's, plus those D took for objects L has not
+    confirmed; at the confirmation the replay into D leaves out what D took."""
+    steps = 14
+    pair = parse_scenario(
+        fleet_text(
+            "pair",
+            steps,
+            [0.0, 1.0],
+            [(3.0, 0.5, 0.5, 1), (4.0, -0.4, -1.0, 2), (5.0, 1.2, 2.0, 2), (6.0, 0.3, 1.0, 1)],
+        ),
+        "pair.toml",
+    )
+    model = belief_model(pair)
+    nodes = {
+        r: make_node(r, pair.robot(r).start, model, 4, BeliefConfig(), sensor=sensor_field(pair, r))
+        for r in ("r1", "r2")
+    }
+    sim = Simulator(pair, 4, detector=Detector("none"))
+    for frame in sim.frames("r2"):
+        nodes["r2"].on_frame(frame)
+    r1 = nodes["r1"]
+    message = nodes["r2"].outgoing()
+    assert message is not None
+    for k, frame in enumerate(sim.frames("r1"), start=1):
+        if k == 2:
+            assert r1.receive(message).taken
+        r1.on_frame(frame)
+        unconfirmed = {t for _, t in r1._d_took} - set(r1.local.object_ids)
+        pending = sum(t in unconfirmed for _, t in r1._d_took)
+        assert _sightings(r1.distributed) == _sightings(r1.local) + pending, k
+    assert r1.counters.peer_sightings >= 4

@@ -348,3 +348,21 @@ def test_a_replay_is_checked_and_one_on_a_marginalised_pose_is_counted_and_left_
         windowed.step([f], rng)
     windowed.step([frames[6]], rng, [("r1", 1, det), ("r1", 6, det)])
     assert windowed.replays_dropped == 1
+
+
+def test_pair_takes_only_the_objects_it_is_given_and_leaves_the_tentatives() -> None:
+    """``Associator.pair``: stage 1 against a subset of the belief's objects; the tentative
+    objects and the track numbering are not touched."""
+    s = _sparse("pose", 80)
+    belief, _ = _run(dataclasses.replace(s, steps=79), Detector(NO_IDS), _associator(s))
+    assoc = _associator(s)
+    frame = Simulator(s, 0, detector=Detector(NO_IDS)).frame("r1", 80)
+    assert len(belief.object_ids) >= 4 and frame.detections
+    every = assoc.pair(belief, frame, belief.object_ids)
+    assert every and all(j in belief.object_ids for j in every.values())
+    seen = next(iter(every.values()))
+    assert set(assoc.pair(belief, frame, {seen}).values()) == {seen}
+    others = [j for j in belief.object_ids if j != seen]
+    assert seen not in assoc.pair(belief, frame, others).values()
+    assert assoc.pair(belief, frame, ()) == {}
+    assert assoc.tentative == [] and assoc.next_track == 0
