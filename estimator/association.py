@@ -177,13 +177,8 @@ class Associator:
     def associate(self, belief: HybridBelief, frame: SensorFrame) -> Association:
         """Associate ``frame`` (any id kind; its ids are not read) with ``belief``, a robot's own
         belief at step k − 1, and update the tentative objects."""
-        robot, dim = frame.robot, self.kind.dim
-        cont = belief.map_hypothesis().continuous
-        x_prev = cont.pose(belief.pose_key(robot))
-        x_k = se2.compose(x_prev, frame.odometry)
-        order = _canonical(frame.detections)
-        dets = [frame.detections[i] for i in order]
-        z = np.array([d.z_geo for d in dets]).reshape(len(dets), dim)
+        robot = frame.robot
+        cont, x_prev, x_k, order, dets, z = self._prepared(belief, frame)
         track: list[int | None] = [None] * len(dets)
         nis = [math.nan] * len(dets)
         cut = False
@@ -226,20 +221,27 @@ class Associator:
         gates and the joint search, scored against a new object; the tentative objects are
         neither read nor changed): detection index (in ``frame``'s order) → object id. A node
         pairs the detections its L left unconfirmed with the objects only peers inform D of."""
-        robot, dim = frame.robot, self.kind.dim
         among = set(among)
         if not frame.detections or not among.intersection(belief.object_ids):
             return {}
+        cont, x_prev, x_k, order, dets, z = self._prepared(belief, frame)
+        track: list[int | None] = [None] * len(dets)
+        nis = [math.nan] * len(dets)
+        self._map_stage(belief, cont, frame.robot, x_prev, x_k, dets, z, track, nis, among)
+        return {order[i]: t for i, t in enumerate(track) if t is not None}
+
+    def _prepared(
+        self, belief: HybridBelief, frame: SensorFrame
+    ) -> tuple[Continuous, Array, Array, list[int], list[Detection], Array]:
+        """What both stages read: ``belief``'s continuous part, the robot's pose x_{k−1} and its
+        prediction x_k, the detections' canonical order, the detections in it and their z."""
         cont = belief.map_hypothesis().continuous
-        x_prev = cont.pose(belief.pose_key(robot))
+        x_prev = cont.pose(belief.pose_key(frame.robot))
         x_k = se2.compose(x_prev, frame.odometry)
         order = _canonical(frame.detections)
         dets = [frame.detections[i] for i in order]
-        z = np.array([d.z_geo for d in dets]).reshape(len(dets), dim)
-        track: list[int | None] = [None] * len(dets)
-        nis = [math.nan] * len(dets)
-        self._map_stage(belief, cont, robot, x_prev, x_k, dets, z, track, nis, among)
-        return {order[i]: t for i, t in enumerate(track) if t is not None}
+        z = np.array([d.z_geo for d in dets]).reshape(len(dets), self.kind.dim)
+        return cont, x_prev, x_k, order, dets, z
 
     # -- stage 1: the map's objects ---------------------------------------------------------
 

@@ -946,34 +946,39 @@ def test_a_nodes_d_takes_the_earlier_detections_its_l_confirms() -> None:
     )
 
 
-def test_a_node_matches_a_held_slot_again_when_its_l_confirms_objects() -> None:
-    """Frames without ids: r2's stack reaches r1 before r1 has confirmed any object, and no
-    newer one follows. When r1 confirms its own objects, the node matches r2's held slot again
-    and rebuilds D: r2's objects land on r1's own, and no fresh duplicate stays (without it,
-    D would hold every object twice until r2's next version)."""
-    steps = 14
+def _pair_without_ids() -> tuple[RobotNode, RobotNode, Simulator]:
+    """Two robots 1 m apart seeing the same four objects, frames without ids: r1's node before
+    its first frame, r2's after all of its, and the simulator of r1's frames."""
     pair = parse_scenario(
         fleet_text(
             "pair",
-            steps,
+            14,
             [0.0, 1.0],
             [(3.0, 0.5, 0.5, 1), (4.0, -0.4, -1.0, 2), (5.0, 1.2, 2.0, 2), (6.0, 0.3, 1.0, 1)],
         ),
         "pair.toml",
     )
     model = belief_model(pair)
-    nodes = {
-        r: make_node(r, pair.robot(r).start, model, 4, BeliefConfig(), sensor=sensor_field(pair, r))
+    r1, r2 = (
+        make_node(r, pair.robot(r).start, model, 4, BeliefConfig(), sensor=sensor_field(pair, r))
         for r in ("r1", "r2")
-    }
+    )
     sim = Simulator(pair, 4, detector=Detector("none"))
     for frame in sim.frames("r2"):
-        nodes["r2"].on_frame(frame)
-    r1 = nodes["r1"]
+        r2.on_frame(frame)
+    return r1, r2, sim
+
+
+def test_a_node_matches_a_held_slot_again_when_its_l_confirms_objects() -> None:
+    """Frames without ids: r2's stack reaches r1 before r1 has confirmed any object, and no
+    newer one follows. When r1 confirms its own objects, the node matches r2's held slot again
+    and rebuilds D: r2's objects land on r1's own, and no fresh duplicate stays (without it,
+    D would hold every object twice until r2's next version)."""
+    r1, r2, sim = _pair_without_ids()
     for k, frame in enumerate(sim.frames("r1"), start=1):
         if k == 2:
             assert not r1.local.object_ids
-            message = nodes["r2"].outgoing()
+            message = r2.outgoing()
             assert message is not None
             assert r1.receive(message).taken
         r1.on_frame(frame)
@@ -1000,26 +1005,8 @@ def test_d_takes_a_peers_object_at_its_first_sightings_and_never_counts_one_twic
     detections of those objects go to D at once (its L waits for its 3rd hit). At every step
     D holds each of r1's detections once: L's, plus those D took for objects L has not
     confirmed; at the confirmation the replay into D leaves out what D took."""
-    steps = 14
-    pair = parse_scenario(
-        fleet_text(
-            "pair",
-            steps,
-            [0.0, 1.0],
-            [(3.0, 0.5, 0.5, 1), (4.0, -0.4, -1.0, 2), (5.0, 1.2, 2.0, 2), (6.0, 0.3, 1.0, 1)],
-        ),
-        "pair.toml",
-    )
-    model = belief_model(pair)
-    nodes = {
-        r: make_node(r, pair.robot(r).start, model, 4, BeliefConfig(), sensor=sensor_field(pair, r))
-        for r in ("r1", "r2")
-    }
-    sim = Simulator(pair, 4, detector=Detector("none"))
-    for frame in sim.frames("r2"):
-        nodes["r2"].on_frame(frame)
-    r1 = nodes["r1"]
-    message = nodes["r2"].outgoing()
+    r1, r2, sim = _pair_without_ids()
+    message = r2.outgoing()
     assert message is not None
     for k, frame in enumerate(sim.frames("r1"), start=1):
         if k == 2:
