@@ -21,6 +21,7 @@ import numpy as np
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
 from numpy.typing import ArrayLike
 
+from agents.without_ids import WithoutIds
 from estimator.association import Association, Associator, SensorField
 from estimator.distributed import DistributedBelief, FusionStats, SlotError
 from estimator.fleet_association import FleetAssociation
@@ -172,10 +173,7 @@ class NodeCounters:
     parsed the very same bytes before and not merged them yet (a lock-step agent buffers the
     stacks of later rounds; docs/wire.md, "Decoding only what is new"); ``unassociated_slots``
     peers' slots not held because this robot's objects have robot-local ids (its frames came
-    without global ids); ``rematches`` the times a step's newly confirmed objects changed the
-    mapping of a held peer's slot (``FleetAssociation.rematch``; D is then rebuilt);
-    ``peer_sightings`` detections D took for objects only peers had mapped, before L confirmed
-    them (:meth:`RobotNode._for_d`)."""
+    without global ids; what such a node adds is counted in ``RobotNode.without_ids``)."""
 
     stacks_received: int = 0
     stacks_merged: int = 0
@@ -193,8 +191,6 @@ class NodeCounters:
     slots_skipped: int = 0
     slots_reused: int = 0
     unassociated_slots: int = 0
-    rematches: int = 0
-    peer_sightings: int = 0
     bytes_received: int = 0
     stacks_sent: int = 0
     bytes_sent: int = 0
@@ -480,9 +476,7 @@ class RobotNode:
         self._own_slot_stale = False
         self._fit_logged_k = -FIT_LOG_STEPS  # the step of the last "taken at L's point" line
         self._rebuild_due = False
-        self._rematch_again = False  # a rematch left proposals pending (``_rematch``)
-        # (step, L's tentative track) of the detections D took for a peer's object (``_for_d``)
-        self._d_took: set[tuple[int, int]] = set()
+        self.without_ids = WithoutIds()  # frames without global ids: around D's step
         self._last_refusal: Exception | None = None  # why the last stack was refused whole
         # Frames without global ids: robot-local object ids, which no peer shares: D matches
         # peers' objects onto its own (``_local_ids``; issue 45, item 3).
@@ -726,10 +720,11 @@ class RobotNode:
         t1 = tick()
         stepped = self.track.advance(frame, clock)
         t2 = tick()
-        d_frames, d_replay = self._for_d(frame, stepped)
+        d_frames, d_replay = self.without_ids.for_d(self.track, self.distributed, frame, stepped)
         self.distributed.step(d_frames, self._rng_distributed, d_replay)
-        if fuse and (self._confirmed(stepped) or self._rematch_again):
-            self._rematch()
+        if fuse and self.without_ids.rematch_due(self.track, stepped):
+            held = self._checked(self.stack.newer_than({}, own=self.robot))
+            self._rebuild_due |= self.without_ids.rematch(self.distributed, held)
         if self._rebuild_due and fuse:
             rebuilt = self.rebuild()
             fusion = replace(
@@ -774,60 +769,12 @@ class RobotNode:
         self.counters.completed_joins += stats.completed
         return stats
 
-    def _for_d(
-        self, frame: SensorFrame, stepped: SensorFrame
-    ) -> tuple[list[SensorFrame], tuple[tuple[str, int, Detection], ...]]:
-        """D's frames and replay for the frame L ``stepped`` on. Frames without ids: the
-        detections L left unconfirmed are paired with the objects only peers inform D of
-        (``Associator.pair``), and D takes those pairings at once, as with given ids a single
-        sighting of a peer's object would tie the robot to the peer's map; L, the robot's own
-        data, does not. When L confirms such an object, its replay leaves out what D took."""
-        replay = self.track.replay_of(stepped)
-        a, fleet = self.track.association, self.distributed.association
-        if a is None or a.frame is not stepped or fleet is None or self.track.associator is None:
-            return [stepped], replay
-        if self._d_took:
-            replay = tuple(r for r in replay if (r[1], r[2].object_id) not in self._d_took)
-        left = [i for i, entered in enumerate(a.entered) if not entered]
-        fresh = [j for j in self.distributed.object_ids if fleet.is_fresh(j)]
-        if not left or not fresh:
-            return [stepped], replay
-        sub = replace(frame, detections=tuple(frame.detections[i] for i in left))
-        pairs = self.track.associator.pair(self.distributed, sub, fresh)
-        extra = []
-        for i, j in sorted(pairs.items()):
-            d = sub.detections[i]
-            extra.append(Detection(j, d.z_geo, d.z_sem))
-            self._d_took.add((frame.k, a.tracks[left[i]]))
-        self.counters.peer_sightings += len(extra)
-        return [replace(stepped, detections=stepped.detections + tuple(extra))], replay
-
-    def _confirmed(self, stepped: SensorFrame) -> bool:
-        """Whether L confirmed objects at the frame it ``stepped`` (frames without ids)."""
-        a = self.track.association
-        return a is not None and a.frame is stepped and bool(a.confirmed)
-
-    def _rematch(self) -> None:
-        """D's own map has new objects: the held peers' slots are matched again, and D rebuilt
-        at this step if a mapping changed (``FleetAssociation.rematch``). A move waits for a
-        second proposal (the mappings' hysteresis): proposals this left pending are matched
-        once more at the next step, so they do not wait for the owner's next version."""
-        again, self._rematch_again = self._rematch_again, False
-        fleet = self.distributed.association
-        if fleet is None or not fleet.maps:
-            return
-        held = self._checked(self.stack.newer_than({}, own=self.robot))
-        if fleet.rematch(self.distributed, held):
-            self.counters.rematches += 1
-            self._rebuild_due = True
-        self._rematch_again = not again and any(m.pending for m in fleet.maps.values())
-
     def rebuild(self) -> FusionStats:
         """Make D anew from L and the newest held version of every other robot's slot (L and D
         must be at the same step)."""
         held = self._checked(self.stack.newer_than({}, own=self.robot))
         stats = self.distributed.rebuild(self.local, held)
-        self._d_took.clear()  # D is L and the slots again: it holds none of those detections
+        self.without_ids.rebuilt()
         self._changed()
         self._rebuild_due = False
         self.counters.empty_joins += stats.empty_joins

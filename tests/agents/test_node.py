@@ -983,7 +983,7 @@ def test_a_node_matches_a_held_slot_again_when_its_l_confirms_objects() -> None:
             assert r1.receive(message).taken
         r1.on_frame(frame)
     fleet = r1.distributed.association
-    assert fleet is not None and r1.counters.rematches >= 1
+    assert fleet is not None and r1.without_ids.rematches >= 1
     assert len(r1.local.object_ids) == 4
     assert sorted(r1.distributed.object_ids) == sorted(r1.local.object_ids)
     assert all(fleet.sources(j) == {"", "r2"} for j in r1.distributed.object_ids)
@@ -1012,7 +1012,7 @@ def test_d_takes_a_peers_object_at_its_first_sightings_and_never_counts_one_twic
         if k == 2:
             assert r1.receive(message).taken
         r1.on_frame(frame)
-        unconfirmed = {t for _, t in r1._d_took} - set(r1.local.object_ids)
-        pending = sum(t in unconfirmed for _, t in r1._d_took)
+        unconfirmed = {t for _, t in r1.without_ids.took} - set(r1.local.object_ids)
+        pending = sum(t in unconfirmed for _, t in r1.without_ids.took)
         assert _sightings(r1.distributed) == _sightings(r1.local) + pending, k
-    assert r1.counters.peer_sightings >= 4
+    assert r1.without_ids.peer_sightings >= 4
