@@ -61,6 +61,7 @@ PURE_AGENT_FILES = (
     "agents/rounds.py",
     "agents/sim_radio.py",
     "agents/recovery.py",
+    "agents/without_ids.py",
 )
 
 
