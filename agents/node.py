@@ -24,7 +24,7 @@ from numpy.typing import ArrayLike
 from agents.without_ids import WithoutIds
 from estimator.association import Association, Associator, SensorField
 from estimator.distributed import DistributedBelief, FusionStats, SlotError
-from estimator.fleet_association import FleetAssociation
+from estimator.fleet_association import FleetAssociation, FleetAssociationConfig
 from estimator.gate import (
     GateSettings,
     Held,
@@ -98,7 +98,8 @@ def _local_ids(node: RobotNode) -> bool:
     neither fuses peers' slots nor sends its own."""
     d = node.distributed
     if d.per_object:
-        d.association = FleetAssociation(np.log(np.asarray(d.model.class_prior, dtype=float)))
+        log_prior = np.log(np.asarray(d.model.class_prior, dtype=float))
+        d.association = FleetAssociation(log_prior, node.fleet_config)
         return True
     log.warning(
         "%s: frames without global ids and joint class tables: its objects have robot-local "
@@ -477,6 +478,8 @@ class RobotNode:
         self._fit_logged_k = -FIT_LOG_STEPS  # the step of the last "taken at L's point" line
         self._rebuild_due = False
         self.without_ids = WithoutIds()  # frames without global ids: around D's step
+        # how D matches peers' objects when its frames have no global ids (``_local_ids``)
+        self.fleet_config = FleetAssociationConfig()
         self._last_refusal: Exception | None = None  # why the last stack was refused whole
         # Frames without global ids: robot-local object ids, which no peer shares: D matches
         # peers' objects onto its own (``_local_ids``; issue 45, item 3).

@@ -39,18 +39,24 @@ def generate_scenario(
     area: float | None = None,
     comm_range: float = 10.0,
     kind: str = "pose",
+    twins: float | None = None,
 ) -> Scenario:
     """A random world: ``objects`` objects with uniform classes in a square of side ``area`` metres
     (default grows with √objects), ``robots`` robots wandering inside it with smooth turns, an
     aliased classifier with random aliases and best views, the paper's noise, range communication.
     ``kind`` "point": the objects are point landmarks measured by bearing and range
     (:data:`POINT_GEOMETRIC`), heading 0 (their viewpoint is read in the world frame); the
-    same world otherwise (the same random draws).
+    same world otherwise (the same random draws). ``twins`` (metres): every object gets a twin
+    that far away in a random direction, its heading within 0.1 rad, of another class (ids
+    ``objects`` + 1 on; drawn after everything else, so the rest of the world is the same):
+    objects closer than the noise, which only their classes tell apart (issue 45).
     """
     if kind not in ("pose", "point"):
         raise ValueError(f"object kind {kind!r} (known: pose, point)")
     if robots < 1 or objects < 1 or classes < 2 or steps < 1:
         raise ValueError("need robots ≥ 1, objects ≥ 1, classes ≥ 2 and steps ≥ 1")
+    if twins is not None and not (math.isfinite(twins) and twins > 0.0):
+        raise ValueError(f"twins must be a distance > 0 m, got {twins}")
     rng = np.random.default_rng(np.random.SeedSequence([seed, 0x5E4F1EE7]))
     side = float(area) if area is not None else max(12.0, 4.0 * math.sqrt(objects))
     half = side / 2.0
@@ -67,9 +73,14 @@ def generate_scenario(
     robot_specs = tuple(
         _wandering_robot(f"r{i + 1}", rng, half, steps, sensor) for i in range(robots)
     )
+    classifier = random_aliased(rng, classes)
+    description = f"random world, seed {seed}, {side:.1f} m square"
+    if twins is not None:
+        object_specs += _twins(rng, object_specs, classes, twins, kind)
+        description += f", every object with a twin {twins:g} m away of another class"
     return Scenario(
         name=f"random-r{robots}-o{objects}-c{classes}-s{seed}",
-        description=f"random world, seed {seed}, {side:.1f} m square",
+        description=description,
         source="<generated>",
         steps=steps,
         num_classes=classes,
@@ -78,10 +89,25 @@ def generate_scenario(
         objects=object_specs,
         odometry_noise=PAPER_ODOMETRY,
         geometric_noise=PAPER_GEOMETRIC if kind == "pose" else POINT_GEOMETRIC,
-        classifier=random_aliased(rng, classes),
+        classifier=classifier,
         sensor=sensor,
         communication=Communication("range", comm_range, ()),
     )
+
+
+def _twins(
+    rng: np.random.Generator, objects: tuple[Object, ...], classes: int, dist: float, kind: str
+) -> tuple[Object, ...]:
+    """A twin of every object ``dist`` metres away, heading within 0.1 rad, another class."""
+    top = max(o.id for o in objects)
+    out = []
+    for n, o in enumerate(objects):
+        a = float(rng.uniform(-np.pi, np.pi))
+        yaw = 0.0 if kind == "point" else float(se2.wrap_angle(o.pose[2] + rng.uniform(-0.1, 0.1)))
+        cls = (o.class_index + 1 + int(rng.integers(0, classes - 1))) % classes
+        x, y = o.pose[0] + dist * math.cos(a), o.pose[1] + dist * math.sin(a)
+        out.append(Object(top + 1 + n, (float(x), float(y), yaw), cls))
+    return tuple(out)
 
 
 def random_aliased(

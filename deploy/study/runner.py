@@ -29,7 +29,8 @@ from deploy.base.build import belief_model, belief_rng, link_model_for, make_nod
 from deploy.study.association import COUNTS, AssociationTally, d_truth, fleet_counts
 from deploy.study.fleet import FleetStats, StepCallback, run_fleets
 from deploy.study.types import TRACKS, RunResult, StudyError
-from estimator.association import Associator
+from estimator.association import AssociationConfig, Associator
+from estimator.fleet_association import FleetAssociationConfig
 from estimator.hybrid import BeliefConfig, BeliefModel, BeliefSnapshot, HybridBelief
 from estimator.metrics import (
     CROSS_METRICS,
@@ -80,11 +81,12 @@ def run_study(
     scored: Collection[int] | None = None,
     gossip: str = "delta",
     detector: Detector | None = None,
+    class_evidence: bool = True,
 ) -> list[RunResult]:
     """Run every seed in its own spawned process, at most ``jobs`` at once, or as tasks of the
     Dask cluster whose scheduler is at ``cluster``; results in seed order. Only the first seed
-    keeps belief snapshots (at ``snapshot_step``). ``scored``, ``gossip``, ``detector``: see
-    :func:`run_single`."""
+    keeps belief snapshots (at ``snapshot_step``). ``scored``, ``gossip``, ``detector``,
+    ``class_evidence``: see :func:`run_single`."""
     calls = {
         seed: (
             run_single,
@@ -97,6 +99,7 @@ def run_study(
             scored,
             gossip,
             detector,
+            class_evidence,
         )
         for i, seed in enumerate(seeds)
     }
@@ -151,6 +154,7 @@ def run_single(
     scored: Collection[int] | None = None,
     gossip: str = "delta",
     detector: Detector | None = None,
+    class_evidence: bool = True,
 ) -> RunResult:
     """Run every method on one seeded realisation of ``scenario``; ``comm`` overrides the
     scenario's communication mode for the distributed methods, ``gossip`` says what the fleets'
@@ -158,7 +162,9 @@ def run_single(
     ``detector``: what the simulated detector delivers (``sim.sensors.Detector``; default the
     given-id frames of before); frames without global ids are associated on each robot, which
     only ``local`` can do (mapping robots' objects onto each other is issue 45, item 3), and
-    scored against the simulator's truth (``association`` of the result).
+    scored against the simulator's truth (``association`` of the result); ``class_evidence``
+    False: the robots' and the fleet's association on geometry alone (the baseline of issue 45's
+    twins).
     ``scored``: the steps at which the beliefs are scored (default every step; the metrics of the
     others stay NaN). Scoring queries every hypothesis' marginal covariances, about a fifth of a
     run's time: a caller that reads only some steps' metrics saves it; the beliefs themselves do
@@ -201,7 +207,17 @@ def run_single(
         )
     if "local" in methods or fleet_methods:
         _run_shared_local(
-            scenario, model, config, seed, comm, frames, recorders, fleet_methods, gossip, labels
+            scenario,
+            model,
+            config,
+            seed,
+            comm,
+            frames,
+            recorders,
+            fleet_methods,
+            gossip,
+            labels,
+            class_evidence,
         )
     if "centralized" in methods:
         rec = recorders["centralized"]
@@ -265,6 +281,7 @@ def _run_shared_local(
     fleet_methods: Sequence[str],
     gossip: str = "delta",
     labels: Mapping[str, Sequence[Sequence[int]]] | None = None,
+    class_evidence: bool = True,
 ) -> None:
     """``local`` and the fleets (``distributed``, ``double_count``) in one lock-step loop over one
     local belief per robot: L depends on the robot's own data only, so every method sees the very
@@ -277,7 +294,9 @@ def _run_shared_local(
         r: LocalTrack(
             HybridBelief(model, {r: scenario.robot(r).start}, config),
             belief_rng(seed, [r]),
-            Associator(model, sensor_field(scenario, r)),
+            Associator(
+                model, sensor_field(scenario, r), AssociationConfig(class_evidence=class_evidence)
+            ),
         )
         for r in robots
     }
@@ -292,6 +311,9 @@ def _run_shared_local(
         )
         for m in fleet_methods
     ]
+    for nodes in fleets:
+        for node in nodes.values():
+            node.fleet_config = FleetAssociationConfig(class_evidence=class_evidence)
     local = recorders.get("local")
     received_by = recorders["distributed"] if "received" in recorders else None
     # per robot, its association's decisions against the truth (frames without global ids)

@@ -68,11 +68,12 @@ def study_key(
     comm: str | None,
     gossip: str = "delta",
     detector: Detector | None = None,
+    class_evidence: bool = True,
 ) -> str:
     """The fingerprint of what decides a study's numbers besides its seeds (hex SHA-256). The
     scenario's ``source`` (the path it was read from) is left out: the same world may live in
     different folders on different machines. A ``detector`` of given-id frames (the default)
-    leaves the key as it was before detectors existed."""
+    leaves the key as it was before detectors existed, and so does ``class_evidence`` on."""
     try:
         version = importlib.metadata.version("semfleet")
     except importlib.metadata.PackageNotFoundError:
@@ -81,6 +82,8 @@ def study_key(
     parts: tuple[object, ...] = (world, tuple(methods), config, comm, gossip, version)
     if detector is not None and not detector.exact:
         parts = (*parts, detector)
+    if not class_evidence:
+        parts = (*parts, "association on geometry alone")
     text = repr(parts)
     return hashlib.sha256(text.encode()).hexdigest()
 

@@ -701,3 +701,26 @@ def test_study_with_given_ids_and_clutter_writes_its_report(tmp_path: Path) -> N
     assert (out / "hypotheses.png").stat().st_size > 0 and (out / "results.npz").exists()
     doc = json.loads((out / "results.json").read_text())
     assert np.isfinite(doc["methods"]["local"]["mean"]["object_error"]).all()
+
+
+def test_class_evidence_off_is_the_geometry_alone_baseline_on_twins(tmp_path: Path) -> None:
+    """Objects with a twin 0.3 m away of another class (``--twins``): the robots' association
+    on geometry alone (``--class-evidence off``) merges at least half as many again as with the
+    class scores; the setting is in results.json, and refused with given ids."""
+    from sim.generate import generate_scenario
+
+    world = generate_scenario(2, 15, 3, seed=5, steps=80, area=14.0, twins=0.3)
+    merges = {}
+    for on in (True, False):
+        r = run_single(
+            world, ["local"], 0, BeliefConfig(), detector=Detector("none"), class_evidence=on
+        )
+        merges[on] = r.association["local"]["wrong_merges"]
+    assert merges[False] >= 1.5 * merges[True] > 0, merges
+    argv = ["study", "--scenario", "paper", "--methods", "local", "--runs", "1"]
+    out = tmp_path / "off"
+    assert main([*argv, "--ids", "none", "--class-evidence", "off", "--out", str(out)]) == 0
+    doc = json.loads((out / "results.json").read_text())
+    assert doc["association"] == {"class_evidence": False}
+    assert main([*argv, "--class-evidence", "off", "--out", str(tmp_path / "global")]) == 2
+    assert not (tmp_path / "global").exists()

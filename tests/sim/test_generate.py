@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
@@ -45,3 +47,21 @@ def test_generate_scenario_rejects_bad_sizes() -> None:
         generate_scenario(robots=0, objects=5, classes=2, seed=0)
     with pytest.raises(ValueError):
         generate_scenario(robots=2, objects=5, classes=1, seed=0)
+
+
+@pytest.mark.parametrize("kind", ["pose", "point"])
+def test_twins_are_near_of_another_class_and_leave_the_world_as_it_was(kind: str) -> None:
+    base = generate_scenario(3, 12, 4, seed=8, steps=30, area=15.0, kind=kind)
+    twinned = generate_scenario(3, 12, 4, seed=8, steps=30, area=15.0, kind=kind, twins=0.3)
+    assert twinned.objects[:12] == base.objects and twinned.robots == base.robots
+    assert twinned.classifier == base.classifier
+    for o, t in zip(base.objects, twinned.objects[12:], strict=True):
+        assert t.id == o.id + 12 and t.class_index != o.class_index
+        assert math.dist(o.pose[:2], t.pose[:2]) == pytest.approx(0.3)
+        if kind == "pose":
+            assert 0 < abs(t.pose[2] - o.pose[2]) <= 0.1 or abs(t.pose[2] - o.pose[2]) > 6.1
+        else:
+            assert t.pose[2] == 0.0
+    for bad in (0.0, -1.0, math.nan, math.inf):
+        with pytest.raises(ValueError, match="twins"):
+            generate_scenario(1, 2, 2, seed=1, twins=bad)

@@ -40,7 +40,11 @@ def run_plot(args: argparse.Namespace, console: Console) -> int:
 
 
 def run_generate(args: argparse.Namespace, console: Console) -> int:
-    for option, value in (("--area", args.area), ("--comm-range", args.comm_range)):
+    for option, value in (
+        ("--area", args.area),
+        ("--comm-range", args.comm_range),
+        ("--twins", args.twins),
+    ):
         if value is not None and not 0 < value < math.inf:
             raise UsageError(f"{option} {value}: must be a positive number of metres")
     out = new_file(Path(args.output), "--output", args.force)
@@ -53,6 +57,7 @@ def run_generate(args: argparse.Namespace, console: Console) -> int:
         area=args.area,
         comm_range=args.comm_range,
         kind=args.kind,
+        twins=args.twins,
     )
     text = dump_scenario(scenario)
     try:  # never write a file that cannot be read back
@@ -129,6 +134,14 @@ def add_parser(sub: Any) -> None:
         default="pose",
         help="objects with a pose, detected by relative pose (default), or point landmarks "
         "detected by bearing and range",
+    )
+    gen.add_argument(
+        "--twins",
+        type=float,
+        default=None,
+        metavar="METRES",
+        help="give every object a twin this far away, of another class (objects closer than "
+        "the noise, which only classes tell apart)",
     )
     gen.add_argument("-o", "--output", required=True, help="TOML file to write")
     add_force(gen)

@@ -150,6 +150,9 @@ def run(args: argparse.Namespace, console: Console, own: dict[str, tuple[str, An
             raise UsageError(
                 f"--ids {detector.ids}: fleet association needs --hypotheses per_object"
             )
+    class_evidence = args.class_evidence == "on"
+    if not class_evidence and detector.ids == GLOBAL_IDS:
+        raise UsageError("--class-evidence off: only frames without global ids are associated")
     out = new_folder(Path(args.out), "--out", args.force)  # before any run, not after them
     where = plural(args.jobs, "job") if args.cluster is None else f"Dask cluster {args.cluster}"
     which = f"seeds {seeds[0]}..{seeds[-1]}"
@@ -175,6 +178,7 @@ def run(args: argparse.Namespace, console: Console, own: dict[str, tuple[str, An
             args.cluster,
             gossip=args.gossip,
             detector=detector,
+            class_evidence=class_evidence,
         )
     settings = {
         "weight_estimator": args.weights,
@@ -196,8 +200,12 @@ def run(args: argparse.Namespace, console: Console, own: dict[str, tuple[str, An
             "clutter": detector.clutter,
             "miss": detector.miss,
         }
+    if not class_evidence:
+        settings["association"] = {"class_evidence": False}
     if args.shard is not None:
-        key = study_key(scenario, args.methods, config, args.comm, args.gossip, detector)
+        key = study_key(
+            scenario, args.methods, config, args.comm, args.gossip, detector, class_evidence
+        )
         settings["shard"] = shard_entry(args.shard, seeds, step, robot, key)
     archive = study_archive(scenario.name, results, args.methods, settings)
     write_archive(out, archive)
@@ -278,6 +286,13 @@ def add_parser(sub: Any) -> None:
         "received, needs distributed)",
     )
     add_detector_arguments(p)
+    p.add_argument(
+        "--class-evidence",
+        choices=("on", "off"),
+        default="on",
+        help="frames without ids: whether the robots' and the fleet's association weigh the "
+        "class scores (default) or geometry alone (the baseline)",
+    )
     p.add_argument("--runs", type=positive_int, default=10)
     p.add_argument("--jobs", type=positive_int, default=2, help="parallel processes")
     p.add_argument("--seed", type=seed, default=0, help="runs use seeds S, S+1, …")
