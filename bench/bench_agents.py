@@ -36,7 +36,7 @@ from bench import Result
 from bench.gossip_paths import gossip_rows
 from deploy.launch import Launcher, LaunchOutcome, LaunchPlan
 from deploy.launch.conductor import Collected
-from sim.generate import line_world
+from sim.line_world import line_world
 from sim.loader import parse_scenario
 
 PERIOD_S = 0.5  # the realtime step period (the scenario format has no rate; see docs/agents.md)

@@ -1,6 +1,6 @@
 """Issue 47's latency figure: the age of information (AoI) on an 8-robot chain at a 0.5 s step.
 
-Eight agent processes 8 m apart on a line (``sim.generate.line_world``: range 10 m, so only
+Eight agent processes 8 m apart on a line (``sim.line_world.line_world``: range 10 m, so only
 neighbours hear each other), whose Zenoh links join neighbours only (gossip scouting off),
 realtime at a 0.5 s step: for every robot i, peer j and step k of j, the time from the end of j's
 step k to the moment i's fusion first includes j's version k (``deploy.launch.aoi``, one host's
@@ -35,7 +35,7 @@ from agents.core import GOSSIP_PERIOD_S
 from bench import Result
 from deploy.launch import Launcher, LaunchPlan
 from deploy.launch.aoi import AgeOfInformation, holding_gaps
-from sim.generate import line_world
+from sim.line_world import line_world
 from sim.loader import parse_scenario
 
 ROBOTS = 8

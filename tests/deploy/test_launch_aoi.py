@@ -22,7 +22,7 @@ from deploy.launch.aoi import (
     senders_to_receivers,
     undirected,
 )
-from sim.generate import line_world
+from sim.line_world import line_world
 from tests.tolerance import assert_close
 
 SEMFLEET = Path(sys.executable).with_name("semfleet")
