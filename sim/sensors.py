@@ -13,11 +13,17 @@ true detection lost with probability ``miss``, independently), from streams of t
 the true detections keep their noise. The default detector (global ids, no clutter, no misses)
 draws nothing more: its frames are those of before, to the bit. What each detection truly is (an
 object id or :data:`CLUTTER`) is returned beside the frame (:meth:`Simulator.labelled_frame`),
-for scoring only: it never enters a frame.
+for scoring only: it never enters a frame. ``confirmable`` keeps, of a given-id detector's frames,
+only the detections a robot's association could confirm (``sim.confirmable``): the reference
+that tells the association's mistakes from what confirmation gives up.
+
+Over 300 lines for a reason: every draw of a frame (noise, misses, clutter, order, ids) is keyed
+by the same (seed, stream, robot, step, object) scheme, which one class keeps in one place.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import zlib
 from dataclasses import dataclass
@@ -39,6 +45,7 @@ from estimator.models import (
     viewpoint,
 )
 from estimator.models.objects import object_kind
+from sim.confirmable import CLUTTER, ConfirmRule, confirmable
 from sim.recording import Recording
 from sim.scenario import Scenario
 from sim.world import World
@@ -50,8 +57,6 @@ Array = NDArray[np.float64]
 _ODOMETRY, _GEOMETRIC, _SEMANTIC = 1, 2, 3
 _MISS, _CLUTTER, _ORDER, _TRACKER = 4, 5, 6, 7
 _MAX_SEED = 2**63 - 1
-# The truth label of a false detection (``Simulator.labelled_frame``).
-CLUTTER = -1
 # Ids of false detections in a frame of global or tracker ids: above every object id a scenario
 # uses (below 2³¹) and unique per (step, detection), so that each is an object of its own.
 _CLUTTER_ID_BASE = 2**31
@@ -63,14 +68,22 @@ _TRACKER_PRIME = 4_294_967_291  # the largest prime below 2³²: tracker ids sta
 class Detector:
     """What the simulated detector delivers beyond the true detections' noise: the frames' id
     kind (``estimator.models.ID_KINDS``), clutter (false detections per true detection, the mean
-    of a per-frame Poisson count) and ``miss`` (the probability that a true detection is lost)."""
+    of a per-frame Poisson count) and ``miss`` (the probability that a true detection is lost).
+    ``confirmable``: with global ids, only the detections of objects their robot's association
+    would confirm under this rule (``sim.confirmable``); None: all."""
 
     ids: str = GLOBAL_IDS
     clutter: float = 0.0
     miss: float = 0.0
+    confirmable: ConfirmRule | None = None
 
     def __post_init__(self) -> None:
         check_id_kind(self.ids)
+        if self.confirmable is not None and self.ids != GLOBAL_IDS:
+            raise ValueError(
+                f"confirmable needs global ids, got ids {self.ids!r} (without them the robot's "
+                "association confirms objects itself)"
+            )
         if not (math.isfinite(self.clutter) and 0.0 <= self.clutter <= 1.0):
             raise ValueError(
                 f"clutter must be in [0, 1] false detections per true one, got {self.clutter}"
@@ -81,7 +94,12 @@ class Detector:
     @property
     def exact(self) -> bool:
         """Whether the frames are the given-id frames of before (nothing more is drawn)."""
-        return self.ids == GLOBAL_IDS and self.clutter == 0.0 and self.miss == 0.0
+        return (
+            self.ids == GLOBAL_IDS
+            and self.clutter == 0.0
+            and self.miss == 0.0
+            and self.confirmable is None
+        )
 
 
 def robot_key(robot_id: str) -> int:
@@ -129,6 +147,7 @@ class Simulator:
         self.classifier = classifier if classifier is not None else scenario.classifier.build()
         self.kind = object_kind(scenario.sensor.objects)
         self.detector = detector or Detector()
+        self._kept: dict[str, list[tuple[bool, ...]]] = {}  # robot → confirmable detections
 
     @cached_property
     def _object_index(self) -> dict[int, int]:
@@ -143,6 +162,23 @@ class Simulator:
         truly is: an object id or :data:`CLUTTER` (for scoring an association only)."""
         if not 1 <= k <= self.scenario.steps:
             raise ValueError(f"step {k} out of range 1..{self.scenario.steps}")
+        frame, labels = self._delivered(robot, k)
+        rule = self.detector.confirmable
+        if rule is None:
+            return frame, labels
+        if robot not in self._kept:
+            steps = range(1, self.scenario.steps + 1)
+            every = [self._delivered(robot, s)[1] for s in steps]
+            seen = [set(self.world.visible_objects(robot, s)) for s in steps]
+            self._kept[robot] = confirmable(every, seen, rule)
+        keep = self._kept[robot][k - 1]
+        kept = [(d, lab) for d, lab, ok in zip(frame.detections, labels, keep, strict=True) if ok]
+        detections = tuple(d for d, _ in kept)
+        return dataclasses.replace(frame, detections=detections), tuple(lab for _, lab in kept)
+
+    def _delivered(self, robot: str, k: int) -> tuple[SensorFrame, tuple[int, ...]]:
+        """The frame of ``robot`` at step ``k`` as the detector delivers it, before
+        ``confirmable``; with its labels."""
         traj = self.world.trajectories[robot]
         x_prev, x_k = traj[k - 1], traj[k]
         rec = self.world.recording

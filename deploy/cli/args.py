@@ -10,6 +10,7 @@ from collections.abc import Callable
 from deploy.base.errors import UsageError
 from estimator.models import GLOBAL_IDS, ID_KINDS
 from protocol.codec import Limits
+from sim.confirmable import ConfirmRule
 from sim.loader import MAX_CLASSES
 from sim.sensors import Detector
 
@@ -115,8 +116,8 @@ def fraction(text: str) -> float:
 
 
 def add_detector_arguments(p: argparse.ArgumentParser) -> None:
-    """``--ids``, ``--clutter``, ``--miss``: what the simulated detector delivers
-    (``sim.sensors.Detector``; the defaults give the frames of before, to the bit)."""
+    """``--ids``, ``--clutter``, ``--miss``, ``--confirmable``: what the simulated detector
+    delivers (``sim.sensors.Detector``; the defaults give the frames of before, to the bit)."""
     p.add_argument(
         "--ids",
         choices=ID_KINDS,
@@ -134,10 +135,28 @@ def add_detector_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--miss", type=fraction, default=0.0, metavar="P", help="probability of missing an object"
     )
+    p.add_argument(
+        "--confirmable",
+        action="store_true",
+        help="with global ids: only the detections of objects each robot's association would "
+        "confirm (seen 3 times; the reference that separates association errors from what "
+        "confirmation gives up)",
+    )
 
 
 def detector_from_args(args: argparse.Namespace) -> Detector:
-    return Detector(args.ids, args.clutter, args.miss)
+    if not args.confirmable:
+        return Detector(args.ids, args.clutter, args.miss)
+    if args.ids != GLOBAL_IDS:
+        raise UsageError(
+            f"--confirmable needs --ids {GLOBAL_IDS} (with --ids {args.ids} each robot's "
+            "association confirms objects itself)"
+        )
+    from estimator.association import AssociationConfig  # here: an agent's CLI never needs it
+
+    a = AssociationConfig()
+    rule = ConfirmRule(a.confirm, a.drop_after, a.forget_after)
+    return Detector(args.ids, args.clutter, args.miss, rule)
 
 
 def endpoint_type(option: str) -> Callable[[str], str]:

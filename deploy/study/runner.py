@@ -160,11 +160,11 @@ def run_single(
     scenario's communication mode for the distributed methods, ``gossip`` says what the fleets'
     stacks carry (``deploy.study.fleet``: the agents' delta gossip, or every held slot).
     ``detector``: what the simulated detector delivers (``sim.sensors.Detector``; default the
-    given-id frames of before); frames without global ids are associated on each robot, which
-    only ``local`` can do (mapping robots' objects onto each other is issue 45, item 3), and
-    scored against the simulator's truth (``association`` of the result); ``class_evidence``
-    False: the robots' and the fleet's association on geometry alone (the baseline of issue 45's
-    twins).
+    given-id frames of before); frames without global ids are associated on each robot and
+    across the fleet (``distributed``, ``double_count``; not ``centralized`` or ``received``:
+    :func:`without_ids_needs`), and scored against the simulator's truth (``association`` of
+    the result); ``class_evidence`` False: the robots' and the fleet's association on geometry
+    alone (the baseline of issue 45's twins).
     ``scored``: the steps at which the beliefs are scored (default every step; the metrics of the
     others stay NaN). Scoring queries every hypothesis' marginal covariances, about a fifth of a
     run's time: a caller that reads only some steps' metrics saves it; the beliefs themselves do

@@ -724,3 +724,15 @@ def test_class_evidence_off_is_the_geometry_alone_baseline_on_twins(tmp_path: Pa
     assert doc["association"] == {"class_evidence": False}
     assert main([*argv, "--class-evidence", "off", "--out", str(tmp_path / "global")]) == 2
     assert not (tmp_path / "global").exists()
+
+
+def test_confirmable_is_a_given_id_reference_and_needs_global_ids(tmp_path: Path) -> None:
+    """``--confirmable``: given ids on the detections each robot's association could confirm
+    (``sim.confirmable``); the rule is in results.json, and other id kinds are refused."""
+    argv = ["study", "--scenario", "paper", "--methods", "local", "--runs", "1"]
+    out = tmp_path / "ref"
+    assert main([*argv, "--miss", "0.3", "--confirmable", "--out", str(out)]) == 0
+    doc = json.loads((out / "results.json").read_text())
+    assert doc["detector"]["confirmable"] == {"confirm": 3, "drop_after": 3, "forget_after": 50}
+    assert main([*argv, "--ids", "none", "--confirmable", "--out", str(tmp_path / "no")]) == 2
+    assert not (tmp_path / "no").exists()

@@ -50,6 +50,8 @@ def run(args: argparse.Namespace, console: Console) -> int:
     lines = frame_log_lines(scenario, args.seed, args.robot, args.steps, detector)
     write_text_atomically(out, "".join(line + "\n" for line in lines))
     faults = "" if detector.exact else f", ids {args.ids}, clutter {args.clutter}, miss {args.miss}"
+    if detector.confirmable is not None:
+        faults += ", confirmable detections only"
     console.print(
         f"wrote {out}: {len(lines) - 1} frames of {args.robot} ({scenario.name}, seed {args.seed}"
         f"{faults})"

@@ -12,6 +12,7 @@ archive; splitting it would part each option from its check.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 from pathlib import Path
 from typing import Any
@@ -200,6 +201,8 @@ def run(args: argparse.Namespace, console: Console, own: dict[str, tuple[str, An
             "clutter": detector.clutter,
             "miss": detector.miss,
         }
+        if detector.confirmable is not None:
+            settings["detector"]["confirmable"] = dataclasses.asdict(detector.confirmable)
     if not class_evidence:
         settings["association"] = {"class_evidence": False}
     if args.shard is not None:
