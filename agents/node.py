@@ -823,7 +823,8 @@ class RobotNode:
             if self.local.slot_fit_refused > refused:
                 _log_fit_refused(self)
             if summary is not None and not (self.local_ids and not self.distributed.association):
-                own = Slot(self.robot, self.k, summary, self.epoch)
+                stated = summary.robot_local() if self.local_ids else summary
+                own = Slot(self.robot, self.k, stated, self.epoch)
                 self.stack = self.stack.with_slot(self._encoded_once(own))
             self._own_slot_stale = False
         return self.stack

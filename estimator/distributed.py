@@ -646,6 +646,14 @@ class DistributedBelief(HybridBelief):
             phi = np.asarray(s.summary.per_object.log_phi)
             if phi.shape != (n, m) or not np.isfinite(phi).all():
                 raise SlotError(f"slot of {s.owner}: class log φ is not finite ({n}, {m})")
+            mapped = self.association is not None
+            if s.summary.per_object.local_ids != mapped:
+                raise SlotError(
+                    f"slot of {s.owner}: object ids "
+                    f"{'robot-local' if s.summary.per_object.local_ids else 'global'}, this "
+                    f"belief's {'are matched from robot-local ids' if mapped else 'are global'} "
+                    "(every robot of a fleet must have frames of one id kind)"
+                )
             x = s.summary.per_object.xi
             _check_dim(s.owner, x, d)
             if isinstance(x, SparseXi):

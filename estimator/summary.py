@@ -101,10 +101,13 @@ class ObjectClasses:
     owner's data alone; defined up to a constant per row), and the one ξ of its continuous
     belief: dense (:class:`Xi`, the owner's exact Λ) or, with ``BeliefConfig.xi = "sparse"``,
     its conservative sparse form (``estimator.sparse_xi.SparseXi``: Λ_s ⪯ Λ on a Bayes net's
-    moral graph, float32 values). Kept read-only."""
+    moral graph, float32 values). ``local_ids``: the objects' ids are the owner's robot-local
+    ones (frames without global ids, issue 45): a receiver maps them onto its own objects
+    (``estimator.fleet_association``) and never reads them as global ids. Kept read-only."""
 
     log_phi: Array
     xi: Xi | SparseXi
+    local_ids: bool = False
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -160,6 +163,14 @@ class LocalSummary:
         if isinstance(rs, Realisations):
             return rs.log_phi
         return np.array([r.log_phi for r in rs], dtype=float)
+
+    def robot_local(self) -> LocalSummary:
+        """This per-object summary, stating that its object ids are its owner's robot-local
+        ones (``ObjectClasses.local_ids``)."""
+        if self.per_object is None:
+            raise ValueError("only a per-object summary has robot-local ids")
+        po = self.per_object
+        return LocalSummary(self.object_ids, (), ObjectClasses(po.log_phi, po.xi, True))
 
 
 def _first_use(xis: Sequence[Xi], index: NDArray[np.integer]) -> tuple[list[Xi], list[int]]:

@@ -79,6 +79,8 @@ _REF_KEYS = frozenset({"c", "phi", "xi"})
 # M, the (n, M) class log φ as float32 and the one ξ.
 _OBJECTS_KEYS = frozenset({"kind", "dim", "m", "phi", "lin", "info", "eta"})
 OBJECTS_KIND = "objects"
+# A per-object slot's ``ids`` key: its object ids are the owner's robot-local ones (absent: global)
+LOCAL_IDS_VALUE = "local"
 OBJECT_DIM = 3  # Pose2 objects: x, y, θ (a realisation table's, always)
 # Per-object slots: Pose2 objects (x, y, θ) or Point2 landmarks (x, y)
 # (estimator.models.objects); older peers refuse a dimension they do not know, by name.
@@ -689,9 +691,10 @@ def _encode_objects(summary: LocalSummary, where: str, n: int, lim: Limits) -> d
     with np.errstate(over="ignore"):  # beyond float32 is inf, refused as over the bound below
         phi32 = phi.astype(_F32)
     _raise_local(class_phi_problem(where, phi32.astype(np.float64), lim))  # as it travels
+    ids = {"ids": LOCAL_IDS_VALUE} if po.local_ids else {}  # given ids: the bytes of before
     if not isinstance(xi, Xi):
         head = {"kind": OBJECTS_KIND, "dim": d, "m": int(m), "phi": phi32.tobytes()}
-        return head | _encode_sparse(xi, where, n, lim)
+        return head | _encode_sparse(xi, where, n, lim) | ids
     lin = np.ascontiguousarray(xi.lin, dtype=_F64)
     info = np.ascontiguousarray(xi.info, dtype=_F64)
     eta = np.ascontiguousarray(xi.eta, dtype=_F64)
@@ -716,7 +719,7 @@ def _encode_objects(summary: LocalSummary, where: str, n: int, lim: Limits) -> d
         "lin": lin.tobytes(),
         "info": upper.tobytes(),
         "eta": eta.tobytes(),
-    }
+    } | ids
 
 
 def _sparse_shapes(xi: SparseXi, n: int, d: int) -> bool:
@@ -1243,6 +1246,16 @@ def _decode_objects(body: memoryview, where: str, n: int, lim: Limits) -> Object
             InvalidValue,
         )
         d = dim
+    local_ids = "ids" in raw
+    if local_ids:
+        need(
+            raw["ids"] == LOCAL_IDS_VALUE,
+            f"{field}.ids",
+            f"{raw['ids']!r} is not a known id kind (expected {LOCAL_IDS_VALUE!r}; a slot of "
+            "global ids has no ids)",
+            InvalidValue,
+        )
+        raw = {key: value for key, value in raw.items() if key != "ids"}
     if "xi" in raw:
         form = raw["xi"]
         need(isinstance(form, str), f"{field}.xi", "expected a string")
@@ -1252,7 +1265,7 @@ def _decode_objects(body: memoryview, where: str, n: int, lim: Limits) -> Object
             f"{form!r} is not a known ξ form (expected {SPARSE_XI!r}; a dense ξ has no xi)",
             InvalidValue,
         )
-        return _decode_sparse(raw, where, n, lim, d)
+        return _decode_sparse(raw, where, n, lim, d, local_ids)
     r = as_map(raw, field, _OBJECTS_KEYS)
     m = as_int(r["m"], f"{field}.m", 1, lim.num_classes)
     counts: dict[str, tuple[np.dtype[Any], int]] = {
@@ -1270,7 +1283,7 @@ def _decode_objects(body: memoryview, where: str, n: int, lim: Limits) -> Object
     _raise_remote(object_xi_problem(where, lin, info, eta, lim))
     for a in (phi, lin, info, eta):
         a.flags.writeable = False
-    return ObjectClasses(phi, Xi(lin, info, eta))
+    return ObjectClasses(phi, Xi(lin, info, eta), local_ids)
 
 
 def _blob(r: dict[str, Any], field: str, name: str, dtype: np.dtype[Any], count: int) -> Array:
@@ -1285,7 +1298,12 @@ def _blob(r: dict[str, Any], field: str, name: str, dtype: np.dtype[Any], count:
 
 
 def _decode_sparse(
-    raw: dict[str, Any], where: str, n: int, lim: Limits, d: int = OBJECT_DIM
+    raw: dict[str, Any],
+    where: str,
+    n: int,
+    lim: Limits,
+    d: int = OBJECT_DIM,
+    local_ids: bool = False,
 ) -> ObjectClasses:
     """A per-object ``real`` map whose ξ is sparse (docs/wire.md, "Sparse ξ"), after its kind,
     dimension and ``xi``: exactly its keys, M, the byte counts (E from ``edges``), log φ, the
@@ -1312,7 +1330,7 @@ def _decode_sparse(
     _raise_remote(sparse_xi_problem(where, lin, diag, edges, edge_info, eta, lim))
     for a in (phi, lin, diag, edges, edge_info, eta):
         a.flags.writeable = False
-    return ObjectClasses(phi, SparseXi(lin, diag, edges, edge_info, eta))
+    return ObjectClasses(phi, SparseXi(lin, diag, edges, edge_info, eta), local_ids)
 
 
 # (R, n) uint8 classes, (R,) log φ, the realisations that carry their ξ (index → their map), and

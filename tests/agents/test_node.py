@@ -1016,3 +1016,32 @@ def test_d_takes_a_peers_object_at_its_first_sightings_and_never_counts_one_twic
         pending = sum(t in unconfirmed for _, t in r1.without_ids.took)
         assert _sightings(r1.distributed) == _sightings(r1.local) + pending, k
     assert r1.without_ids.peer_sightings >= 4
+
+
+def test_a_fleet_of_two_id_kinds_refuses_each_others_slots_and_counts_them() -> None:
+    """r2's frames have no ids, so its slot states robot-local ids. r1 with given ids refuses
+    it (its D would read r2's track numbers as global ids), counts it, and fuses nothing of
+    it; r1 without ids refuses a slot of global ids the same way, and before its own first
+    frame it refuses r2's slot too (it does not know yet how its D reads ids): the next
+    version, after that frame, is matched and fused."""
+    r1, r2, sim = _pair_without_ids()
+    message = r2.outgoing()
+    assert message is not None
+    slot = decode(message, r2.limits).stack.by_owner()["r2"]
+    assert slot.summary.per_object is not None and slot.summary.per_object.local_ids
+    assert not r1.receive(message).taken and r1.counters.rejected_slots == 1  # no frame yet
+    given = Simulator(sim.scenario, 4)
+    r1.on_frame(given.frame("r1", 1))
+    assert not r1.receive(message).taken and r1.counters.rejected_slots == 2
+    assert "object ids robot-local" in r1.counters.last_error
+    assert r1.distributed.versions.get("r2") is None
+    # the other way round: r2 (without ids) and a slot of global ids
+    from_given = r1.outgoing()
+    assert from_given is not None
+    rejected = r2.counters.rejected_slots
+    assert not r2.receive(from_given).taken and r2.counters.rejected_slots == rejected + 1
+    assert "object ids global" in r2.counters.last_error
+    # an id-less r1 takes r2's slot once its first frame told it its kind
+    fresh, _, _ = _pair_without_ids()
+    fresh.on_frame(sim.frame("r1", 1))
+    assert fresh.receive(message).taken and fresh.counters.rejected_slots == 0

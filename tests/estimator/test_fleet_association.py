@@ -106,7 +106,7 @@ def test_pcm_drops_a_match_whose_relative_geometry_disagrees() -> None:
 def _slot(owner: str, stamp: int, ids: tuple[int, ...]) -> Slot:
     n = len(ids)
     xi = Xi(np.zeros((n, 2)), np.eye(2 * n), np.zeros(2 * n))
-    return Slot(owner, stamp, LocalSummary(ids, (), ObjectClasses(np.zeros((n, 2)), xi)))
+    return Slot(owner, stamp, LocalSummary(ids, (), ObjectClasses(np.zeros((n, 2)), xi, True)))
 
 
 def test_mapping_hysteresis_fresh_ids_and_one_to_one() -> None:
@@ -210,7 +210,7 @@ def test_a_wrong_mapping_corrected_equals_the_right_one_from_scratch(downdate: s
     local2, wrong, right = _beliefs()
     for d in (wrong, right):
         d.downdate = downdate
-    slot = Slot("r2", STEPS, summarise(local2))
+    slot = Slot("r2", STEPS, summarise(local2).robot_local())
     ids2 = slot.summary.object_ids
     own = sorted(wrong.object_ids)
     assert len(ids2) == len(own) == 4
@@ -248,7 +248,7 @@ def test_a_held_slot_is_matched_again_onto_objects_confirmed_after_it() -> None:
     onto them, and the second proposal moves them (``hold`` = 2, as for a new version), leaving
     the fresh ones orphaned for a rebuild; matching again without news changes nothing."""
     local2 = _beliefs()[0]
-    slot = Slot("r2", STEPS, summarise(local2))
+    slot = Slot("r2", STEPS, summarise(local2).robot_local())
     model = belief_model(SCENARIO)
     sim = Simulator(SCENARIO, SEED, detector=Detector("none"))
     start = SCENARIO.robot("r1").start

@@ -130,7 +130,7 @@ def assert_same_objects(got: StackMessage, want: StackMessage) -> None:
         assert g.summary.object_ids == tuple(w.summary.object_ids)
         assert len(g.summary.realisations) == 0
         go, wo = g.summary.per_object, w.summary.per_object
-        assert go is not None
+        assert go is not None and go.local_ids == wo.local_ids
         phi = go.log_phi
         assert phi.dtype == np.float64 and phi.shape == np.shape(wo.log_phi), g.owner
         assert not phi.flags.writeable
@@ -1415,3 +1415,55 @@ def test_fuzz_reference_documents_decode() -> None:
     for blob in BLOBS:
         _check_valid(decode(blob, LIM), LIM)
     assert field_name(PO) == PO_FIELD
+
+
+# --------------------------------------------------------------------------- robot-local ids
+
+
+def _robot_local(msg: StackMessage) -> StackMessage:
+    """``msg`` with every per-object slot stating robot-local object ids (issue 45)."""
+    slots = tuple(
+        s if s.summary.per_object is None else Slot(s.owner, s.stamp, s.summary.robot_local())
+        for s in msg.stack
+    )
+    return dataclasses.replace(msg, stack=Stack(slots))
+
+
+@pytest.mark.parametrize("ref", [REF_PO, REF_SP], ids=["dense", "sparse"])
+def test_robot_local_ids_travel_with_a_per_object_slot(ref: StackMessage) -> None:
+    """A slot of robot-local ids carries ``ids = "local"`` after its ξ, and decodes as such;
+    a slot of global ids has no ``ids`` (its bytes are those of before: the layout tests)."""
+    local = _robot_local(ref)
+    data = encode(local, LIM)
+    got = decode(data, LIM)
+    assert_same_objects(got, local)
+    assert encode(got, LIM) == data
+    doc = msgpack.unpackb(data, raw=False)
+    for slot, raw in zip(local.stack, doc["slots"], strict=True):
+        if slot.summary.per_object is not None:
+            assert list(raw["real"])[-1] == "ids" and raw["real"]["ids"] == "local"
+    assert all("ids" not in s["real"] for s in msgpack.unpackb(encode(ref, LIM))["slots"])
+
+
+@pytest.mark.parametrize("value", ["global", "none", "", 1, None, b"local"])
+def test_an_unknown_id_kind_is_refused_naming_it(value: Any) -> None:
+    WIRE.assert_rejected(WIRE.with_((*PO, "ids"), value), InvalidValue, f"{PO_FIELD}.ids")
+
+
+def test_the_id_kind_is_signed() -> None:
+    """Taking ``ids`` out of a signed slot of robot-local ids (or adding it to one of global
+    ids) makes a receiver read the owner's ids as the other kind: the signature refuses it."""
+    signed = _robot_local(REF_PO)
+    signed = dataclasses.replace(
+        signed, stack=Stack(tuple(sign_slot(s, KEYS[s.owner], LIM) for s in signed.stack))
+    )
+    doc = msgpack.unpackb(encode(signed, LIM), raw=False)
+    assert decode(pack(doc), LIM, PUBLIC).stack.slots[0].summary.per_object.local_ids
+    del doc["slots"][0]["real"]["ids"]
+    with pytest.raises(BadSignature) as caught:
+        decode(pack(doc), LIM, PUBLIC)
+    assert caught.value.field == "slots[0].sig"
+    doc = msgpack.unpackb(SIGNED_PO_BLOB, raw=False)
+    doc["slots"][0]["real"]["ids"] = "local"
+    with pytest.raises(BadSignature):
+        decode(pack(doc), LIM, PUBLIC)
