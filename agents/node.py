@@ -233,13 +233,16 @@ class LocalTrack:
 
     ``associator``: data association for frames without global ids (``estimator.association``):
     such a frame is associated with L's objects first, and L (and the node's D) step on the
-    frame of robot-local ids it gives. Frames of global ids never reach it."""
+    frame of robot-local ids it gives. Frames of global ids never reach it. ``guided``: the
+    association is gated on the guide ``advance`` is given (the node's D), not on L; a track
+    that several nodes share is not guided (each would guide it differently)."""
 
     def __init__(
         self,
         belief: HybridBelief,
         rng: np.random.Generator,
         associator: Associator | None = None,
+        guided: bool = False,
     ) -> None:
         if len(belief.robots) != 1:
             raise ValueError("a local belief holds exactly one robot")
@@ -247,6 +250,7 @@ class LocalTrack:
         self.robot = belief.robots[0]
         self._rng = rng
         self.associator = associator
+        self.guided = guided
         self.association: Association | None = None  # the last associated frame's
         self.association_s = 0.0  # its time, by the clock ``advance`` was given
         self._stepped: SensorFrame | None = None
@@ -257,10 +261,16 @@ class LocalTrack:
     def k(self) -> int:
         return self.belief.step_of[self.robot]
 
-    def advance(self, frame: SensorFrame, clock: Callable[[], float] | None = None) -> SensorFrame:
-        """Step L with ``frame`` (associated first when its ids are not global) and return the
-        frame L stepped on; a frame it already has is not stepped again (another sharer stepped
-        it). ``clock`` times the association (``association_s``)."""
+    def advance(
+        self,
+        frame: SensorFrame,
+        clock: Callable[[], float] | None = None,
+        guide: HybridBelief | None = None,
+    ) -> SensorFrame:
+        """Step L with ``frame`` (associated first when its ids are not global, on ``guide``
+        when the track is ``guided``) and return the frame L stepped on; a frame it already has
+        is not stepped again (another sharer stepped it). ``clock`` times the association
+        (``association_s``)."""
         if frame.k == self.k and self._stepped is not None and self._stepped.k == frame.k:
             return self._stepped
         if frame.k == self.k:
@@ -274,7 +284,10 @@ class LocalTrack:
                 )
             tick = clock if clock is not None else _no_clock
             t0 = tick()
-            self.association = self.associator.associate(self.belief, frame)
+            # a guide at another step (never with a node's D) would predict the wrong pose
+            guided = self.guided and guide is not None and guide.step_of.get(self.robot) == self.k
+            by = guide if guided else None
+            self.association = self.associator.associate(self.belief, frame, by)
             self.association_s = tick() - t0
             frame = self.association.frame
         self.belief.step([frame], self._rng, self.replay_of(frame))
@@ -426,7 +439,9 @@ class RobotNode:
         self.signing = signing
         if local is None:
             associator = None if sensor is None else Associator(model, sensor)
-            local = LocalTrack(HybridBelief(model, {robot: start}, config), rng_local, associator)
+            local = LocalTrack(
+                HybridBelief(model, {robot: start}, config), rng_local, associator, guided=False
+            )
         if local.robot != robot:
             raise ValueError(f"node {robot} got the local track of {local.robot}")
         self.track = local
@@ -721,7 +736,7 @@ class RobotNode:
             else FusionStats((), (), 0, len(self.distributed.hypotheses))
         )
         t1 = tick()
-        stepped = self.track.advance(frame, clock)
+        stepped = self.track.advance(frame, clock, self.distributed)
         t2 = tick()
         d_frames, d_replay = self.without_ids.for_d(self.track, self.distributed, frame, stepped)
         self.distributed.step(d_frames, self._rng_distributed, d_replay)

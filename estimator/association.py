@@ -174,16 +174,36 @@ class Associator:
 
     # -- the frame ------------------------------------------------------------------------
 
-    def associate(self, belief: HybridBelief, frame: SensorFrame) -> Association:
+    def associate(
+        self, belief: HybridBelief, frame: SensorFrame, guide: HybridBelief | None = None
+    ) -> Association:
         """Associate ``frame`` (any id kind; its ids are not read) with ``belief``, a robot's own
-        belief at step k − 1, and update the tentative objects."""
+        belief at step k − 1, and update the tentative objects.
+
+        ``guide``: a belief that holds ``belief``'s objects under the same ids and knows the
+        robot better, at the same step (a node's D, fused with its peers'): the detections are
+        then gated and scored on the guide's estimate of the robot and of those objects, their
+        covariances and class posterior, and new tentative objects are placed from the guide's
+        pose. Which object a detection is stays a decision; what enters ``belief`` is still the
+        robot's own detection, so no peer's information is counted in it. A robot whose own
+        estimate has drifted metres off (its map with it) would otherwise gate its detections
+        on a wrong prediction, split its objects and localise on the copies."""
         robot = frame.robot
-        cont, x_prev, x_k, order, dets, z = self._prepared(belief, frame)
+        source = belief
+        among: set[int] | None = None
+        if guide is not None:
+            if guide.step_of.get(robot) != belief.step_of.get(robot):
+                raise ValueError(
+                    f"the guide of {robot}'s association is at step {guide.step_of.get(robot)}, "
+                    f"its belief at {belief.step_of.get(robot)}"
+                )
+            source, among = guide, set(belief.object_ids)
+        cont, x_prev, x_k, order, dets, z = self._prepared(source, frame)
         track: list[int | None] = [None] * len(dets)
         nis = [math.nan] * len(dets)
         cut = False
         if dets and belief.object_ids:
-            cut = self._map_stage(belief, cont, robot, x_prev, x_k, dets, z, track, nis)
+            cut = self._map_stage(source, cont, robot, x_prev, x_k, dets, z, track, nis, among)
         hit, confirmed, seen = self._tentative_stage(belief, x_k, frame.k, dets, z, track)
         dropped = self._misses(x_k, frame.k, hit)
         entered = [False] * len(dets)

@@ -28,7 +28,7 @@ from agents.node import LocalTrack, RobotNode
 from deploy.base.build import belief_model, belief_rng, link_model_for, make_nodes, sensor_field
 from deploy.study.association import COUNTS, AssociationTally, d_truth, fleet_counts
 from deploy.study.fleet import FleetStats, StepCallback, run_fleets
-from deploy.study.types import TRACKS, RunResult, StudyError
+from deploy.study.types import ASSOCIATE_ON, TRACKS, RunResult, StudyError
 from estimator.association import AssociationConfig, Associator
 from estimator.fleet_association import FleetAssociationConfig
 from estimator.hybrid import BeliefConfig, BeliefModel, BeliefSnapshot, HybridBelief
@@ -82,11 +82,12 @@ def run_study(
     gossip: str = "delta",
     detector: Detector | None = None,
     class_evidence: bool = True,
+    associate_on: str = ASSOCIATE_ON[0],
 ) -> list[RunResult]:
     """Run every seed in its own spawned process, at most ``jobs`` at once, or as tasks of the
     Dask cluster whose scheduler is at ``cluster``; results in seed order. Only the first seed
     keeps belief snapshots (at ``snapshot_step``). ``scored``, ``gossip``, ``detector``,
-    ``class_evidence``: see :func:`run_single`."""
+    ``class_evidence``, ``associate_on``: see :func:`run_single`."""
     calls = {
         seed: (
             run_single,
@@ -100,6 +101,7 @@ def run_study(
             gossip,
             detector,
             class_evidence,
+            associate_on,
         )
         for i, seed in enumerate(seeds)
     }
@@ -155,6 +157,7 @@ def run_single(
     gossip: str = "delta",
     detector: Detector | None = None,
     class_evidence: bool = True,
+    associate_on: str = ASSOCIATE_ON[0],
 ) -> RunResult:
     """Run every method on one seeded realisation of ``scenario``; ``comm`` overrides the
     scenario's communication mode for the distributed methods, ``gossip`` says what the fleets'
@@ -164,11 +167,14 @@ def run_single(
     across the fleet (``distributed``, ``double_count``; not ``centralized`` or ``received``:
     :func:`without_ids_needs`), and scored against the simulator's truth (``association`` of
     the result); ``class_evidence`` False: the robots' and the fleet's association on geometry
-    alone (the baseline of issue 45's twins).
+    alone (the baseline of issue 45's twins); ``associate_on``: what the fleets' robots
+    associate such frames on (:data:`ASSOCIATE_ON`: each node's D, or its own L).
     ``scored``: the steps at which the beliefs are scored (default every step; the metrics of the
     others stay NaN). Scoring queries every hypothesis' marginal covariances, about a fifth of a
     run's time: a caller that reads only some steps' metrics saves it; the beliefs themselves do
     not change."""
+    if associate_on not in ASSOCIATE_ON:
+        raise ValueError(f"associate_on must be one of {ASSOCIATE_ON}, got {associate_on!r}")
     unknown = [m for m in methods if m not in METHODS]
     if unknown:
         raise ValueError(f"unknown methods {unknown} (known: {', '.join(METHODS)})")
@@ -218,6 +224,7 @@ def run_single(
             gossip,
             labels,
             class_evidence,
+            associate_on,
         )
     if "centralized" in methods:
         rec = recorders["centralized"]
@@ -282,24 +289,36 @@ def _run_shared_local(
     gossip: str = "delta",
     labels: Mapping[str, Sequence[Sequence[int]]] | None = None,
     class_evidence: bool = True,
+    associate_on: str = ASSOCIATE_ON[0],
 ) -> None:
     """``local`` and the fleets (``distributed``, ``double_count``) in one lock-step loop over one
     local belief per robot: L depends on the robot's own data only, so every method sees the very
     same L, stepped once. Metrics of ``local`` come from L, those of the fleets from each D.
     Frames without global ids are associated on each robot (``LocalTrack``), and the decisions
-    scored against ``labels`` (per robot and step, the truth of each detection)."""
+    scored against ``labels`` (per robot and step, the truth of each detection).
+    ``associate_on = "fused"`` with such frames: each fleet's nodes associate on their own D
+    (``Associator.associate``'s guide), so each fleet has its own L per robot, scored on its
+    own, and ``local`` keeps the robot alone (its L associates on itself)."""
     robots = scenario.robot_ids
     index = {r: i for i, r in enumerate(robots)}
-    tracks = {
-        r: LocalTrack(
-            HybridBelief(model, {r: scenario.robot(r).start}, config),
-            belief_rng(seed, [r]),
-            Associator(
-                model, sensor_field(scenario, r), AssociationConfig(class_evidence=class_evidence)
-            ),
-        )
-        for r in robots
-    }
+    guided = associate_on == "fused" and labels is not None
+
+    def new_tracks(guide: bool) -> dict[str, LocalTrack]:
+        return {
+            r: LocalTrack(
+                HybridBelief(model, {r: scenario.robot(r).start}, config),
+                belief_rng(seed, [r]),
+                Associator(
+                    model,
+                    sensor_field(scenario, r),
+                    AssociationConfig(class_evidence=class_evidence),
+                ),
+                guided=guide,
+            )
+            for r in robots
+        }
+
+    tracks = new_tracks(False)
     fleets = [
         make_nodes(
             scenario,
@@ -307,7 +326,7 @@ def _run_shared_local(
             config,
             lambda r: belief_rng(seed, [r]),
             FLEET_METHODS[m],
-            tracks=tracks,
+            tracks=new_tracks(True) if guided else tracks,
         )
         for m in fleet_methods
     ]
@@ -320,6 +339,8 @@ def _run_shared_local(
     tallies: dict[str, AssociationTally] = local.tallies if local is not None else {}
 
     def step_locals(k: int) -> None:
+        if guided and local is None:
+            return  # every fleet's node steps its own L
         for r in robots:
             t = time.perf_counter()
             tracks[r].advance(frames[r][k - 1], time.perf_counter)
@@ -335,11 +356,17 @@ def _run_shared_local(
                 local.record(tracks[r].belief, index[r], r, k, ms)
 
     def on_step_for(rec: Recorder) -> StepCallback:
+        own = rec.tallies if guided else tallies  # a guided fleet's L is its own
+
         def on_step(robot: str, k: int, node: RobotNode, fused_ms: float, ms: float) -> None:
             rec.step_ms.append(ms)
             rec.fusion_ms.append(fused_ms)
-            if robot in tallies and rec.scores(k):
-                rec.truth_of[robot] = d_truth(node, tallies)
+            association = node.track.association
+            if guided and labels and association is not None and association.frame.k == k:
+                tally = own.setdefault(robot, AssociationTally())
+                tally.add(association, labels[robot][k - 1], 1e3 * node.track.association_s)
+            if robot in own and rec.scores(k):
+                rec.truth_of[robot] = d_truth(node, own)
             rec.record(node.distributed, index[robot], robot, k, ms)
             if rec is received_by:
                 versions = {o: node.stack.version_of(o) for o in robots if o != robot}
@@ -354,8 +381,11 @@ def _run_shared_local(
     )
     for m, st, nodes in zip(fleet_methods, stats, fleets, strict=True):
         recorders[m].fleet = st
-        if tallies:
-            recorders[m].fleet_counts = fleet_counts(nodes, tallies)
+        own = recorders[m].tallies if guided else tallies
+        if own:
+            recorders[m].fleet_counts = fleet_counts(nodes, own)
+        if guided:
+            recorders[m].confirmed = {r: list(nodes[r].local.object_ids) for r in own}
     if local is not None:
         local.confirmed = {r: list(tracks[r].belief.object_ids) for r in local.tallies}
 

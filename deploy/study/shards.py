@@ -24,7 +24,7 @@ from typing import Any
 from deploy.base.errors import UsageError
 from deploy.study.archive import ENVELOPE, ResultsArchive, read_folder, study_archive, study_runs
 from deploy.study.paper_figures import PaperValue
-from deploy.study.types import RunResult
+from deploy.study.types import ASSOCIATE_ON, RunResult
 from estimator.hybrid import BeliefConfig
 from sim.scenario import Scenario
 from sim.sensors import Detector
@@ -69,11 +69,13 @@ def study_key(
     gossip: str = "delta",
     detector: Detector | None = None,
     class_evidence: bool = True,
+    associate_on: str = ASSOCIATE_ON[0],
 ) -> str:
     """The fingerprint of what decides a study's numbers besides its seeds (hex SHA-256). The
     scenario's ``source`` (the path it was read from) is left out: the same world may live in
     different folders on different machines. A ``detector`` of given-id frames (the default)
-    leaves the key as it was before detectors existed, and so does ``class_evidence`` on."""
+    leaves the key as it was before detectors existed, and so do ``class_evidence`` on and
+    ``associate_on`` at its default."""
     try:
         version = importlib.metadata.version("semfleet")
     except importlib.metadata.PackageNotFoundError:
@@ -84,6 +86,8 @@ def study_key(
         parts = (*parts, detector)
     if not class_evidence:
         parts = (*parts, "association on geometry alone")
+    if associate_on != ASSOCIATE_ON[0]:
+        parts = (*parts, f"association on {associate_on}")
     text = repr(parts)
     return hashlib.sha256(text.encode()).hexdigest()
 

@@ -13,6 +13,10 @@ from numpy.typing import NDArray
 from deploy.base.errors import RunFailure
 from estimator.hybrid import BeliefSnapshot
 
+# What a fleet's robots associate frames without global ids on (the first is the default): their
+# own L (the robot alone, as ``local`` always does), or each node's D (``Associator``'s guide).
+ASSOCIATE_ON = ("local", "fused")
+
 Array = NDArray[np.float64]
 
 # What a run records per robot and step next to the metrics, (robots, steps, 3) each: the

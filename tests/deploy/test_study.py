@@ -19,6 +19,7 @@ from deploy.cli.main import main
 from deploy.study.archive import study_archive
 from deploy.study.report import render_summary, table_steps
 from deploy.study.runner import run_single
+from deploy.study.types import ASSOCIATE_ON
 from estimator.distributed import FusionStats
 from estimator.hybrid import POSE_WINDOW, BeliefConfig
 from estimator.metrics import CROSS_METRICS, ECE_BINS, METRICS, class_comparison, ece_from_stats
@@ -736,3 +737,37 @@ def test_confirmable_is_a_given_id_reference_and_needs_global_ids(tmp_path: Path
     assert doc["detector"]["confirmable"] == {"confirm": 3, "drop_after": 3, "forget_after": 50}
     assert main([*argv, "--ids", "none", "--confirmable", "--out", str(tmp_path / "no")]) == 2
     assert not (tmp_path / "no").exists()
+
+
+def test_associate_on_fused_gives_each_fleet_its_own_guided_robots(tmp_path: Path) -> None:
+    """Frames without ids: with ``--associate-on fused`` each fleet robot's association gates
+    on its node's D, so the fleet's robots are scored on their own (``association`` of
+    ``distributed``) beside ``local``'s robots alone; ``local`` is the shared L (only ``local``
+    scored). The choice is in results.json when not the default, and refused with given ids."""
+    paper = load_scenario("paper")
+    detector = Detector("none", clutter=0.05)
+    runs = {
+        on: run_single(
+            paper, ["local", "distributed"], 3, BeliefConfig(), detector=detector, associate_on=on
+        )
+        for on in ASSOCIATE_ON
+    }
+    fused, alone = runs["fused"], runs["local"]
+    assert set(fused.association) == {"local", "distributed"} and set(alone.association) == {
+        "local"
+    }
+    assert fused.association["local"] == alone.association["local"]  # the robot alone, both ways
+    np.testing.assert_array_equal(
+        fused.metrics["local"]["robot_error"], alone.metrics["local"]["robot_error"]
+    )
+    guided = fused.association["distributed"]
+    assert guided["right"] >= 0.95 * guided["matched"] > 0 and guided["confirmed"] >= 10
+    with pytest.raises(ValueError, match="associate_on must be one of"):
+        run_single(paper, ["local"], 0, BeliefConfig(), detector=detector, associate_on="D")
+    argv = ["study", "--scenario", "paper", "--methods", "local,distributed", "--runs", "1"]
+    other = ASSOCIATE_ON[1]
+    out = tmp_path / "other"
+    assert main([*argv, "--ids", "none", "--associate-on", other, "--out", str(out)]) == 0
+    doc = json.loads((out / "results.json").read_text())
+    assert doc["association"] == {"associate_on": other}
+    assert main([*argv, "--associate-on", other, "--out", str(tmp_path / "given")]) == 2

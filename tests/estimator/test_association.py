@@ -366,3 +366,55 @@ def test_pair_takes_only_the_objects_it_is_given_and_leaves_the_tentatives() -> 
     assert seen not in assoc.pair(belief, frame, others).values()
     assert assoc.pair(belief, frame, ()) == {}
     assert assoc.tentative == [] and assoc.next_track == 0
+
+
+@pytest.mark.parametrize("kind", ["pose", "point"])
+def test_a_guide_that_knows_the_robot_pairs_what_a_drifted_belief_splits(kind: str) -> None:
+    """L and a guide step on the same frames, but L takes one step's odometry 1.5 m off (a
+    drift burst, no detection in it). Associated on L, the next frame's detections of mapped
+    objects fall outside every gate and start new tentative objects (splits); guided by the
+    belief that kept the true odometry, every one goes to its own object. What enters L is
+    still L's own detection; a guide at another step is refused."""
+    s = generate_scenario(1, 40, 3, seed=31, steps=40, area=24.0, kind=kind)
+    robot = s.robot_ids[0]
+    model = belief_model(s)
+    sim = Simulator(s, 0)
+    beliefs = [HybridBelief(model, {robot: s.robots[0].start}) for _ in range(2)]
+    rngs = [belief_rng(0, [robot]) for _ in range(2)]
+    k = next(  # a step that sees at least two objects the robot saw before it
+        k
+        for k in range(12, s.steps)
+        if len(
+            {d.object_id for d in sim.frame(robot, k + 1).detections}
+            & {d.object_id for j in range(1, k) for d in sim.frame(robot, j).detections}
+        )
+        >= 2
+    )
+    for j in range(1, k):
+        for b, rng in zip(beliefs, rngs, strict=True):
+            b.step([sim.frame(robot, j)], rng)
+    true = sim.frame(robot, k)
+    off = np.array([1.5, 0.0, 0.0])
+    burst = SensorFrame(robot, k, true.odometry + off, (), true.true_pose)
+    local, guide = beliefs
+    local.step([burst], rngs[0])
+    guide.step([dataclasses.replace(true, detections=())], rngs[1])
+    frame, labels = Simulator(s, 0, detector=Detector(NO_IDS)).labelled_frame(robot, k + 1)
+    mapped = [i for i, lab in enumerate(labels) if lab in local.object_ids]
+    assert len(mapped) >= 2
+    alone = _associator(s).associate(local, frame)
+    guided = _associator(s).associate(local, frame, guide)
+    assert all(guided.tracks[i] == labels[i] for i in mapped), (guided.tracks, labels)
+    assert sum(alone.tracks[i] == labels[i] for i in mapped) < len(mapped) / 2
+    entered = {d.object_id for d in guided.frame.detections}
+    assert entered == {labels[i] for i in mapped}
+    with pytest.raises(ValueError, match="guide of r1's association is at step"):
+        _associator(s).associate(
+            local, sim.frame(robot, k + 1), beliefs[0] if False else _ahead(guide, sim, robot, k)
+        )
+
+
+def _ahead(belief: HybridBelief, sim: Simulator, robot: str, k: int) -> HybridBelief:
+    """``belief`` one step further (a guide at another step than the belief it guides)."""
+    belief.step([sim.frame(robot, k + 1)], belief_rng(1, [robot]))
+    return belief

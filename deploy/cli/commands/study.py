@@ -36,6 +36,7 @@ from deploy.study.fleet import COMM_MODES, GOSSIP_MODES
 from deploy.study.paper_figures import PAPER_SOURCE, PaperValue, compare, paper_world_error
 from deploy.study.report import render_association, render_paper, render_summary, write_plots
 from deploy.study.runner import (
+    ASSOCIATE_ON,
     DEFAULT_METHODS,
     METHODS,
     RECEIVED_NEEDS,
@@ -154,6 +155,10 @@ def run(args: argparse.Namespace, console: Console, own: dict[str, tuple[str, An
     class_evidence = args.class_evidence == "on"
     if not class_evidence and detector.ids == GLOBAL_IDS:
         raise UsageError("--class-evidence off: only frames without global ids are associated")
+    if args.associate_on != ASSOCIATE_ON[0] and detector.ids == GLOBAL_IDS:
+        raise UsageError(
+            f"--associate-on {args.associate_on}: only frames without global ids are associated"
+        )
     out = new_folder(Path(args.out), "--out", args.force)  # before any run, not after them
     where = plural(args.jobs, "job") if args.cluster is None else f"Dask cluster {args.cluster}"
     which = f"seeds {seeds[0]}..{seeds[-1]}"
@@ -180,6 +185,7 @@ def run(args: argparse.Namespace, console: Console, own: dict[str, tuple[str, An
             gossip=args.gossip,
             detector=detector,
             class_evidence=class_evidence,
+            associate_on=args.associate_on,
         )
     settings = {
         "weight_estimator": args.weights,
@@ -203,11 +209,23 @@ def run(args: argparse.Namespace, console: Console, own: dict[str, tuple[str, An
         }
         if detector.confirmable is not None:
             settings["detector"]["confirmable"] = dataclasses.asdict(detector.confirmable)
+    association: dict[str, Any] = {}
     if not class_evidence:
-        settings["association"] = {"class_evidence": False}
+        association["class_evidence"] = False
+    if args.associate_on != ASSOCIATE_ON[0]:
+        association["associate_on"] = args.associate_on
+    if association:
+        settings["association"] = association
     if args.shard is not None:
         key = study_key(
-            scenario, args.methods, config, args.comm, args.gossip, detector, class_evidence
+            scenario,
+            args.methods,
+            config,
+            args.comm,
+            args.gossip,
+            detector,
+            class_evidence,
+            args.associate_on,
         )
         settings["shard"] = shard_entry(args.shard, seeds, step, robot, key)
     archive = study_archive(scenario.name, results, args.methods, settings)
@@ -295,6 +313,13 @@ def add_parser(sub: Any) -> None:
         default="on",
         help="frames without ids: whether the robots' and the fleet's association weigh the "
         "class scores (default) or geometry alone (the baseline)",
+    )
+    p.add_argument(
+        "--associate-on",
+        choices=ASSOCIATE_ON,
+        default=ASSOCIATE_ON[0],
+        help="frames without ids: what each fleet robot's association gates on: local, its own "
+        f"L, or fused, its node's D (default {ASSOCIATE_ON[0]}; the method local always uses L)",
     )
     p.add_argument("--runs", type=positive_int, default=10)
     p.add_argument("--jobs", type=positive_int, default=2, help="parallel processes")
