@@ -440,7 +440,7 @@ class RobotNode:
         if local is None:
             associator = None if sensor is None else Associator(model, sensor)
             local = LocalTrack(
-                HybridBelief(model, {robot: start}, config), rng_local, associator, guided=False
+                HybridBelief(model, {robot: start}, config), rng_local, associator, guided=True
             )
         if local.robot != robot:
             raise ValueError(f"node {robot} got the local track of {local.robot}")

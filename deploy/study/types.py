@@ -13,9 +13,9 @@ from numpy.typing import NDArray
 from deploy.base.errors import RunFailure
 from estimator.hybrid import BeliefSnapshot
 
-# What a fleet's robots associate frames without global ids on (the first is the default): their
-# own L (the robot alone, as ``local`` always does), or each node's D (``Associator``'s guide).
-ASSOCIATE_ON = ("local", "fused")
+# What a fleet's robots associate frames without global ids on (the first is the default): each
+# node's D (``Associator``'s guide), or their own L (the robot alone, as ``local`` always does).
+ASSOCIATE_ON = ("fused", "local")
 
 Array = NDArray[np.float64]
 
