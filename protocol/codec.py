@@ -1248,11 +1248,13 @@ def _decode_objects(body: memoryview, where: str, n: int, lim: Limits) -> Object
         d = dim
     local_ids = "ids" in raw
     if local_ids:
+        value = raw["ids"]
+        shown = repr(value[:16]) if isinstance(value, str) else type(value).__name__  # bounded
         need(
-            raw["ids"] == LOCAL_IDS_VALUE,
+            value == LOCAL_IDS_VALUE,
             f"{field}.ids",
-            f"{raw['ids']!r} is not a known id kind (expected {LOCAL_IDS_VALUE!r}; a slot of "
-            "global ids has no ids)",
+            f"{shown} is not a known id kind (expected {LOCAL_IDS_VALUE!r}; a slot of global "
+            "ids has no ids)",
             InvalidValue,
         )
         raw = {key: value for key, value in raw.items() if key != "ids"}

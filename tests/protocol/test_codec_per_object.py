@@ -1467,3 +1467,9 @@ def test_the_id_kind_is_signed() -> None:
     doc["slots"][0]["real"]["ids"] = "local"
     with pytest.raises(BadSignature):
         decode(pack(doc), LIM, PUBLIC)
+
+
+def test_an_id_kind_error_shows_a_bounded_part_of_what_came() -> None:
+    with pytest.raises(InvalidValue) as caught:
+        decode(WIRE.with_((*PO, "ids"), "x" * 100_000), LIM)
+    assert len(str(caught.value)) < 200
