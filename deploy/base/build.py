@@ -121,6 +121,7 @@ def make_node(
     epoch: int = 0,
     sensor: SensorField | None = None,
     keep_slots: int | None = None,
+    guided: bool = True,
 ) -> RobotNode:
     """The node of ``robot`` starting at ``start`` (3,) in run ``seed``, exactly as
     :func:`make_nodes` builds it with ``rng_for = lambda r: belief_rng(seed, [r])``; ``roster``
@@ -128,9 +129,10 @@ def make_node(
     sends (default: the wire defaults with the model's class count); ``epoch`` its own slots'
     epoch (docs/wire.md, "Versions and epochs"); ``sensor``: the robot's sensor field, with
     which it associates frames without global ids (``estimator.association``); ``keep_slots``:
-    the slots it keeps, its own included (default: a stack's ``max_slots``)."""
+    the slots it keeps, its own included (default: a stack's ``max_slots``); ``guided``: its
+    association gates on its D (default) or, False, on its own L."""
     rng_for = lambda r: belief_rng(seed, [r])  # noqa: E731
-    return _node(
+    node = _node(
         robot,
         start,
         model,
@@ -145,6 +147,8 @@ def make_node(
         sensor=sensor,
         keep_slots=keep_slots,
     )
+    node.track.guided = guided
+    return node
 
 
 def make_nodes(

@@ -18,6 +18,7 @@ from agents.node import Signing
 from agents.ros2.bridge import Ros2Settings
 from agents.transport.zenoh_transport import ZenohConfigError, ZenohSettings
 from deploy.operator.ros2_config import read_ros2
+from deploy.study.types import ASSOCIATE_ON
 from estimator.hybrid import CLASS_KINDS, POSE_WINDOW, BeliefConfig
 from protocol.codec import Limits
 from protocol.signing import admitted
@@ -60,12 +61,15 @@ class AgentConfig:
     # The slots this robot keeps, its own included (None: a stack's max_slots, 64; docs/
     # distributed.md, "How many robots a D holds").
     keep_slots: int | None = None
+    # Frames without global ids: what the robot's association gates on, its D or its own L
+    # (docs/estimator.md, "Data association on the robot").
+    associate_on: str = ASSOCIATE_ON[0]
 
 
 _AGENT_KEYS = {
     "fleet", "model", "start", "roster", "seed", "mode", "gossip_period", "journal",
     "publish_local", "simulation", "window", "world_extent", "stack_gossip", "relay", "catch_up",
-    "listen_in_range", "classes", "pose_window", "keep_slots",
+    "listen_in_range", "classes", "pose_window", "keep_slots", "associate_on",
 }  # fmt: skip
 _ZENOH_KEYS = {
     "listen", "connect", "gossip", "shared_memory", "lease_ms", "config_file", "insecure", "mode",
@@ -205,6 +209,9 @@ def _read_agent_config(path: Path, robot: str) -> AgentConfig:
     if classes not in CLASS_KINDS:
         raise a.fail("classes", f"{classes!r} (known: {', '.join(CLASS_KINDS)})")
     pose_window = _pose_window(a, classes)
+    associate_on = a.string("associate_on") if a.has("associate_on") else ASSOCIATE_ON[0]
+    if associate_on not in ASSOCIATE_ON:
+        raise a.fail("associate_on", f"{associate_on!r} (known: {', '.join(ASSOCIATE_ON)})")
     runtime = CoreSettings(
         mode=mode,
         stack_gossip=stack_gossip,
@@ -263,4 +270,5 @@ def _read_agent_config(path: Path, robot: str) -> AgentConfig:
         classes=classes,
         pose_window=pose_window,
         keep_slots=a.integer("keep_slots", 2, limits.max_slots) if a.has("keep_slots") else None,
+        associate_on=associate_on,
     )

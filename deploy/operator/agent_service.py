@@ -50,6 +50,7 @@ def node_factory(config: AgentConfig, epoch: int = 0) -> Callable[[], RobotNode]
         epoch=epoch,
         sensor=sensor_field(config.model),
         keep_slots=config.keep_slots,
+        guided=config.associate_on == "fused",
     )
 
 
@@ -57,7 +58,7 @@ def journal_identity(config: AgentConfig) -> dict[str, str | int]:
     """What a journal must have been written by: this robot, fleet, model, start, seed, mode."""
     model = zlib.crc32(dump_robot_model(config.model).encode())
     start = zlib.crc32(repr(config.start).encode())
-    return {
+    identity: dict[str, str | int] = {
         "robot": config.robot,
         "fleet": config.fleet,
         "model": f"{model:08x}",
@@ -65,6 +66,9 @@ def journal_identity(config: AgentConfig) -> dict[str, str | int]:
         "seed": config.seed,
         "mode": config.runtime.mode,
     }
+    if config.associate_on != "fused":  # replayed frames would be associated otherwise
+        identity["associate_on"] = config.associate_on
+    return identity
 
 
 def build_agent(config: AgentConfig, transport: ZenohTransport) -> Agent:

@@ -123,6 +123,24 @@ def test_agent_config_keep_slots_bounds_the_slots_a_robot_keeps(tmp_path: Path) 
     assert default.keep_slots is None and node_factory(default)().keep_slots == 64
 
 
+def test_agent_config_associate_on_reaches_the_nodes_track_and_the_journal(
+    tmp_path: Path,
+) -> None:
+    """``associate_on``: the robot's association gates on its D (default) or its own L; a
+    journal written under the other setting is not replayed (its frames would associate
+    otherwise); a value it does not know is refused by name."""
+    from deploy.operator.agent_service import journal_identity
+
+    default = load_agent_config(_write(tmp_path, MINIMAL), "r2")
+    assert default.associate_on == "fused" and node_factory(default)().track.guided
+    alone = load_agent_config(_write(tmp_path, _set("agent.associate_on", '"local"')), "r1")
+    assert alone.associate_on == "local" and not node_factory(alone)().track.guided
+    assert "associate_on" not in journal_identity(default)
+    assert journal_identity(alone)["associate_on"] == "local"
+    with pytest.raises(AgentConfigError, match=r"agent\.associate_on.*'L'"):
+        load_agent_config(_write(tmp_path, _set("agent.associate_on", '"L"')), "r1")
+
+
 def test_agent_config_relay_is_event_by_default_or_tick(tmp_path: Path) -> None:
     text = _set("agent.relay", '"tick"')
     assert load_agent_config(_write(tmp_path, text), "r1").runtime.relay == "tick"
