@@ -301,7 +301,10 @@ def _run_shared_local(
     own, and ``local`` keeps the robot alone (its L associates on itself)."""
     robots = scenario.robot_ids
     index = {r: i for i, r in enumerate(robots)}
-    guided = associate_on == "fused" and labels is not None
+    # only frames without global ids are associated: with given ids the fleets share L as before
+    guided = associate_on == "fused" and any(
+        fl[0].ids != GLOBAL_IDS for fl in frames.values() if fl
+    )
 
     def new_tracks(guide: bool) -> dict[str, LocalTrack]:
         return {

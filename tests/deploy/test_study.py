@@ -771,3 +771,28 @@ def test_associate_on_fused_gives_each_fleet_its_own_guided_robots(tmp_path: Pat
     doc = json.loads((out / "results.json").read_text())
     assert doc["association"] == {"associate_on": other}
     assert main([*argv, "--associate-on", other, "--out", str(tmp_path / "given")]) == 2
+
+
+def test_given_ids_share_one_l_per_robot_whatever_associate_on(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Only frames without global ids are associated: with given ids (clutter included) the
+    fleets step the very L ``local`` does, one per robot, not one per fleet (a run of L per
+    fleet doubled D's step time with the same results)."""
+    import agents.node
+
+    made: list[str] = []
+    original = agents.node.LocalTrack.__init__
+
+    def counting(self: agents.node.LocalTrack, *args: Any, **kwargs: Any) -> None:
+        original(self, *args, **kwargs)
+        made.append(self.robot)
+
+    monkeypatch.setattr(agents.node.LocalTrack, "__init__", counting)
+    paper = load_scenario("paper")
+    methods = ["local", "distributed"]
+    run_single(paper, methods, 0, BeliefConfig(), detector=Detector(clutter=0.1))
+    assert sorted(made) == sorted(paper.robot_ids)
+    made.clear()
+    run_single(paper, methods, 0, BeliefConfig(), detector=Detector("none"))
+    assert sorted(made) == sorted(paper.robot_ids * 2)  # local's, and the fleet's own
