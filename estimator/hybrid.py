@@ -40,7 +40,7 @@ from estimator.models.objects import POSE, ObjectKind
 from estimator.pruning import PRUNINGS, PruningRule, class_marginals, match_marginals, select
 from estimator.smoother import WindowedISAM2, marginal_covariances, pose_steps
 from estimator.snapshot import BeliefSnapshot  # re-exported: it used to live here
-from estimator.sparse_xi import SparseXi, Structure
+from estimator.sparse_xi import MAX_XI_PARENTS, XI_PARENTS, SparseXi, Structure
 from estimator.summary import Xi
 from estimator.weights import (
     WEIGHT_ESTIMATORS,
@@ -148,6 +148,9 @@ class BeliefConfig:
     (docs/estimator.md, "Sparse ξ"); ``"auto"`` (default) the dense ξ up to
     ``SPARSE_XI_ABOVE`` objects and the sparse one above, where it is the cheaper (measured
     there). Joint class tables always send dense ξ (``"auto"`` or ``"dense"``).
+    ``xi_parents``: a sparse ξ's Bayes net gives each object its tree parent and up to this many
+    more (0 to ``MAX_XI_PARENTS``): each one more buys back information (D's position σ) for
+    about 45 wire bytes per object (docs/estimator.md, "Sparse ξ": the curve, measured).
 
     ``slot_linearisation`` (``"per_object"`` only): where the owner linearises its own factors
     for its slot's ξ. ``"fused"`` (default): at its distributed belief's estimate, the best it
@@ -195,6 +198,7 @@ class BeliefConfig:
     semantic_poses: bool = False
     classes: str = "per_object"
     xi: str = "auto"
+    xi_parents: int = XI_PARENTS
     slot_linearisation: str = "fused"
     slot_evidence: str = "fused"
 
@@ -205,6 +209,8 @@ class BeliefConfig:
             raise ValueError(f"xi {self.xi!r} (known: {', '.join(XI_KINDS)})")
         if self.xi == "sparse" and self.classes != "per_object":
             raise ValueError('xi = "sparse" needs classes = "per_object"')
+        if not 0 <= self.xi_parents <= MAX_XI_PARENTS:
+            raise ValueError(f"xi_parents must be 0..{MAX_XI_PARENTS}, got {self.xi_parents}")
         if self.slot_linearisation not in SLOT_LINEARISATIONS:
             known = ", ".join(SLOT_LINEARISATIONS)
             raise ValueError(f"slot_linearisation {self.slot_linearisation!r} (known: {known})")

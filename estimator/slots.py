@@ -125,10 +125,11 @@ def _sparse(belief: HybridBelief, ids: tuple[int, ...], xi: Xi) -> SparseXi:
     """The conservative sparse form of ``xi`` in float32 (``SparseXi.float32``: the values that
     travel, still ⪯ Λ). The Bayes net of the previous one is reused while the belief's objects
     are the same, in the same order (only the values are recomputed: safe whatever the net;
-    fitting it is about a third of the cost); a new object fits a new one."""
+    fitting it is about a third of the cost); a new object fits a new one, with
+    ``BeliefConfig.xi_parents`` parents beyond each object's tree parent."""
     held = belief.xi_structure
     structure = held[1] if held is not None and held[0] == ids else None
-    sx = sparsify(xi, structure=structure)
+    sx = sparsify(xi, belief.config.xi_parents, structure)
     assert sx.structure is not None  # sparsify always says which net it used
     belief.xi_structure = (ids, sx.structure)
     return sx.float32()

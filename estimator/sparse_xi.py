@@ -40,6 +40,14 @@ Index = NDArray[np.intp]
 # dense products' (measured per sparsify, dense / sparse: 1.5 / 3.0 ms at 12 objects, 3.8 / 4.8 at
 # 36, 8.8 / 7.3 at 48, even at 64 and 96).
 DENSE_UP_TO = 40
+# Parents of an object beyond its tree parent (``sparsify``'s ``extra_parents``,
+# ``BeliefConfig.xi_parents``): the default, and the most a slot may use. With p parents an
+# object brings at most p(p + 1)/2 moral edges, so the most bounds a slot's edges on the wire
+# (protocol.codec.MAX_EDGES_PER_OBJECT). Each one more costs about 45 bytes per object and buys
+# back information; measured on the dense world, D's position σ against the dense ξ's: 1.37, 1.27,
+# 1.20 at 1, 2, 3 (docs/estimator.md, "Sparse ξ").
+XI_PARENTS = 2
+MAX_XI_PARENTS = 3
 CANDIDATES = 8  # extra parents are sought among this many earlier objects of highest MI
 # Λ_s is scaled by 1 − MARGIN (§3 step 5): Λ − Λ_s ⪰ 0 is exact in exact arithmetic, and the
 # margin absorbs the float64 rounding of Σ and of the bound (~u·κ(Λ) relative).
@@ -136,7 +144,9 @@ class SparseXi:
         return SparseXi(self.lin, diag32, self.edges, edge32, eta32, self.structure)
 
 
-def sparsify(xi: Xi, extra_parents: int = 2, structure: Structure | None = None) -> SparseXi:
+def sparsify(
+    xi: Xi, extra_parents: int = XI_PARENTS, structure: Structure | None = None
+) -> SparseXi:
     """The conservative sparse form of ``xi`` (§3): Λ_s ⪯ Λ (Loewner), positive definite, on
     the moral graph of a Bayes net, scaled by 1 − ``MARGIN``; η_s = Λ_s Λ⁻¹ η keeps the mean.
     The net is ``structure`` if given (same n; its values are recomputed), else fitted: the

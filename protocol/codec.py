@@ -27,7 +27,7 @@ from numpy.typing import NDArray
 from scipy.linalg.lapack import dpotrf
 
 from estimator.models.frames import MAX_STEP
-from estimator.sparse_xi import SparseXi
+from estimator.sparse_xi import MAX_XI_PARENTS, SparseXi
 from estimator.summary import LocalSummary, ObjectClasses, Realisations, WireForm, Xi
 from protocol.errors import (
     BadSignature,
@@ -93,8 +93,9 @@ _SPARSE_KEYS = frozenset(
     {"kind", "dim", "m", "phi", "lin", "xi", "diag", "edges", "edge_info", "eta"}
 )
 # Edges per object a sparse ξ may have: a Bayes net with p parents per object has at most
-# p(p + 1)/2 moral edges per object: 6 for the default 3 (tree parent + 2 extra), 10 for 4.
-MAX_EDGES_PER_OBJECT = 10
+# p(p + 1)/2 moral edges per object: 6 for the default 3 (tree parent + 2 extra), 10 for the
+# most a sender may use (tree parent + MAX_XI_PARENTS = 3).
+MAX_EDGES_PER_OBJECT = (1 + MAX_XI_PARENTS) * (2 + MAX_XI_PARENTS) // 2
 _EDGE_INDEX = np.dtype("<u2")  # an edge's object indices: so a sparse ξ has < 65 536 objects
 MAX_SPARSE_OBJECTS = 2**16 - 1
 _UPPER3 = np.triu_indices(3)  # a 3 × 3 block's 6 upper entries, row by row

@@ -476,6 +476,9 @@ def test_run_single_rejects_unknown_method() -> None:
             for joint in ("marginal", "paper", "exact")
         ),
         (["--hypotheses", "per_object", "--xi", "banded"], "invalid choice: 'banded'"),
+        (["--xi", "dense", "--xi-parents", "3"], "--xi-parents shapes a sparse ξ: it needs"),
+        (["--hypotheses", "marginal", "--xi-parents", "0"], "--xi-parents shapes a sparse ξ"),
+        (["--xi-parents", "4"], "invalid choice: 4 (choose from 0, 1, 2, 3)"),
         (["--semantic-poses"], "--semantic-poses needs a continuous belief per class"),
         (["--window", "5", "--hypotheses", "marginal"], "--window 5 needs --hypotheses per_object"),
         (["--window", "0"], "--window must be ≥ 1 step (or all), got 0"),
@@ -564,6 +567,23 @@ def test_study_xi_and_window_reach_the_beliefs_and_the_results(
     for method in methods:
         error = doc["methods"][method]["mean"]["object_error"]
         assert all(v is None or np.isfinite(v) for v in error) and error[-1] is not None
+
+
+def test_study_xi_parents_reach_the_slots_and_the_results(tmp_path: Path) -> None:
+    """--xi-parents shapes the fleet's sparse slots: on the paper's world (12 objects, enough
+    for parents to choose from) the stacks grow with the parents (more edges); a study on the
+    default writes no key."""
+    doc = {}
+    for parents in ("0", "2", "3"):
+        out = tmp_path / parents
+        options = ("--xi", "sparse", "--xi-parents", parents, "--runs", "1", "--jobs", "1")
+        r = study(Path("paper"), out, "--methods", "distributed", *options)
+        assert r.returncode == 0, r.stderr
+        doc[parents] = read_json(out)
+    assert "xi_parents" not in doc["2"]
+    assert doc["0"]["xi_parents"] == 0 and doc["3"]["xi_parents"] == 3
+    mean = {p: d["methods"]["distributed"]["stack_bytes_mean"] for p, d in doc.items()}
+    assert mean["0"] < mean["2"] < mean["3"], mean
 
 
 @pytest.mark.parametrize(

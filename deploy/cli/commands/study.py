@@ -53,6 +53,7 @@ from estimator.hybrid import (
     BeliefConfig,
 )
 from estimator.models import GLOBAL_IDS
+from estimator.sparse_xi import MAX_XI_PARENTS, XI_PARENTS
 from estimator.weights import WEIGHT_ESTIMATORS
 
 
@@ -110,6 +111,13 @@ def run(args: argparse.Namespace, console: Console, own: dict[str, tuple[str, An
     if args.xi == "sparse" and args.hypotheses != "per_object":
         raise UsageError(f"--xi {args.xi} needs --hypotheses per_object (one ξ per slot)")
     changes["xi"] = args.xi
+    if args.xi_parents != XI_PARENTS:
+        if args.hypotheses != "per_object" or args.xi == "dense":
+            raise UsageError(
+                "--xi-parents shapes a sparse ξ: it needs --hypotheses per_object and "
+                "--xi auto or sparse"
+            )
+        changes["xi_parents"] = args.xi_parents
     for option, value, field in (
         ("--slot-lin", args.slot_lin, "slot_linearisation"),
         ("--slot-evidence", args.slot_evidence, "slot_evidence"),
@@ -201,6 +209,8 @@ def run(args: argparse.Namespace, console: Console, own: dict[str, tuple[str, An
         "communication": comm,
         "gossip": args.gossip,
     }
+    if config.xi_parents != XI_PARENTS:  # a default study's settings stay those of before
+        settings["xi_parents"] = config.xi_parents
     if not detector.exact:  # a given-id study's settings stay those of before
         settings["detector"] = {
             "ids": detector.ids,
@@ -381,6 +391,16 @@ def add_parser(sub: Any) -> None:
         f"{SPARSE_XI_ABOVE} objects, sparse above), dense (the owner's exact Λ, (3n)² numbers) "
         "or sparse (a conservative Λ_s ⪯ Λ on a Bayes net's moral graph, linear in n; "
         "docs/estimator.md)",
+    )
+    p.add_argument(
+        "--xi-parents",
+        type=int,
+        choices=range(MAX_XI_PARENTS + 1),
+        default=XI_PARENTS,
+        metavar=f"0..{MAX_XI_PARENTS}",
+        help=f"a sparse ξ's Bayes net: parents of each object beyond its tree parent (default "
+        f"{XI_PARENTS}); each one more buys back D's position σ for about 45 bytes per object "
+        '(docs/estimator.md, "Sparse ξ")',
     )
     p.add_argument(
         "--slot-lin",
