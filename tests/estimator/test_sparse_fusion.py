@@ -17,6 +17,7 @@ import gtsam
 import numpy as np
 import pytest
 
+import estimator.distributed
 import estimator.slots
 from deploy.base.build import belief_model, belief_rng
 from estimator.distributed import (
@@ -215,6 +216,23 @@ def _hessian(
     for k in keys:
         ordering.push_back(k)
     return graph.hessian(ordering)
+
+
+def test_the_kept_groupings_are_bounded_and_build_the_same_factors() -> None:
+    """A receiver keeps the grouping of the last patterns it built factors for (a sender's
+    slots repeat theirs): a pattern seen again builds factors equal, byte for byte, to its
+    first ones, and however many patterns arrive (here 70 nets, each different) the receiver
+    keeps at most ``_GROUPS_KEPT``."""
+    estimator.distributed._groups_cached.cache_clear()
+    xi = _tour_xi(30, 7)
+    keys = [object_key(j) for j in range(30)]
+    first = [f.serialize() for f in sparse_xi_factors(keys, sparsify(xi).float32())]
+    for seed in range(70):
+        sparse_xi_factors(keys, sparsify(_tour_xi(30, 100 + seed)).float32())
+    info = estimator.distributed._groups_cached.cache_info()
+    assert info.currsize <= estimator.distributed._GROUPS_KEPT < 70
+    again = [f.serialize() for f in sparse_xi_factors(keys, sparsify(xi).float32())]
+    assert again == first
 
 
 @pytest.mark.parametrize(("n", "seed"), [(1, 0), (2, 1), (3, 2), (4, 3), (12, 4), (30, 5)])
