@@ -20,6 +20,7 @@ from agents.transport.zenoh_transport import ZenohConfigError, ZenohSettings
 from deploy.operator.ros2_config import read_ros2
 from deploy.study.types import ASSOCIATE_ON
 from estimator.hybrid import CLASS_KINDS, POSE_WINDOW, BeliefConfig
+from estimator.sparse_xi import MAX_XI_PARENTS, XI_PARENTS
 from protocol.codec import Limits
 from protocol.signing import admitted
 from protocol.validate import valid_id
@@ -64,12 +65,15 @@ class AgentConfig:
     # Frames without global ids: what the robot's association gates on, its D or its own L
     # (docs/estimator.md, "Data association on the robot").
     associate_on: str = ASSOCIATE_ON[0]
+    # BeliefConfig.xi_parents: a sparse slot's parents per object beyond its tree parent
+    # (docs/estimator.md, "What the sparse ξ loses, and what more parents buy").
+    xi_parents: int = XI_PARENTS
 
 
 _AGENT_KEYS = {
     "fleet", "model", "start", "roster", "seed", "mode", "gossip_period", "journal",
     "publish_local", "simulation", "window", "world_extent", "stack_gossip", "relay", "catch_up",
-    "listen_in_range", "classes", "pose_window", "keep_slots", "associate_on",
+    "listen_in_range", "classes", "pose_window", "keep_slots", "associate_on", "xi_parents",
 }  # fmt: skip
 _ZENOH_KEYS = {
     "listen", "connect", "gossip", "shared_memory", "lease_ms", "config_file", "insecure", "mode",
@@ -212,6 +216,11 @@ def _read_agent_config(path: Path, robot: str) -> AgentConfig:
     associate_on = a.string("associate_on") if a.has("associate_on") else ASSOCIATE_ON[0]
     if associate_on not in ASSOCIATE_ON:
         raise a.fail("associate_on", f"{associate_on!r} (known: {', '.join(ASSOCIATE_ON)})")
+    xi_parents = XI_PARENTS
+    if a.has("xi_parents"):
+        xi_parents = a.integer("xi_parents", 0, MAX_XI_PARENTS)
+        if classes != "per_object":
+            raise a.fail("xi_parents", 'shapes a sparse ξ: needs classes = "per_object"')
     runtime = CoreSettings(
         mode=mode,
         stack_gossip=stack_gossip,
@@ -271,4 +280,5 @@ def _read_agent_config(path: Path, robot: str) -> AgentConfig:
         pose_window=pose_window,
         keep_slots=a.integer("keep_slots", 2, limits.max_slots) if a.has("keep_slots") else None,
         associate_on=associate_on,
+        xi_parents=xi_parents,
     )

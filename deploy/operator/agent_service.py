@@ -43,7 +43,9 @@ def node_factory(config: AgentConfig, epoch: int = 0) -> Callable[[], RobotNode]
         config.start,
         model,
         config.seed,
-        BeliefConfig(classes=config.classes, window=config.pose_window),
+        BeliefConfig(
+            classes=config.classes, window=config.pose_window, xi_parents=config.xi_parents
+        ),
         roster=config.roster,
         limits=config.limits,
         signing=config.signing,

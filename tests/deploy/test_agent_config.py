@@ -187,6 +187,23 @@ def test_agent_config_pose_window_reaches_the_beliefs_of_the_agents_node(tmp_pat
         load_agent_config(_write(tmp_path, joint), "r1")
 
 
+def test_agent_config_xi_parents_reach_the_slots_of_the_agents_node(tmp_path: Path) -> None:
+    from deploy.operator.agent_service import node_factory
+
+    assert load_agent_config(_write(tmp_path, MINIMAL), "r2").xi_parents == 2
+    c = load_agent_config(_write(tmp_path, _set("agent.xi_parents", "3")), "r1")
+    node = node_factory(c)()
+    assert c.xi_parents == node.local.config.xi_parents == node.distributed.config.xi_parents == 3
+    for bad in ("4", "-1"):
+        with pytest.raises(AgentConfigError, match=r"agent\.xi_parents"):
+            load_agent_config(_write(tmp_path, _set("agent.xi_parents", bad)), "r1")
+    with pytest.raises(AgentConfigError, match=r"agent\.xi_parents: expected an integer"):
+        load_agent_config(_write(tmp_path, _set("agent.xi_parents", '"3"')), "r1")
+    joint = _set("agent.classes", '"joint"', _set("agent.xi_parents", "1"))
+    with pytest.raises(AgentConfigError, match=r"agent\.xi_parents: shapes a sparse ξ: needs"):
+        load_agent_config(_write(tmp_path, joint), "r1")
+
+
 def test_agent_config_defaults(tmp_path: Path) -> None:
     c = load_agent_config(_write(tmp_path, MINIMAL), "r2")
     assert (c.fleet, c.seed, c.runtime.mode, c.journal) == ("default", 0, "realtime", None)
